@@ -1,0 +1,193 @@
+"""The test plan, the machine's configuration and the analysis options.
+
+Names, units and defaults follow ``shared/DOMAIN.md`` section 1 and 7.  The plan
+is configuration: the analyzer assumes the timing of the program that
+:mod:`ballbar.analysis.program` generates from it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, Literal
+
+from .errors import PlanError
+
+Plane = Literal["XY", "YZ", "ZX"]
+Directions = Literal["both", "ccw", "cw"]
+
+PLANE_AXES: dict[str, tuple[str, str]] = {"XY": ("X", "Y"), "YZ": ("Y", "Z"), "ZX": ("Z", "X")}
+
+
+@dataclass(frozen=True)
+class TestPlan:
+    """One ball-bar test as programmed.
+
+    Angles in degrees, counter-clockwise from the plane's first axis; lengths in
+    millimetres; feed in mm/min; times in seconds.
+    """
+
+    __test__ = False  # not a pytest class
+
+    plane: Plane = "XY"
+    radius_mm: float = 100.0
+    feed_mm_min: float = 1000.0
+    start_deg: float = 0.0
+    overshoot_deg: float = 180.0
+    data_arc_deg: float = 360.0
+    feed_in_mm: float = 1.5
+    dwell_s: float = 0.5
+    directions: Directions = "both"
+    sample_hz: float = 1000.0
+
+    def __post_init__(self) -> None:
+        checks: list[tuple[bool, str]] = [
+            (self.plane in PLANE_AXES, f"plane must be one of XY, YZ, ZX, not {self.plane!r}"),
+            (_pos(self.radius_mm), f"radius_mm must be > 0, not {self.radius_mm!r}"),
+            (_pos(self.feed_mm_min), f"feed_mm_min must be > 0, not {self.feed_mm_min!r}"),
+            (_finite(self.start_deg), f"start_deg must be finite, not {self.start_deg!r}"),
+            (
+                _finite(self.overshoot_deg) and 0 <= self.overshoot_deg <= 360,
+                f"overshoot_deg must be within 0..360, not {self.overshoot_deg!r}",
+            ),
+            (
+                _finite(self.data_arc_deg) and 30 <= self.data_arc_deg <= 360,
+                f"data_arc_deg must be within 30..360, not {self.data_arc_deg!r}",
+            ),
+            (
+                _finite(self.feed_in_mm) and 0 < self.feed_in_mm < self.radius_mm,
+                f"feed_in_mm must be > 0 and below the radius, not {self.feed_in_mm!r}",
+            ),
+            (_finite(self.dwell_s) and self.dwell_s >= 0, f"dwell_s must be >= 0, not {self.dwell_s!r}"),
+            (
+                self.directions in ("both", "ccw", "cw"),
+                f"directions must be both, ccw or cw, not {self.directions!r}",
+            ),
+            (_pos(self.sample_hz), f"sample_hz must be > 0, not {self.sample_hz!r}"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise PlanError(msg)
+
+    @property
+    def feed_mm_s(self) -> float:
+        return self.feed_mm_min / 60.0
+
+    @property
+    def axes(self) -> tuple[str, str]:
+        return PLANE_AXES[self.plane]
+
+    @property
+    def arc_deg(self) -> float:
+        """Angle swept by one arc: overshoot, data arc, overshoot."""
+        return self.data_arc_deg + 2.0 * self.overshoot_deg
+
+    @property
+    def direction_list(self) -> tuple[int, ...]:
+        """Directions in the order the program runs them: +1 CCW, -1 CW."""
+        return {"both": (1, -1), "ccw": (1,), "cw": (-1,)}[self.directions]
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TestPlan:
+        return _from_dict(cls, data, "plan")
+
+    def with_(self, **changes: Any) -> TestPlan:
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class MachineConfig:
+    """What the analyzer may know of the machine besides the plan.
+
+    ``pitch_*_mm``: ball-screw pitch per axis of the plane, for the cyclic-error
+    pattern (left out when unknown).  ``kv_*_per_s``: configured position-loop
+    gains in 1/s, for the servo advice and the physical servo model.
+    ``controller``: names the compensation parameters in the advice.
+    """
+
+    pitch_x_mm: float | None = None
+    pitch_y_mm: float | None = None
+    kv_x_per_s: float | None = None
+    kv_y_per_s: float | None = None
+    controller: Literal["generic", "fanuc", "siemens", "heidenhain"] = "generic"
+    machine_id: str = "machine"
+
+    def __post_init__(self) -> None:
+        for name in ("pitch_x_mm", "pitch_y_mm", "kv_x_per_s", "kv_y_per_s"):
+            v = getattr(self, name)
+            if v is not None and not _pos(v):
+                raise PlanError(f"{name} must be > 0, not {v!r}")
+        if self.controller not in ("generic", "fanuc", "siemens", "heidenhain"):
+            raise PlanError(
+                f"controller must be generic, fanuc, siemens or heidenhain, not {self.controller!r}"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MachineConfig:
+        return _from_dict(cls, data, "machine")
+
+
+@dataclass(frozen=True)
+class AnalysisOptions:
+    """How the analyzer works; the defaults are what `ballbar analyze` uses.
+
+    ``significance``: the F-test level below which a pattern counts as found.
+    ``servo_model``: ``linear`` is the seed's mask; ``physical`` fits a first-order
+    loop per axis (needs the mean loop lag, from ``kv_*`` or measured from the
+    feed-in); ``auto`` uses ``physical`` when that lag is known.
+    ``vif_limit``: a parameter whose variance inflation exceeds this cannot be
+    separated from the others in this data and is left out with the reason.
+    ``vibration_cutoff_cpr``: residual content above this many cycles per
+    revolution counts as vibration.
+    """
+
+    significance: float = 0.05
+    servo_model: Literal["auto", "linear", "physical"] = "auto"
+    vif_limit: float = 1.0e4
+    vibration_cutoff_cpr: float = 30.0
+    spike_width_min_deg: float = 0.3
+    spike_width_max_deg: float = 30.0
+    estimate_lag: bool = True
+    max_lag_s: float = 0.5
+    patterns: tuple[str, ...] | None = None  # None: the whole library that the data supports
+
+    def __post_init__(self) -> None:
+        if not 0 < self.significance < 1:
+            raise PlanError(f"significance must be within (0, 1), not {self.significance!r}")
+        if self.servo_model not in ("auto", "linear", "physical"):
+            raise PlanError(f"servo_model must be auto, linear or physical, not {self.servo_model!r}")
+        if not 0 < self.spike_width_min_deg < self.spike_width_max_deg:
+            raise PlanError("spike widths must satisfy 0 < min < max")
+
+
+def _pos(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _from_dict(cls: Any, data: dict[str, Any], what: str) -> Any:
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise PlanError(f"unknown {what} key {unknown[0]!r} (known: {', '.join(sorted(known))})")
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        ftype = str(known[key].type)
+        if "float" in ftype and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if "float" in ftype and value is not None and not _finite(value):
+            raise PlanError(f"{what} key {key!r} must be a number, not {value!r}")
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+__all__ = ["PLANE_AXES", "AnalysisOptions", "Directions", "MachineConfig", "Plane", "TestPlan"]

@@ -1,0 +1,1 @@
+"""ballbar.tools"""
