@@ -1,0 +1,140 @@
+"""Parameter adjustment advice (DOMAIN.md section 6).
+
+For each significant pattern: what to change, by how much, with sign and unit,
+and the parameter's name on common controllers where it is well known.  The
+names are pointers for the engineer, not a promise that the value can be typed
+in as it is: units and conventions differ between controller generations
+(FANUC in detection units, SINUMERIK machine data in mm, HEIDENHAIN in mm or
+um depending on the TNC), so every item also states the value in um or um/m.
+
+Sign conventions: a positive ``backlash_x_um`` is lost motion the compensation
+must add; ``servo_mismatch_ms = 1/KX - 1/KY`` positive means X lags more (its
+gain is lower); ``squareness_urad`` positive means X tilted toward +Y, and the
+compensation is its opposite, in um/m.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .plan import MachineConfig, TestPlan
+
+CONTROLLER_PARAMS: dict[str, dict[str, str]] = {
+    "fanuc": {
+        "backlash": "No.1851 (backlash compensation, detection units)",
+        "gain": "No.1825 (servo loop gain, 0.01/s)",
+        "reversal": "No.2048/2071 (backlash acceleration)",
+        "squareness": "straightness/inclination compensation (No.13381 ff.)",
+        "scale": "pitch error compensation (No.3620 ff.)",
+    },
+    "siemens": {
+        "backlash": "MD32450 $MA_BACKLASH (mm)",
+        "gain": "MD32200 $MA_POSCTRL_GAIN (1000/min)",
+        "reversal": "MD32500 $MA_FRICT_COMP_ENABLE / quadrant error compensation (QEC)",
+        "squareness": "sag/angularity compensation (CEC, $AN_CEC)",
+        "scale": "leadscrew error compensation (LEC, $AA_ENC_COMP)",
+    },
+    "heidenhain": {
+        "backlash": "MP710.x / CfgAxisBacklash (backlash)",
+        "gain": "MP1810.x / kvFactor (kv factor)",
+        "reversal": "MP1511.x / friction compensation (reversal spikes)",
+        "squareness": "axis angle compensation (CfgAxisGeometry)",
+        "scale": "nonlinear axis error compensation (MP730.x)",
+    },
+}
+
+
+def _value(params: dict[str, Any], key: str) -> float | None:
+    p = params.get(key)
+    if not p or p.get("value") is None or not p.get("significant"):
+        return None
+    return float(p["value"])
+
+
+def _name(machine: MachineConfig, what: str) -> str | None:
+    return CONTROLLER_PARAMS.get(machine.controller, {}).get(what)
+
+
+def advise(params: dict[str, Any], plan: TestPlan, machine: MachineConfig) -> list[dict[str, Any]]:
+    """Suggested adjustments for the significant patterns, largest effect first."""
+    ax1, ax2 = plan.axes
+    out: list[dict[str, Any]] = []
+
+    def add(pattern: str, kind: str, text: str, value: float | None, unit: str, what: str | None = None) -> None:
+        item: dict[str, Any] = {"pattern": pattern, "kind": kind, "action": text, "value": value, "unit": unit}
+        cp = _name(machine, what) if what else None
+        if cp:
+            item["controller_parameter"] = cp
+        out.append(item)
+
+    for axis, key in ((ax1, "backlash_x_um"), (ax2, "backlash_y_um")):
+        b = _value(params, key)
+        if b is not None:
+            verb = "increase" if b > 0 else "decrease"
+            add(key, "machine", f"{verb} the {axis} backlash compensation by {abs(b):.2f} um", b, "um", "backlash")
+    m = _value(params, "servo_mismatch_ms")
+    if m is not None:
+        slow, fast = (ax1, ax2) if m > 0 else (ax2, ax1)
+        kx, ky = machine.kv_x_per_s, machine.kv_y_per_s
+        if kx and ky:
+            # match the slower axis to the faster: 1/K_new = 1/K_old - |m|
+            k_old = kx if m > 0 else ky
+            k_new = 1.0 / (1.0 / k_old - abs(m) / 1000.0)
+            add("servo_mismatch_ms", "machine",
+                f"raise the {slow} position-loop gain from {k_old:.2f} to {k_new:.2f} 1/s to match {fast}",
+                k_new - k_old, "1/s", "gain")
+        else:
+            add("servo_mismatch_ms", "machine",
+                f"{slow} lags {fast} by {abs(m):.3f} ms: raise the {slow} position-loop gain (Kv) or lower "
+                f"the {fast} one until the lags match (configure kv_x/kv_y for a value)", m, "ms", "gain")
+    s = _value(params, "squareness_urad")
+    if s is not None:
+        add("squareness_urad", "machine",
+            f"compensate the {ax1}/{ax2} squareness by {-s:+.2f} um/m ({ax1} leans toward "
+            f"{'+' if s > 0 else '-'}{ax2} by {abs(s):.2f} urad)", -s, "um/m", "squareness")
+    e = _value(params, "scale_mismatch_ppm")
+    if e is not None:
+        add("scale_mismatch_ppm", "machine",
+            f"{ax1} scales {e:+.2f} ppm relative to {ax2}: correct the linear (pitch) compensation of one "
+            f"axis by {-e:+.2f} um/m; a laser measurement tells which axis", -e, "um/m", "scale")
+    for axis, key in ((ax1, "lateral_play_x_um"), (ax2, "lateral_play_y_um")):
+        v = _value(params, key)
+        if v is not None:
+            add(key, "machine", f"{axis} reversal shifts the other axis by {v:.2f} um: check the {axis} "
+                "guideway gibs and preload (mechanical, no parameter)", v, "um")
+    a, b = _value(params, "master_slave_a_um"), _value(params, "master_slave_b_um")
+    if a is not None or b is not None:
+        add("master_slave", "machine", "steps where the master axis changes (45 deg lines): check the "
+            "interpolator's changeover and the feed-forward of both axes",
+            max(abs(a or 0.0), abs(b or 0.0)), "um")
+    spikes = {k: v for k, v in params.items() if k.startswith("reversal_spike_") and k.endswith("_um")}
+    for key in sorted(spikes):
+        h = _value(params, key)
+        if h is not None:
+            where = key[len("reversal_spike_") : -3].replace("_", " ")
+            add(key, "machine", f"reversal spike {h:+.2f} um ({where}): adjust the friction / quadrant-glitch "
+                "compensation of that axis", h, "um", "reversal")
+    for axis, key in ((ax1, "straightness_x_um"), (ax2, "straightness_y_um")):
+        v = _value(params, key)
+        if v is not None:
+            add(key, "machine", f"{axis} bows by {v:.2f} um over the radius: check the guideway alignment "
+                "or apply straightness compensation", v, "um", "squareness")
+    for axis, key in ((ax1, "cyclic_x_um"), (ax2, "cyclic_y_um")):
+        v = _value(params, key)
+        if v is not None:
+            add(key, "machine", f"{axis} cyclic error {v:.2f} um at the screw pitch: check the ball-screw "
+                "support bearings and nut, or the encoder", v, "um")
+    d = _value(params, "drift_um_per_min")
+    if d is not None:
+        add("drift_um_per_min", "setup", f"length drifts {d:+.3f} um/min during the test: let the machine "
+            "and the bar reach thermal equilibrium before testing", d, "um/min")
+    cx, cy = _value(params, "centre_x_um"), _value(params, "centre_y_um")
+    if cx is not None or cy is not None:
+        add("centre", "setup", f"set-up: the pivot is off the programmed centre by ({cx or 0:.1f}, "
+            f"{cy or 0:.1f}) um; not a machine error (it is removed before the other figures)",
+            float((cx or 0) ** 2 + (cy or 0) ** 2) ** 0.5, "um")
+    r = _value(params, "radius_um")
+    if r is not None and abs(r) >= 1.0:
+        add("radius_um", "setup", f"the circle reads {r:+.2f} um from the nominal radius: bar calibration, "
+            "temperature, or the servo's dynamic shrinkage at this feed", r, "um")
+    return out

@@ -1,0 +1,264 @@
+"""Test detection on a stream of ``(t, length)`` samples.
+
+The feed-in is a radial step of ``f`` (1.5 mm by default) from about ``R + f``
+down to about ``R``; the feed-out the same step back up.  Against micrometre
+contouring errors they are unmistakable, so the detector works on levels: a
+sample is *out* when within ``f/4`` of ``R + f`` and *on* when within ``f/4`` of
+``R``.  A feed-in is the passage from out to on; a feed-out from on to out.
+
+Each step's time is its centroid ``sum(t dL) / sum(dL)``, the mean time of the
+length change.  For any linear servo and any symmetric acceleration profile
+that is the commanded move's middle plus the loop's mean delay, the same delay
+by which the machine's actual position trails the command on the arcs: the
+angles assigned from it are the actual ones.  Where the step holds fewer than
+six samples (a low sample rate), the centroid comes from the samples inside the
+step on a ramp of the programmed feed instead.
+
+The detector is fed chunks of any size (one sample to a whole file) and keeps
+only what it needs: the samples since the last feed-in while a test runs, a few
+seconds before that.  A whole file is simply one chunk.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .plan import TestPlan
+
+log = logging.getLogger(__name__)
+
+BAND = 0.25  # of the feed-in distance: how close to R or R + f counts as "on" or "out"
+PRE_KEEP_S = 5.0  # samples kept before a feed-in while waiting for one
+
+
+@dataclass(frozen=True)
+class StepEvent:
+    """A feed-in (``kind = "feed_in"``) or feed-out step."""
+
+    kind: str
+    t_s: float  # centroid time
+    t_begin_s: float  # last sample on the level before the step
+    t_end_s: float  # first sample settled on the level after it
+    level_before_mm: float
+    level_after_mm: float
+    samples_in_step: int
+    method: str  # "centroid" or "ramp"
+
+    @property
+    def height_mm(self) -> float:
+        return abs(self.level_after_mm - self.level_before_mm)
+
+
+class _Buffer:
+    """Growable (t, L) storage without quadratic copying."""
+
+    def __init__(self) -> None:
+        self.t = np.empty(1024)
+        self.L = np.empty(1024)
+        self.n = 0
+
+    def extend(self, t: np.ndarray, L: np.ndarray) -> None:
+        need = self.n + t.size
+        if need > self.t.size:
+            cap = max(need, 2 * self.t.size)
+            for name in ("t", "L"):
+                new = np.empty(cap)
+                new[: self.n] = getattr(self, name)[: self.n]
+                setattr(self, name, new)
+        self.t[self.n : need] = t
+        self.L[self.n : need] = L
+        self.n = need
+
+    def drop_before(self, k: int) -> None:
+        if k <= 0:
+            return
+        rest = self.n - k
+        self.t[:rest] = self.t[k : self.n]
+        self.L[:rest] = self.L[k : self.n]
+        self.n = rest
+
+    def view(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.t[: self.n], self.L[: self.n]
+
+
+class TestDetector:
+    """Finds feed-in and feed-out steps in a stream, chunk by chunk.
+
+    :meth:`feed` returns the steps completed by the chunk.  A step counts as
+    complete once the length has settled on the new level (or the test's
+    samples run on past it), so a step split across chunks is found once.
+    """
+
+    __test__ = False
+
+    def __init__(self, plan: TestPlan) -> None:
+        self.plan = plan
+        self.f = plan.feed_in_mm
+        self.high = plan.radius_mm + plan.feed_in_mm
+        self.low = plan.radius_mm
+        self.buf = _Buffer()
+        self.in_test = False
+        self.scan_from = 0  # index into buf from which to look for the next transition
+        self.lmin = np.inf
+        self.lmax = -np.inf
+        self.n_seen = 0
+        self.final = False
+
+    # What the samples held, for the error message when nothing was found.
+    def seen_range(self) -> tuple[float, float]:
+        return float(self.lmin), float(self.lmax)
+
+    def feed(self, t: np.ndarray, L: np.ndarray) -> None:
+        """Append a chunk; then call :meth:`poll` until it returns None."""
+        t = np.asarray(t, dtype=float)
+        L = np.asarray(L, dtype=float)
+        if t.size == 0:
+            return
+        self.n_seen += t.size
+        self.lmin = min(self.lmin, float(L.min()))
+        self.lmax = max(self.lmax, float(L.max()))
+        self.buf.extend(t, L)
+
+    def poll(self) -> StepEvent | None:
+        """The next completed step, or None when the samples so far hold no more.
+
+        After a feed-out the test's samples stay readable through
+        :meth:`samples` until the next call of :meth:`poll`.
+        """
+        ev = self._next_step()
+        if ev is None and not self.in_test:
+            tb, _ = self.buf.view()
+            if tb.size:
+                keep_from = int(np.searchsorted(tb, tb[-1] - PRE_KEEP_S))
+                keep_from = min(keep_from, self.scan_from)
+                self.buf.drop_before(keep_from)
+                self.scan_from -= keep_from
+        return ev
+
+    def finish(self) -> None:
+        """The stream has ended: settle on whatever follows the last step."""
+        self.final = True
+
+    def feed_all(self, t: np.ndarray, L: np.ndarray) -> list[StepEvent]:
+        """Feed a chunk and return every step it completes (samples not kept)."""
+        self.feed(t, L)
+        out = []
+        while (ev := self.poll()) is not None:
+            out.append(ev)
+        return out
+
+    def _next_step(self) -> StepEvent | None:
+        tb, Lb = self.buf.view()
+        s = self.scan_from
+        if s >= tb.size:
+            return None
+        Ls = Lb[s:]
+        on = np.abs(Ls - self.low) <= BAND * self.f
+        out = np.abs(Ls - self.high) <= BAND * self.f
+        src, dst = (out, on) if not self.in_test else (on, out)
+        # the first destination sample preceded (somewhere) by a source sample
+        src_idx = np.flatnonzero(src)
+        if src_idx.size == 0:
+            self.scan_from = tb.size
+            return None
+        dst_after = np.flatnonzero(dst[src_idx[0] :])
+        if dst_after.size == 0:
+            # keep scanning from the last source sample next time
+            self.scan_from = s + int(src_idx[-1])
+            return None
+        i2 = s + src_idx[0] + int(dst_after[0])
+        i1 = s + int(np.flatnonzero(src[: i2 - s])[-1])
+        # settle: need samples after i2 on the new level to fix it
+        level_after, b, settled = self._settle(tb, Lb, i2, forward=True)
+        if not settled:
+            self.scan_from = i1
+            return None
+        level_before, a, _ = self._settle(tb, Lb, i1, forward=False)
+        kind = "feed_in" if not self.in_test else "feed_out"
+        ev = self._step(kind, tb, Lb, a, b, level_before, level_after)
+        self.in_test = not self.in_test
+        self.scan_from = b
+        if kind == "feed_in":
+            # keep the samples from the step on: they belong to the test
+            self.buf.drop_before(a)
+            self.scan_from -= a
+        return ev
+
+    def _settle(self, t: np.ndarray, L: np.ndarray, i: int, forward: bool) -> tuple[float, int, bool]:
+        """Level next to index ``i`` and where the step meets it.
+
+        Forward: the new level after the step, from samples in the 0.2 s after it
+        settles; returns the first index within tolerance of it.  Backward: the
+        old level before the step; returns the last index within tolerance.
+        """
+        target = self.low if (forward != self.in_test) else self.high
+        band = BAND * self.f
+        if forward:
+            j = i
+            lim = min(L.size, i + 20000)
+            near = np.abs(L[i:lim] - target) <= band
+            # the level is the median of the samples in the 0.2 s after the step's band entry
+            t_end = t[i] + 0.2
+            k_end = int(np.searchsorted(t, t_end, side="right"))
+            if k_end >= L.size and not self._stream_has_moved_on(t, i) and not self.final:
+                return float("nan"), i, False
+            seg = L[i : max(k_end, i + 1)][near[: max(k_end, i + 1) - i]]
+            level = float(np.median(seg[len(seg) // 2 :])) if seg.size else float(L[i])
+            tol = self._tolerance(seg)
+            k = i
+            while k < L.size and abs(L[k] - level) > tol:
+                k += 1
+            j = min(k, L.size - 1)
+            return level, j, True
+        t0 = t[i] - 0.2
+        k0 = int(np.searchsorted(t, t0))
+        seg = L[k0 : i + 1]
+        seg = seg[np.abs(seg - target) <= band]
+        level = float(np.median(seg[: max(len(seg) // 2, 1)])) if seg.size else float(L[i])
+        tol = self._tolerance(seg)
+        k = i
+        while k > 0 and abs(L[k] - level) > tol:
+            k -= 1
+        return level, k, True
+
+    @staticmethod
+    def _stream_has_moved_on(t: np.ndarray, i: int) -> bool:
+        return bool(t.size - i > 64)
+
+    def _tolerance(self, seg: np.ndarray) -> float:
+        """How far from a level still counts as on it: noise-aware, at least 2 um."""
+        if seg.size >= 4:
+            noise = 1.4826 * float(np.median(np.abs(np.diff(seg) - np.median(np.diff(seg))))) / np.sqrt(2)
+        else:
+            noise = 0.0
+        return max(0.002, 6.0 * noise, 1e-3 * self.f)
+
+    def _step(
+        self, kind: str, t: np.ndarray, L: np.ndarray, a: int, b: int, before: float, after: float
+    ) -> StepEvent:
+        height = after - before
+        inner = b - a - 1
+        if inner >= 5:
+            dL = np.diff(L[a : b + 1])
+            tm = 0.5 * (t[a:b] + t[a + 1 : b + 1])
+            total = float(dL.sum())
+            tc = float(np.dot(tm, dL) / total) if total != 0 else float(0.5 * (t[a] + t[b]))
+            method = "centroid"
+        else:
+            ramp_s = self.f / self.plan.feed_mm_s
+            if inner > 0:
+                frac = (L[a + 1 : b] - before) / height
+                est = t[a + 1 : b] - ramp_s * (frac - 0.5)
+                tc = float(np.mean(est))
+            else:
+                tc = float(0.5 * (t[a] + t[b]))
+            method = "ramp"
+        log.debug("%s at %.4f s (%s, %d samples)", kind, tc, method, inner)
+        return StepEvent(kind, tc, float(t[a]), float(t[b]), before, after, inner, method)
+
+    def samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """The samples held: from the current (or just ended) test's feed-in on."""
+        return self.buf.view()

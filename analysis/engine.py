@@ -1,0 +1,635 @@
+"""From samples to results: one code path for the live daemon and offline files.
+
+:class:`TestAnalyzer` is fed ``(t, length)`` chunks of any size.  It finds each
+test (:mod:`.detect`), fits each circle as soon as its data arc has passed, and
+fits the whole test (both directions jointly) after the feed-out.
+
+Timing.  The angle of a sample comes from the feed-in's centroid and the
+program's timing (:mod:`.program`), at a path feed ``V`` and a per-move
+overhead ``c`` (the acceleration's delay).  A circle finishes before the
+feed-out, so its *provisional* fit uses the programmed feed times the feed
+ratio and overhead learnt on the previous test (``TimingHints``).  After the
+feed-out the test's fit measures the feed from the centroid span, estimates the
+overhead ``c`` (the arc start's lag) and the reversal spikes' width ``w`` by
+maximising the profile likelihood of the full model (with a weak prior on ``c``
+so that it stays near zero where the data cannot tell), and refits both circles
+at those values: one pass over that test's own samples, none over older ones.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from scipy import optimize
+
+from . import iso230, noise
+from .advice import advise
+from .detect import StepEvent, TestDetector
+from .errors import DataError, DetectionError
+from .fit import Factor, FitResult, solve, sse_subset
+from .patterns import LIBRARY, Geometry, Pattern, design, select
+from .plan import AnalysisOptions, MachineConfig, TestPlan
+from .program import Schedule, feed_from_span, schedule
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+SEARCH_SAMPLES_PER_CIRCLE = 6000
+LAG_PRIOR_S = 0.05
+DEFAULT_SPIKE_WIDTH_DEG = 3.0
+
+
+@dataclass
+class TimingHints:
+    """What the previous test taught: used for the provisional circle fits."""
+
+    feed_ratio: float = 1.0
+    overhead_s: float = 0.0
+    spike_width_deg: float = DEFAULT_SPIKE_WIDTH_DEG
+
+
+@dataclass
+class Timing:
+    feed_mm_s: float
+    overhead_s: float
+    sched: Schedule
+    t_ref: float  # feed-in centroid (absolute)
+    t_mid: float  # mid-time of the data (absolute), origin of the drift term
+
+    def window(self, d: int) -> tuple[float, float]:
+        return self.t_ref + self.sched.data_start_s[d], self.t_ref + self.sched.data_end_s[d]
+
+
+def make_timing(plan: TestPlan, t_ref: float, feed_mm_s: float, overhead_s: float) -> Timing:
+    sched = schedule(plan, feed_mm_s, overhead_s)
+    dirs = plan.direction_list
+    mid = t_ref + 0.5 * (sched.data_start_s[dirs[0]] + sched.data_end_s[dirs[-1]])
+    return Timing(feed_mm_s, overhead_s, sched, t_ref, mid)
+
+
+class CircleFit:
+    """The growing fit of one direction's data arc at fixed timing and spike width."""
+
+    def __init__(
+        self,
+        plan: TestPlan,
+        machine: MachineConfig,
+        patterns: Sequence[Pattern],
+        direction: int,
+        timing: Timing,
+        spike_width_deg: float,
+        keep_design: bool = False,
+    ) -> None:
+        self.plan, self.machine, self.patterns = plan, machine, list(patterns)
+        self.d = direction
+        self.timing = timing
+        self.w = math.radians(spike_width_deg)
+        self.p = sum(pat.q for pat in self.patterns)
+        self.factor = Factor(self.p)
+        self.colmax = np.zeros(self.p)
+        self.t_start, self.t_end = timing.window(direction)
+        self.keep_design = keep_design
+        self.kept: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # (t, u, dR, A)
+
+    def geometry(self, t: np.ndarray) -> Geometry:
+        u = np.radians(self.timing.sched.angle_deg(self.plan, self.d, t - self.timing.t_ref))
+        return Geometry(
+            u=u,
+            d=np.full(t.size, float(self.d)),
+            t_min=(t - self.timing.t_mid) / 60.0,
+            V=self.timing.feed_mm_s,
+            R=self.plan.radius_mm,
+            pitch_x_mm=self.machine.pitch_x_mm,
+            pitch_y_mm=self.machine.pitch_y_mm,
+        )
+
+    def add(self, t: np.ndarray, L: np.ndarray) -> None:
+        """Fold in the samples of ``(t, L)`` that lie in this circle's data arc."""
+        m = (t >= self.t_start) & (t <= self.t_end)
+        if not m.any():
+            return
+        t, L = t[m], L[m]
+        g = self.geometry(t)
+        A = design(self.patterns, g, self.w)
+        dr = (L - self.plan.radius_mm) * 1000.0
+        self.factor.add(A, dr)
+        np.maximum(self.colmax, np.abs(A).max(axis=0), out=self.colmax)
+        if self.keep_design:
+            self.kept.append((t, g.u, dr, A))
+
+    def data(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Kept ``(t, u, dR, A)`` of this circle (needs ``keep_design``)."""
+        if not self.kept:
+            return np.empty(0), np.empty(0), np.empty(0), np.empty((0, self.p))
+        return tuple(np.concatenate(parts) for parts in zip(*self.kept, strict=True))  # type: ignore[return-value]
+
+
+def _merge(circles: Sequence[CircleFit]) -> tuple[Factor, np.ndarray]:
+    f = circles[0].factor
+    colmax = circles[0].colmax.copy()
+    for c in circles[1:]:
+        f = f.merged(c.factor)
+        np.maximum(colmax, c.colmax, out=colmax)
+    return f, colmax
+
+
+def _lag1(residuals: Sequence[np.ndarray]) -> float:
+    num = sum(float(np.dot(r[1:], r[:-1])) for r in residuals if r.size > 1)
+    den = sum(float(np.dot(r, r)) for r in residuals)
+    return num / den if den > 0 else 0.0
+
+
+class TestAnalyzer:
+    """Streaming test detection and fitting; see the module docstring.
+
+    :meth:`feed` returns result dictionaries as they complete: ``kind`` is
+    ``"circle"`` (one direction, provisional timing) or ``"test"``; and event
+    dictionaries (``kind = "event"``: ``feed_in``, ``feed_out``, ``test_aborted``).
+    """
+
+    __test__ = False
+
+    def __init__(
+        self,
+        plan: TestPlan,
+        machine: MachineConfig | None = None,
+        options: AnalysisOptions | None = None,
+        hints: TimingHints | None = None,
+    ) -> None:
+        self.plan = plan
+        self.machine = machine or MachineConfig()
+        self.options = options or AnalysisOptions()
+        self.hints = hints or TimingHints()
+        self.detector = TestDetector(plan)
+        self.patterns = select(
+            self.options.patterns, plan.direction_list, self.machine.pitch_x_mm, self.machine.pitch_y_mm
+        )
+        self.test_index = 0
+        self._fi: StepEvent | None = None
+        self._circles: list[CircleFit] = []
+        self._emitted: set[int] = set()
+        self._added = 0
+        self.last_t = float("nan")
+
+    def feed(self, t: np.ndarray, L: np.ndarray) -> list[dict[str, Any]]:
+        t = np.asarray(t, dtype=float)
+        L = np.asarray(L, dtype=float)
+        if t.size and not (np.isfinite(t).all() and np.isfinite(L).all()):
+            k = int(np.argmax(~(np.isfinite(t) & np.isfinite(L))))
+            raise DataError(f"sample {self.detector.n_seen + k}: time or length is not a finite number")
+        if t.size:
+            self.last_t = float(t[-1])
+        self.detector.feed(t, L)
+        return self._drain()
+
+    def finish(self) -> list[dict[str, Any]]:
+        """End of the stream: settle the last step; report a test left unfinished."""
+        self.detector.finish()
+        out = self._drain()
+        if self._fi is not None:
+            out.append(
+                {
+                    "kind": "event",
+                    "event": "test_incomplete",
+                    "test_index": self.test_index,
+                    "t_s": self.last_t,
+                    "message": f"the stream ended {self.last_t - self._fi.t_s:.1f} s after the feed-in "
+                    "at t={self._fi.t_s:.3f} s, before the feed-out",
+                }
+            )
+        return out
+
+    def _drain(self) -> list[dict[str, Any]]:
+        out: list[dict[str, Any]] = []
+        while True:
+            ev = self.detector.poll()
+            if ev is None:
+                break
+            if ev.kind == "feed_in":
+                self._start(ev)
+                out.append(_event(ev, self.test_index))
+            else:
+                out.extend(self._advance(final=True))
+                out.append(_event(ev, self.test_index))
+                out.extend(self._finish_test(ev))
+        if self._fi is not None:
+            out.extend(self._advance(final=False))
+        return out
+
+    def _start(self, fi: StepEvent) -> None:
+        self.test_index += 1
+        self._fi = fi
+        V = self.plan.feed_mm_s * self.hints.feed_ratio
+        timing = make_timing(self.plan, fi.t_s, V, self.hints.overhead_s)
+        self._circles = [
+            CircleFit(self.plan, self.machine, _for_direction(self.patterns, d), d, timing, self.hints.spike_width_deg)
+            for d in self.plan.direction_list
+        ]
+        self._emitted = set()
+        self._added = 0
+
+    def _advance(self, final: bool) -> list[dict[str, Any]]:
+        """Fold new samples into the running circles; emit the circles now complete."""
+        tb, Lb = self.detector.samples()
+        if self._added < tb.size:
+            t_new, L_new = tb[self._added :], Lb[self._added :]
+            for c in self._circles:
+                c.add(t_new, L_new)
+            self._added = tb.size
+        out = []
+        t_last = tb[-1] if tb.size else -math.inf
+        for c in self._circles:
+            if c.d in self._emitted or (t_last < c.t_end and not final):
+                continue
+            self._emitted.add(c.d)
+            if c.factor.n < c.p + 2:
+                continue
+            try:
+                fit = solve(c.factor, c.patterns, significance=self.options.significance,
+                            vif_limit=self.options.vif_limit, effect_scale=c.colmax)
+            except (np.linalg.LinAlgError, ValueError) as err:  # pragma: no cover - defensive
+                log.warning("circle fit failed: %s", err)
+                continue
+            out.append(self._circle_result(c, fit))
+        return out
+
+    def _circle_result(self, c: CircleFit, fit: FitResult) -> dict[str, Any]:
+        res = _result_body(self.plan, self.machine, self.options, fit, c.patterns)
+        res.update(
+            kind="circle",
+            direction="ccw" if c.d > 0 else "cw",
+            test_index=self.test_index,
+            timing={
+                "provisional": True,
+                "feed_in_s": c.timing.t_ref,
+                "assumed_feed_mm_min": c.timing.feed_mm_s * 60.0,
+                "assumed_overhead_s": c.timing.overhead_s,
+                "data_start_s": c.t_start,
+                "data_end_s": c.t_end,
+                "spike_width_deg": math.degrees(c.w),
+            },
+            residual_rms_um=math.sqrt(fit.sse / max(fit.n, 1)),
+        )
+        return res
+
+    def _finish_test(self, fo: StepEvent) -> list[dict[str, Any]]:
+        assert self._fi is not None
+        fi, self._fi = self._fi, None
+        tb, Lb = self.detector.samples()
+        m = (tb >= fi.t_begin_s) & (tb <= fo.t_end_s)
+        try:
+            result = analyze_test(self.plan, self.machine, self.options, tb[m], Lb[m], fi, fo)
+        except DataError as err:
+            return [{"kind": "event", "event": "test_rejected", "test_index": self.test_index,
+                     "t_s": fo.t_s, "message": str(err)}]
+        result["test_index"] = self.test_index
+        tm = result["timing"]
+        self.hints = TimingHints(
+            feed_ratio=tm["measured_feed_mm_min"] / self.plan.feed_mm_min,
+            overhead_s=tm["overhead_s"],
+            spike_width_deg=tm["spike_width_deg"] or self.hints.spike_width_deg,
+        )
+        return [result]
+
+
+def _event(ev: StepEvent, test_index: int) -> dict[str, Any]:
+    return {
+        "kind": "event",
+        "event": ev.kind,
+        "test_index": test_index,
+        "t_s": ev.t_s,
+        "height_mm": ev.height_mm,
+        "method": ev.method,
+    }
+
+
+def _for_direction(patterns: Sequence[Pattern], d: int) -> list[Pattern]:
+    return [p for p in patterns if p.reversal is None or p.reversal[2] == d]
+
+
+# --------------------------------------------------------------------------- whole test
+
+
+def check_plan(plan: TestPlan, fi: StepEvent, fo: StepEvent) -> float:
+    """Raise DataError where the recording does not match the plan; return the feed (mm/s) at c = 0."""
+    f = plan.feed_in_mm
+    for ev in (fi, fo):
+        if not 0.75 * f <= ev.height_mm <= 1.25 * f:
+            raise DataError(
+                f"plan does not match the data: the {ev.kind.replace('_', '-')} at t={ev.t_s:.3f} s "
+                f"is a {ev.height_mm:.3f} mm step, the plan's feed-in is {f:g} mm"
+            )
+    span = fo.t_s - fi.t_s
+    V0 = feed_from_span(plan, span, 0.0)
+    nominal = schedule(plan, plan.feed_mm_s).feed_out_centroid_s
+    if not (math.isfinite(V0) and 0.5 <= V0 / plan.feed_mm_s <= 2.0):
+        raise DataError(
+            f"plan does not match the data: feed-in to feed-out takes {span:.2f} s, the plan's program "
+            f"takes {nominal:.2f} s at {plan.feed_mm_min:g} mm/min (check feed, radius, arcs and dwell)"
+        )
+    return V0
+
+
+@dataclass
+class _Hyper:
+    overhead_s: float = 0.0
+    spike_width_deg: float = DEFAULT_SPIKE_WIDTH_DEG
+    lag_stderr_s: float = float("nan")
+    notes: list[str] = field(default_factory=list)
+
+
+def _has_spikes(patterns: Sequence[Pattern]) -> bool:
+    return any(p.reversal is not None for p in patterns)
+
+
+def _search(
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    patterns: Sequence[Pattern],
+    t: np.ndarray,
+    L: np.ndarray,
+    fi: StepEvent,
+    span: float,
+) -> _Hyper:
+    """Estimate the per-move overhead (arc start lag) and the spike width.
+
+    The objective is the profile negative log-likelihood of the full model on a
+    decimated, fixed set of samples (the data arcs at c = 0, trimmed by the
+    largest lag searched), ``(n_eff / 2) ln SSE``, plus ``c^2 / (2 s^2)`` with
+    ``s`` = 50 ms: where the data cannot see the lag, it stays near zero.
+    """
+    hyper = _Hyper()
+    V0 = feed_from_span(plan, span, 0.0)
+    base = make_timing(plan, fi.t_s, V0, 0.0)
+    margin = options.max_lag_s * 1.5
+    sel = np.zeros(t.size, dtype=bool)
+    for d in plan.direction_list:
+        a, b = base.window(d)
+        sel |= (t >= a + margin) & (t <= b - margin)
+    idx = np.flatnonzero(sel)
+    if idx.size < 50:
+        return hyper
+    step = max(1, idx.size // (SEARCH_SAMPLES_PER_CIRCLE * len(plan.direction_list)))
+    idx = idx[::step]
+    ts, Ls = t[idx], L[idx]
+    n_full = int(sel.sum())
+
+    def sse(c: float, w_deg: float) -> float:
+        V = feed_from_span(plan, span, c)
+        timing = make_timing(plan, fi.t_s, V, c)
+        timing.t_mid = base.t_mid
+        f: Factor | None = None
+        for d in plan.direction_list:
+            cf = CircleFit(plan, machine, _for_direction(patterns, d), d, timing, w_deg)
+            cf.t_start, cf.t_end = base.window(d)  # the same samples at every c
+            cf.add(ts, Ls)
+            e = _embed(cf.factor, cf.patterns, patterns)
+            f = e if f is None else f.merged(e)
+        assert f is not None
+        return sse_subset(f.rows, range(f.p))
+
+    # n_eff from the residual at the starting point
+    w = hyper.spike_width_deg
+    s0 = sse(0.0, w)
+    n_eff = n_full / _kappa_of(plan, machine, patterns, ts, Ls, fi, span, base)
+    spikes = _has_spikes(patterns)
+    lo_w, hi_w = math.log(options.spike_width_min_deg), math.log(options.spike_width_max_deg)
+    c = 0.0
+    for _round in range(2):
+        if spikes:
+            r = optimize.minimize_scalar(lambda lw: sse(c, math.exp(lw)), bounds=(lo_w, hi_w),
+                                         method="bounded", options={"xatol": 0.01})
+            w = float(math.exp(r.x))
+        if options.estimate_lag:
+            def obj(cc: float) -> float:
+                return 0.5 * n_eff * math.log(max(sse(cc, w), 1e-300)) + cc * cc / (2 * LAG_PRIOR_S**2)
+            r = optimize.minimize_scalar(obj, bounds=(-options.max_lag_s, options.max_lag_s),
+                                         method="bounded", options={"xatol": 1e-5})
+            c = float(r.x)
+            h = 1e-3
+            curv = (obj(c + h) - 2 * obj(c) + obj(c - h)) / h**2
+            hyper.lag_stderr_s = 1.0 / math.sqrt(curv) if curv > 0 else float("inf")
+        if not spikes:
+            break
+    log.debug("search: sse(0)=%.4g -> c=%.5f s, w=%.3f deg", s0, c, w)
+    hyper.overhead_s, hyper.spike_width_deg = c, w
+    return hyper
+
+
+def _embed(f: Factor, sub: Sequence[Pattern], full: Sequence[Pattern]) -> Factor:
+    """Factor of ``sub``'s columns placed within ``full``'s (missing columns zero)."""
+    pos, j = {}, 0
+    for p in full:
+        pos[p.name] = j
+        j += p.q
+    cols = []
+    for p in sub:
+        cols.extend(range(pos[p.name], pos[p.name] + p.q))
+    out = Factor(j)
+    R = f.rows if f.R.shape[0] else f.R
+    M = np.zeros((R.shape[0], j + 1))
+    M[:, cols] = R[:, :-1]
+    M[:, -1] = R[:, -1]
+    out.R, out.n = M, f.n
+    return out
+
+
+def _kappa_of(plan: TestPlan, machine: MachineConfig, patterns: Sequence[Pattern], ts: np.ndarray,
+              Ls: np.ndarray, fi: StepEvent, span: float, base: Timing) -> float:
+    """Variance inflation from the lag-1 autocorrelation of a first fit's residual."""
+    res = []
+    for d in plan.direction_list:
+        cf = CircleFit(plan, machine, _for_direction(patterns, d), d, base, DEFAULT_SPIKE_WIDTH_DEG, keep_design=True)
+        cf.add(ts, Ls)
+        _, _, dr, A = cf.data()
+        if dr.size > cf.p:
+            x, *_ = np.linalg.lstsq(A, dr, rcond=None)
+            res.append(dr - A @ x)
+    rho = _lag1(res)
+    return float(min(max((1 + rho) / (1 - rho), 1.0), 400.0)) if rho < 1 else 400.0
+
+
+def analyze_test(
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    t: np.ndarray,
+    L: np.ndarray,
+    fi: StepEvent,
+    fo: StepEvent,
+) -> dict[str, Any]:
+    """The joint fit of one test whose feed-in and feed-out are known."""
+    check_plan(plan, fi, fo)
+    span = fo.t_s - fi.t_s
+    patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
+    hyper = _search(plan, machine, options, patterns, t, L, fi, span)
+    V = feed_from_span(plan, span, hyper.overhead_s)
+    timing = make_timing(plan, fi.t_s, V, hyper.overhead_s)
+    circles = []
+    for d in plan.direction_list:
+        cf = CircleFit(plan, machine, _for_direction(patterns, d), d, timing, hyper.spike_width_deg, keep_design=True)
+        cf.add(t, L)
+        if cf.factor.n < 8:
+            raise DataError(
+                f"the {'CCW' if d > 0 else 'CW'} data arc ({cf.t_start:.2f}..{cf.t_end:.2f} s) holds "
+                f"{cf.factor.n} samples: too few to fit"
+            )
+        circles.append(cf)
+    joint = [_embed(c.factor, c.patterns, patterns) for c in circles]
+    factor = joint[0]
+    for f in joint[1:]:
+        factor = factor.merged(f)
+    colmax = np.zeros(factor.p)
+    for c in circles:
+        colmax = np.maximum(colmax, _embed_vec(c.colmax, c.patterns, patterns))
+    kw = dict(significance=options.significance, vif_limit=options.vif_limit, effect_scale=colmax)
+    fit = solve(factor, patterns, **kw)  # type: ignore[arg-type]
+    residuals, per_dir = [], {}
+    x = np.nan_to_num(fit.x)
+    for c in circles:
+        tt, u, dr, A = c.data()
+        xa = _take(x, c.patterns, patterns)
+        r = dr - A @ xa
+        residuals.append(r)
+        per_dir[c.d] = (tt, u, dr, r)
+    rho = _lag1(residuals)
+    fit = solve(factor, patterns, rho=rho, **kw)  # type: ignore[arg-type]
+    res = _result_body(plan, machine, options, fit, patterns)
+    sample_hz = _rate(t)
+    res["kind"] = "test"
+    res["timing"] = _timing_dict(plan, fi, fo, timing, hyper, V)
+    res["iso230_4"] = iso230.figures({d: (v[1], v[2]) for d, v in per_dir.items()})
+    res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, sample_hz)
+    res["noise"] = noise.findings(
+        [(v[1], v[3], plan.data_arc_deg, sample_hz) for v in per_dir.values()], options.vibration_cutoff_cpr
+    )
+    all_r = np.concatenate(residuals)
+    res["residual_rms_um"] = float(np.sqrt(np.mean(all_r**2)))
+    res["samples"] = {"in_test": int(t.size), "in_data_arcs": int(sum(v[0].size for v in per_dir.values())),
+                      "sample_hz": sample_hz}
+    return res
+
+
+def _embed_vec(v: np.ndarray, sub: Sequence[Pattern], full: Sequence[Pattern]) -> np.ndarray:
+    out = np.zeros(sum(p.q for p in full))
+    pos, j = {}, 0
+    for p in full:
+        pos[p.name] = j
+        j += p.q
+    k = 0
+    for p in sub:
+        out[pos[p.name] : pos[p.name] + p.q] = v[k : k + p.q]
+        k += p.q
+    return out
+
+
+def _take(x: np.ndarray, sub: Sequence[Pattern], full: Sequence[Pattern]) -> np.ndarray:
+    pos, j = {}, 0
+    for p in full:
+        pos[p.name] = j
+        j += p.q
+    return np.concatenate([x[pos[p.name] : pos[p.name] + p.q] for p in sub])
+
+
+def _rate(t: np.ndarray) -> float:
+    if t.size < 2:
+        return float("nan")
+    return float(1.0 / np.median(np.diff(t)))
+
+
+def _timing_dict(plan: TestPlan, fi: StepEvent, fo: StepEvent, timing: Timing, hyper: _Hyper, V: float) -> dict[str, Any]:
+    omega = V / plan.radius_mm  # rad/s
+    out: dict[str, Any] = {
+        "provisional": False,
+        "programmed_feed_mm_min": plan.feed_mm_min,
+        "measured_feed_mm_min": V * 60.0,
+        "feed_ratio": V / plan.feed_mm_s,
+        "overhead_s": hyper.overhead_s,
+        "lag_s": hyper.overhead_s,
+        "lag_deg": math.degrees(omega * hyper.overhead_s),
+        "lag_stderr_s": hyper.lag_stderr_s if math.isfinite(hyper.lag_stderr_s) else None,
+        "spike_width_deg": hyper.spike_width_deg,
+        "feed_in_s": fi.t_s,
+        "feed_out_s": fo.t_s,
+        "feed_in_method": fi.method,
+        "feed_out_method": fo.method,
+        "feed_in_height_mm": fi.height_mm,
+        "feed_out_height_mm": fo.height_mm,
+        "data_arcs": {
+            ("ccw" if d > 0 else "cw"): {"start_s": timing.window(d)[0], "end_s": timing.window(d)[1]}
+            for d in plan.direction_list
+        },
+        "method": (
+            "feed from the feed-in to feed-out centroid span; arc-start lag (per-move overhead) "
+            "and spike width by profile likelihood of the full model"
+        ),
+    }
+    return out
+
+
+# --------------------------------------------------------------------------- result body
+
+
+def _result_body(
+    plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, fit: FitResult, patterns: Sequence[Pattern]
+) -> dict[str, Any]:
+    from .report import parameters_dict, ranking_list
+
+    params = parameters_dict(fit, patterns, machine)
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "plan": plan.to_dict(),
+        "machine": machine.to_dict(),
+        "parameters": params,
+        "ranking": ranking_list(fit),
+        "advice": advise(params, plan, machine),
+        "fit": {
+            "n_samples": fit.n,
+            "n_parameters": fit.p,
+            "dof": fit.dof,
+            "sigma_um": fit.sigma,
+            "residual_lag1_autocorrelation": fit.rho,
+            "variance_inflation": fit.kappa,
+            "condition_number": fit.condition if math.isfinite(fit.condition) else None,
+            "significance": options.significance,
+            "servo_model": "linear",
+            "uncertainty_method": (
+                "least squares covariance sigma^2 (A^T A)^-1 with sigma^2 = SSE/(n-p), inflated by "
+                "(1+rho)/(1-rho) for the residual's lag-1 autocorrelation rho (AR(1) effective sample "
+                "count); F-tests use the same inflated variance"
+            ),
+        },
+    }
+
+
+def library_fields() -> list[str]:
+    return [f for p in LIBRARY for f in p.fields]
+
+
+def analyze_recording(
+    t: np.ndarray,
+    L: np.ndarray,
+    plan: TestPlan,
+    machine: MachineConfig | None = None,
+    options: AnalysisOptions | None = None,
+) -> list[dict[str, Any]]:
+    """Everything :class:`TestAnalyzer` reports on a whole recording, in order."""
+    an = TestAnalyzer(plan, machine, options)
+    out = an.feed(t, L)
+    out.extend(an.finish())
+    if not any(r.get("event") == "feed_in" for r in out):
+        lo, hi = an.detector.seen_range()
+        raise DetectionError(
+            f"no feed-in found: the bar never stepped from about {plan.radius_mm + plan.feed_in_mm:g} mm "
+            f"(R + feed-in) to {plan.radius_mm:g} mm (R); its length ranged {lo:.4f}..{hi:.4f} mm"
+        )
+    return out
+
+
+__all__ = ["CircleFit", "TestAnalyzer", "TimingHints", "analyze_recording", "analyze_test", "replace"]

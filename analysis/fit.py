@@ -1,0 +1,302 @@
+"""The fit of DOMAIN.md section 4: weighted residual method, extra sum of squares.
+
+The weighted residual (Galerkin) equations of Suh & Lee (eq. 11-13) with the
+masks as weights are the normal equations of least squares.  They are solved
+through an orthogonal factor, never by forming and eliminating the normal
+matrix: each block of samples is folded into the upper-triangular factor ``R``
+of the augmented design ``[A | y]`` (a tall-skinny QR).  The factor of a test is
+the factor of its circles stacked and re-factored, so a new circle costs no
+pass over old samples, and the fit of any subset of the columns (for the
+ranking) is a small problem on ``R`` alone::
+
+    ||A_S x - y||^2 = ||R[:, S] x - R[:, -1]||^2
+
+Uncertainty.  ``sigma^2 = SSE / (n - p)`` assumes independent samples.  Ball-bar
+residuals are correlated (the model misfit and low-frequency noise are smooth
+in angle), so the covariance is inflated by ``kappa = (1 + rho) / (1 - rho)``
+with ``rho`` the residual's lag-1 autocorrelation (the AR(1) variance
+inflation, i.e. an effective sample count ``n / kappa``), capped at 400.  The
+same ``kappa`` enters the F-tests.  This is stated in every result.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import linalg as sla
+from scipy import stats
+
+from .patterns import Pattern
+
+KAPPA_MAX = 400.0
+
+
+class Factor:
+    """Upper-triangular factor of ``[A | y]``, grown block by block.
+
+    Also keeps ``n`` and the sums needed for the residual's lag-1
+    autocorrelation, which each block supplies with its own residual.
+    """
+
+    def __init__(self, p: int) -> None:
+        self.p = p
+        self.R = np.zeros((0, p + 1))
+        self.n = 0
+
+    def add(self, A: np.ndarray, y: np.ndarray) -> None:
+        if y.size == 0:
+            return
+        block = np.empty((self.R.shape[0] + y.size, self.p + 1))
+        block[: self.R.shape[0]] = self.R
+        block[self.R.shape[0] :, : self.p] = A
+        block[self.R.shape[0] :, self.p] = y
+        self.R = _qr_r(block)
+        self.n += int(y.size)
+
+    def merged(self, other: Factor) -> Factor:
+        out = Factor(self.p)
+        out.R = _qr_r(np.vstack([self.R, other.R])) if self.n and other.n else (self.R if self.n else other.R)
+        out.n = self.n + other.n
+        return out
+
+    @property
+    def rows(self) -> np.ndarray:
+        """``R`` padded to ``p + 1`` rows (zero rows where fewer samples than columns)."""
+        if self.R.shape[0] >= self.p + 1:
+            return self.R[: self.p + 1]
+        out = np.zeros((self.p + 1, self.p + 1))
+        out[: self.R.shape[0]] = self.R
+        return out
+
+
+def _qr_r(M: np.ndarray) -> np.ndarray:
+    r = sla.qr(M, mode="r", overwrite_a=True, check_finite=False)[0]
+    k = min(M.shape)
+    return np.asarray(r[:k])
+
+
+def sse_subset(R: np.ndarray, cols: Sequence[int]) -> float:
+    """Residual sum of squares of the least-squares fit on columns ``cols`` only."""
+    y = R[:, -1]
+    if len(cols) == 0:
+        return float(y @ y)
+    A = R[:, list(cols)]
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    x, *_ = np.linalg.lstsq(A / scale, y, rcond=None)
+    r = y - (A / scale) @ x
+    return float(r @ r)
+
+
+@dataclass
+class ParameterResult:
+    field: str
+    unit: str
+    value: float | None
+    stderr: float | None
+    p_value: float | None = None
+    share_pct: float | None = None
+    significant: bool = False
+    identifiable: bool = True
+    reason: str = ""
+
+    def to_dict(self) -> dict[str, object]:
+        d: dict[str, object] = {
+            "value": _num(self.value),
+            "stderr": _num(self.stderr),
+            "unit": self.unit,
+            "p_value": _num(self.p_value),
+            "share_pct": _num(self.share_pct),
+            "significant": bool(self.significant),
+            "identifiable": bool(self.identifiable),
+        }
+        if self.reason:
+            d["reason"] = self.reason
+        return d
+
+
+def _num(v: float | None) -> float | None:
+    if v is None or not math.isfinite(v):
+        return None
+    return float(v)
+
+
+@dataclass
+class TermResult:
+    """One pattern's test: extra sum of squares, F, p-value, share."""
+
+    pattern: str
+    ssr: float
+    F: float
+    p_value: float
+    share_pct: float
+    significant: bool
+    effect_um: float  # largest |contribution| over the data
+
+
+@dataclass
+class FitResult:
+    patterns: list[Pattern]
+    used: list[bool]  # per pattern: in the final fit
+    reasons: dict[str, str]
+    x: np.ndarray  # all columns; NaN where left out
+    cov: np.ndarray  # all columns; NaN where left out
+    sse: float
+    n: int
+    p: int
+    kappa: float
+    rho: float
+    terms: dict[str, TermResult] = field(default_factory=dict)
+    condition: float = float("nan")
+
+    @property
+    def dof(self) -> int:
+        return max(self.n - self.p, 1)
+
+    @property
+    def sigma(self) -> float:
+        return math.sqrt(self.sse / self.dof)
+
+    def column_slices(self) -> dict[str, slice]:
+        out, j = {}, 0
+        for pat in self.patterns:
+            out[pat.name] = slice(j, j + pat.q)
+            j += pat.q
+        return out
+
+
+def solve(
+    factor: Factor,
+    patterns: Sequence[Pattern],
+    *,
+    rho: float = 0.0,
+    significance: float = 0.05,
+    vif_limit: float = 1e4,
+    min_support: float = 2.0,
+    min_effect_um: float = 0.05,
+    effect_scale: np.ndarray | None = None,
+    exclude: dict[str, str] | None = None,
+) -> FitResult:
+    """Fit ``patterns`` from ``factor``; rank them; say which cannot be identified.
+
+    ``min_support``: a column whose sum of squares is below this (fewer than
+    about two samples' worth of signal) has no data to stand on.
+    ``effect_scale``: per column, the largest |column value| over the data, to
+    turn a parameter into its largest radial contribution (for ``min_effect_um``).
+    ``exclude``: patterns left out beforehand, with the reason.
+    """
+    patterns = list(patterns)
+    R = factor.rows
+    p_all = R.shape[1] - 1
+    slices: list[slice] = []
+    j = 0
+    for pat in patterns:
+        slices.append(slice(j, j + pat.q))
+        j += pat.q
+    assert j == p_all, "pattern columns and factor disagree"
+    norms = np.linalg.norm(R[:, :p_all], axis=0)
+    reasons: dict[str, str] = dict(exclude or {})
+    used = [pat.name not in reasons for pat in patterns]
+    for i, pat in enumerate(patterns):
+        if used[i] and np.any(norms[slices[i]] ** 2 < min_support):
+            used[i] = False
+            reasons[pat.name] = _no_support_reason(pat)
+    # Leave out, lowest priority first, what the data cannot separate.
+    condition = float("nan")
+    while True:
+        cols = _cols(slices, used)
+        if not cols:
+            break
+        An = R[:, cols] / norms[cols]
+        s = np.linalg.svd(An, compute_uv=False)
+        condition = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+        vif = _vif(An)
+        worst = np.nonzero(~(vif <= vif_limit))[0]
+        if worst.size == 0:
+            break
+        col_owner = [i for i, pat in enumerate(patterns) if used[i] for _ in range(pat.q)]
+        drop = max(col_owner[k] for k in worst)
+        k_drop = next(k for k in worst if col_owner[k] == drop)
+        partner = _most_collinear(An, k_drop, col_owner, patterns)
+        used[drop] = False
+        v = vif[k_drop]
+        vtxt = "inf" if not math.isfinite(v) else f"{v:.3g}"
+        reasons[patterns[drop].name] = (
+            f"cannot be separated from {partner} in this data (variance inflation {vtxt} > {vif_limit:g})"
+        )
+    cols = _cols(slices, used)
+    x = np.full(p_all, np.nan)
+    cov = np.full((p_all, p_all), np.nan)
+    kappa = min(max((1.0 + rho) / (1.0 - rho), 1.0), KAPPA_MAX) if rho < 1 else KAPPA_MAX
+    n, p = factor.n, len(cols)
+    sse_full = sse_subset(R, cols)
+    dof = max(n - p, 1)
+    if cols:
+        A = R[:, cols]
+        Q, Rs = np.linalg.qr(A / norms[cols])
+        xs = sla.solve_triangular(Rs, Q.T @ R[:, -1]) / norms[cols]
+        Rinv = sla.solve_triangular(Rs, np.eye(len(cols)))
+        cs = (Rinv @ Rinv.T) / np.outer(norms[cols], norms[cols]) * (sse_full / dof) * kappa
+        x[cols] = xs
+        cov[np.ix_(cols, cols)] = cs
+    result = FitResult(patterns, used, reasons, x, cov, sse_full, n, p, kappa, rho, condition=condition)
+    # Extra sum of squares (Suh & Lee section 4.2): drop each term in turn.
+    ssr: dict[str, float] = {}
+    for i, pat in enumerate(patterns):
+        if not used[i]:
+            continue
+        others = [c for c in cols if not slices[i].start <= c < slices[i].stop]
+        ssr[pat.name] = max(sse_subset(R, others) - sse_full, 0.0)
+    total = sum(ssr.values())
+    mse = sse_full / dof * kappa
+    for i, pat in enumerate(patterns):
+        if pat.name not in ssr:
+            continue
+        F = (ssr[pat.name] / pat.q) / mse if mse > 0 else math.inf
+        pv = float(stats.f.sf(F, pat.q, dof)) if math.isfinite(F) else 0.0
+        sl = slices[i]
+        scale = effect_scale[sl] if effect_scale is not None else np.ones(pat.q)
+        effect = float(np.sum(np.abs(x[sl]) * scale))
+        share = 100.0 * ssr[pat.name] / total if total > 0 else 0.0
+        result.terms[pat.name] = TermResult(
+            pat.name, ssr[pat.name], F, pv, share, bool(pv < significance and effect >= min_effect_um), effect
+        )
+    return result
+
+
+def _cols(slices: Sequence[slice], used: Sequence[bool]) -> list[int]:
+    return [c for sl, u in zip(slices, used, strict=True) if u for c in range(sl.start, sl.stop)]
+
+
+def _vif(An: np.ndarray) -> np.ndarray:
+    """Variance inflation of each (unit-norm) column: diag((A^T A)^-1)."""
+    _, s, vt = np.linalg.svd(An, full_matrices=False)
+    with np.errstate(divide="ignore"):
+        inv = np.where(s > s[0] * 1e-13, 1.0 / s**2, np.inf)
+    return np.asarray(np.sum(vt**2 * inv[:, None], axis=0))
+
+
+def _most_collinear(An: np.ndarray, k: int, owner: Sequence[int], patterns: Sequence[Pattern]) -> str:
+    """Name the other pattern(s) that best reproduce column ``k``."""
+    others = [j for j in range(An.shape[1]) if owner[j] != owner[k]]
+    if not others:
+        return "the rest of the model"
+    coef, *_ = np.linalg.lstsq(An[:, others], An[:, k], rcond=None)
+    weight: dict[int, float] = {}
+    for c, j in zip(coef, others, strict=True):
+        weight[owner[j]] = weight.get(owner[j], 0.0) + abs(float(c))
+    top = sorted(weight, key=lambda i: -weight[i])[:2]
+    return " and ".join(patterns[i].name for i in top)
+
+
+def _no_support_reason(pat: Pattern) -> str:
+    if pat.reversal is not None:
+        axis, at, d = pat.reversal
+        return (
+            f"no samples after the {axis.upper()} reversal at {math.degrees(at):g} deg "
+            f"in the {'CCW' if d > 0 else 'CW'} data arc"
+        )
+    return "the data holds no samples where this pattern acts"

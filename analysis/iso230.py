@@ -1,0 +1,81 @@
+"""ISO 230-4 circular test figures (DOMAIN.md section 5).
+
+- ``G`` circular deviation per direction: range of the radial deviation about
+  that direction's least-squares circle (centre and radius fitted).
+- ``G(b)`` bidirectional circular deviation: the same over both directions with
+  one least-squares circle.
+- ``H`` circular hysteresis: the largest radial difference between the CCW and
+  CW paths at the same angle (about the bidirectional least-squares circle;
+  both paths interpolated on the coarser of their angle grids, over the angles
+  both cover).
+- ``F`` radial deviation: largest and smallest deviation from the nominal
+  radius about the test centre (the pivot), i.e. ``L - R`` as measured; needs
+  the bar's length calibration.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+
+def _lsc_residual(u: np.ndarray, dr: np.ndarray) -> np.ndarray:
+    """Radial deviation about the least-squares circle (centre and radius removed)."""
+    A = np.column_stack([np.ones_like(u), np.cos(u), np.sin(u)])
+    x, *_ = np.linalg.lstsq(A, dr, rcond=None)
+    return np.asarray(dr - A @ x)
+
+
+def figures(per_direction: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+    """ISO 230-4 figures in micrometres from ``{direction: (u_rad, dR_um)}``."""
+    out: dict[str, Any] = {"G_ccw_um": None, "G_cw_um": None, "G_b_um": None, "H_um": None}
+    for d, key in ((1, "G_ccw_um"), (-1, "G_cw_um")):
+        if d in per_direction and per_direction[d][0].size >= 4:
+            r = _lsc_residual(*per_direction[d])
+            out[key] = float(r.max() - r.min())
+    all_u = np.concatenate([v[0] for v in per_direction.values()])
+    all_dr = np.concatenate([v[1] for v in per_direction.values()])
+    if all_u.size >= 4:
+        r_all = _lsc_residual(all_u, all_dr)
+        if len(per_direction) == 2:
+            out["G_b_um"] = float(r_all.max() - r_all.min())
+            n_ccw = per_direction[1][0].size
+            out["H_um"] = _hysteresis(
+                (per_direction[1][0], r_all[:n_ccw]), (per_direction[-1][0], r_all[n_ccw:])
+            )
+        out["F_max_um"] = float(all_dr.max())
+        out["F_min_um"] = float(all_dr.min())
+    else:
+        out["F_max_um"] = out["F_min_um"] = None
+    return out
+
+
+def _hysteresis(ccw: tuple[np.ndarray, np.ndarray], cw: tuple[np.ndarray, np.ndarray]) -> float | None:
+    (u1, r1), (u2, r2) = ccw, cw
+    o1, o2 = np.argsort(u1), np.argsort(u2)
+    u1, r1, u2, r2 = u1[o1], r1[o1], u2[o2], r2[o2]
+    lo, hi = max(u1[0], u2[0]), min(u1[-1], u2[-1])
+    if hi <= lo:
+        return None
+    grid = u1 if u1.size <= u2.size else u2
+    grid = grid[(grid >= lo) & (grid <= hi)]
+    diff = np.interp(grid, u1, r1) - np.interp(grid, u2, r2)
+    return float(np.max(np.abs(diff)))
+
+
+def conditions(plan_dict: dict[str, Any], measured_feed_mm_min: float, sample_hz: float) -> dict[str, Any]:
+    """The test conditions every ISO figure is reported with."""
+    return {
+        "plane": plan_dict["plane"],
+        "radius_mm": plan_dict["radius_mm"],
+        "feed_mm_min": plan_dict["feed_mm_min"],
+        "measured_feed_mm_min": measured_feed_mm_min if math.isfinite(measured_feed_mm_min) else None,
+        "data_arc_deg": plan_dict["data_arc_deg"],
+        "start_deg": plan_dict["start_deg"],
+        "directions": plan_dict["directions"],
+        "sample_hz": sample_hz,
+        "centre_removal": "least squares circle: per direction for G, common for G(b) and H; none for F",
+        "standard": "ISO 230-4:2022",
+    }

@@ -1,0 +1,84 @@
+"""Noise-type findings computed from the fit's residual (DOMAIN.md section 3).
+
+- Vibration: RMS of the residual above a cut-off in cycles per revolution
+  (cpr), with the dominant frequency in Hz and cpr.  The residual of each data
+  arc is a sequence uniform in time, so uniform in angle: its FFT bin ``k``
+  is ``k * 360 / arc`` cpr.
+- Stick-slip: small steps near an axis reversal, where that axis moves slowly.
+  Within ``+-window`` of each reversal (axis speed below ``sin(window)`` of the
+  feed) the high-passed residual's RMS is compared with that elsewhere:
+  ``sqrt(max(0, rms_near^2 - rms_far^2))`` per axis.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+STICK_SLIP_WINDOW_DEG = 5.0
+STICK_SLIP_MIN_UM = 0.1
+VIBRATION_MIN_UM = 0.1
+
+
+def _highpass(r: np.ndarray, arc_deg: float, cutoff_cpr: float) -> tuple[np.ndarray, np.ndarray]:
+    n = r.size
+    spec = np.fft.rfft(r - r.mean())
+    cpr = np.arange(spec.size) * 360.0 / arc_deg
+    spec[cpr < cutoff_cpr] = 0.0
+    return np.fft.irfft(spec, n), np.abs(spec)
+
+
+def findings(
+    circles: list[tuple[np.ndarray, np.ndarray, float, float]], cutoff_cpr: float
+) -> dict[str, Any]:
+    """From ``[(u_rad, residual_um, arc_deg, sample_hz), ...]`` per data arc."""
+    hp_sq, hp_n = 0.0, 0
+    best_amp, best_cpr, best_hz = 0.0, float("nan"), float("nan")
+    near_sq = {"x": [0.0, 0], "y": [0.0, 0]}
+    far_sq = [0.0, 0]
+    for u, r, arc_deg, fs in circles:
+        if r.size < 16:
+            continue
+        hp, mag = _highpass(r, arc_deg, cutoff_cpr)
+        hp_sq += float(np.sum(hp**2))
+        hp_n += hp.size
+        k = int(np.argmax(mag))
+        if mag[k] > best_amp:
+            best_amp = float(mag[k])
+            best_cpr = k * 360.0 / arc_deg
+            best_hz = k * fs / r.size
+        w = math.sin(math.radians(STICK_SLIP_WINDOW_DEG))
+        near_x = np.abs(np.sin(u)) < w
+        near_y = np.abs(np.cos(u)) < w
+        for axis, m in (("x", near_x), ("y", near_y)):
+            near_sq[axis][0] += float(np.sum(hp[m] ** 2))
+            near_sq[axis][1] += int(m.sum())
+        far = ~(near_x | near_y)
+        far_sq[0] += float(np.sum(hp[far] ** 2))
+        far_sq[1] += int(far.sum())
+    vib = math.sqrt(hp_sq / hp_n) if hp_n else None
+    rms_far = math.sqrt(far_sq[0] / far_sq[1]) if far_sq[1] else 0.0
+    out: dict[str, Any] = {
+        "vibration_um": vib,
+        "vibration_cutoff_cpr": cutoff_cpr,
+        "vibration_peak_cpr": best_cpr if vib is not None and math.isfinite(best_cpr) else None,
+        "vibration_peak_hz": best_hz if vib is not None and math.isfinite(best_hz) else None,
+        "vibration_significant": bool(vib is not None and vib >= VIBRATION_MIN_UM),
+    }
+    for axis in ("x", "y"):
+        s, n = near_sq[axis]
+        if n >= 4:
+            val = math.sqrt(max(0.0, s / n - rms_far**2))
+            out[f"stick_slip_{axis}_um"] = val
+            out[f"stick_slip_{axis}_significant"] = bool(val >= STICK_SLIP_MIN_UM)
+        else:
+            out[f"stick_slip_{axis}_um"] = None
+            out[f"stick_slip_{axis}_significant"] = False
+    out["method"] = (
+        f"residual above {cutoff_cpr:g} cycles/rev; stick-slip: within +-{STICK_SLIP_WINDOW_DEG:g} deg "
+        "of reversals against elsewhere; significant from "
+        f"{VIBRATION_MIN_UM:g} um (vibration) and {STICK_SLIP_MIN_UM:g} um (stick-slip)"
+    )
+    return out

@@ -1,0 +1,107 @@
+"""Reading recordings: CSV now, the daemon's MCAP logs once they exist.
+
+CSV format: a header line naming at least the columns ``t_s`` (seconds, any
+origin, increasing) and ``length_mm`` (absolute bar length in millimetres), then
+one sample per line, comma separated.  Other columns are ignored; lines that
+start with ``#`` are comments.
+
+Every problem is raised as :class:`~ballbar.analysis.errors.DataError` with a
+one-line message that names the file and the line.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ballbar.analysis.errors import DataError
+
+log = logging.getLogger(__name__)
+
+REQUIRED = ("t_s", "length_mm")
+
+
+def read_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``(t_s, length_mm)`` from a CSV recording; sorted by time, all finite."""
+    name = os.fspath(path)
+    try:
+        raw = Path(name).read_bytes()
+    except FileNotFoundError:
+        raise DataError(f"{name}: no such file") from None
+    except IsADirectoryError:
+        raise DataError(f"{name}: is a directory, not a recording") from None
+    except OSError as err:
+        raise DataError(f"{name}: cannot read: {err.strerror or err}") from err
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = raw[: err.start].count(b"\n") + 1
+        raise DataError(f"{name}:{line}: not a text CSV file (byte {err.start} is not UTF-8)") from None
+    lines = text.splitlines()
+    header_at = next((i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")), None)
+    if header_at is None:
+        raise DataError(f"{name}: empty file, expected a header 't_s,length_mm' and samples")
+    cols = [c.strip() for c in lines[header_at].split(",")]
+    missing = [c for c in REQUIRED if c not in cols]
+    if missing:
+        raise DataError(
+            f"{name}:{header_at + 1}: header must name the columns t_s,length_mm "
+            f"(missing {', '.join(missing)}; found {lines[header_at].strip()[:60]!r})"
+        )
+    it, il = cols.index("t_s"), cols.index("length_mm")
+    body = "\n".join(lines[header_at + 1 :])
+    try:
+        data = np.loadtxt(
+            io.StringIO(body), delimiter=",", comments="#", usecols=(it, il), ndmin=2, dtype=float
+        )
+    except ValueError:
+        _raise_bad_line(name, lines, header_at, len(cols), (it, il))
+        raise  # _raise_bad_line always raises; this keeps the type checker honest
+    if data.shape[0] == 0:
+        raise DataError(f"{name}: header but no samples")
+    t, length = data[:, 0], data[:, 1]
+    bad = ~np.isfinite(t) | ~np.isfinite(length)
+    if bad.any():
+        k = int(np.argmax(bad))
+        line = _data_line_number(lines, header_at, k)
+        what = "t_s" if not math.isfinite(t[k]) else "length_mm"
+        raise DataError(f"{name}:{line}: {what} is not a finite number ({lines[line - 1].strip()[:60]!r})")
+    if np.any(np.diff(t) < 0):
+        order = np.argsort(t, kind="stable")
+        log.warning("%s: %d samples out of time order; sorted", name, int(np.sum(np.diff(t) < 0)))
+        t, length = t[order], length[order]
+    return np.ascontiguousarray(t), np.ascontiguousarray(length)
+
+
+def _data_line_number(lines: list[str], header_at: int, k: int) -> int:
+    """1-based file line of the k-th data row (comments and blank lines skipped)."""
+    seen = -1
+    for i in range(header_at + 1, len(lines)):
+        s = lines[i].strip()
+        if not s or s.startswith("#"):
+            continue
+        seen += 1
+        if seen == k:
+            return i + 1
+    return len(lines)
+
+
+def _raise_bad_line(name: str, lines: list[str], header_at: int, ncols: int, use: tuple[int, int]) -> None:
+    for i in range(header_at + 1, len(lines)):
+        s = lines[i].strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.split(",")
+        if len(parts) < max(use) + 1:
+            raise DataError(f"{name}:{i + 1}: expected {ncols} comma-separated values, got {s[:60]!r}")
+        for j in use:
+            try:
+                float(parts[j])
+            except ValueError:
+                raise DataError(f"{name}:{i + 1}: not a number: {parts[j].strip()[:40]!r}") from None
+    raise DataError(f"{name}: malformed CSV")
