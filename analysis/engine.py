@@ -34,7 +34,7 @@ from .errors import DataError, DetectionError
 from .fit import Factor, FitResult, solve, sse_subset
 from .patterns import LIBRARY, Geometry, Pattern, design, select
 from .plan import AnalysisOptions, MachineConfig, TestPlan
-from .program import Schedule, feed_from_span, schedule
+from .program import Schedule, arc_start_deg, feed_from_span, schedule
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +106,7 @@ class CircleFit:
             R=self.plan.radius_mm,
             pitch_x_mm=self.machine.pitch_x_mm,
             pitch_y_mm=self.machine.pitch_y_mm,
+            travel=self.d * (u - math.radians(arc_start_deg(self.plan, self.d))),
         )
 
     def add(self, t: np.ndarray, L: np.ndarray) -> None:
@@ -403,11 +404,11 @@ def _search(
     c = 0.0
     for _round in range(2):
         if spikes:
-            r = optimize.minimize_scalar(lambda lw: sse(c, math.exp(lw)), bounds=(lo_w, hi_w),
+            r = optimize.minimize_scalar(lambda lw, c=c: sse(c, math.exp(lw)), bounds=(lo_w, hi_w),
                                          method="bounded", options={"xatol": 0.01})
             w = float(math.exp(r.x))
         if options.estimate_lag:
-            def obj(cc: float) -> float:
+            def obj(cc: float, w: float = w) -> float:
                 return 0.5 * n_eff * math.log(max(sse(cc, w), 1e-300)) + cc * cc / (2 * LAG_PRIOR_S**2)
             r = optimize.minimize_scalar(obj, bounds=(-options.max_lag_s, options.max_lag_s),
                                          method="bounded", options={"xatol": 1e-5})
@@ -428,7 +429,7 @@ def _embed(f: Factor, sub: Sequence[Pattern], full: Sequence[Pattern]) -> Factor
     for p in full:
         pos[p.name] = j
         j += p.q
-    cols = []
+    cols: list[int] = []
     for p in sub:
         cols.extend(range(pos[p.name], pos[p.name] + p.q))
     out = Factor(j)
@@ -543,7 +544,9 @@ def _rate(t: np.ndarray) -> float:
     return float(1.0 / np.median(np.diff(t)))
 
 
-def _timing_dict(plan: TestPlan, fi: StepEvent, fo: StepEvent, timing: Timing, hyper: _Hyper, V: float) -> dict[str, Any]:
+def _timing_dict(
+    plan: TestPlan, fi: StepEvent, fo: StepEvent, timing: Timing, hyper: _Hyper, V: float
+) -> dict[str, Any]:
     omega = V / plan.radius_mm  # rad/s
     out: dict[str, Any] = {
         "provisional": False,

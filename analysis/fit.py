@@ -200,8 +200,15 @@ def solve(
     norms = np.linalg.norm(R[:, :p_all], axis=0)
     reasons: dict[str, str] = dict(exclude or {})
     used = [pat.name not in reasons for pat in patterns]
+    # Support: the column's energy in units of its own peak, about "samples where it acts";
+    # without the peaks only an all-zero column lacks support.
+    if effect_scale is None:
+        support = np.where(norms > 0, np.inf, 0.0)
+    else:
+        safe = np.where(effect_scale > 0, effect_scale, 1.0)
+        support = np.where(effect_scale > 0, (norms / safe) ** 2, 0.0)
     for i, pat in enumerate(patterns):
-        if used[i] and np.any(norms[slices[i]] ** 2 < min_support):
+        if used[i] and np.any(support[slices[i]] < min_support):
             used[i] = False
             reasons[pat.name] = _no_support_reason(pat)
     # Leave out, lowest priority first, what the data cannot separate.
@@ -219,7 +226,7 @@ def solve(
             break
         col_owner = [i for i, pat in enumerate(patterns) if used[i] for _ in range(pat.q)]
         drop = max(col_owner[k] for k in worst)
-        k_drop = next(k for k in worst if col_owner[k] == drop)
+        k_drop = int(next(k for k in worst if col_owner[k] == drop))
         partner = _most_collinear(An, k_drop, col_owner, patterns)
         used[drop] = False
         v = vif[k_drop]
@@ -276,7 +283,9 @@ def _vif(An: np.ndarray) -> np.ndarray:
     _, s, vt = np.linalg.svd(An, full_matrices=False)
     with np.errstate(divide="ignore"):
         inv = np.where(s > s[0] * 1e-13, 1.0 / s**2, np.inf)
-    return np.asarray(np.sum(vt**2 * inv[:, None], axis=0))
+    with np.errstate(invalid="ignore"):
+        terms = np.where(vt**2 > 0, vt**2 * inv[:, None], 0.0)
+    return np.asarray(np.sum(terms, axis=0))
 
 
 def _most_collinear(An: np.ndarray, k: int, owner: Sequence[int], patterns: Sequence[Pattern]) -> str:
@@ -296,7 +305,7 @@ def _no_support_reason(pat: Pattern) -> str:
     if pat.reversal is not None:
         axis, at, d = pat.reversal
         return (
-            f"no samples after the {axis.upper()} reversal at {math.degrees(at):g} deg "
+            f"no samples after the {axis.upper()} reversal at {at:g} deg "
             f"in the {'CCW' if d > 0 else 'CW'} data arc"
         )
     return "the data holds no samples where this pattern acts"

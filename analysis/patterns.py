@@ -34,7 +34,9 @@ class Geometry:
 
     ``u``: commanded angle (rad); ``d``: direction (+1/-1); ``t_min``: minutes
     from the test's data mid-time; ``V``: path feed (mm/s); ``R``: radius (mm);
-    ``pitch``: ball-screw pitch per axis (mm) or None.
+    ``pitch``: ball-screw pitch per axis (mm) or None; ``travel``: angle (rad)
+    travelled since the arc began, so that a reversal the arc never passed has
+    no spike.
     """
 
     u: np.ndarray
@@ -44,6 +46,7 @@ class Geometry:
     R: float
     pitch_x_mm: float | None = None
     pitch_y_mm: float | None = None
+    travel: np.ndarray | None = None  # angle travelled since the arc began (rad); None: long enough
 
     def __len__(self) -> int:
         return int(self.u.size)
@@ -174,7 +177,11 @@ def _spike(at_deg: float, direction: int) -> ColumnFn:
         out = np.zeros(len(g))
         mine = g.d == direction
         if mine.any():
-            out[mine] = np.exp(-spike_travel(g.u[mine], g.d[mine], at) / w)
+            du = spike_travel(g.u[mine], g.d[mine], at)
+            spike = np.exp(-du / w)
+            if g.travel is not None:
+                spike[du > g.travel[mine]] = 0.0
+            out[mine] = spike
         return out
 
     return fn

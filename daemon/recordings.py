@@ -18,7 +18,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-
 from ballbar.analysis.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -105,3 +104,11 @@ def _raise_bad_line(name: str, lines: list[str], header_at: int, ncols: int, use
             except ValueError:
                 raise DataError(f"{name}:{i + 1}: not a number: {parts[j].strip()[:40]!r}") from None
     raise DataError(f"{name}: malformed CSV")
+
+
+def read_recording(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """``(t_s, length_mm)`` of a recording, by its file type."""
+    name = os.fspath(path)
+    if name.lower().endswith(".mcap"):
+        raise DataError(f"{name}: MCAP recordings are read once the daemon's logger exists; use CSV")
+    return read_csv(name)
