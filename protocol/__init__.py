@@ -1,1 +1,18 @@
-"""ballbar.protocol"""
+"""ballbar.protocol: bytes in, frames out. Pure: no I/O, no threads, no clocks.
+
+Two wire formats for the ball-bar's length transducer (``protocol/README.md``):
+
+- :mod:`.binary`: 17-byte frames with sync word, sample counter, device clock,
+  displacement in 10 nm counts, status and CRC-16, for rates up to 10 kHz and more.
+- :mod:`.ascii`: one reading per text line, as plain gauge interfaces send it,
+  streamed or polled.
+
+Both decoders take any chunking of the byte stream, skip garbage, resynchronise,
+count what they dropped and why, and never raise for bad bytes.
+"""
+
+from ._common import INVALID, Readings, Status
+from .ascii import AsciiDecoder, AsciiFormat
+from .binary import BinaryDecoder
+
+__all__ = ["INVALID", "AsciiDecoder", "AsciiFormat", "BinaryDecoder", "Readings", "Status"]

@@ -1,0 +1,436 @@
+"""The ASCII line protocol of plain gauge interfaces: one reading per line.
+
+Grammar (bytes, see ``protocol/README.md``)::
+
+    line      = [timestamp sep] reading [sp unit] eol
+    timestamp = digits ["." digits]               device time, in the format's ts_unit
+    reading   = ["+" | "-"] digits ["." digits]   or ["+" | "-"] "." digits
+              | fault word                        OVER, OL, +OL, -OL (over range);
+                                                  ERR, ERROR, FAULT (sensor fault)
+    unit      = the configured unit's name: mm, um (also µm in UTF-8 or Latin-1), nm, in
+                (letters in any case); when present it must be the configured one
+    sep, sp   = one or more of space, tab, "," or ";"  (sp may be empty before a unit)
+    eol       = CR, LF or CR LF; empty lines are ignored
+
+No exponent; the digits of a number, read without its point, must stay below
+2**53 (15 significant digits always do), so that the value is exact.  The
+reading times the format's ``scale`` and unit gives millimetres.  The same
+decoder reads streamed lines and the answers to polled requests; in polled
+mode the host sends :attr:`AsciiFormat.request` once per sample.
+
+Decoding is vectorised: line ends are found with numpy, and the lines are
+scanned one character position at a time for all lines at once (a small state
+machine per line held in numpy arrays; Horner's rule builds the digits exactly
+in float64, divided once by the power of ten of the fraction: the same
+correctly rounded double that ``float()`` gives).  Only
+lines that fail that fast path are looked at one by one (fault words, errors).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ._common import (
+    BAD_LINE,
+    BAD_UNIT,
+    LONG_LINE,
+    SKIPPED_BYTES,
+    Readings,
+    Status,
+    add_counts,
+)
+
+Unit = Literal["mm", "um", "nm", "in"]
+TsUnit = Literal["s", "ms", "us"]
+
+UNIT_MM: dict[str, float] = {"mm": 1.0, "um": 1e-3, "nm": 1e-6, "in": 25.4}
+TS_S: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+#: Default digits after the point when encoding: 0.01 um resolution.
+DEFAULT_DECIMALS: dict[str, int] = {"mm": 5, "um": 2, "nm": 0, "in": 7}
+_UNIT_SPELLINGS: dict[str, tuple[bytes, ...]] = {
+    "mm": (b"mm",),
+    "um": (b"um", "µm".encode(), "µm".encode("latin-1")),
+    "nm": (b"nm",),
+    "in": (b"in",),
+}
+FAULT_WORDS: dict[str, int] = {
+    "OVER": int(Status.OVER_RANGE),
+    "OL": int(Status.OVER_RANGE),
+    "+OL": int(Status.OVER_RANGE),
+    "-OL": int(Status.OVER_RANGE),
+    "ERR": int(Status.SENSOR_FAULT),
+    "ERROR": int(Status.SENSOR_FAULT),
+    "FAULT": int(Status.SENSOR_FAULT),
+}
+MAX_DIGITS = 15  # significant digits that always fit a double exactly
+_MAX_MANTISSA = float(2**53)  # digits without the point must stay below this to be exact
+_MAX_FRAC = 22  # 10**22 is the largest exact power of ten in a double
+
+
+@dataclass(frozen=True)
+class AsciiFormat:
+    """How a gauge writes its lines.
+
+    Decoding uses ``unit``, ``scale``, ``ts_unit`` (``None``: the lines carry no
+    timestamp) and ``max_line`` (longer lines are dropped).  Encoding also uses
+    ``decimals`` (``None``: 0.01 um resolution in the unit), ``unit_suffix``,
+    ``separator`` and ``eol``.  ``request`` is what the host sends in polled mode.
+    """
+
+    unit: Unit = "mm"
+    scale: float = 1.0
+    ts_unit: TsUnit | None = None
+    max_line: int = 64
+    decimals: int | None = None
+    unit_suffix: bool = False
+    separator: str = " "
+    eol: bytes = b"\r\n"
+    request: bytes = b"?\r"
+
+    def __post_init__(self) -> None:
+        if self.unit not in UNIT_MM:
+            raise ValueError(f"unit must be one of {', '.join(UNIT_MM)}, not {self.unit!r}")
+        if self.ts_unit is not None and self.ts_unit not in TS_S:
+            raise ValueError(f"ts_unit must be one of {', '.join(TS_S)} or None, not {self.ts_unit!r}")
+        if not (math.isfinite(self.scale) and self.scale != 0):
+            raise ValueError(f"scale must be a finite non-zero number, not {self.scale!r}")
+        if not 8 <= self.max_line <= 4096:
+            raise ValueError(f"max_line must be within 8..4096, not {self.max_line!r}")
+        if self.separator.strip(" \t,;") or not self.separator:
+            raise ValueError(f"separator must be spaces, tabs, ',' or ';', not {self.separator!r}")
+        if self.eol not in (b"\r\n", b"\n", b"\r"):
+            raise ValueError(f"eol must be CR, LF or CR LF, not {self.eol!r}")
+        if not self.request:
+            raise ValueError("request must not be empty")
+
+    @property
+    def mm_per_count(self) -> float:
+        """Millimetres per unit of the number on the line."""
+        return self.scale * UNIT_MM[self.unit]
+
+    @property
+    def digits(self) -> int:
+        return DEFAULT_DECIMALS[self.unit] if self.decimals is None else self.decimals
+
+
+# ----------------------------------------------------------------------------- encoder
+
+
+def encode(
+    value_mm: ArrayLike,
+    fmt: AsciiFormat = AsciiFormat(),
+    t_s: ArrayLike | None = None,
+    status: ArrayLike | None = None,
+) -> bytes:
+    """Lines for readings in mm (and device times in seconds when the format has them).
+
+    A sample with ``SENSOR_FAULT`` is written ``ERR``, one with ``OVER_RANGE``
+    ``OVER``: gauges do not send a number they cannot vouch for.
+    """
+    vals = np.atleast_1d(np.asarray(value_mm, dtype=np.float64)) / fmt.mm_per_count
+    n = vals.shape[0]
+    st = np.zeros(n, np.int64) if status is None else np.broadcast_to(np.asarray(status, np.int64), (n,))
+    d = fmt.digits
+    suffix = f" {fmt.unit}" if fmt.unit_suffix else ""
+    eol = fmt.eol.decode("ascii")
+    texts = [f"{v:+.{d}f}{suffix}" for v in vals.tolist()]
+    for i in np.flatnonzero(st & int(Status.OVER_RANGE) | ~np.isfinite(vals)).tolist():
+        texts[i] = "OVER"
+    for i in np.flatnonzero(st & int(Status.SENSOR_FAULT)).tolist():
+        texts[i] = "ERR"
+    if fmt.ts_unit is not None:
+        if t_s is None:
+            raise ValueError("this format has timestamps: pass t_s")
+        ts = np.broadcast_to(np.asarray(t_s, dtype=np.float64), (n,)) / TS_S[fmt.ts_unit]
+        td = {"s": 6, "ms": 3, "us": 0}[fmt.ts_unit]
+        sep = fmt.separator
+        texts = [f"{t:.{td}f}{sep}{x}" for t, x in zip(ts.tolist(), texts, strict=True)]
+    return "".join(x + eol for x in texts).encode("ascii")
+
+
+# ----------------------------------------------------------------------------- decoder
+
+# Character classes for the byte matrix.
+_PAD, _DIGIT, _DOT, _SIGN, _ALPHA, _SEP, _OTHER = range(7)
+_CLASS = np.full(256, _OTHER, dtype=np.uint8)
+_CLASS[0] = _PAD
+_CLASS[ord("0") : ord("9") + 1] = _DIGIT
+_CLASS[ord(".")] = _DOT
+_CLASS[[ord("+"), ord("-")]] = _SIGN
+_CLASS[ord("a") : ord("z") + 1] = _ALPHA
+_CLASS[ord("A") : ord("Z") + 1] = _ALPHA
+_CLASS[[0xB5, 0xC2]] = _ALPHA  # µ in Latin-1, and UTF-8's lead byte of µ
+_CLASS[[ord(" "), ord("\t"), ord(","), ord(";")]] = _SEP
+_LOWER = np.arange(256, dtype=np.int64)
+_LOWER[ord("A") : ord("Z") + 1] += 32
+_P10 = 10.0 ** np.arange(_MAX_FRAC + 1)
+_BLOCK = 1 << 16  # lines per vectorised block (bounds the temporaries)
+_FAULT_RE = re.compile(rb"^[ \t,;]*(?:(?P<ts>\d+(?:\.\d*)?)[ \t,;]+)?(?P<word>[+-]?[A-Za-z]+)[ \t,;]*$")
+
+
+class Decoded(NamedTuple):
+    """What :func:`decode` found: ``consumed`` bytes (whole lines), the readings, and
+    drop counts by reason.  ``discarding``: the buffer ended inside a line that is
+    already too long; feed the next call with ``skip_first=True``."""
+
+    consumed: int
+    readings: Readings
+    dropped: dict[str, int]
+    discarding: bool
+
+
+def decode(
+    buffer: bytes | bytearray | memoryview,
+    fmt: AsciiFormat = AsciiFormat(),
+    final: bool = False,
+    skip_first: bool = False,
+) -> Decoded:
+    """Decode the complete lines in ``buffer``; pure, never raises for any bytes.
+
+    ``final``: the stream ends here, the last line needs no terminator.
+    ``skip_first``: the bytes up to the first line end belong to a line that was
+    already counted as too long.
+    """
+    buf = np.frombuffer(buffer, dtype=np.uint8)
+    n = buf.shape[0]
+    dropped = {BAD_LINE: 0, LONG_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
+    eol = np.flatnonzero((buf == 10) | (buf == 13))
+    ends = eol
+    if final and (eol.shape[0] == 0 or eol[-1] != n - 1) and n:
+        ends = np.concatenate((eol, [n]))
+    consumed = n if final else (int(eol[-1]) + 1 if eol.shape[0] else 0)
+    starts = np.concatenate(([0], eol + 1))[: ends.shape[0]]
+    lens = ends - starts
+    discarding = False
+    if skip_first:
+        if ends.shape[0]:
+            dropped[SKIPPED_BYTES] += int(lens[0])
+            starts, ends, lens = starts[1:], ends[1:], lens[1:]
+        else:  # still inside the long line: drop everything, keep discarding
+            dropped[SKIPPED_BYTES] += n
+            return Decoded(n, _empty(fmt), dropped, not final)
+    if not final:
+        tail = n - consumed
+        if tail > fmt.max_line:
+            dropped[LONG_LINE] += 1
+            dropped[SKIPPED_BYTES] += tail
+            consumed, discarding = n, True
+    keep = lens > 0
+    starts, lens = starts[keep], lens[keep]
+    long = lens > fmt.max_line
+    dropped[LONG_LINE] += int(np.count_nonzero(long))
+    dropped[SKIPPED_BYTES] += int(lens[long].sum())
+    starts, lens = starts[~long], lens[~long]
+
+    values: list[NDArray[np.float64]] = []
+    stamps: list[NDArray[np.float64]] = []
+    stats: list[NDArray[np.uint8]] = []
+    if lens.shape[0]:
+        padded = np.concatenate((buf, np.zeros(int(lens.max()), np.uint8)))
+        for b0 in range(0, lens.shape[0], _BLOCK):
+            st_b, ln_b = starts[b0 : b0 + _BLOCK], lens[b0 : b0 + _BLOCK]
+            v, t, s, d = _parse_block(padded, st_b, ln_b, fmt)
+            values.append(v)
+            stamps.append(t)
+            stats.append(s)
+            add_counts(dropped, d)
+    if values:
+        value = np.concatenate(values)
+        stamp = np.concatenate(stamps)
+        status = np.concatenate(stats)
+    else:
+        value, stamp, status = np.empty(0), np.empty(0), np.empty(0, np.uint8)
+    readings = Readings(
+        value_mm=value * fmt.mm_per_count,
+        status=status,
+        seq=None,
+        clock_s=stamp * TS_S[fmt.ts_unit] if fmt.ts_unit is not None else None,
+    )
+    return Decoded(consumed, readings, dropped, discarding)
+
+
+def _empty(fmt: AsciiFormat) -> Readings:
+    return Readings(np.empty(0), np.empty(0, np.uint8), None, np.empty(0) if fmt.ts_unit is not None else None)
+
+
+def _unit_codes(unit: str) -> list[tuple[int, int]]:
+    """(length, code) of each accepted spelling; code packs the lower-cased bytes."""
+    out = []
+    for word in _UNIT_SPELLINGS[unit]:
+        code = 0
+        for ch in word.lower():
+            code = code * 256 + ch
+        out.append((len(word), code))
+    return out
+
+
+class _Number:
+    """Column-scan state for one numeric field of every row."""
+
+    def __init__(self, rows: int) -> None:
+        self.mant = np.zeros(rows)
+        self.nd = np.zeros(rows, np.int16)
+        self.frac = np.zeros(rows, np.int16)
+        self.dot = np.zeros(rows, bool)
+        self.neg = np.zeros(rows, bool)
+
+    def step(
+        self,
+        col: NDArray[np.uint8],
+        k: NDArray[np.uint8],
+        here: NDArray[np.bool_],
+        start: NDArray[np.bool_],
+        bad: NDArray[np.bool_],
+        signed: bool,
+    ) -> None:
+        digit = here & (k == _DIGIT)
+        if digit.any():
+            np.multiply(self.mant, 10.0, out=self.mant, where=digit)
+            np.add(self.mant, col - 48.0, out=self.mant, where=digit)
+            self.nd += digit
+            self.frac += digit & self.dot
+        dot = here & (k == _DOT)
+        if dot.any():
+            bad |= dot & self.dot
+            self.dot |= dot
+        sign = here & (k == _SIGN)
+        if sign.any():
+            bad |= (sign & ~start) if signed else sign
+            self.neg |= sign & (col == ord("-"))
+
+    def value(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        ok = (self.nd >= 1) & (self.mant < _MAX_MANTISSA) & (self.frac <= _MAX_FRAC)
+        val = self.mant / _P10[np.clip(self.frac, 0, _MAX_FRAC)]
+        return np.where(self.neg, -val, val), ok
+
+
+def _parse_block(
+    padded: NDArray[np.uint8], starts: NDArray[np.intp], lens: NDArray[np.intp], fmt: AsciiFormat
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8], dict[str, int]]:
+    """Parse lines ``padded[starts[i] : starts[i] + lens[i]]``, one byte column at a time.
+
+    Each step is a handful of numpy operations over all the lines at once; the
+    loop runs once per character position (at most ``max_line`` times).
+    """
+    rows = starts.shape[0]
+    want = 2 if fmt.ts_unit is not None else 1
+    n_num = np.zeros(rows, np.int16)
+    n_alpha = np.zeros(rows, np.int16)
+    bad = np.zeros(rows, bool)
+    any_tok = np.zeros(rows, bool)
+    prev_tok = np.zeros(rows, bool)
+    prev_num = np.zeros(rows, bool)
+    code = np.zeros(rows, np.int64)
+    alen = np.zeros(rows, np.int16)
+    value = _Number(rows)
+    stamp = _Number(rows) if want == 2 else None
+    for j in range(int(lens.max())):
+        col = np.where(j < lens, padded[starts + j], 0).astype(np.uint8)
+        k = _CLASS[col]
+        is_tok = (k != _PAD) & (k != _SEP)
+        isnum = (k == _DIGIT) | (k == _DOT) | (k == _SIGN)
+        isalpha = k == _ALPHA
+        start = is_tok & (~prev_tok | (isnum != prev_num))
+        nstart = start & isnum
+        n_num += nstart
+        n_alpha += start & isalpha
+        bad |= (k == _OTHER) | (nstart & (n_alpha > 0))
+        any_tok |= is_tok
+        value.step(col, k, isnum & (n_num == want), nstart, bad, signed=True)
+        if stamp is not None:
+            stamp.step(col, k, isnum & (n_num == 1), nstart, bad, signed=False)
+        in_unit = isalpha & (n_alpha == 1)
+        if in_unit.any():
+            lower = _LOWER[col]
+            np.multiply(code, 256, out=code, where=in_unit)
+            np.add(code, lower, out=code, where=in_unit)
+            alen += in_unit
+        prev_tok, prev_num = is_tok, isnum
+    val, ok = value.value()
+    ok &= ~bad & (n_num == want) & (n_alpha <= 1)
+    if stamp is not None:
+        ts, t_ok = stamp.value()
+        ok &= t_ok
+    else:
+        ts = np.zeros(rows)
+    unit_ok = n_alpha == 0
+    for length, c in _unit_codes(fmt.unit):
+        unit_ok |= (alen == length) & (code == c)
+    status = np.zeros(rows, np.uint8)
+    good = ok & unit_ok
+    dropped = {BAD_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
+    # Lines that fail the fast path: a fault word, a wrong unit, or a bad line.
+    for i in np.flatnonzero(~good & (any_tok | bad)).tolist():
+        line = padded[starts[i] : starts[i] + lens[i]].tobytes()
+        if ok[i]:  # a good number with a wrong unit
+            dropped[BAD_UNIT] += 1
+            dropped[SKIPPED_BYTES] += int(lens[i])
+            continue
+        m = _FAULT_RE.match(line)
+        word = m.group("word").upper().decode() if m else ""
+        has_ts = m is not None and m.group("ts") is not None
+        if m is not None and word in FAULT_WORDS and has_ts == (fmt.ts_unit is not None):
+            good[i] = True
+            val[i] = math.nan
+            status[i] = FAULT_WORDS[word]
+            if has_ts:
+                ts[i] = float(m.group("ts"))
+        else:
+            dropped[BAD_LINE] += 1
+            dropped[SKIPPED_BYTES] += int(lens[i])
+    return val[good], ts[good], status[good], dropped
+
+
+class AsciiDecoder:
+    """Streaming line decoder: feed chunks as they arrive, in any sizes.
+
+    Keeps at most one incomplete line (``max_line`` bytes) between calls;
+    ``dropped`` accumulates counts by reason and ``lines`` counts readings.
+    """
+
+    name = "ascii"
+    seq_modulus: int | None = None
+    clock_wrap_s: float | None = None
+
+    def __init__(self, fmt: AsciiFormat | None = None) -> None:
+        self.fmt = fmt or AsciiFormat()
+        self._pending = b""
+        self._discarding = False
+        self.lines = 0
+        self.dropped: dict[str, int] = {BAD_LINE: 0, LONG_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
+
+    def feed(self, data: bytes | bytearray | memoryview, final: bool = False) -> Readings:
+        buffer = self._pending + bytes(data) if self._pending else bytes(data)
+        res = decode(buffer, self.fmt, final=final, skip_first=self._discarding)
+        self._pending = buffer[res.consumed :]
+        self._discarding = res.discarding
+        self.lines += len(res.readings)
+        add_counts(self.dropped, res.dropped)
+        return res.readings
+
+    def flush(self) -> Readings:
+        """End of stream (or a reconnection): parse or drop the unterminated tail."""
+        return self.feed(b"", final=True)
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending)
+
+
+__all__ = [
+    "DEFAULT_DECIMALS",
+    "FAULT_WORDS",
+    "TS_S",
+    "UNIT_MM",
+    "AsciiDecoder",
+    "AsciiFormat",
+    "Decoded",
+    "decode",
+    "encode",
+]
