@@ -213,12 +213,22 @@ class TestDetector:
                 k += 1
             j = min(k, L.size - 1)
             return level, j, True
-        t0 = t[i] - 0.2
-        k0 = int(np.searchsorted(t, t0))
-        seg = L[k0 : i + 1]
-        seg = seg[np.abs(seg - target) <= band]
-        level = float(np.median(seg[: max(len(seg) // 2, 1)])) if seg.size else float(L[i])
-        tol = self._tolerance(seg)
+        # Backward: walk back window by window until two neighbouring windows agree:
+        # that is the plateau the step left, wherever the plan's level says it should be.
+        dt = float(np.median(np.diff(t[max(0, i - 64) : i + 1]))) if i > 1 else 0.0
+        win = max(0.02, 3.0 * dt)
+        tol = self._tolerance(L[max(0, i - 200) : i + 1][np.abs(L[max(0, i - 200) : i + 1] - target) <= band])
+        hi = i
+        lo = int(np.searchsorted(t, t[hi] - win))
+        cur = float(np.median(L[lo : hi + 1]))
+        while lo > 0:
+            lo2 = min(int(np.searchsorted(t, t[lo] - win)), lo - 1)
+            prev = float(np.median(L[lo2:lo]))
+            if abs(prev - cur) <= tol:
+                cur = prev
+                break
+            cur, hi, lo = prev, lo - 1, lo2
+        level = cur
         k = i
         while k > 0 and abs(L[k] - level) > tol:
             k -= 1

@@ -328,7 +328,7 @@ def check_plan(plan: TestPlan, fi: StepEvent, fo: StepEvent) -> float:
     span = fo.t_s - fi.t_s
     V0 = feed_from_span(plan, span, 0.0)
     nominal = schedule(plan, plan.feed_mm_s).feed_out_centroid_s
-    if not (math.isfinite(V0) and 0.5 <= V0 / plan.feed_mm_s <= 2.0):
+    if not (math.isfinite(V0) and 0.5 <= V0 / plan.feed_mm_s <= 1.5):
         raise DataError(
             f"plan does not match the data: feed-in to feed-out takes {span:.2f} s, the plan's program "
             f"takes {nominal:.2f} s at {plan.feed_mm_min:g} mm/min (check feed, radius, arcs and dwell)"

@@ -15,6 +15,7 @@ import io
 import logging
 import math
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -55,9 +56,11 @@ def read_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     it, il = cols.index("t_s"), cols.index("length_mm")
     body = "\n".join(lines[header_at + 1 :])
     try:
-        data = np.loadtxt(
-            io.StringIO(body), delimiter=",", comments="#", usecols=(it, il), ndmin=2, dtype=float
-        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": checked below
+            data = np.loadtxt(
+                io.StringIO(body), delimiter=",", comments="#", usecols=(it, il), ndmin=2, dtype=float
+            )
     except ValueError:
         _raise_bad_line(name, lines, header_at, len(cols), (it, il))
         raise  # _raise_bad_line always raises; this keeps the type checker honest
