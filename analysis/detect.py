@@ -22,9 +22,11 @@ seconds before that.  A whole file is simply one chunk.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import optimize
 
 from .plan import TestPlan
 
@@ -32,6 +34,7 @@ log = logging.getLogger(__name__)
 
 BAND = 0.25  # of the feed-in distance: how close to R or R + f counts as "on" or "out"
 PRE_KEEP_S = 5.0  # samples kept before a feed-in while waiting for one
+SETTLE_S = (0.4, 0.8)  # window after a step's band entry that gives the new level (within the dwell)
 
 
 @dataclass(frozen=True)
@@ -46,6 +49,7 @@ class StepEvent:
     level_after_mm: float
     samples_in_step: int
     method: str  # "centroid" or "ramp"
+    tau_s: float = float("nan")  # time constant of the approach to the new level (position loop), if resolved
 
     @property
     def height_mm(self) -> float:
@@ -198,15 +202,17 @@ class TestDetector:
         band = BAND * self.f
         if forward:
             j = i
-            lim = min(L.size, i + 20000)
-            near = np.abs(L[i:lim] - target) <= band
-            # the level is the median of the samples in the 0.2 s after the step's band entry
-            t_end = t[i] + 0.2
-            k_end = int(np.searchsorted(t, t_end, side="right"))
-            if k_end >= L.size and not self._stream_has_moved_on(t, i) and not self.final:
+            near = np.abs(L[i:] - target) <= band
+            # The level: the median over the later part of the dwell that follows, when
+            # the position loop has closed its following error and the arc has not begun.
+            w0, w1 = self._settle_window()
+            k_lo = int(np.searchsorted(t, t[i] + w0))
+            k_end = int(np.searchsorted(t, t[i] + w1, side="right"))
+            if k_end >= L.size and not self.final:
                 return float("nan"), i, False
-            seg = L[i : max(k_end, i + 1)][near[: max(k_end, i + 1) - i]]
-            level = float(np.median(seg[len(seg) // 2 :])) if seg.size else float(L[i])
+            k_lo = min(k_lo, max(k_end - 1, i))
+            seg = L[k_lo : max(k_end, i + 1)][near[k_lo - i : max(k_end, i + 1) - i]]
+            level = float(np.median(seg)) if seg.size else float(L[i])
             tol = self._tolerance(seg)
             k = i
             while k < L.size and abs(L[k] - level) > tol:
@@ -234,9 +240,12 @@ class TestDetector:
             k -= 1
         return level, k, True
 
-    @staticmethod
-    def _stream_has_moved_on(t: np.ndarray, i: int) -> bool:
-        return bool(t.size - i > 64)
+    def _settle_window(self) -> tuple[float, float]:
+        """Seconds after a step's band entry whose median is the new level."""
+        D = self.plan.dwell_s if not self.in_test else max(self.plan.dwell_s, SETTLE_S[1])
+        if D < 0.1:
+            return 0.0, 0.05
+        return min(SETTLE_S[0], 0.45 * D), min(SETTLE_S[1], 0.9 * D)
 
     def _tolerance(self, seg: np.ndarray) -> float:
         """How far from a level still counts as on it: noise-aware, at least 2 um."""
@@ -258,16 +267,65 @@ class TestDetector:
             tc = float(np.dot(tm, dL) / total) if total != 0 else float(0.5 * (t[a] + t[b]))
             method = "centroid"
         else:
+            # Few samples: those on the ramp's straight middle each give the centre of a
+            # ramp of the programmed feed; with none there, the 50 % crossing interpolated.
             ramp_s = self.f / self.plan.feed_mm_s
-            if inner > 0:
-                frac = (L[a + 1 : b] - before) / height
-                est = t[a + 1 : b] - ramp_s * (frac - 0.5)
-                tc = float(np.mean(est))
+            frac = (L[a : b + 1] - before) / height
+            mid = (frac > 0.1) & (frac < 0.9)
+            if mid.any():
+                tc = float(np.mean(t[a : b + 1][mid] - ramp_s * (frac[mid] - 0.5)))
             else:
-                tc = float(0.5 * (t[a] + t[b]))
+                j = int(np.argmax(frac >= 0.5))
+                j = max(j, 1)
+                f0, f1 = frac[j - 1], frac[j]
+                x = (0.5 - f0) / (f1 - f0) if f1 != f0 else 0.5
+                tc = float(t[a + j - 1] + x * (t[a + j] - t[a + j - 1]))
             method = "ramp"
-        log.debug("%s at %.4f s (%s, %d samples)", kind, tc, method, inner)
-        return StepEvent(kind, tc, float(t[a]), float(t[b]), before, after, inner, method)
+        tau = self._tail_tau(t, L, a, b, tc, after)
+        log.debug("%s at %.4f s (%s, %d samples, tau %.4f s)", kind, tc, method, inner, tau)
+        return StepEvent(kind, tc, float(t[a]), float(t[b]), before, after, inner, method, tau)
+
+    def _tail_tau(self, t: np.ndarray, L: np.ndarray, a: int, b: int, tc: float, after: float) -> float:
+        """Time constant of the exponential approach to the new level, where resolved.
+
+        After the command stops, a first-order position loop closes its following
+        error as ``exp(-t / tau)`` with ``tau = 1 / Kv``.  The approach is fitted
+        log-linearly between ``max(5 um, 10 x noise)`` and ``min(150 um, f/10)``
+        from the level, after the step's centroid; it needs at least six samples
+        there and a log residual below 0.05, or no estimate is made.
+        """
+        settle_end = min(L.size, b + 1 + int(np.searchsorted(t[b + 1 :], t[b] + 0.5)))
+        k0 = int(np.searchsorted(t, tc))
+        seg_t, seg_L = t[k0:settle_end], L[k0:settle_end]
+        sign = 1.0 if L[a] > after else -1.0
+        e = sign * (seg_L - after)
+        noise = self._tolerance(L[b:settle_end]) / 6.0
+        lo, hi = max(0.005, 10.0 * noise), min(0.15, 0.1 * self.f)
+        m = (e > lo) & (e < hi)
+        # only the monotone approach: stop at the first sample below the band
+        below = np.flatnonzero(e <= lo)
+        if below.size:
+            m[below[0] :] = False
+        if m.sum() < 6:
+            return float("nan")
+        x, y = seg_t[m], np.log(e[m])
+        k, c0 = np.polyfit(x, y, 1)
+        if k >= 0:
+            return float("nan")
+        # refine with a free asymptote: the level itself carries the dwell's small errors
+        use = (e < hi) & (seg_t >= x[0])
+        tt, ee = seg_t[use] - x[0], e[use]
+        try:
+            (amp, tau, off), _ = optimize.curve_fit(
+                lambda q, a_, t_, o_: a_ * np.exp(-q / t_) + o_, tt, ee, p0=(math.exp(c0 + k * x[0]), -1 / k, 0.0),
+                maxfev=200,
+            )
+        except (RuntimeError, ValueError):
+            return float("nan")
+        resid = ee - (amp * np.exp(-tt / tau) + off)
+        if not (tau > 0 and float(np.sqrt(np.mean(resid**2))) < 0.05 * amp):
+            return float("nan")
+        return float(tau)
 
     def samples(self) -> tuple[np.ndarray, np.ndarray]:
         """The samples held: from the current (or just ended) test's feed-in on."""

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -33,6 +33,7 @@ from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
 from .fit import Factor, FitResult, solve, sse_subset
 from .patterns import LIBRARY, Geometry, Pattern, design, select
+from .physics import Offset, make_offset
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import Schedule, arc_start_deg, feed_from_span, schedule
 
@@ -41,6 +42,8 @@ log = logging.getLogger(__name__)
 SCHEMA_VERSION = 1
 SEARCH_SAMPLES_PER_CIRCLE = 6000
 LAG_PRIOR_S = 0.05
+SSE_FLOOR_UM = 1e-3
+DEFAULT_KV_PER_S = 30.0
 DEFAULT_SPIKE_WIDTH_DEG = 3.0
 
 
@@ -59,21 +62,23 @@ class Timing:
     overhead_s: float
     sched: Schedule
     t_ref: float  # feed-in centroid (absolute)
-    t_mid: float  # mid-time of the data (absolute), origin of the drift term
+    t_mid: float  # origin of the drift term (absolute): the feed-in centroid
 
     def window(self, d: int) -> tuple[float, float]:
         return self.t_ref + self.sched.data_start_s[d], self.t_ref + self.sched.data_end_s[d]
 
 
 def make_timing(plan: TestPlan, t_ref: float, feed_mm_s: float, overhead_s: float) -> Timing:
-    sched = schedule(plan, feed_mm_s, overhead_s)
-    dirs = plan.direction_list
-    mid = t_ref + 0.5 * (sched.data_start_s[dirs[0]] + sched.data_end_s[dirs[-1]])
-    return Timing(feed_mm_s, overhead_s, sched, t_ref, mid)
+    # The drift term's origin is the feed-in: radius_um is then the radius when the test began.
+    return Timing(feed_mm_s, overhead_s, schedule(plan, feed_mm_s, overhead_s), t_ref, t_ref)
 
 
 class CircleFit:
-    """The growing fit of one direction's data arc at fixed timing and spike width."""
+    """The growing fit of one direction's data arc at fixed timing and spike width.
+
+    ``offset``: a physical correction (um) subtracted from the deviation before
+    the masks see it (:mod:`.physics`).
+    """
 
     def __init__(
         self,
@@ -84,8 +89,11 @@ class CircleFit:
         timing: Timing,
         spike_width_deg: float,
         keep_design: bool = False,
+        offset: Offset | None = None,
+        loop_lag_s: float | None = None,
     ) -> None:
         self.plan, self.machine, self.patterns = plan, machine, list(patterns)
+        self.loop_lag_s = loop_lag_s
         self.d = direction
         self.timing = timing
         self.w = math.radians(spike_width_deg)
@@ -94,7 +102,8 @@ class CircleFit:
         self.colmax = np.zeros(self.p)
         self.t_start, self.t_end = timing.window(direction)
         self.keep_design = keep_design
-        self.kept: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # (t, u, dR, A)
+        self.offset = offset
+        self.kept: list[tuple[np.ndarray, Geometry, np.ndarray, np.ndarray]] = []  # (t, g, dR, A)
 
     def geometry(self, t: np.ndarray) -> Geometry:
         u = np.radians(self.timing.sched.angle_deg(self.plan, self.d, t - self.timing.t_ref))
@@ -107,6 +116,7 @@ class CircleFit:
             pitch_x_mm=self.machine.pitch_x_mm,
             pitch_y_mm=self.machine.pitch_y_mm,
             travel=self.d * (u - math.radians(arc_start_deg(self.plan, self.d))),
+            loop_lag_s=self.loop_lag_s,
         )
 
     def add(self, t: np.ndarray, L: np.ndarray) -> None:
@@ -118,25 +128,31 @@ class CircleFit:
         g = self.geometry(t)
         A = design(self.patterns, g, self.w)
         dr = (L - self.plan.radius_mm) * 1000.0
-        self.factor.add(A, dr)
+        self.factor.add(A, dr - self.offset(g) if self.offset is not None else dr)
         np.maximum(self.colmax, np.abs(A).max(axis=0), out=self.colmax)
         if self.keep_design:
-            self.kept.append((t, g.u, dr, A))
+            self.kept.append((t, g, dr, A))
 
-    def data(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Kept ``(t, u, dR, A)`` of this circle (needs ``keep_design``)."""
+    def refit(self, offset: Offset | None) -> None:
+        """Refold the kept samples with another correction (the design is reused)."""
+        self.offset = offset
+        self.factor = Factor(self.p)
+        for _t, g, dr, A in self.kept:
+            self.factor.add(A, dr - offset(g) if offset is not None else dr)
+
+    def corrected(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Kept ``(t, u, dR, A)`` with ``dR`` as measured minus the correction."""
         if not self.kept:
             return np.empty(0), np.empty(0), np.empty(0), np.empty((0, self.p))
-        return tuple(np.concatenate(parts) for parts in zip(*self.kept, strict=True))  # type: ignore[return-value]
+        t = np.concatenate([k[0] for k in self.kept])
+        u = np.concatenate([k[1].u for k in self.kept])
+        dr = np.concatenate([k[2] - (self.offset(k[1]) if self.offset else 0.0) for k in self.kept])
+        A = np.concatenate([k[3] for k in self.kept])
+        return t, u, dr, A
 
-
-def _merge(circles: Sequence[CircleFit]) -> tuple[Factor, np.ndarray]:
-    f = circles[0].factor
-    colmax = circles[0].colmax.copy()
-    for c in circles[1:]:
-        f = f.merged(c.factor)
-        np.maximum(colmax, c.colmax, out=colmax)
-    return f, colmax
+    def measured(self) -> tuple[np.ndarray, np.ndarray]:
+        """Kept ``(u, dR)`` as measured, for the ISO figures."""
+        return (np.concatenate([k[1].u for k in self.kept]), np.concatenate([k[2] for k in self.kept]))
 
 
 def _lag1(residuals: Sequence[np.ndarray]) -> float:
@@ -341,11 +357,75 @@ class _Hyper:
     overhead_s: float = 0.0
     spike_width_deg: float = DEFAULT_SPIKE_WIDTH_DEG
     lag_stderr_s: float = float("nan")
-    notes: list[str] = field(default_factory=list)
 
 
 def _has_spikes(patterns: Sequence[Pattern]) -> bool:
     return any(p.reversal is not None for p in patterns)
+
+
+class _Joint:
+    """Both circles of one test at one timing, spike width and correction."""
+
+    def __init__(
+        self,
+        plan: TestPlan,
+        machine: MachineConfig,
+        patterns: Sequence[Pattern],
+        timing: Timing,
+        spike_width_deg: float,
+        t: np.ndarray,
+        L: np.ndarray,
+        offset: Offset | None,
+        keep: bool,
+        windows: dict[int, tuple[float, float]] | None = None,
+        loop_lag_s: float | None = None,
+    ) -> None:
+        self.patterns = list(patterns)
+        self.circles: list[CircleFit] = []
+        for d in plan.direction_list:
+            cf = CircleFit(
+                plan, machine, _for_direction(patterns, d), d, timing, spike_width_deg, keep, offset, loop_lag_s
+            )
+            if windows is not None:
+                cf.t_start, cf.t_end = windows[d]  # the same samples whatever the timing
+            cf.add(t, L)
+            self.circles.append(cf)
+
+    def factor(self) -> Factor:
+        f = _embed(self.circles[0].factor, self.circles[0].patterns, self.patterns)
+        for c in self.circles[1:]:
+            f = f.merged(_embed(c.factor, c.patterns, self.patterns))
+        return f
+
+    def colmax(self) -> np.ndarray:
+        out = np.zeros(sum(p.q for p in self.patterns))
+        for c in self.circles:
+            out = np.maximum(out, _embed_vec(c.colmax, c.patterns, self.patterns))
+        return out
+
+    def residuals(self, x: np.ndarray) -> list[np.ndarray]:
+        """Per circle: the corrected deviation minus the model at ``x`` (NaN: left out)."""
+        x = np.nan_to_num(x)
+        out = []
+        for c in self.circles:
+            _, _, dr, A = c.corrected()
+            out.append(dr - A @ _take(x, c.patterns, self.patterns))
+        return out
+
+    def solve(self, options: AnalysisOptions, rho: float = 0.0) -> FitResult:
+        return solve(self.factor(), self.patterns, rho=rho, significance=options.significance,
+                     vif_limit=options.vif_limit, effect_scale=self.colmax())
+
+
+def _values(fit: FitResult) -> dict[str, float]:
+    out: dict[str, float] = {}
+    j = 0
+    for pat, used in zip(fit.patterns, fit.used, strict=True):
+        for k, f in enumerate(pat.fields):
+            if used:
+                out[f] = float(fit.x[j + k])
+        j += pat.q
+    return out
 
 
 def _search(
@@ -353,55 +433,35 @@ def _search(
     machine: MachineConfig,
     options: AnalysisOptions,
     patterns: Sequence[Pattern],
-    t: np.ndarray,
-    L: np.ndarray,
+    ts: np.ndarray,
+    Ls: np.ndarray,
     fi: StepEvent,
     span: float,
+    base: Timing,
+    windows: dict[int, tuple[float, float]],
+    offset: Offset | None,
+    n_eff: float,
+    tau: float | None,
 ) -> _Hyper:
-    """Estimate the per-move overhead (arc start lag) and the spike width.
+    """Estimate the per-move overhead (the arc start's lag) and the spike width.
 
     The objective is the profile negative log-likelihood of the full model on a
-    decimated, fixed set of samples (the data arcs at c = 0, trimmed by the
-    largest lag searched), ``(n_eff / 2) ln SSE``, plus ``c^2 / (2 s^2)`` with
-    ``s`` = 50 ms: where the data cannot see the lag, it stays near zero.
+    decimated, fixed set of samples, ``(n_eff / 2) ln SSE``, plus ``c^2 / (2 s^2)``
+    with ``s`` = 50 ms: where the data cannot see the lag, it stays near zero.
     """
     hyper = _Hyper()
-    V0 = feed_from_span(plan, span, 0.0)
-    base = make_timing(plan, fi.t_s, V0, 0.0)
-    margin = options.max_lag_s * 1.5
-    sel = np.zeros(t.size, dtype=bool)
-    for d in plan.direction_list:
-        a, b = base.window(d)
-        sel |= (t >= a + margin) & (t <= b - margin)
-    idx = np.flatnonzero(sel)
-    if idx.size < 50:
-        return hyper
-    step = max(1, idx.size // (SEARCH_SAMPLES_PER_CIRCLE * len(plan.direction_list)))
-    idx = idx[::step]
-    ts, Ls = t[idx], L[idx]
-    n_full = int(sel.sum())
 
     def sse(c: float, w_deg: float) -> float:
-        V = feed_from_span(plan, span, c)
-        timing = make_timing(plan, fi.t_s, V, c)
+        timing = make_timing(plan, fi.t_s, feed_from_span(plan, span, c), c)
         timing.t_mid = base.t_mid
-        f: Factor | None = None
-        for d in plan.direction_list:
-            cf = CircleFit(plan, machine, _for_direction(patterns, d), d, timing, w_deg)
-            cf.t_start, cf.t_end = base.window(d)  # the same samples at every c
-            cf.add(ts, Ls)
-            e = _embed(cf.factor, cf.patterns, patterns)
-            f = e if f is None else f.merged(e)
-        assert f is not None
+        f = _Joint(plan, machine, patterns, timing, w_deg, ts, Ls, offset, False, windows, tau).factor()
         return sse_subset(f.rows, range(f.p))
 
-    # n_eff from the residual at the starting point
-    w = hyper.spike_width_deg
-    s0 = sse(0.0, w)
-    n_eff = n_full / _kappa_of(plan, machine, patterns, ts, Ls, fi, span, base)
+    # A residual below 1 nm rms is numerical, not signal: there the prior decides.
+    floor = ts.size * SSE_FLOOR_UM**2
     spikes = _has_spikes(patterns)
     lo_w, hi_w = math.log(options.spike_width_min_deg), math.log(options.spike_width_max_deg)
-    c = 0.0
+    c, w = 0.0, hyper.spike_width_deg
     for _round in range(2):
         if spikes:
             r = optimize.minimize_scalar(lambda lw, c=c: sse(c, math.exp(lw)), bounds=(lo_w, hi_w),
@@ -409,7 +469,7 @@ def _search(
             w = float(math.exp(r.x))
         if options.estimate_lag:
             def obj(cc: float, w: float = w) -> float:
-                return 0.5 * n_eff * math.log(max(sse(cc, w), 1e-300)) + cc * cc / (2 * LAG_PRIOR_S**2)
+                return 0.5 * n_eff * math.log(sse(cc, w) + floor) + cc * cc / (2 * LAG_PRIOR_S**2)
             r = optimize.minimize_scalar(obj, bounds=(-options.max_lag_s, options.max_lag_s),
                                          method="bounded", options={"xatol": 1e-5})
             c = float(r.x)
@@ -418,7 +478,6 @@ def _search(
             hyper.lag_stderr_s = 1.0 / math.sqrt(curv) if curv > 0 else float("inf")
         if not spikes:
             break
-    log.debug("search: sse(0)=%.4g -> c=%.5f s, w=%.3f deg", s0, c, w)
     hyper.overhead_s, hyper.spike_width_deg = c, w
     return hyper
 
@@ -441,19 +500,35 @@ def _embed(f: Factor, sub: Sequence[Pattern], full: Sequence[Pattern]) -> Factor
     return out
 
 
-def _kappa_of(plan: TestPlan, machine: MachineConfig, patterns: Sequence[Pattern], ts: np.ndarray,
-              Ls: np.ndarray, fi: StepEvent, span: float, base: Timing) -> float:
-    """Variance inflation from the lag-1 autocorrelation of a first fit's residual."""
-    res = []
-    for d in plan.direction_list:
-        cf = CircleFit(plan, machine, _for_direction(patterns, d), d, base, DEFAULT_SPIKE_WIDTH_DEG, keep_design=True)
-        cf.add(ts, Ls)
-        _, _, dr, A = cf.data()
-        if dr.size > cf.p:
-            x, *_ = np.linalg.lstsq(A, dr, rcond=None)
-            res.append(dr - A @ x)
-    rho = _lag1(res)
-    return float(min(max((1 + rho) / (1 - rho), 1.0), 400.0)) if rho < 1 else 400.0
+def loop_lag(
+    plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, fi: StepEvent, fo: StepEvent
+) -> tuple[float | None, float | None, str]:
+    """Position-loop lag for the physical servo model: ``(tau, cos2, source)``.
+
+    ``tau`` (s): the mean lag ``(1/KX + 1/KY)/2`` from configured gains (``cos2``
+    None), or the lag measured along the feed-in/out's radial direction, which
+    is ``tau_bar + (m/2) cos 2u`` at angle ``u``: ``cos2`` is that mean ``cos 2u``.
+    """
+    if options.servo_model == "linear":
+        return None, None, "linear model chosen"
+    if machine.kv_x_per_s and machine.kv_y_per_s:
+        return 0.5 * (1.0 / machine.kv_x_per_s + 1.0 / machine.kv_y_per_s), None, "configured gains kv_x, kv_y"
+    u_in = math.radians(arc_start_deg(plan, plan.direction_list[0]))
+    u_last = math.radians(arc_start_deg(plan, plan.direction_list[-1]))
+    u_out = u_last + plan.direction_list[-1] * math.radians(plan.arc_deg)
+    found = [(e.tau_s, math.cos(2 * u)) for e, u in ((fi, u_in), (fo, u_out)) if math.isfinite(e.tau_s)]
+    if found:
+        return (
+            float(np.mean([f[0] for f in found])),
+            float(np.mean([f[1] for f in found])),
+            "approach of the feed-in/feed-out to the circle (first-order loop fit)",
+        )
+    return (
+        1.0 / DEFAULT_KV_PER_S,
+        None,
+        f"assumed {DEFAULT_KV_PER_S:g}/s (a common default position gain): the feed-in's settling is not "
+        "resolved at this sample rate and no kv_x/kv_y is configured",
+    )
 
 
 def analyze_test(
@@ -469,51 +544,75 @@ def analyze_test(
     check_plan(plan, fi, fo)
     span = fo.t_s - fi.t_s
     patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
-    hyper = _search(plan, machine, options, patterns, t, L, fi, span)
+    tau, cos2, tau_source = loop_lag(plan, machine, options, fi, fo)
+    # 1. A preliminary fit on a decimated, fixed sample set: the corrections' first values.
+    base = make_timing(plan, fi.t_s, feed_from_span(plan, span, 0.0), 0.0)
+    margin = options.max_lag_s * 1.5 * base.feed_mm_s / plan.radius_mm  # rad
+    windows = {}
+    for d in plan.direction_list:
+        a, b = base.window(d)
+        trim = margin * plan.radius_mm / base.feed_mm_s
+        windows[d] = (a + trim, b - trim) if b - a > 4 * trim else (a, b)
+    sel = np.zeros(t.size, dtype=bool)
+    for a, b in windows.values():
+        sel |= (t >= a) & (t <= b)
+    idx = np.flatnonzero(sel)
+    step = max(1, idx.size // (SEARCH_SAMPLES_PER_CIRCLE * len(plan.direction_list)))
+    ts, Ls = t[idx[::step]], L[idx[::step]]
+    hyper = _Hyper()
+    offset = None
+    if ts.size > 50:
+        pre = _Joint(plan, machine, patterns, base, hyper.spike_width_deg, ts, Ls, None, True, windows, tau)
+        pre_fit = pre.solve(options)
+        rho = _lag1(pre.residuals(pre_fit.x))
+        kappa = min(max((1 + rho) / (1 - rho), 1.0), 400.0) if rho < 1 else 400.0
+        offset = make_offset(_values(pre_fit), tau, options.lost_motion, cos2)
+        # 2. Lag and spike width on that set, with the corrections applied.
+        hyper = _search(plan, machine, options, patterns, ts, Ls, fi, span, base, windows, offset, ts.size / kappa, tau)
+    # 3. The full fit at those values, then the corrections to a fixed point.
     V = feed_from_span(plan, span, hyper.overhead_s)
     timing = make_timing(plan, fi.t_s, V, hyper.overhead_s)
-    circles = []
-    for d in plan.direction_list:
-        cf = CircleFit(plan, machine, _for_direction(patterns, d), d, timing, hyper.spike_width_deg, keep_design=True)
-        cf.add(t, L)
-        if cf.factor.n < 8:
+    joint = _Joint(plan, machine, patterns, timing, hyper.spike_width_deg, t, L, offset, True, None, tau)
+    for c in joint.circles:
+        if c.factor.n < 8:
             raise DataError(
-                f"the {'CCW' if d > 0 else 'CW'} data arc ({cf.t_start:.2f}..{cf.t_end:.2f} s) holds "
-                f"{cf.factor.n} samples: too few to fit"
+                f"the {'CCW' if c.d > 0 else 'CW'} data arc ({c.t_start:.2f}..{c.t_end:.2f} s) holds "
+                f"{c.factor.n} samples: too few to fit"
             )
-        circles.append(cf)
-    joint = [_embed(c.factor, c.patterns, patterns) for c in circles]
-    factor = joint[0]
-    for f in joint[1:]:
-        factor = factor.merged(f)
-    colmax = np.zeros(factor.p)
-    for c in circles:
-        colmax = np.maximum(colmax, _embed_vec(c.colmax, c.patterns, patterns))
-    kw = dict(significance=options.significance, vif_limit=options.vif_limit, effect_scale=colmax)
-    fit = solve(factor, patterns, **kw)  # type: ignore[arg-type]
-    residuals, per_dir = [], {}
-    x = np.nan_to_num(fit.x)
-    for c in circles:
-        tt, u, dr, A = c.data()
-        xa = _take(x, c.patterns, patterns)
-        r = dr - A @ xa
-        residuals.append(r)
-        per_dir[c.d] = (tt, u, dr, r)
-    rho = _lag1(residuals)
-    fit = solve(factor, patterns, rho=rho, **kw)  # type: ignore[arg-type]
+    fit = joint.solve(options)
+    for _ in range(2):
+        offset = make_offset(_values(fit), tau, options.lost_motion, cos2)
+        if offset is None and all(c.offset is None for c in joint.circles):
+            break
+        for c in joint.circles:
+            c.refit(offset)
+        fit = joint.solve(options)
+    residuals = joint.residuals(fit.x)
+    fit = joint.solve(options, rho=_lag1(residuals))
     res = _result_body(plan, machine, options, fit, patterns)
+    res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
+    res["fit"]["servo_model_note"] = tau_source
+    res["fit"]["lost_motion_model"] = (
+        "dead band: take-up after reversals (backlash > 0)" if options.lost_motion == "deadband" else "step"
+    )
     sample_hz = _rate(t)
     res["kind"] = "test"
     res["timing"] = _timing_dict(plan, fi, fo, timing, hyper, V)
-    res["iso230_4"] = iso230.figures({d: (v[1], v[2]) for d, v in per_dir.items()})
+    res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
+    res["timing"]["loop_lag_source"] = tau_source
+    res["iso230_4"] = iso230.figures({c.d: c.measured() for c in joint.circles})
     res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, sample_hz)
     res["noise"] = noise.findings(
-        [(v[1], v[3], plan.data_arc_deg, sample_hz) for v in per_dir.values()], options.vibration_cutoff_cpr
+        [(c.corrected()[1], r, plan.data_arc_deg, sample_hz) for c, r in zip(joint.circles, residuals, strict=True)],
+        options.vibration_cutoff_cpr,
     )
     all_r = np.concatenate(residuals)
     res["residual_rms_um"] = float(np.sqrt(np.mean(all_r**2)))
-    res["samples"] = {"in_test": int(t.size), "in_data_arcs": int(sum(v[0].size for v in per_dir.values())),
-                      "sample_hz": sample_hz}
+    res["samples"] = {
+        "in_test": int(t.size),
+        "in_data_arcs": int(sum(c.factor.n for c in joint.circles)),
+        "sample_hz": sample_hz,
+    }
     return res
 
 

@@ -5,7 +5,7 @@ error model ``D = (DX, DY)`` produces through ``dR = DX cos u + DY sin u``
 (DOMAIN.md section 2; Suh & Lee eq. 2).  ``u`` is the commanded angle in
 radians, counter-clockwise from the plane's first axis, ``d`` the direction
 (+1 CCW, -1 CW), ``V`` the path feed in mm/s, ``R`` the radius in mm and ``t``
-the time in minutes from the middle of the test's data.
+the time in minutes from the test's feed-in.
 
 Each :class:`Pattern` is linear in its parameters and is a *group* for the
 extra-sum-of-squares ranking: ``centre`` has two parameters (x0, y0) and is
@@ -33,10 +33,11 @@ class Geometry:
     """Per-sample inputs of the masks.
 
     ``u``: commanded angle (rad); ``d``: direction (+1/-1); ``t_min``: minutes
-    from the test's data mid-time; ``V``: path feed (mm/s); ``R``: radius (mm);
+    from the test's feed-in; ``V``: path feed (mm/s); ``R``: radius (mm);
     ``pitch``: ball-screw pitch per axis (mm) or None; ``travel``: angle (rad)
     travelled since the arc began, so that a reversal the arc never passed has
-    no spike.
+    no spike; ``loop_lag_s``: the position loops' mean lag, where known, through
+    which a step made in the command (master-slave changeover) reaches the axes.
     """
 
     u: np.ndarray
@@ -47,6 +48,7 @@ class Geometry:
     pitch_x_mm: float | None = None
     pitch_y_mm: float | None = None
     travel: np.ndarray | None = None  # angle travelled since the arc began (rad); None: long enough
+    loop_lag_s: float | None = None  # mean position-loop lag, where known: smooths command-side steps
 
     def __len__(self) -> int:
         return int(self.u.size)
@@ -111,8 +113,28 @@ def _servo(g: Geometry, _w: float) -> np.ndarray:
     return 0.5 * g.d * g.V * np.sin(2.0 * g.u)
 
 
+def _sigma_through_loop(g: Geometry) -> np.ndarray:
+    """sigma as the axes see it: a command-side switch through a first-order loop.
+
+    In the frame of the actual position (the analyzer's), the command is
+    ``Omega tau`` ahead; after it crosses a 45 deg line, sigma approaches its new
+    value as ``1 - 2 exp(-delta / (Omega tau))`` with ``delta`` the command's
+    angle travelled since the crossing.
+    """
+    assert g.loop_lag_s is not None
+    lag = g.V / g.R * g.loop_lag_s  # rad
+    uc = g.u + g.d * lag
+    q = math.pi / 2
+    since = np.where(g.d > 0, np.mod(uc - math.pi / 4, q), np.mod(math.pi / 4 - uc, q))
+    settle = np.exp(-since / lag)
+    if g.travel is not None:
+        settle[since > g.travel + lag] = 0.0
+    return _sigma(uc) * (1.0 - 2.0 * settle)
+
+
 def _master_slave(g: Geometry, _w: float) -> np.ndarray:
-    s = 0.5 * _sigma(g.u)
+    sig = _sigma(g.u) if not g.loop_lag_s else _sigma_through_loop(g)
+    s = 0.5 * sig
     return np.column_stack([s * np.sin(g.u + math.pi / 4), s * np.cos(g.u + math.pi / 4)])
 
 

@@ -141,6 +141,9 @@ class AnalysisOptions:
     ``servo_model``: ``linear`` is the seed's mask; ``physical`` fits a first-order
     loop per axis (needs the mean loop lag, from ``kv_*`` or measured from the
     feed-in); ``auto`` uses ``physical`` when that lag is known.
+    ``lost_motion``: ``deadband`` models the table standing still after a
+    reversal until the motor has crossed the backlash gap; ``step`` is the
+    seed's mask alone.
     ``vif_limit``: a parameter whose variance inflation exceeds this cannot be
     separated from the others in this data and is left out with the reason.
     ``vibration_cutoff_cpr``: residual content above this many cycles per
@@ -149,6 +152,7 @@ class AnalysisOptions:
 
     significance: float = 0.05
     servo_model: Literal["auto", "linear", "physical"] = "auto"
+    lost_motion: Literal["deadband", "step"] = "deadband"
     vif_limit: float = 1.0e4
     vibration_cutoff_cpr: float = 30.0
     spike_width_min_deg: float = 0.3
@@ -160,6 +164,8 @@ class AnalysisOptions:
     def __post_init__(self) -> None:
         if not 0 < self.significance < 1:
             raise PlanError(f"significance must be within (0, 1), not {self.significance!r}")
+        if self.lost_motion not in ("deadband", "step"):
+            raise PlanError(f"lost_motion must be deadband or step, not {self.lost_motion!r}")
         if self.servo_model not in ("auto", "linear", "physical"):
             raise PlanError(f"servo_model must be auto, linear or physical, not {self.servo_model!r}")
         if not 0 < self.spike_width_min_deg < self.spike_width_max_deg:

@@ -40,7 +40,7 @@ def mask_recording(
     pats = select(None, plan.direction_list, *pitch)
     x = np.array([truth.get(fl, 0.0) for p in pats for fl in p.fields])
     dirs = plan.direction_list
-    tmid = t0 + 0.5 * (sch.data_start_s[dirs[0]] + sch.data_end_s[dirs[-1]])
+    tmid = t0  # the drift's origin: the feed-in centroid
     for d in dirs:
         a = sch.arc_start_s[d]
         b = a + R * math.radians(plan.arc_deg) / V

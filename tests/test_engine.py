@@ -12,6 +12,9 @@ from ballbar.analysis import AnalysisOptions, TestPlan
 from ballbar.analysis.engine import TestAnalyzer, analyze_recording
 from ballbar.analysis.errors import DetectionError
 
+# The recordings here follow the masks exactly: no dead band, no servo dynamics.
+MASKS = AnalysisOptions(servo_model="linear", lost_motion="step")
+
 
 def _test_result(results: list[dict]) -> dict:
     tests = [r for r in results if r["kind"] == "test"]
@@ -23,7 +26,7 @@ def _test_result(results: list[dict]) -> dict:
 def test_whole_library_noise_free_is_exact(fs: float) -> None:
     plan = TestPlan(sample_hz=fs)
     t, L = mask_recording(plan, FULL_TRUTH, fs=fs)
-    res = _test_result(analyze_recording(t, L, plan))
+    res = _test_result(analyze_recording(t, L, plan, options=MASKS))
     for key, p in res["parameters"].items():
         if p["value"] is None:
             assert "cyclic" in key
@@ -42,7 +45,7 @@ def test_cyclic_error_with_a_configured_pitch() -> None:
     truth = {"cyclic_x_sin_um": 0.8 * math.cos(phi), "cyclic_x_sin_um_": 0, "centre_x_um": 5.0}
     truth["cyclic_x_cos_um"] = 0.8 * math.sin(phi)
     t, L = mask_recording(plan, truth, fs=1000.0, pitch=(5.0, None))
-    res = _test_result(analyze_recording(t, L, plan, MachineConfig(pitch_x_mm=5.0)))
+    res = _test_result(analyze_recording(t, L, plan, MachineConfig(pitch_x_mm=5.0), MASKS))
     assert abs(res["parameters"]["cyclic_x_um"]["value"] - 0.8) < 0.01
     assert abs(res["parameters"]["cyclic_x_phase_deg"]["value"] - 40.0) < 1.0
     assert res["parameters"]["cyclic_y_um"]["identifiable"] is False
@@ -51,7 +54,7 @@ def test_cyclic_error_with_a_configured_pitch() -> None:
 def test_noise_within_three_standard_errors() -> None:
     plan = TestPlan(sample_hz=100)
     t, L = mask_recording(plan, FULL_TRUTH, fs=100.0, noise_um=0.5, seed=3)
-    res = _test_result(analyze_recording(t, L, plan))
+    res = _test_result(analyze_recording(t, L, plan, options=MASKS))
     for key, want in FULL_TRUTH.items():
         p = res["parameters"][key]
         assert abs(p["value"] - want) <= 3 * p["stderr"], (key, p)
@@ -61,7 +64,7 @@ def test_lag_is_estimated_not_assumed_zero() -> None:
     plan = TestPlan(sample_hz=1000)
     truth = dict(FULL_TRUTH)
     t, L = mask_recording(plan, truth, fs=1000.0, overhead_s=0.03)
-    res = _test_result(analyze_recording(t, L, plan))
+    res = _test_result(analyze_recording(t, L, plan, options=MASKS))
     assert abs(res["timing"]["overhead_s"] - 0.03) < 0.003
     assert abs(res["parameters"]["centre_x_um"]["value"] - 12.0) < 0.02
 
@@ -69,8 +72,8 @@ def test_lag_is_estimated_not_assumed_zero() -> None:
 def test_streamed_in_chunks_equals_whole_file() -> None:
     plan = TestPlan(sample_hz=100)
     t, L = mask_recording(plan, FULL_TRUTH, fs=100.0, noise_um=0.2)
-    whole = _test_result(analyze_recording(t, L, plan))
-    an = TestAnalyzer(plan)
+    whole = _test_result(analyze_recording(t, L, plan, options=MASKS))
+    an = TestAnalyzer(plan, options=MASKS)
     out: list[dict] = []
     rng = np.random.default_rng(0)
     i = 0
@@ -99,7 +102,7 @@ def test_streamed_in_chunks_equals_whole_file() -> None:
 def test_single_direction_cannot_separate_squareness_from_servo() -> None:
     plan = TestPlan(sample_hz=100, directions="ccw")
     t, L = mask_recording(plan, {"servo_mismatch_ms": 1.0, "squareness_urad": 30.0}, fs=100.0)
-    res = _test_result(analyze_recording(t, L, plan))
+    res = _test_result(analyze_recording(t, L, plan, options=MASKS))
     sq = res["parameters"]["squareness_urad"]
     assert sq["identifiable"] is False and "servo_mismatch" in sq["reason"]
     assert res["parameters"]["reversal_spike_x_pos_cw_um"]["identifiable"] is False
@@ -109,7 +112,7 @@ def test_partial_arc_reports_what_it_cannot_see() -> None:
     plan = TestPlan(sample_hz=100, data_arc_deg=220, start_deg=-20, overshoot_deg=10, plane="ZX")
     truth = {"centre_x_um": 5.0, "backlash_x_um": 3.0, "servo_mismatch_ms": 0.5, "squareness_urad": 15.0}
     t, L = mask_recording(plan, truth, fs=100.0, noise_um=0.05)
-    res = _test_result(analyze_recording(t, L, plan))
+    res = _test_result(analyze_recording(t, L, plan, options=MASKS))
     params = res["parameters"]
     # the arc -10..210 deg never reaches 270 deg: no Y reversal spike there
     assert params["reversal_spike_y_neg_ccw_um"]["identifiable"] is False
@@ -132,7 +135,7 @@ def test_feed_override_is_measured() -> None:
     plan = TestPlan(sample_hz=100)
     run = TestPlan(sample_hz=100, feed_mm_min=950.0)
     t, L = mask_recording(run, FULL_TRUTH, fs=100.0)
-    res = _test_result(analyze_recording(t, L, plan))
+    res = _test_result(analyze_recording(t, L, plan, options=MASKS))
     assert abs(res["timing"]["measured_feed_mm_min"] - 950.0) < 0.5
     assert abs(res["timing"]["feed_ratio"] - 0.95) < 1e-3
     assert abs(res["parameters"]["backlash_x_um"]["value"] - 4.0) < 0.05
@@ -141,7 +144,7 @@ def test_feed_override_is_measured() -> None:
 def test_options_restrict_the_library() -> None:
     plan = TestPlan(sample_hz=100)
     t, L = mask_recording(plan, {"backlash_x_um": 2.0, "centre_x_um": 3.0}, fs=100.0)
-    opts = AnalysisOptions(patterns=("centre", "radius", "backlash_x"))
+    opts = AnalysisOptions(patterns=("centre", "radius", "backlash_x"), servo_model="linear", lost_motion="step")
     res = _test_result(analyze_recording(t, L, plan, options=opts))
     assert abs(res["parameters"]["backlash_x_um"]["value"] - 2.0) < 1e-3
     assert res["parameters"]["squareness_urad"]["value"] is None
