@@ -1,0 +1,991 @@
+"""Sample sources: one interface for every way samples arrive.
+
+A source is opened from a URL (the configuration's ``source`` key) plus typed
+keyword options, and delivers :class:`~ballbar.daemon.samples.SampleBatch`
+objects::
+
+    with open_source("serial:/dev/ttyUSB0?protocol=binary&rate=1000", cal_mm=100.0012) as src:
+        while running:
+            batch = src.read(timeout=0.5)   # None: nothing in 0.5 s
+            if batch is not None:
+                handle(batch)               # columns + batch.events
+
+    for batch in open_source("replay:run.csv?speed=max"):   # until the recording ends
+        ...
+
+The interface (:class:`Source`)
+-------------------------------
+``read(timeout=None) -> SampleBatch | None``
+    Blocks until samples or events are available, at most ``timeout`` seconds
+    (plus up to ``batch_s``, the batching period, default 20 ms; ``None`` waits
+    indefinitely); returns ``None`` on timeout and, for good, after a finite
+    source's ``end`` event.  A batch holds what arrived in about ``batch_s``
+    (about 200 samples at 10 kHz).  Never raises for bad bytes, an unplugged
+    adapter or a stalled device: those are events.  Raises
+    :class:`~ballbar.daemon.errors.SourceClosed` after :meth:`Source.close`.
+``iter(source)``
+    Batches until the source is finished (a replay's end) or closed.
+``close()``
+    Safe twice and from another thread (it interrupts a blocked ``read``).
+    Sources are context managers.
+``stats() -> SourceStats``, ``finished``, ``rate_hz``, ``url``.
+
+Call ``read`` from one thread that does nothing else (the pipeline's reader):
+a serial port's kernel buffer holds only a few tenths of a second at 10 kHz,
+so a consumer that is slow must be decoupled by a queue, not by reading late.
+
+URL scheme
+----------
+``serial:PORT[?options]``
+    ``PORT`` is a device path (``/dev/ttyUSB0``, ``/dev/serial/by-id/...``, a
+    pty or the link that ``ballbar.tools.simdevice`` prints) or any pyserial
+    URL (``loop://``, ``socket://host:port``, ``rfc2217://host:port``);
+    ``serial:///dev/ttyUSB0`` is accepted too, and a bare ``/dev/...`` path or
+    pyserial URL means ``serial:``.  Options:
+
+    ``protocol``  ``binary`` (default) or ``ascii`` (``protocol/README.md``)
+    ``mode``      ``stream`` (default) or ``poll`` (ascii only: the host sends
+                  ``request`` once per period and reads one answer)
+    ``cal_mm``    required: the bar's length at zero displacement (its
+                  calibration), added to every reading: ``L = cal_mm + x``
+    ``rate``      nominal sample rate in Hz, 15.625..10000 (required for
+                  ``poll``; for ascii lines with a timestamp it lets lost lines
+                  be counted; it sets the stall timeout's default)
+    ``baud``      default 2000000 (10 kHz of binary frames needs 1.7 Mbaud;
+                  ptys and USB CDC devices ignore it)
+    ``unit``, ``scale``, ``timestamp`` (``s``, ``ms``, ``us``; absent: none),
+    ``max_line``, ``request`` (percent-encoded, default ``%3F%0D`` = ``?\\r``)
+                  the ASCII format (:class:`~ballbar.protocol.AsciiFormat`)
+    ``batch_s``   batching period, default 0.02
+    ``stall_s``   silence that counts as a stall, default max(0.5, 20 periods)
+    ``poll_timeout_s``  answer timeout in poll mode, default max(0.05, 2 periods)
+    ``retry_min_s``, ``retry_max_s``  reopen backoff after an unplug, 0.05..2 s
+    ``exclusive`` lock the port against a second reader (default true)
+
+``sim:[?options]``
+    The in-process simulator (``ballbar.tools.simulator``) on the host clock:
+    ``rate`` (Hz, default the plan's), ``speedup`` (default 1; ``max`` = as
+    fast as possible), ``seed`` (0), ``repeat`` (number of tests, default 1;
+    0 = forever), ``gap_s`` (between tests, 0), ``batch_s``.  Keyword options
+    ``plan`` (:class:`~ballbar.analysis.plan.TestPlan`) and ``machine``
+    (``MachineModel``) say what to simulate.  Samples carry ``SIMULATED``.
+
+``replay:PATH[?options]``
+    A recording (CSV ``t_s,length_mm`` now; the daemon's MCAP later):
+    ``speed`` (1 = real time, default; 10 = ten times faster; ``max`` = as fast
+    as possible), ``rate`` (Hz: sample numbers from the recorded times, so that
+    gaps count as lost; default: one number per row), ``batch_s``.
+
+Every option may also be given as a keyword argument of :func:`open_source`
+(``cal_mm=100.0``, ``rate=1000``); giving one both ways is an error, and so is
+an unknown key (named in the message).
+
+Time stamps
+-----------
+``t_device`` is the device's sample clock where the protocol has one (binary
+frames; ASCII lines with a timestamp), unwrapped.  ``t_host`` is that clock
+mapped to ``time.monotonic`` by :class:`~ballbar.daemon.timebase.ClockMap`
+(lower envelope of read times, with the drift in ``stats().drift_ppm``).
+Without a device clock, ``t_host`` is the host's estimate: sample numbers at the
+nominal rate mapped the same way, or the read time when no rate is known; in
+poll mode the midpoint between request and answer.  Replays and the simulator
+place their own time base on the host clock at their speed.
+
+Losses and faults
+-----------------
+A gap in the device's sample counter is reported as a ``lost`` event with its
+exact count (never interpolated or papered over).  An unplugged adapter (the
+port raises mid-read, or cannot be opened at start) is an ``unplugged`` event;
+the source retries with exponential backoff and reports ``replugged`` with the
+outage when the port returns, then the samples lost across it.  A device that
+stops sending is a ``stall``, then ``resumed``.
+"""
+
+from __future__ import annotations
+
+import abc
+import contextlib
+import logging
+import math
+import os
+import threading
+import time
+import urllib.parse
+from collections.abc import Callable, Iterator
+from typing import Any, ClassVar
+
+import numpy as np
+import serial
+from ballbar.protocol import AsciiDecoder, AsciiFormat, BinaryDecoder, Readings, Status
+from ballbar.protocol._common import add_counts
+from numpy.typing import NDArray
+
+from .errors import SourceClosed, SourceConfigError, SourceError
+from .samples import EventKind, SampleBatch, SourceEvent, SourceStats
+from .timebase import Stamper
+
+log = logging.getLogger(__name__)
+
+RATE_MIN_HZ = 15.625
+RATE_MAX_HZ = 10_000.0
+DEFAULT_BATCH_S = 0.02
+READ_MAX = 1 << 16
+PYSERIAL_SCHEMES = ("loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110")
+
+
+# ----------------------------------------------------------------------------- the interface
+
+
+class Source(abc.ABC):
+    """Where samples come from.  Subclasses implement :meth:`_read` and :meth:`_close`."""
+
+    scheme: ClassVar[str] = ""
+
+    def __init__(self, url: str, rate_hz: float | None = None, batch_s: float = DEFAULT_BATCH_S) -> None:
+        self.url = url
+        self.rate_hz = rate_hz
+        self.batch_s = batch_s
+        self._closed = False
+        self._finished = False
+        self._stats = SourceStats()
+        self._events: list[SourceEvent] = []
+        self._wake = threading.Event()
+        self._close_lock = threading.Lock()
+        self._lost_logged_at = -math.inf
+        self._lost_unlogged = 0
+
+    # -- public -------------------------------------------------------------------
+
+    def read(self, timeout: float | None = None) -> SampleBatch | None:
+        """The next batch of samples and events, or ``None`` after ``timeout`` seconds."""
+        if self._closed:
+            raise SourceClosed(f"{self.url}: read after close")
+        if self._finished:
+            return None
+        deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+        batch = self._read(deadline)
+        if batch is not None:
+            self._account(batch)
+        return batch
+
+    def __iter__(self) -> Iterator[SampleBatch]:
+        while not (self._finished or self._closed):
+            try:
+                batch = self.read(0.5)
+            except SourceClosed:
+                return
+            if batch is not None:
+                yield batch
+
+    @property
+    def finished(self) -> bool:
+        """True once a finite source has delivered everything (its ``end`` event)."""
+        return self._finished
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def stats(self) -> SourceStats:
+        """A snapshot of the running totals."""
+        return self._stats.copy()
+
+    def close(self) -> None:
+        """Release the port or file; safe twice, and from another thread."""
+        with self._close_lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._wake.set()
+        self._close()
+        self._stats.connected = False
+        log.debug("%s: closed", self.url)
+
+    def __enter__(self) -> Source:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.url}>"
+
+    # -- for subclasses -----------------------------------------------------------
+
+    @abc.abstractmethod
+    def _read(self, deadline: float | None) -> SampleBatch | None: ...
+
+    def _close(self) -> None:  # noqa: B027 - optional hook
+        pass
+
+    def _event(self, kind: EventKind, **fields: Any) -> SourceEvent:
+        ev = SourceEvent(kind, time.monotonic(), self.url, **fields)
+        self._events.append(ev)
+        self._log_event(ev)
+        return ev
+
+    def _take_events(self) -> tuple[SourceEvent, ...]:
+        events, self._events = tuple(self._events), []
+        return events
+
+    def _sleep_until(self, t: float) -> None:
+        """Sleep until monotonic time ``t``; ``close()`` wakes it."""
+        wait = t - time.monotonic()
+        if wait > 0:
+            self._wake.wait(wait)
+
+    def _batch(
+        self,
+        t_host: NDArray[np.float64],
+        t_device: NDArray[np.float64],
+        length_mm: NDArray[np.float64],
+        seq: NDArray[np.int64],
+        status: NDArray[np.uint8],
+    ) -> SampleBatch | None:
+        """A batch of these samples and the pending events; ``None`` if both are empty."""
+        if t_host.shape[0] == 0 and not self._events:
+            return None
+        return SampleBatch(t_host, t_device, length_mm, seq, status, self._take_events(), self.url)
+
+    def _events_only(self) -> SampleBatch | None:
+        if not self._events:
+            return None
+        return SampleBatch.empty(self._take_events(), self.url)
+
+    def _gap_events(self, gaps: list[tuple[int, int]], detail: str = "gap") -> None:
+        for seq0, count in gaps:
+            self._event(EventKind.LOST, count=count, seq=seq0, detail=detail)
+            detail = "gap"
+
+    def _account(self, batch: SampleBatch) -> None:
+        s = self._stats
+        s.samples += len(batch)
+        s.batches += 1
+        for e in batch.events:
+            if e.kind == EventKind.LOST:
+                s.lost += e.count
+                s.lost_by_cause[e.detail] = s.lost_by_cause.get(e.detail, 0) + e.count
+            elif e.kind == EventKind.UNPLUGGED:
+                s.unplugs += 1
+            elif e.kind == EventKind.REPLUGGED:
+                s.replugs += 1
+            elif e.kind == EventKind.STALL:
+                s.stalls += 1
+            elif e.kind == EventKind.DEVICE_RESET:
+                s.resets += 1
+            elif e.kind == EventKind.DECODE_ERRORS:
+                add_counts(s.decode, dict(e.counts))
+
+    def _log_event(self, ev: SourceEvent) -> None:
+        k = ev.kind
+        if k == EventKind.LOST:
+            # Rate-limited: a bad cable must not flood the journal.
+            self._lost_unlogged += ev.count
+            if ev.t_host - self._lost_logged_at >= 10.0 or ev.detail == "outage":
+                log.warning("%s: %d samples lost (%s, from seq %s)", self.url, self._lost_unlogged, ev.detail, ev.seq)
+                self._lost_logged_at, self._lost_unlogged = ev.t_host, 0
+        elif k == EventKind.DECODE_ERRORS:
+            log.debug("%s: decoder dropped %s", self.url, dict(ev.counts))
+        elif k in (EventKind.UNPLUGGED, EventKind.STALL, EventKind.DEVICE_RESET):
+            log.warning("%s: %s %s", self.url, k, ev.detail or (f"after {ev.gap_s:.3f} s" if ev.gap_s else ""))
+        else:
+            log.info("%s: %s %s", self.url, k, ev.detail or (f"after {ev.gap_s:.3f} s" if ev.gap_s else ""))
+
+
+# ----------------------------------------------------------------------------- serial ports
+
+
+class SerialSource(Source):
+    """A device on a serial port (or anything ``serial.serial_for_url`` opens)."""
+
+    scheme = "serial"
+
+    def __init__(
+        self,
+        url: str,
+        port: str,
+        *,
+        cal_mm: float,
+        protocol: str = "binary",
+        mode: str = "stream",
+        rate_hz: float | None = None,
+        baud: int = 2_000_000,
+        fmt: AsciiFormat | None = None,
+        batch_s: float = DEFAULT_BATCH_S,
+        stall_s: float | None = None,
+        poll_timeout_s: float | None = None,
+        retry_min_s: float = 0.05,
+        retry_max_s: float = 2.0,
+        exclusive: bool = True,
+    ) -> None:
+        super().__init__(url, rate_hz, batch_s)
+        if protocol not in ("binary", "ascii"):
+            raise SourceConfigError(f"{url}: protocol must be binary or ascii, not {protocol!r}")
+        if mode not in ("stream", "poll"):
+            raise SourceConfigError(f"{url}: mode must be stream or poll, not {mode!r}")
+        if mode == "poll" and protocol != "ascii":
+            raise SourceConfigError(f"{url}: mode=poll needs protocol=ascii")
+        if mode == "poll" and rate_hz is None:
+            raise SourceConfigError(f"{url}: mode=poll needs rate (the polling rate in Hz)")
+        self.port_url = port
+        self.protocol = protocol
+        self.mode = mode
+        self.cal_mm = cal_mm
+        self.baud = baud
+        self.fmt = fmt or AsciiFormat()
+        period = 1.0 / rate_hz if rate_hz else 0.05
+        self.stall_s = stall_s if stall_s is not None else max(0.5, 20 * period)
+        self.poll_timeout_s = poll_timeout_s if poll_timeout_s is not None else max(0.05, 2 * period)
+        self.retry_min_s = retry_min_s
+        self.retry_max_s = max(retry_max_s, retry_min_s)
+        self.exclusive = exclusive
+        self._decoder: BinaryDecoder | AsciiDecoder = (
+            BinaryDecoder() if protocol == "binary" else AsciiDecoder(self.fmt)
+        )
+        self._stamper = Stamper(self._decoder.seq_modulus, self._decoder.clock_wrap_s, rate_hz)
+        self._reported: dict[str, int] = {}
+        self._port: serial.SerialBase | None = None
+        self._port_lock = threading.Lock()
+        self._ever_open = False
+        self._retry_s = retry_min_s
+        self._next_retry = 0.0
+        self._down_since: float | None = None
+        self._failures = 0
+        self._last_rx = time.monotonic()
+        self._stalled = False
+        self._gap_cause: str | None = None
+        self._duplicates = 0
+        # poll mode
+        self._tick0: float | None = None
+        self._k = 0
+        self._out: tuple[int, float] | None = None
+        self._pending: list[tuple[int, float, float, int]] = []
+        self._poll_batch_start = 0.0
+        self._try_open(time.monotonic(), first=True)
+
+    # -- port life ----------------------------------------------------------------
+
+    def _try_open(self, now: float, first: bool = False) -> None:
+        try:
+            port = serial.serial_for_url(
+                self.port_url, baudrate=self.baud, timeout=self.batch_s, exclusive=self.exclusive
+            )
+        except ValueError as err:  # pyserial: bad URL or setting, never a missing device
+            raise SourceConfigError(f"{self.url}: {err}") from err
+        except (serial.SerialException, OSError) as err:
+            self._failures += 1
+            self._next_retry = now + self._retry_s
+            self._retry_s = min(2 * self._retry_s, self.retry_max_s)
+            if first:
+                self._down_since = now
+                self._event(EventKind.UNPLUGGED, detail=f"cannot open {self.port_url}: {err}")
+                self._stats.connected = False
+            elif self._failures % 30 == 0:
+                log.info("%s: still waiting for %s (%d attempts)", self.url, self.port_url, self._failures)
+            return
+        with self._port_lock:
+            if self._closed:
+                port.close()
+                return
+            self._port = port
+        self._failures = 0
+        self._retry_s = self.retry_min_s
+        self._stats.connected = True
+        self._last_rx = now
+        self._stalled = False
+        self._tick0, self._out = None, None
+        if not self._ever_open:
+            self._ever_open = True
+            self._event(EventKind.OPENED, detail=f"{self.port_url} ({self.protocol}, {self.mode})")
+        else:
+            gap = now - self._down_since if self._down_since is not None else 0.0
+            self._event(EventKind.REPLUGGED, gap_s=gap, detail=self.port_url)
+            self._gap_cause = "outage"
+        self._down_since = None
+
+    def _port_lost(self, err: BaseException) -> None:
+        now = time.monotonic()
+        self._drop_port()
+        self._decoder.flush()  # a partial frame of the old connection is garbage now
+        self._down_since = now
+        self._retry_s = self.retry_min_s
+        self._next_retry = now + self._retry_s
+        self._retry_s = min(2 * self._retry_s, self.retry_max_s)
+        self._stats.connected = False
+        self._event(EventKind.UNPLUGGED, detail=str(err) or type(err).__name__)
+        if self._out is not None:  # the request in flight has no answer to come
+            self._lose(self._out[0], 1, "outage")
+            self._out = None
+
+    def _drop_port(self) -> None:
+        with self._port_lock:
+            port, self._port = self._port, None
+        if port is not None:
+            with contextlib.suppress(Exception):
+                port.close()
+
+    def _close(self) -> None:
+        port = self._port
+        if port is not None:
+            with contextlib.suppress(Exception):
+                port.cancel_read()
+        self._drop_port()
+
+    # -- reading ------------------------------------------------------------------
+
+    def _read(self, deadline: float | None) -> SampleBatch | None:
+        while not self._closed:
+            now = time.monotonic()
+            if self._port is None:
+                if now >= self._next_retry:
+                    self._try_open(now)
+                if self._port is None:
+                    batch = self._events_only()
+                    if batch is not None:
+                        return batch
+                    if deadline is not None and now >= deadline:
+                        return None
+                    self._sleep_until(self._next_retry if deadline is None else min(self._next_retry, deadline))
+                    continue
+            got = self._poll_step(deadline) if self.mode == "poll" else self._stream_step(deadline)
+            if got is not None:
+                return got
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+        return None
+
+    def _read_port(self, size: int, timeout: float) -> bytes | None:
+        """Bytes from the port, or ``None`` when it went away (an event is queued)."""
+        port = self._port
+        if port is None:
+            return None
+        try:
+            port.timeout = max(0.0, timeout)
+            data = port.read(size)
+        except (serial.SerialException, OSError) as err:
+            if not self._closed:
+                self._port_lost(err)
+            return None
+        except (TypeError, AttributeError) as err:  # pyserial after a concurrent close()
+            if self._closed:
+                return None
+            raise SourceError(f"{self.url}: {err}") from err
+        if data:
+            self._stats.bytes_read += len(data)
+        return data
+
+    def _check_stall(self, now: float, got_bytes: bool) -> None:
+        if got_bytes:
+            if self._stalled:
+                self._stalled = False
+                self._event(EventKind.RESUMED, gap_s=now - self._last_rx)
+                self._gap_cause = self._gap_cause or "stall"
+            self._last_rx = now
+        elif not self._stalled and now - self._last_rx >= self.stall_s:
+            self._stalled = True
+            self._event(EventKind.STALL, gap_s=now - self._last_rx)
+
+    def _stream_step(self, deadline: float | None) -> SampleBatch | None:
+        now = time.monotonic()
+        wait = self.batch_s if deadline is None else min(self.batch_s, deadline - now)
+        data = self._read_port(READ_MAX, wait)
+        if data is None:
+            return self._events_only()
+        t_read = time.monotonic()
+        self._check_stall(t_read, bool(data))
+        if not data:
+            return self._events_only()
+        return self._samples(self._decoder.feed(data), t_read)
+
+    def _samples(self, r: Readings, t_read: float) -> SampleBatch | None:
+        st = self._stamper.stamp(r, t_read)
+        if st.gaps:
+            self._gap_events(st.gaps, self._gap_cause or "gap")
+        if len(r):
+            self._gap_cause = None
+        for _ in range(st.resets):
+            self._event(EventKind.DEVICE_RESET, detail="sample counter or clock went backwards")
+        self._duplicates += st.duplicates
+        self._report_decode()
+        if self._stamper.clock.ready:
+            self._stats.clock_ratio = self._stamper.clock.ratio
+            self._stats.clock_offset_s = self._stamper.clock.offset
+        keep = st.keep
+        status = r.status[keep]
+        return self._batch(st.t_host, st.t_device, self.cal_mm + r.value_mm[keep], st.seq, status)
+
+    def _report_decode(self) -> None:
+        now = dict(self._decoder.dropped)
+        if self._duplicates:
+            now["duplicate"] = self._duplicates
+        delta = {k: v - self._reported.get(k, 0) for k, v in now.items() if v != self._reported.get(k, 0)}
+        if delta:
+            self._reported = now
+            self._event(EventKind.DECODE_ERRORS, counts=delta)
+
+    # -- poll mode ------------------------------------------------------------------
+
+    def _lose(self, seq0: int, count: int, cause: str) -> None:
+        self._event(EventKind.LOST, count=count, seq=seq0, detail=cause)
+
+    def _poll_step(self, deadline: float | None) -> SampleBatch | None:
+        assert self.rate_hz is not None
+        period = 1.0 / self.rate_hz
+        now = time.monotonic()
+        if self._tick0 is None:
+            self._tick0 = now - self._k * period
+            self._poll_batch_start = now
+        if self._out is not None and now - self._out[1] > self.poll_timeout_s:
+            self._lose(self._out[0], 1, "poll_timeout")
+            self._out = None
+        if self._out is None:
+            due = self._tick0 + self._k * period
+            if now >= due:
+                late = int((now - due) / period)
+                if late > 0:
+                    self._lose(self._k, late, "poll_late")
+                    self._k += late
+                if not self._send_request():
+                    return self._flush_poll()
+                self._out = (self._k, time.monotonic())
+                self._k += 1
+        # Wait for the answer, the next tick, the end of the batch or the deadline.
+        now = time.monotonic()
+        nxt = self._out[1] + self.poll_timeout_s if self._out is not None else self._tick0 + self._k * period
+        until = min(nxt, self._poll_batch_start + self.batch_s)
+        if deadline is not None:
+            until = min(until, deadline)
+        port = self._port
+        if port is None:
+            return self._flush_poll()
+        try:
+            avail = port.in_waiting
+        except (serial.SerialException, OSError) as err:
+            self._port_lost(err)
+            return self._flush_poll()
+        data = self._read_port(max(1, avail), until - now)
+        if data is None:
+            return self._flush_poll()
+        t_read = time.monotonic()
+        self._check_stall(t_read, bool(data))
+        if data:
+            r = self._decoder.feed(data)
+            for i in range(len(r)):
+                if self._out is None:
+                    self._duplicates += 1  # an answer nobody asked for
+                    continue
+                k, t_sent = self._out
+                self._pending.append((k, 0.5 * (t_sent + t_read), float(r.value_mm[i]), int(r.status[i])))
+                self._out = None
+        if t_read - self._poll_batch_start >= self.batch_s or (deadline is not None and t_read >= deadline):
+            return self._flush_poll()
+        return None
+
+    def _send_request(self) -> bool:
+        port = self._port
+        if port is None:
+            return False
+        try:
+            stale = port.in_waiting
+            if stale:  # a late answer to a timed-out request: not this one's
+                port.read(stale)
+                self._decoder.flush()
+                self._reported_stale(stale)
+            port.write(self.fmt.request)
+        except (serial.SerialException, OSError) as err:
+            self._port_lost(err)
+            return False
+        return True
+
+    def _reported_stale(self, n: int) -> None:
+        self._decoder.dropped["stale_bytes"] = self._decoder.dropped.get("stale_bytes", 0) + n
+
+    def _flush_poll(self) -> SampleBatch | None:
+        self._poll_batch_start = time.monotonic()
+        self._report_decode()
+        p, self._pending = self._pending, []
+        n = len(p)
+        seq = np.fromiter((x[0] for x in p), np.int64, n)
+        th = np.fromiter((x[1] for x in p), np.float64, n)
+        val = np.fromiter((x[2] for x in p), np.float64, n)
+        st = np.fromiter((x[3] for x in p), np.uint8, n)
+        return self._batch(th, np.full(n, math.nan), self.cal_mm + val, seq, st)
+
+
+# ----------------------------------------------------------------------------- paced arrays
+
+
+Chunk = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
+
+
+class _PacedSource(Source):
+    """Samples known in advance (a simulation, a recording), released on the host
+    clock at ``speed`` times real time (``inf``: as fast as possible)."""
+
+    MAX_BATCH = 1 << 16
+
+    def __init__(self, url: str, rate_hz: float | None, speed: float, batch_s: float, status: int) -> None:
+        super().__init__(url, rate_hz, batch_s)
+        self.speed = speed
+        self._status = np.uint8(status)
+        self._chunks: Iterator[Chunk] | None = None
+        self._t: NDArray[np.float64] = np.empty(0)
+        self._len: NDArray[np.float64] = np.empty(0)
+        self._seq: NDArray[np.int64] = np.empty(0, np.int64)
+        self._i = 0
+        self._start: float | None = None
+        self._t0 = 0.0
+        self._last_seq: int | None = None
+        self._last_return = -math.inf
+
+    def _begin(self, chunks: Iterator[Chunk], detail: str) -> None:
+        self._chunks = chunks
+        self._stats.connected = True
+        self._event(EventKind.OPENED, detail=detail)
+
+    def _more(self) -> bool:
+        """Make sure the current chunk has samples left; False at the end."""
+        while self._i >= self._t.shape[0]:
+            assert self._chunks is not None
+            nxt = next(self._chunks, None)
+            if nxt is None:
+                return False
+            self._t, self._len, self._seq = nxt
+            self._i = 0
+        return True
+
+    def _read(self, deadline: float | None) -> SampleBatch | None:
+        while not self._closed:
+            if not self._more():
+                self._finished = True
+                self._stats.connected = False
+                self._event(EventKind.END, detail="no more samples")
+                return self._events_only()
+            now = time.monotonic()
+            if self._start is None:
+                self._start, self._t0 = now, float(self._t[self._i])
+            if math.isinf(self.speed):
+                return self._take(self._i + self.MAX_BATCH, now)
+            t_now = self._t0 + (now - self._start) * self.speed
+            due = float(self._t[self._i])
+            wake = max(self._start + (due - self._t0) / self.speed, self._last_return + self.batch_s)
+            if now >= wake:
+                end = int(np.searchsorted(self._t, t_now, side="right"))
+                return self._take(min(max(end, self._i + 1), self._i + self.MAX_BATCH), now)
+            if self._events:
+                return self._events_only()
+            if deadline is not None and now >= deadline:
+                return None
+            self._sleep_until(wake if deadline is None else min(wake, deadline))
+        return None
+
+    def _take(self, end: int, now: float) -> SampleBatch | None:
+        sl = slice(self._i, min(end, self._t.shape[0]))
+        self._i = sl.stop
+        self._last_return = now
+        t, length, seq = self._t[sl], self._len[sl], self._seq[sl]
+        steps = np.diff(seq, prepend=seq[0] - 1 if self._last_seq is None else self._last_seq)
+        gaps = [(int(seq[i] - steps[i] + 1), int(steps[i] - 1)) for i in np.flatnonzero(steps > 1).tolist()]
+        self._gap_events(gaps)
+        self._last_seq = int(seq[-1])
+        assert self._start is not None
+        # As fast as possible: stamped when released; otherwise on the paced schedule.
+        th = np.full(t.shape[0], now) if math.isinf(self.speed) else self._start + (t - self._t0) / self.speed
+        status = np.full(t.shape[0], self._status, np.uint8)
+        return self._batch(th, t.copy(), length.copy(), seq.copy(), status)
+
+
+class SimSource(_PacedSource):
+    """The physical simulator, in process, paced on the host clock."""
+
+    scheme = "sim"
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        plan: Any = None,
+        machine: Any = None,
+        rate_hz: float | None = None,
+        speedup: float = 1.0,
+        seed: int = 0,
+        repeat: int = 1,
+        gap_s: float = 0.0,
+        batch_s: float = DEFAULT_BATCH_S,
+    ) -> None:
+        # Imported here: the simulator is a tool, and only this source needs it.
+        from ballbar.analysis.plan import TestPlan
+        from ballbar.tools.simulator import MachineModel, iter_tests
+
+        plan = plan if plan is not None else TestPlan()
+        machine = machine if machine is not None else MachineModel()
+        rate = float(rate_hz if rate_hz is not None else plan.sample_hz)
+        super().__init__(url, rate, speedup, batch_s, int(Status.SIMULATED))
+
+        def chunks() -> Iterator[Chunk]:
+            for res in iter_tests(plan, machine, rate, seed, None if repeat == 0 else repeat, gap_s):
+                seq = np.rint(res.t_s * rate).astype(np.int64)
+                yield res.t_s, res.length_mm, seq
+
+        self._begin(chunks(), f"simulator, {rate:g} Hz, speedup {speedup:g}, seed {seed}")
+
+
+class ReplaySource(_PacedSource):
+    """A recording, replayed at ``speed`` times real time."""
+
+    scheme = "replay"
+
+    def __init__(
+        self,
+        url: str,
+        path: str,
+        *,
+        speed: float = 1.0,
+        rate_hz: float | None = None,
+        batch_s: float = DEFAULT_BATCH_S,
+    ) -> None:
+        super().__init__(url, rate_hz, speed, batch_s, 0)
+        ext = os.path.splitext(path)[1].lower()
+        if ext == ".mcap":
+            raise SourceConfigError(f"{url}: replay of MCAP recordings is not supported yet; use a CSV export")
+        from .recordings import read_csv  # DataError (one line) on a bad file
+
+        t, length = read_csv(path)
+        if rate_hz:
+            seq = np.rint((t - t[0]) * rate_hz).astype(np.int64)
+            bad = np.flatnonzero(np.diff(seq) <= 0)  # two rows in one sample period
+            if bad.shape[0]:
+                raise SourceConfigError(
+                    f"{url}: rows {int(bad[0]) + 1} and {int(bad[0]) + 2} fall in one sample period at "
+                    f"rate={rate_hz:g} Hz; is the rate right?"
+                )
+        else:
+            seq = np.arange(t.shape[0], dtype=np.int64)
+        self._begin(iter([(t, length, seq)]), f"{path} ({t.shape[0]} samples, speed {speed:g})")
+
+
+# ----------------------------------------------------------------------------- registry and URLs
+
+SourceFactory = Callable[[str, str, "_Options"], Source]
+_REGISTRY: dict[str, SourceFactory] = {}
+
+
+def register_source(scheme: str, factory: SourceFactory) -> None:
+    """Make ``scheme:`` URLs open with ``factory(url, target, options)``."""
+    _REGISTRY[scheme] = factory
+
+
+def source_schemes() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+class _Options:
+    """URL query and keyword options, converted on demand; leftovers are errors."""
+
+    def __init__(self, url: str, query: dict[str, str], kwargs: dict[str, Any]) -> None:
+        both = sorted(set(query) & set(kwargs))
+        if both:
+            raise SourceConfigError(f"{url}: option {both[0]!r} given both in the URL and as a keyword")
+        self.url = url
+        self.values: dict[str, Any] = {**query, **kwargs}
+        self.known: list[str] = []
+
+    def get(self, key: str, conv: Callable[[Any], Any], default: Any = None) -> Any:
+        self.known.append(key)
+        if key not in self.values:
+            return default
+        raw = self.values.pop(key)
+        if raw is None:
+            return default
+        try:
+            return conv(raw)
+        except (TypeError, ValueError) as err:
+            raise SourceConfigError(f"{self.url}: option {key}={raw!r}: {err}") from None
+
+    def require(self, key: str, conv: Callable[[Any], Any], why: str) -> Any:
+        if self.values.get(key) is None:
+            raise SourceConfigError(f"{self.url}: option {key} is required ({why})")
+        return self.get(key, conv)
+
+    def done(self) -> None:
+        if self.values:
+            key = sorted(self.values)[0]
+            raise SourceConfigError(f"{self.url}: unknown option {key!r} (known: {', '.join(sorted(self.known))})")
+
+
+def _pos_float(v: Any) -> float:
+    x = float(v)
+    if not (math.isfinite(x) and x > 0):
+        raise ValueError("must be a finite number > 0")
+    return x
+
+
+def _finite(v: Any) -> float:
+    x = float(v)
+    if not math.isfinite(x):
+        raise ValueError("must be a finite number")
+    return x
+
+
+def _rate(v: Any) -> float:
+    x = _pos_float(v)
+    if not RATE_MIN_HZ <= x <= RATE_MAX_HZ:
+        raise ValueError(f"must be within {RATE_MIN_HZ:g}..{RATE_MAX_HZ:g} Hz")
+    return x
+
+
+def _speed(v: Any) -> float:
+    if isinstance(v, str) and v.strip().lower() in ("max", "inf", "fast"):
+        return math.inf
+    x = float(v)
+    if not x > 0:
+        raise ValueError("must be > 0 or 'max'")
+    return x
+
+
+def _nonneg_int(v: Any) -> int:
+    if isinstance(v, bool):
+        raise ValueError("must be an integer")
+    x = int(v)
+    if x < 0:
+        raise ValueError("must be >= 0")
+    return x
+
+
+def _bool(v: Any) -> bool:
+    if isinstance(v, bool):
+        return v
+    s = str(v).strip().lower()
+    if s in ("1", "true", "yes", "on"):
+        return True
+    if s in ("0", "false", "no", "off"):
+        return False
+    raise ValueError("must be true or false")
+
+
+def _choice(*allowed: str) -> Callable[[Any], str]:
+    def conv(v: Any) -> str:
+        s = str(v)
+        if s not in allowed:
+            raise ValueError(f"must be one of {', '.join(allowed)}")
+        return s
+
+    return conv
+
+
+def _bytes(v: Any) -> bytes:
+    if isinstance(v, bytes):
+        return v
+    return str(v).encode("latin-1")
+
+
+def _open_serial(url: str, target: str, opt: _Options) -> Source:
+    if target.startswith("///"):
+        target = target[2:]
+    if not target:
+        raise SourceConfigError(f"{url}: no port (serial:/dev/ttyUSB0, serial:socket://host:port, ...)")
+    protocol = opt.get("protocol", _choice("binary", "ascii"), "binary")
+    mode = opt.get("mode", _choice("stream", "poll"), "stream")
+    cal_mm = opt.require("cal_mm", _finite, "the bar's length at zero displacement, from its calibration")
+    rate = opt.get("rate", _rate)
+    ts = opt.get("timestamp", _choice("s", "ms", "us", "none"), "none")
+    try:
+        fmt = AsciiFormat(
+            unit=opt.get("unit", _choice("mm", "um", "nm", "in"), "mm"),
+            scale=opt.get("scale", _finite, 1.0),
+            ts_unit=None if ts == "none" else ts,
+            max_line=opt.get("max_line", int, 64),
+            request=opt.get("request", _bytes, b"?\r"),
+        )
+    except ValueError as err:
+        raise SourceConfigError(f"{url}: {err}") from None
+    kwargs = {
+        "baud": opt.get("baud", int, 2_000_000),
+        "batch_s": opt.get("batch_s", _pos_float, DEFAULT_BATCH_S),
+        "stall_s": opt.get("stall_s", _pos_float),
+        "poll_timeout_s": opt.get("poll_timeout_s", _pos_float),
+        "retry_min_s": opt.get("retry_min_s", _pos_float, 0.05),
+        "retry_max_s": opt.get("retry_max_s", _pos_float, 2.0),
+        "exclusive": opt.get("exclusive", _bool, True),
+    }
+    opt.done()
+    return SerialSource(url, target, cal_mm=cal_mm, protocol=protocol, mode=mode, rate_hz=rate, fmt=fmt, **kwargs)
+
+
+def _open_sim(url: str, target: str, opt: _Options) -> Source:
+    if target.strip("/"):
+        raise SourceConfigError(f"{url}: sim: takes no path, only options (sim:?rate=1000&speedup=10)")
+    kwargs = {
+        "plan": opt.get("plan", lambda v: v),
+        "machine": opt.get("machine", lambda v: v),
+        "rate_hz": opt.get("rate", _rate),
+        "speedup": opt.get("speedup", _speed, 1.0),
+        "seed": opt.get("seed", _nonneg_int, 0),
+        "repeat": opt.get("repeat", _nonneg_int, 1),
+        "gap_s": opt.get("gap_s", lambda v: max(0.0, _finite(v)), 0.0),
+        "batch_s": opt.get("batch_s", _pos_float, DEFAULT_BATCH_S),
+    }
+    opt.done()
+    return SimSource(url, **kwargs)
+
+
+def _open_replay(url: str, target: str, opt: _Options) -> Source:
+    if target.startswith("///"):
+        target = target[2:]
+    path = urllib.parse.unquote(target)
+    if not path:
+        raise SourceConfigError(f"{url}: no file (replay:recording.csv?speed=10)")
+    kwargs = {
+        "speed": opt.get("speed", _speed, 1.0),
+        "rate_hz": opt.get("rate", _rate),
+        "batch_s": opt.get("batch_s", _pos_float, DEFAULT_BATCH_S),
+    }
+    opt.done()
+    return ReplaySource(url, path, **kwargs)
+
+
+register_source("serial", _open_serial)
+register_source("sim", _open_sim)
+register_source("replay", _open_replay)
+
+
+def split_url(url: str) -> tuple[str, str, dict[str, str]]:
+    """``scheme, target, query`` of a source URL (see the module docstring)."""
+    head, _, query = url.partition("?")
+    if head.startswith("/"):
+        scheme, target = "serial", head
+    else:
+        scheme, _, target = head.partition(":")
+        if scheme in PYSERIAL_SCHEMES and target.startswith("//"):
+            scheme, target = "serial", head
+    if scheme not in _REGISTRY:
+        raise SourceConfigError(
+            f"{url}: unknown source {scheme!r} (known: {', '.join(source_schemes())}, a /dev path or a pyserial URL)"
+        )
+    opts: dict[str, str] = {}
+    for k, v in urllib.parse.parse_qsl(query, keep_blank_values=True):
+        if k in opts:
+            raise SourceConfigError(f"{url}: option {k!r} given twice")
+        opts[k] = v
+    return scheme, target, opts
+
+
+def open_source(url: str, **options: Any) -> Source:
+    """Open the source that ``url`` names; keyword ``options`` complement the URL's query."""
+    scheme, target, query = split_url(url)
+    opt = _Options(url, query, {k: v for k, v in options.items() if v is not None})
+    return _REGISTRY[scheme](url, target, opt)
+
+
+__all__ = [
+    "RATE_MAX_HZ",
+    "RATE_MIN_HZ",
+    "ReplaySource",
+    "SerialSource",
+    "SimSource",
+    "Source",
+    "open_source",
+    "register_source",
+    "source_schemes",
+    "split_url",
+]

@@ -1,0 +1,242 @@
+"""Device clocks and counters to host time and unwrapped sample numbers.
+
+:class:`ClockMap` maps a device's sample clock to the host's monotonic clock,
+``t_host = offset + ratio * t_device``.  It sees one point per read: the device
+time of the newest sample and the host time at which the read returned.  That
+host time is the sampling instant plus a latency that is never negative and is
+sometimes small (USB polling, scheduler), so the map is the *lower envelope* of
+the points: the ratio is fitted through the lowest-latency point of each
+``bin_s`` of host time over the last ``window`` bins, and the offset puts the line
+under every point.  ``ratio - 1`` is the drift (a crystal's tens of ppm; 0.1
+for a simulator that runs ten times faster than real time).
+
+:class:`Stamper` turns a decoder's raw counters and clocks into unwrapped
+sample numbers and device times, finds gaps (lost samples) and device restarts,
+and stamps host times.  Pure bookkeeping: the caller passes the host time.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from ballbar.protocol import Readings
+from numpy.typing import NDArray
+
+
+class ClockMap:
+    """Lower-envelope linear map from device time to host time (seconds)."""
+
+    def __init__(self, bin_s: float = 1.0, window: int = 600) -> None:
+        self.bin_s = bin_s
+        self._bins: deque[tuple[float, float]] = deque(maxlen=window)
+        self._cur: tuple[int, float, float] | None = None
+        self._first: tuple[float, float] | None = None
+        self.ratio = 1.0
+        self.offset = math.nan
+
+    def reset(self) -> None:
+        self._bins.clear()
+        self._cur = None
+        self._first = None
+        self.ratio = 1.0
+        self.offset = math.nan
+
+    @property
+    def ready(self) -> bool:
+        return not math.isnan(self.offset)
+
+    def update(self, t_device: float, t_host: float) -> None:
+        """Add a point: the newest sample's device time and the host time it was read."""
+        if not (math.isfinite(t_device) and math.isfinite(t_host)):
+            return
+        if self._first is None:
+            self._first = (t_device, t_host)
+        b = math.floor(t_host / self.bin_s)
+        if self._cur is None:
+            self._cur = (b, t_device, t_host)
+        elif self._cur[0] == b:
+            if t_host - self.ratio * t_device < self._cur[2] - self.ratio * self._cur[1]:
+                self._cur = (b, t_device, t_host)
+        else:
+            self._bins.append((self._cur[1], self._cur[2]))
+            self._cur = (b, t_device, t_host)
+        self._refit(t_device, t_host)
+
+    def _refit(self, t_device: float, t_host: float) -> None:
+        assert self._cur is not None and self._first is not None
+        pts = [*self._bins, (self._cur[1], self._cur[2])]
+        td = np.array([p[0] for p in pts])
+        th = np.array([p[1] for p in pts])
+        ratio = self.ratio
+        if len(pts) >= 3 and td[-1] - td[0] > 0:
+            ratio = float(np.polyfit(td, th, 1)[0])
+        elif t_device - self._first[0] > 0.05:
+            ratio = (t_host - self._first[1]) / (t_device - self._first[0])
+        if math.isfinite(ratio) and ratio > 0:
+            self.ratio = ratio
+        self.offset = float(np.min(th - self.ratio * td))
+
+    def map(self, t_device: NDArray[np.float64]) -> NDArray[np.float64]:
+        return self.offset + self.ratio * t_device
+
+
+@dataclass
+class Stamped:
+    """Samples after :meth:`Stamper.stamp`.
+
+    ``keep`` selects the readings that stay (a repeated counter value is a
+    duplicate and is dropped); the other arrays are already filtered.
+    ``gaps``: ``(first missing seq, count)`` per gap.  ``resets``: restarts of
+    the device's counter or clock seen in these readings.
+    """
+
+    keep: NDArray[np.bool_]
+    seq: NDArray[np.int64]
+    t_device: NDArray[np.float64]
+    t_host: NDArray[np.float64]
+    gaps: list[tuple[int, int]] = field(default_factory=list)
+    resets: int = 0
+
+    @property
+    def duplicates(self) -> int:
+        return int(self.keep.shape[0] - np.count_nonzero(self.keep))
+
+
+class Stamper:
+    """Unwrap counters and clocks, count gaps, stamp host time.
+
+    ``seq_modulus``, ``clock_wrap_s``: how the decoder's raw fields wrap (``None``:
+    they do not).  ``rate_hz``: the nominal sample rate, used to derive sample
+    numbers from a device clock when the protocol has no counter, and to space
+    samples on the host clock when it has neither.
+
+    Sample numbers start at the device's counter (binary), at the device time
+    times the rate (a clock and a rate), or at 0.  Across a device restart (the
+    counter or clock goes backwards) the numbers continue by one and the device
+    time by the restarted clock's reading: how much was lost is unknown.
+    """
+
+    def __init__(self, seq_modulus: int | None, clock_wrap_s: float | None, rate_hz: float | None) -> None:
+        self.seq_modulus = seq_modulus
+        self.clock_wrap_s = clock_wrap_s
+        self.rate_hz = rate_hz
+        self.clock = ClockMap()
+        self._seq_raw: int | None = None
+        self._clk_raw: float | None = None
+        self._seq: int | None = None  # last unwrapped sample number handed out
+        self._td = math.nan  # last unwrapped device time
+        self._th = -math.inf  # last host time handed out
+        self._th_read = math.nan  # host time of the last read that had samples
+
+    @property
+    def last_seq(self) -> int | None:
+        return self._seq
+
+    def stamp(self, r: Readings, t_read: float) -> Stamped:
+        n = len(r)
+        if n == 0:
+            z = np.empty(0)
+            return Stamped(np.ones(0, bool), np.empty(0, np.int64), z, z)
+        first = self._seq is None
+        restart = np.zeros(n, bool)
+        keep = np.ones(n, bool)
+        steps = np.ones(n, np.int64)
+
+        if r.seq is not None and self.seq_modulus is not None:
+            m = self.seq_modulus
+            raw = r.seq
+            steps[1:] = np.diff(raw) % m
+            if self._seq_raw is not None:
+                steps[0] = (int(raw[0]) - self._seq_raw) % m
+            restart |= steps >= m // 2
+            keep = steps != 0
+            self._seq_raw = int(raw[-1])
+
+        td = np.full(n, math.nan)
+        clk = r.clock_s
+        if clk is not None:
+            d = np.empty(n)
+            d[1:] = np.diff(clk)
+            d[0] = 0.0 if self._clk_raw is None else clk[0] - self._clk_raw
+            w = self.clock_wrap_s
+            if w is not None:
+                d = np.mod(d, w)
+                back = d > w / 2
+                if self._clk_raw is not None and self.clock.ready and not math.isnan(self._th_read):
+                    # After an outage of more than a quarter wrap the wrap count is
+                    # ambiguous: the host clock decides.
+                    expect = (t_read - self._th_read) / self.clock.ratio
+                    if expect > w / 4:
+                        d[0] += w * max(0.0, round((expect - d[0]) / w))
+                        back[0] = False
+            else:
+                back = d < 0
+            restart |= back
+            if r.seq is None and self.rate_hz:
+                steps = np.maximum(np.rint(d * self.rate_hz).astype(np.int64), 1)
+            # Across a restart the clock's own reading is the time since it began
+            # (a lower bound: at least one period has passed).
+            d = np.where(restart, np.maximum(clk, 1.0 / self.rate_hz if self.rate_hz else 1e-6), d)
+            if first:
+                d[0] = clk[0]
+                td = np.cumsum(d)
+            else:
+                td = self._td + np.cumsum(d)
+            self._clk_raw = float(clk[-1])
+
+        if first:
+            restart[0] = False
+            if r.seq is not None:
+                start = int(r.seq[0])
+            elif clk is not None and self.rate_hz:
+                start = int(np.rint(clk[0] * self.rate_hz))
+            else:
+                start = 0
+            steps[0] = 0
+            base = start
+        else:
+            assert self._seq is not None
+            base = self._seq
+        steps = np.where(restart, 1, steps)
+        steps = np.where(keep, steps, 0)
+        seq = base + np.cumsum(steps)
+        if first:
+            steps[0] = 1  # not a gap
+        gaps = [(int(seq[i] - steps[i] + 1), int(steps[i] - 1)) for i in np.flatnonzero(steps > 1).tolist()]
+        resets = int(np.count_nonzero(restart))
+        if resets:
+            self.clock.reset()
+
+        seq, td = seq[keep], td[keep]
+        th = self._host_times(seq, td, t_read)
+        self._seq = int(seq[-1]) if seq.shape[0] else self._seq
+        if td.shape[0] and not math.isnan(td[-1]):
+            self._td = float(td[-1])
+        self._th_read = t_read
+        return Stamped(keep, seq, td, th, gaps, resets)
+
+    def _host_times(self, seq: NDArray[np.int64], td: NDArray[np.float64], t_read: float) -> NDArray[np.float64]:
+        n = seq.shape[0]
+        if n == 0:
+            return np.empty(0)
+        if not np.isnan(td[-1]):
+            self.clock.update(float(td[-1]), t_read)
+            th = self.clock.map(td)
+        elif self.rate_hz:
+            # No device clock: the sample numbers at the nominal rate are the clock.
+            syn = seq.astype(np.float64) / self.rate_hz
+            self.clock.update(float(syn[-1]), t_read)
+            th = self.clock.map(syn)
+        else:
+            th = np.full(n, t_read)
+        # Causal (never after the read that returned it) and never backwards.
+        th = np.minimum(th, t_read)
+        th = np.maximum.accumulate(np.maximum(th, self._th))
+        self._th = float(th[-1])
+        return th
+
+
+__all__ = ["ClockMap", "Stamped", "Stamper"]

@@ -1,0 +1,64 @@
+"""Shared fixtures.
+
+``no_leaks`` (opt-in: ``pytestmark = pytest.mark.usefixtures("no_leaks")``) fails a
+test that leaves threads, open file descriptors (ports, ptys, sockets, pipes) or
+child processes behind.  It gives them a moment to wind down first, so a clean
+``close()`` that takes a few milliseconds is not a leak.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+
+def _fds() -> dict[int, str]:
+    out: dict[int, str] = {}
+    for name in os.listdir("/proc/self/fd"):
+        fd = int(name)
+        try:
+            out[fd] = os.readlink(f"/proc/self/fd/{name}")
+        except OSError:
+            continue  # the directory's own descriptor, closed by now
+    return out
+
+
+def _children() -> set[int]:
+    kids: set[int] = set()
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/children", encoding="ascii") as fh:
+                kids.update(int(p) for p in fh.read().split())
+        except OSError:
+            pass
+    return kids
+
+
+@pytest.fixture
+def no_leaks() -> Iterator[None]:
+    threads = set(threading.enumerate())
+    fds = _fds()
+    kids = _children()
+    yield
+    deadline = time.monotonic() + 2.0
+    while True:
+        new_threads = [t for t in threading.enumerate() if t not in threads and t.is_alive()]
+        now_fds = _fds()
+        new_fds = {fd: target for fd, target in now_fds.items() if fds.get(fd) != target}
+        new_kids = _children() - kids
+        if not (new_threads or new_fds or new_kids) or time.monotonic() > deadline:
+            break
+        time.sleep(0.02)
+    problems = []
+    if new_threads:
+        problems.append(f"threads left running: {[t.name for t in new_threads]}")
+    if new_fds:
+        problems.append(f"file descriptors left open: {new_fds}")
+    if new_kids:
+        problems.append(f"child processes left running: {sorted(new_kids)}")
+    if problems:
+        pytest.fail("; ".join(problems))

@@ -1,0 +1,455 @@
+"""Sources: URLs, batches, time stamps, losses and faults, with in-process ptys, sockets and files.
+
+The test itself plays the device here (it writes frames into the pty's master);
+``test_simdevice.py`` runs the real simulated device in a child process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import pty
+import socket
+import threading
+import time
+import tty
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ballbar.analysis.errors import BallbarError, DataError
+from ballbar.analysis.plan import TestPlan
+from ballbar.daemon.errors import SourceClosed, SourceConfigError
+from ballbar.daemon.samples import SAMPLE_DTYPE, EventKind, SampleBatch, SourceEvent
+from ballbar.daemon.sources import Source, open_source, split_url
+from ballbar.daemon.timebase import ClockMap
+from ballbar.protocol import Status
+from ballbar.protocol import ascii as ascii_proto
+from ballbar.protocol.binary import SEQ_MODULUS, encode_samples
+
+pytestmark = pytest.mark.usefixtures("no_leaks")
+
+
+class FakeDevice:
+    """A pty whose master the test writes to, behind a stable link (like /dev/serial/by-id)."""
+
+    def __init__(self, link: Path) -> None:
+        self.link = str(link)
+        self.master: int | None = None
+        self.slave: int | None = None
+        self.plug()
+
+    def plug(self) -> None:
+        self.master, self.slave = pty.openpty()
+        tty.setraw(self.slave)
+        tmp = self.link + ".tmp"
+        os.symlink(os.ttyname(self.slave), tmp)
+        os.replace(tmp, self.link)
+
+    def unplug(self) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.link)
+        for fd in (self.master, self.slave):
+            if fd is not None:
+                os.close(fd)
+        self.master = self.slave = None
+
+    def write(self, data: bytes) -> None:
+        assert self.master is not None
+        view = memoryview(data)
+        while view:
+            n = os.write(self.master, view)
+            view = view[n:]
+
+    def frames(self, seq: np.ndarray | list[int], rate: float = 1000.0, disp: float | np.ndarray = 0.0) -> None:
+        s = np.asarray(seq, dtype=np.int64)
+        self.write(encode_samples(s, s / rate, np.broadcast_to(disp, s.shape)))
+
+
+@pytest.fixture
+def dev(tmp_path: Path) -> Iterator[FakeDevice]:
+    d = FakeDevice(tmp_path / "ttyBB0")
+    yield d
+    d.unplug()
+
+
+def read_all(src: Source, want: int, timeout: float = 5.0) -> tuple[SampleBatch, list[SourceEvent]]:
+    """Read until ``want`` samples have arrived (or the time is up); all events too."""
+    batches: list[SampleBatch] = []
+    deadline = time.monotonic() + timeout
+    n = 0
+    while n < want and time.monotonic() < deadline:
+        b = src.read(0.1)
+        if b is not None:
+            batches.append(b)
+            n += len(b)
+    merged = SampleBatch.concat(batches)
+    return merged, list(merged.events)
+
+
+def kinds(events: list[SourceEvent]) -> list[str]:
+    return [str(e.kind) for e in events]
+
+
+def read_until(
+    src: Source, kind: EventKind, timeout: float = 5.0, samples: list[int] | None = None
+) -> list[SourceEvent]:
+    """Events up to and including the first of ``kind``; sample numbers seen go to ``samples``."""
+    events: list[SourceEvent] = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        b = src.read(0.1)
+        if b is not None:
+            events += b.events
+            if samples is not None:
+                samples += b.seq.tolist()
+            if any(e.kind == kind for e in b.events):
+                return events
+    raise AssertionError(f"no {kind} event within {timeout} s; got {kinds(events)}")
+
+
+# ----------------------------------------------------------------------------- URLs
+
+
+@pytest.mark.parametrize(
+    ("url", "scheme", "target", "query"),
+    [
+        ("serial:/dev/ttyUSB0?cal_mm=100", "serial", "/dev/ttyUSB0", {"cal_mm": "100"}),
+        ("serial:///dev/ttyUSB0", "serial", "///dev/ttyUSB0", {}),
+        ("/dev/ttyUSB0?protocol=ascii&rate=15.625", "serial", "/dev/ttyUSB0", {"protocol": "ascii", "rate": "15.625"}),
+        ("serial:loop://", "serial", "loop://", {}),
+        ("socket://localhost:7000?cal_mm=1", "serial", "socket://localhost:7000", {"cal_mm": "1"}),
+        ("replay:runs/a.csv?speed=max", "replay", "runs/a.csv", {"speed": "max"}),
+        ("sim:?speedup=10&seed=3", "sim", "", {"speedup": "10", "seed": "3"}),
+        ("serial:loop://?request=%3F%0D&cal_mm=0", "serial", "loop://", {"request": "?\r", "cal_mm": "0"}),
+    ],
+)
+def test_split_url(url: str, scheme: str, target: str, query: dict[str, str]) -> None:
+    assert split_url(url) == (scheme, target, query)
+
+
+@pytest.mark.parametrize(
+    ("url", "options", "message"),
+    [
+        ("foo:bar", {}, "unknown source 'foo'"),
+        ("serial:loop://", {}, "cal_mm is required"),
+        ("serial:loop://?cal_mm=1&bogus=2", {}, "unknown option 'bogus'"),
+        ("serial:loop://?cal_mm=1&cal_mm=2", {}, "given twice"),
+        ("serial:loop://?cal_mm=1", {"cal_mm": 2.0}, "both in the URL and as a keyword"),
+        ("serial:loop://?cal_mm=1&rate=20000", {}, "rate=20000"),
+        ("serial:loop://?cal_mm=1&rate=abc", {}, "rate='abc'"),
+        ("serial:loop://?cal_mm=nan", {}, "cal_mm='nan'"),
+        ("serial:loop://?cal_mm=1&mode=poll", {}, "mode=poll needs protocol=ascii"),
+        ("serial:loop://?cal_mm=1&protocol=ascii&mode=poll", {}, "needs rate"),
+        ("serial:loop://?cal_mm=1&protocol=morse", {}, "protocol='morse'"),
+        ("serial:loop://?cal_mm=1&baud=fast", {}, "baud='fast'"),
+        ("serial:?cal_mm=1", {}, "no port"),
+        ("replay:x.mcap", {}, "MCAP recordings is not supported yet"),
+        ("replay:?speed=1", {}, "no file"),
+        ("replay:x.csv?speed=0", {}, "speed=0"),
+        ("sim:somewhere", {}, "takes no path"),
+        ("sim:?repeat=-1", {}, "repeat=-1"),
+    ],
+)
+def test_bad_configuration_names_the_problem(url: str, options: dict[str, object], message: str) -> None:
+    with pytest.raises(SourceConfigError, match=message) as info:
+        open_source(url, **options)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, BallbarError)
+    assert "\n" not in str(info.value)
+
+
+def test_missing_recording_is_a_data_error(tmp_path: Path) -> None:
+    with pytest.raises(DataError, match="no such file"):
+        open_source(f"replay:{tmp_path / 'nope.csv'}")
+
+
+# ----------------------------------------------------------------------------- the interface
+
+
+def test_loop_url_close_twice_and_read_after_close() -> None:
+    src = open_source("serial:loop://?cal_mm=100")
+    b = src.read(0.05)
+    assert b is not None and len(b) == 0 and kinds(list(b.events)) == ["opened"]
+    assert src.read(0.05) is None
+    src.close()
+    src.close()
+    with pytest.raises(SourceClosed):
+        src.read(0.01)
+    with open_source("serial:loop://", cal_mm=100.0) as again:
+        assert again.stats().connected
+    assert again.closed
+
+
+def test_socket_url(tmp_path: Path) -> None:
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        with open_source(f"socket://127.0.0.1:{port}?cal_mm=100&rate=1000") as src:
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(encode_samples(np.arange(50), np.arange(50) / 1000, np.full(50, 0.001)))
+                batch, _ = read_all(src, 50)
+    assert batch.seq.tolist() == list(range(50))
+    assert np.allclose(batch.length_mm, 100.001)
+
+
+def test_close_from_another_thread_interrupts_a_blocked_read(dev: FakeDevice) -> None:
+    src = open_source(f"serial:{dev.link}?cal_mm=0")
+    src.read(0.05)  # the opened event
+    result: list[object] = []
+
+    def reader() -> None:
+        try:
+            result.append(src.read(None))
+        except SourceClosed as err:
+            result.append(err)
+
+    th = threading.Thread(target=reader)
+    th.start()
+    time.sleep(0.1)
+    t0 = time.monotonic()
+    src.close()
+    th.join(2.0)
+    assert not th.is_alive()
+    assert time.monotonic() - t0 < 1.0
+    assert len(result) == 1 and (result[0] is None or isinstance(result[0], SourceClosed))
+
+
+# ----------------------------------------------------------------------------- binary over a pty
+
+
+def test_stream_values_times_and_exact_gap(dev: FakeDevice) -> None:
+    with open_source(f"serial:{dev.link}?protocol=binary&rate=1000", cal_mm=100.0) as src:
+        seq = np.r_[0:300, 307:500]  # 7 samples lost in between
+        disp = np.sin(seq / 50.0) * 0.25
+        dev.frames(seq, disp=disp)
+        batch, events = read_all(src, seq.shape[0])
+        st = src.stats()
+    assert batch.seq.tolist() == seq.tolist()
+    assert np.array_equal(batch.length_mm, 100.0 + np.rint(disp * 1e5) / 1e5)
+    assert np.allclose(batch.t_device, seq / 1000.0, atol=1e-9)
+    assert np.all(np.diff(batch.t_host) >= 0)
+    assert batch.t_host[-1] <= time.monotonic()
+    lost = [e for e in events if e.kind == EventKind.LOST]
+    assert [(e.seq, e.count, e.detail) for e in lost] == [(300, 7, "gap")]
+    assert st.samples == 493 and st.lost == 7 and st.decode == {}
+    assert batch.status.tolist() == [0] * 493
+
+
+def test_counter_and_clock_wrap_around(dev: FakeDevice) -> None:
+    first = SEQ_MODULUS - 5
+    with open_source(f"serial:{dev.link}?rate=1000", cal_mm=0.0) as src:
+        s = np.arange(first, first + 10)
+        clock_s = 4294.967296 - 0.003 + np.arange(10) / 1000  # wraps after 3 samples
+        dev.write(encode_samples(s, clock_s, np.zeros(10)))
+        batch, events = read_all(src, 10)
+    assert batch.seq.tolist() == list(range(first, first + 10))
+    assert np.allclose(np.diff(batch.t_device), 0.001, atol=1e-9)
+    assert not any(e.kind in (EventKind.LOST, EventKind.DEVICE_RESET) for e in events)
+
+
+def test_device_restart_is_reported_and_numbers_keep_increasing(dev: FakeDevice) -> None:
+    with open_source(f"serial:{dev.link}?rate=1000", cal_mm=0.0) as src:
+        dev.frames(np.arange(1000, 1100))
+        dev.frames(np.arange(0, 50))  # rebooted: counter and clock from 0
+        batch, events = read_all(src, 150)
+        st = src.stats()
+    assert np.all(np.diff(batch.seq) == 1)
+    assert np.all(np.diff(batch.t_device) > 0)
+    assert kinds(events).count("device_reset") == 1
+    assert st.resets == 1 and st.lost == 0
+
+
+def test_duplicate_frames_are_dropped_and_counted(dev: FakeDevice) -> None:
+    with open_source(f"serial:{dev.link}", cal_mm=0.0) as src:
+        dev.frames([0, 1, 2, 2, 3])
+        batch, _ = read_all(src, 4)
+        src.read(0.05)
+        st = src.stats()
+    assert batch.seq.tolist() == [0, 1, 2, 3]
+    assert st.decode == {"duplicate": 1}
+
+
+def test_garbage_and_bad_frames_never_raise_and_are_counted(dev: FakeDevice) -> None:
+    rng = np.random.default_rng(5)
+    with open_source(f"serial:{dev.link}", cal_mm=0.0) as src:
+        good = encode_samples(np.arange(20), np.arange(20) / 1000, np.zeros(20))
+        bad = bytearray(good[17:34])
+        bad[8] ^= 4
+        junk = bytes(x for x in rng.integers(0, 256, 1000, dtype=np.uint8).tobytes() if x not in (0xA5, 0x5A))
+        dev.write(junk + good[:17] + bytes(bad) + good[34:] + junk)
+        batch, _ = read_all(src, 19)
+        src.read(0.05)  # the trailing junk, if it came in a read of its own
+        st = src.stats()
+    assert batch.seq.tolist() == [0, *range(2, 20)]
+    assert st.lost == 1
+    assert st.decode == {"bad_crc": 1, "skipped_bytes": 2 * len(junk) + 17}
+
+
+def test_stall_then_resume(dev: FakeDevice) -> None:
+    with open_source(f"serial:{dev.link}?rate=1000&stall_s=0.2", cal_mm=0.0) as src:
+        dev.frames(np.arange(10))
+        read_all(src, 10)
+        events = read_until(src, EventKind.STALL, timeout=2.0)
+        dev.frames(np.arange(30, 40))  # the device kept sampling: 20 lost in the stall
+        seen: list[int] = []
+        events += read_until(src, EventKind.RESUMED, samples=seen)
+        batch, more = read_all(src, 10 - len(seen))
+        events += more
+        st = src.stats()
+    assert seen + batch.seq.tolist() == list(range(30, 40))
+    stall = next(e for e in events if e.kind == EventKind.STALL)
+    resumed = next(e for e in events if e.kind == EventKind.RESUMED)
+    assert stall.gap_s >= 0.2 and resumed.gap_s >= stall.gap_s
+    assert [(e.count, e.detail) for e in events if e.kind == EventKind.LOST] == [(20, "stall")]
+    assert st.stalls == 1 and st.lost == 20
+
+
+def test_unplug_and_replug_without_a_restart(dev: FakeDevice) -> None:
+    with open_source(f"serial:{dev.link}?rate=1000&retry_min_s=0.02&retry_max_s=0.1", cal_mm=100.0) as src:
+        dev.frames(np.arange(100))
+        first, _ = read_all(src, 100)
+        dev.unplug()
+        events = read_until(src, EventKind.UNPLUGGED)
+        time.sleep(0.3)
+        assert src.read(0.05) is None  # unplugged is a state: reads just time out
+        dev.plug()
+        events += read_until(src, EventKind.REPLUGGED)
+        dev.frames(np.arange(150, 200))
+        second, more = read_all(src, 50)
+        events += more
+        st = src.stats()
+    assert first.seq.tolist() == list(range(100))
+    assert second.seq.tolist() == list(range(150, 200))
+    replug = next(e for e in events if e.kind == EventKind.REPLUGGED)
+    assert replug.gap_s >= 0.3
+    assert [(e.seq, e.count, e.detail) for e in events if e.kind == EventKind.LOST] == [(100, 50, "outage")]
+    assert (st.unplugs, st.replugs, st.lost, st.connected) == (1, 1, 50, True)
+
+
+def test_port_absent_at_start_is_waited_for(tmp_path: Path) -> None:
+    link = tmp_path / "later"
+    with open_source(f"serial:{link}?retry_min_s=0.02&retry_max_s=0.05", cal_mm=0.0) as src:
+        b = src.read(0.05)
+        assert b is not None and kinds(list(b.events)) == ["unplugged"]
+        assert "cannot open" in b.events[0].detail
+        d = FakeDevice(link)
+        try:
+            events = read_until(src, EventKind.OPENED)
+            d.frames(np.arange(5))
+            batch, _ = read_all(src, 5)
+        finally:
+            d.unplug()
+    assert batch.seq.tolist() == list(range(5))
+    assert "replugged" not in kinds(events)
+
+
+# ----------------------------------------------------------------------------- ASCII over a pty
+
+
+def test_ascii_lines_with_timestamps_count_lost_lines(dev: FakeDevice) -> None:
+    fmt = ascii_proto.AsciiFormat(ts_unit="ms", unit="um")
+    url = f"serial:{dev.link}?protocol=ascii&timestamp=ms&unit=um&rate=1000"
+    with open_source(url, cal_mm=50.0) as src:
+        k = np.r_[0:40, 43:60]
+        dev.write(ascii_proto.encode(k * 1e-4, fmt, t_s=k / 1000))
+        batch, events = read_all(src, k.shape[0])
+    assert batch.seq.tolist() == k.tolist()
+    assert np.allclose(batch.length_mm, 50.0 + k * 1e-4, atol=1e-12)
+    assert np.allclose(batch.t_device, k / 1000)
+    assert [(e.seq, e.count) for e in events if e.kind == EventKind.LOST] == [(40, 3)]
+
+
+def test_ascii_lines_without_clock_get_host_times(dev: FakeDevice) -> None:
+    with open_source(f"serial:{dev.link}?protocol=ascii&rate=100", cal_mm=10.0) as src:
+        dev.write(b"+0.1\r\n+0.2\r\nOVER\r\nbogus\r\n+0.3\r\n")
+        batch, _ = read_all(src, 4)
+        src.read(0.05)
+        st = src.stats()
+    assert batch.seq.tolist() == [0, 1, 2, 3]
+    assert np.isnan(batch.t_device).all()
+    assert np.all(np.diff(batch.t_host) >= 0)
+    assert batch.length_mm[[0, 1, 3]].tolist() == pytest.approx([10.1, 10.2, 10.3])
+    assert batch.status.tolist() == [0, 0, int(Status.OVER_RANGE), 0]
+    assert batch.valid.tolist() == [True, True, False, True]
+    assert st.decode == {"bad_line": 1, "skipped_bytes": 5}
+
+
+# ----------------------------------------------------------------------------- replay and simulator
+
+
+def write_csv(path: Path, t: np.ndarray, length: np.ndarray) -> None:
+    path.write_text("t_s,length_mm\n" + "".join(f"{a:.6f},{b:.6f}\n" for a, b in zip(t, length, strict=True)))
+
+
+def test_replay_as_fast_as_possible_then_end(tmp_path: Path) -> None:
+    t = np.arange(2000) / 1000
+    length = 100 + 0.001 * np.sin(t)
+    write_csv(tmp_path / "rec.csv", t, length)
+    with open_source(f"replay:{tmp_path / 'rec.csv'}?speed=max") as src:
+        batches = list(src)
+        assert src.finished and src.read(0.01) is None
+    merged = SampleBatch.concat(batches)
+    assert merged.seq.tolist() == list(range(2000))
+    assert np.allclose(merged.t_device, t) and np.allclose(merged.length_mm, length, atol=1e-6)
+    assert kinds(list(merged.events)) == ["opened", "end"]
+
+
+def test_replay_paced_and_gaps_from_rate(tmp_path: Path) -> None:
+    k = np.r_[0:100, 110:200]
+    write_csv(tmp_path / "rec.csv", k / 100.0, np.full(k.shape, 100.0))
+    t0 = time.monotonic()
+    with open_source(f"replay:{tmp_path / 'rec.csv'}?speed=10&rate=100") as src:
+        merged = SampleBatch.concat(list(src))
+    elapsed = time.monotonic() - t0
+    assert 0.15 <= elapsed < 1.5  # 1.99 s of recording at 10x
+    assert merged.seq.tolist() == k.tolist()
+    assert [(e.seq, e.count) for e in merged.events if e.kind == EventKind.LOST] == [(100, 10)]
+    assert np.all(np.diff(merged.t_host) >= 0)
+
+
+def test_sim_source_delivers_the_whole_simulated_test() -> None:
+    from ballbar.tools.simulator import MachineModel, simulate
+
+    plan = TestPlan(radius_mm=50, feed_mm_min=3000, overshoot_deg=10, dwell_s=0.1)
+    machine = MachineModel(lead_s=0.1, tail_s=0.1, backlash_x_um=4.0)
+    ref = simulate(plan, machine, 500.0, seed=2)
+    with open_source("sim:?rate=500&speedup=max&seed=2", plan=plan, machine=machine) as src:
+        merged = SampleBatch.concat(list(src))
+    assert np.array_equal(merged.length_mm, ref.length_mm)
+    assert np.array_equal(merged.t_device, ref.t_s)
+    assert np.all(merged.status == int(Status.SIMULATED))
+    assert kinds(list(merged.events))[-1] == "end"
+
+
+# ----------------------------------------------------------------------------- pieces
+
+
+def test_clock_map_finds_drift_under_latency() -> None:
+    rng = np.random.default_rng(0)
+    cm = ClockMap()
+    ratio, offset = 1 + 80e-6, 1234.5
+    for td in np.arange(0.0, 300.0, 0.02):
+        latency = 2e-4 + rng.exponential(2e-3)
+        th = offset + ratio * td + latency
+        cm.update(float(td), float(th))
+        assert cm.map(np.array([td]))[0] <= th + 1e-12  # never after it was read
+    assert abs(cm.ratio - ratio) < 5e-6
+    assert abs(cm.map(np.array([150.0]))[0] - (offset + ratio * 150.0)) < 1e-3
+
+
+def test_sample_batch_columns_records_and_truthiness() -> None:
+    b = SampleBatch.from_columns([1.0, 2.0], [0.1, 0.2], [100.0, 100.1], [5, 6], [0, 2])
+    assert len(b) == 2 and b.valid.tolist() == [True, False]
+    rec = b.to_records()
+    assert rec.dtype == SAMPLE_DTYPE and rec["seq"].tolist() == [5, 6]
+    ev = SourceEvent(EventKind.LOST, 1.0, "x", count=3, seq=7, detail="gap")
+    empty = SampleBatch.empty([ev])
+    assert bool(empty) and len(empty) == 0 and empty.lost == 3
+    both = SampleBatch.concat([b, empty, b])
+    assert len(both) == 4 and both.events == (ev,)
+    assert ev.to_dict() == {"kind": "lost", "t_host": 1.0, "source": "x", "count": 3, "seq": 7, "detail": "gap"}
+    with pytest.raises(ValueError, match="length_mm"):
+        SampleBatch.from_columns([1.0], [1.0], [1.0, 2.0], [1], [0])
+    assert math.isnan(SampleBatch.from_columns([1.0], [math.nan], [1.0], [0], [0]).t_device[0])
