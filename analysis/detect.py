@@ -294,7 +294,9 @@ class TestDetector:
         from the level, after the step's centroid; it needs at least six samples
         there and a log residual below 0.05, or no estimate is made.
         """
-        settle_end = min(L.size, b + 1 + int(np.searchsorted(t[b + 1 :], t[b] + 0.5)))
+        # up to the end of the dwell's level window: after it the arc may start moving the radius
+        t_stop = min(t[b] + 0.5, tc + self._settle_window()[1])
+        settle_end = min(L.size, b + 1 + int(np.searchsorted(t[b + 1 :], t_stop)))
         k0 = int(np.searchsorted(t, tc))
         seg_t, seg_L = t[k0:settle_end], L[k0:settle_end]
         sign = 1.0 if L[a] > after else -1.0
