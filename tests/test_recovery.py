@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 import pytest
-
 from ballbar.analysis import TestPlan
 from ballbar.analysis.engine import analyze_recording
 from ballbar.tools.simulator import MachineModel, simulate
@@ -68,7 +67,7 @@ def test_each_pattern_alone_noise_free(case: str, fs: float) -> None:
     lag_assumed = res["timing"]["loop_lag_source"].startswith("assumed")
     assert lag_assumed == (fs < 50), res["timing"]["loop_lag_source"]  # the feed-in settles within ~3 samples
     for field, p in res["parameters"].items():
-        if p["value"] is None or field == "radius_um" and case == "scale":
+        if p["value"] is None or (field == "radius_um" and case == "scale"):
             continue  # the mean of two scales is a radius change (DOMAIN.md): not separable
         if field == "radius_um" and lag_assumed and case == "servo_mismatch":
             # an assumed loop lag (30/s against the true 30 and 33/s) misjudges the dynamic shrinkage
@@ -113,7 +112,8 @@ def test_seed_fig7_verification() -> None:
         res, truth = analyse(plan, m, 15.625, seed=trial)
         for field in ("backlash_x_um", "backlash_y_um", "master_slave_a_um", "master_slave_b_um", "servo_mismatch_ms"):
             p = res["parameters"][field]
-            assert abs(p["value"] - truth[field]) <= max(3 * p["stderr"], 2 * tol(field)), (trial, field, p, truth[field])
+            bound = max(3 * p["stderr"], 2 * tol(field))
+            assert abs(p["value"] - truth[field]) <= bound, (trial, field, p, truth[field])
             assert p["significant"]
         top = {r["pattern"] for r in res["ranking"][:5]}
         assert {"backlash_x", "backlash_y", "servo_mismatch", "master_slave"} <= top | {"radius", "centre"}
@@ -156,7 +156,7 @@ def test_partial_arc_in_a_vertical_plane() -> None:
 
 def test_feed_override_95_percent() -> None:
     plan = TestPlan(sample_hz=100.0)
-    res, truth = analyse(plan, MachineModel(feed_override=0.95, backlash_x_um=4.0, squareness_urad=15.0), 100.0)
+    res, _ = analyse(plan, MachineModel(feed_override=0.95, backlash_x_um=4.0, squareness_urad=15.0), 100.0)
     assert abs(res["timing"]["measured_feed_mm_min"] - 950.0) < 0.5
     assert abs(res["parameters"]["backlash_x_um"]["value"] - 4.0) < SHARP_TOL
     assert abs(res["parameters"]["squareness_urad"]["value"] - 15.0) < 2 * tol("squareness_urad")
