@@ -1,0 +1,262 @@
+"""End to end over a pty: the simulated device in a child process, a source in this one.
+
+Every test runs a whole (short) simulated test at 1 kHz device rate, sped up, and
+checks exact counts: every sample sent arrives in order, and every injected
+fault shows up as exactly the losses and decoder drops it must cause.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+from ballbar.analysis.plan import TestPlan
+from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
+from ballbar.daemon.sources import Source, open_source
+from ballbar.protocol import Status
+from ballbar.tools.simdevice import DeviceProcess, main
+from ballbar.tools.simulator import MachineModel, simulate
+
+pytestmark = pytest.mark.usefixtures("no_leaks")
+
+# A short test: R 50 mm at 3000 mm/min with 10 deg overshoot, 14 426 samples at 1 kHz.
+PLAN = TestPlan(radius_mm=50, feed_mm_min=3000, overshoot_deg=10, dwell_s=0.2)
+MACHINE = MachineModel(lead_s=0.2, tail_s=0.2)
+PLAN_ARGS = [
+    "--radius-mm=50",
+    "--feed-mm-min=3000",
+    "--overshoot-deg=10",
+    "--dwell-s=0.2",
+    "--set=lead_s=0.2",
+    "--set=tail_s=0.2",
+]
+RATE = 1000.0
+CAL = 50.0
+
+
+def reference(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    res = simulate(PLAN, MACHINE, RATE, seed)
+    return res.t_s, res.length_mm
+
+
+class Collector:
+    """Everything a source delivers, gathered while the test waits for something."""
+
+    def __init__(self, src: Source) -> None:
+        self.src = src
+        self.batches: list[SampleBatch] = []
+        self.events: list[SourceEvent] = []
+        self.n = 0
+
+    def pump(self, timeout: float = 0.05) -> None:
+        b = self.src.read(timeout)
+        if b is not None:
+            self.batches.append(b)
+            self.events += b.events
+            self.n += len(b)
+
+    def until(self, cond: Callable[[], bool], timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}; events {[str(e.kind) for e in self.events]}")
+            self.pump()
+
+    def merged(self) -> SampleBatch:
+        return SampleBatch.concat(self.batches)
+
+    def kinds(self) -> list[str]:
+        return [str(e.kind) for e in self.events]
+
+
+def run_to_done(dev: DeviceProcess, col: Collector, timeout: float = 40.0, by_count: bool = False) -> dict[str, Any]:
+    """Read until the device has sent everything and every intact sample has arrived.
+
+    The source must be read all along: a device whose pty is full waits for its reader.
+    ``by_count``: wait for as many samples as were sent (the device's counter restarted).
+    """
+    deadline = time.monotonic() + timeout
+    done: dict[str, Any] | None = None
+    while done is None:
+        col.pump()
+        for ev in dev.poll_events():
+            if ev.get("event") == "done":
+                done = ev["stats"]
+        if time.monotonic() > deadline:
+            raise AssertionError(f"device not done; got {col.n} samples")
+    if by_count:
+        col.until(lambda: col.n >= done["sent"], 10.0, f"{done['sent']} samples")
+    else:
+        last = done["last_seq"]
+        col.until(lambda: col.n > 0 and col.merged().seq[-1] >= last, 10.0, f"sample {last}")
+    col.pump(0.1)  # whatever trails (decoder counts)
+    return done
+
+
+def start(*args: str) -> tuple[DeviceProcess, Collector]:
+    dev = DeviceProcess(*args, "--wait")
+    try:
+        src = open_source(dev.url)
+        col = Collector(src)
+        col.until(lambda: "opened" in col.kinds(), 5.0, "opened")
+        dev.send("start")
+    except Exception:
+        dev.close()
+        raise
+    return dev, col
+
+
+def finish(dev: DeviceProcess, col: Collector) -> None:
+    col.src.close()
+    assert dev.close() == 0
+
+
+# ----------------------------------------------------------------------------- clean round trips
+
+
+def test_binary_whole_test_arrives_complete_in_order() -> None:
+    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=5", *PLAN_ARGS)
+    try:
+        done = run_to_done(dev, col)
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    t, length = reference()
+    n = t.shape[0]
+    got = col.merged()
+    assert done["generated"] == done["sent"] == n
+    assert got.seq.tolist() == list(range(n))
+    assert st.lost == 0 and st.decode == {} and st.samples == n
+    # Lengths exactly as the device quantised them (10 nm counts), calibration added back.
+    assert np.array_equal(got.length_mm, CAL + np.rint((length - CAL) * 1e5) / 1e5)
+    assert np.array_equal(got.t_device, np.rint(t * 1e6) / 1e6)
+    assert np.all(got.status == int(Status.SIMULATED))
+    assert np.all(np.diff(got.t_host) >= 0)
+    # The device clock runs five times faster than the host's.
+    assert st.clock_ratio == pytest.approx(0.2, rel=0.02)
+
+
+def test_ascii_timestamped_two_tests_at_10khz_wall_rate() -> None:
+    dev, col = start(
+        "--protocol=ascii", "--timestamp=ms", "--rate=1000", "--speedup=10", "--repeat=2", "--gap-s=0.5", *PLAN_ARGS
+    )
+    try:
+        done = run_to_done(dev, col)
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    got = col.merged()
+    assert done["tests"] == 2 and done["generated"] == done["sent"]
+    assert got.seq.shape[0] == done["sent"] and np.all(np.diff(got.seq) >= 1)
+    assert st.lost == 0 and st.decode == {}
+    # The device numbers samples from its clock: the gap between tests is no loss.
+    t, length = reference()
+    first = got.length_mm[: t.shape[0]]
+    expected = np.array([CAL + float(f"{x:+.5f}") for x in (length - CAL).tolist()])
+    assert np.array_equal(first, expected)
+    assert np.allclose(got.t_device[: t.shape[0]], t, atol=1e-9)
+    assert [e["event"] for e in dev.events if e["event"] == "test"] == ["test"]
+
+
+# ----------------------------------------------------------------------------- faults
+
+
+@pytest.mark.parametrize("protocol", ["binary", "ascii"])
+def test_injected_faults_are_counted_exactly(protocol: str) -> None:
+    extra = ["--timestamp=us"] if protocol == "ascii" else []
+    dev, col = start(f"--protocol={protocol}", *extra, "--rate=1000", "--speedup=5", *PLAN_ARGS)
+    try:
+        col.until(lambda: col.n > 500, 10.0, "500 samples")
+        for cmd in ("garbage 100", "corrupt 3", "drop 5", "garbage 7", "stall 0.7", "corrupt 2", "drop 1"):
+            dev.send(cmd)
+        done = run_to_done(dev, col)
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    got = col.merged()
+    lost_on_wire = done["dropped"] + done["corrupted"] + done["stalled"]
+    assert done["corrupted"] == 5 and done["dropped"] == 6 and done["stalled"] > 0
+    assert st.samples == done["sent"] == got.seq.shape[0]
+    assert st.lost == lost_on_wire
+    assert st.samples + st.lost == done["generated"]
+    assert np.all(np.diff(got.seq) >= 1)
+    assert st.stalls == 1 and col.kinds().count("resumed") == 1
+    assert st.lost_by_cause.get("stall", 0) >= done["stalled"]
+    if protocol == "binary":
+        assert st.decode == {"bad_crc": 5, "skipped_bytes": 107 + 5 * 17}
+    else:
+        # The 100-byte junk line is longer than a line may be (64): a long line, not a bad one.
+        assert st.decode == {"long_line": 1, "bad_line": 1 + 5, "skipped_bytes": 107 + done["corrupted_bytes"]}
+
+
+def test_unplug_and_replug_during_a_test() -> None:
+    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=5", *PLAN_ARGS)
+    try:
+        col.until(lambda: col.n > 1000, 10.0, "1000 samples")
+        dev.send("unplug 0.5")
+        col.until(lambda: "unplugged" in col.kinds(), 5.0, "unplugged")
+        col.until(lambda: "replugged" in col.kinds(), 5.0, "replugged")
+        done = run_to_done(dev, col)
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    got = col.merged()
+    t, length = reference()
+    # The same source object recovered and accounted for every sample the device took.
+    assert (st.unplugs, st.replugs) == (1, 1)
+    assert st.samples + st.lost == done["generated"] == t.shape[0]
+    assert st.lost >= done["unplugged"] > 0  # plus what was in flight in the pty
+    outage = [e for e in col.events if e.kind == EventKind.LOST and e.detail == "outage"]
+    assert len(outage) == 1 and outage[0].count == st.lost
+    replug = next(e for e in col.events if e.kind == EventKind.REPLUGGED)
+    assert replug.gap_s >= 0.4
+    assert np.all(np.diff(got.seq) >= 1)
+    assert np.array_equal(got.length_mm, CAL + np.rint((length[got.seq] - CAL) * 1e5) / 1e5)
+
+
+def test_device_reset_is_reported() -> None:
+    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=5", *PLAN_ARGS)
+    try:
+        col.until(lambda: col.n > 500, 10.0, "500 samples")
+        dev.send("reset")
+        done = run_to_done(dev, col, by_count=True)
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    got = col.merged()
+    assert st.resets == 1 and "device_reset" in col.kinds()
+    assert got.seq.shape[0] == done["generated"] and np.all(np.diff(got.seq) == 1)
+    assert np.all(np.diff(got.t_device) > 0)
+
+
+# ----------------------------------------------------------------------------- polled
+
+
+def test_polled_ascii_gauge() -> None:
+    dev, col = start("--protocol=ascii", "--mode=poll", "--rate=200", "--speedup=1", "--repeat=0", *PLAN_ARGS)
+    try:
+        assert "mode=poll" in dev.url
+        col.until(lambda: col.n >= 100, 10.0, "100 answers")
+        dev.send("drop 3")
+        col.until(lambda: col.src.stats().lost_by_cause.get("poll_timeout", 0) >= 3, 10.0, "3 poll timeouts")
+        n0 = col.n
+        col.until(lambda: col.n >= n0 + 50, 10.0, "50 more answers")
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    got = col.merged()
+    assert st.lost_by_cause["poll_timeout"] == 3
+    # Every tick is either a sample or a counted loss.
+    assert got.seq[-1] - got.seq[0] + 1 == st.samples + st.lost
+    assert np.all(np.diff(got.seq) >= 1) and np.all(np.diff(got.t_host) > 0)
+    assert np.all(np.abs(got.length_mm - 50.0) < 1.6)
+    assert np.isnan(got.t_device).all()
+
+
+def test_command_line_errors() -> None:
+    assert main(["--mode=poll", "--protocol=binary"]) == 2
+    assert main(["--rate=20000"]) == 2
+    assert main(["--radius-mm=-1"]) == 2

@@ -1,0 +1,873 @@
+"""A simulated ball-bar interface on a pseudo-terminal: the device the daemon's demo
+and end-to-end tests run against.
+
+It opens a pty (or a given port), prints the device path on the first line of
+stdout, and streams the simulated test of :mod:`ballbar.tools.simulator` (or a
+CSV recording) in the binary or ASCII protocol (``protocol/README.md``) at a
+chosen sample rate and speed-up, repeating tests on a schedule::
+
+    python -m ballbar.tools.simdevice --protocol binary --rate 1000 --speedup 10 --repeat 0 --gap-s 30
+
+stdout, one line each:
+
+1. the device path: a stable symbolic link to the current pty (``--link``, by
+   default in a fresh temporary directory), which survives unplug and replug
+   the way ``/dev/serial/by-id/...`` links do;
+2. ``{"event": "ready", "path": ..., "url": ...}``: a source URL that reads it
+   (``ballbar.daemon.sources.open_source(url)``);
+3. and on: one JSON object per command answered and per event (``started``,
+   ``unplugged``, ``replugged``, ``test``, ``done``).
+
+Device time runs ``speedup`` times faster than wall time: at ``--rate 1000
+--speedup 10`` the device clock and sample counter advance as at 1 kHz and
+10 000 frames leave per wall second.  If the reader does not keep up (the pty
+buffer fills), the device waits rather than losing samples; samples are lost
+only on command.  The simulated interface is powered on its own: across an
+unplug or a stall it keeps sampling, so its counter shows the gap.
+
+Commands on stdin, one per line (EOF on stdin is ignored; SIGTERM ends it):
+
+``start``           begin streaming (with ``--wait``)
+``garbage N``       send N junk bytes before the next sample (binary: no byte
+                    ``A5`` or ``5A``, so no false sync word; ASCII: one junk line
+                    of N bytes, counted as one ``bad_line``)
+``corrupt N``       corrupt the next N samples (binary: one bit flipped after the
+                    sync word; ASCII: a character of the reading replaced): each
+                    costs one lost sample and one ``bad_crc``/``bad_line``
+``drop N``          do not send the next N samples (lost)
+``stall S``         send nothing for S wall seconds; the samples taken are lost
+``unplug [S]``      close the pty (and remove the link); replug after S seconds if given
+``replug``          open a new pty behind the same link
+``reset``           restart the sample counter and clock at 0 (a device reboot)
+``stats``           counters so far
+``quit``            exit
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import os
+import pty
+import select
+import signal
+import sys
+import tempfile
+import time
+import tty
+import urllib.parse
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, TextIO
+
+import numpy as np
+from ballbar.protocol import Status
+from ballbar.protocol import ascii as ascii_proto
+from ballbar.protocol import binary as binary_proto
+from numpy.typing import NDArray
+
+log = logging.getLogger(__name__)
+
+Chunk = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
+PENDING_LIMIT = 16 * 1024  # bytes waiting for the reader before the device waits
+GARBAGE_CHARS = b"#$%&@!*=~^|<>"  # none is a digit, letter, sign, point or separator
+
+
+# ----------------------------------------------------------------------------- samples
+
+
+class Feed:
+    """Samples of successive tests, taken in device-time order."""
+
+    def __init__(self, tests: Iterator[Chunk]) -> None:
+        self._tests = tests
+        self._t: NDArray[np.float64] = np.empty(0)
+        self._len: NDArray[np.float64] = np.empty(0)
+        self._seq: NDArray[np.int64] = np.empty(0, np.int64)
+        self._i = 0
+        self.exhausted = False
+        self.tests = 0
+        self._load()
+
+    def _load(self) -> bool:
+        while self._i >= self._t.shape[0]:
+            nxt = next(self._tests, None)
+            if nxt is None:
+                self.exhausted = True
+                return False
+            self._t, self._len, self._seq = nxt
+            self._i = 0
+            self.tests += 1
+        return True
+
+    @property
+    def next_t(self) -> float:
+        return float(self._t[self._i]) if not self.exhausted else math.inf
+
+    def take_until(self, t_lim: float, limit: int = 1 << 16) -> Chunk:
+        """Samples with device time <= ``t_lim`` (at most ``limit``), across tests."""
+        parts: list[Chunk] = []
+        n = 0
+        while n < limit and self._load() and self._t[self._i] <= t_lim:
+            end = int(np.searchsorted(self._t, t_lim, side="right"))
+            end = min(end, self._i + limit - n)
+            sl = slice(self._i, end)
+            parts.append((self._t[sl], self._len[sl], self._seq[sl]))
+            n += end - self._i
+            self._i = end
+        self._load()
+        if not parts:
+            return np.empty(0), np.empty(0), np.empty(0, np.int64)
+        if len(parts) == 1:
+            return parts[0]
+        return (
+            np.concatenate([p[0] for p in parts]),
+            np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]),
+        )
+
+
+def simulator_tests(args: argparse.Namespace) -> Iterator[Chunk]:
+    from ballbar.analysis.plan import TestPlan
+    from ballbar.tools.simulator import MachineModel, iter_tests, parse_set
+
+    plan = TestPlan(
+        plane=args.plane,
+        radius_mm=args.radius_mm,
+        feed_mm_min=args.feed_mm_min,
+        overshoot_deg=args.overshoot_deg,
+        data_arc_deg=args.data_arc_deg,
+        dwell_s=args.dwell_s,
+        directions=args.directions,
+        sample_hz=args.rate,
+    )
+    machine = MachineModel(**parse_set(args.set))
+    for res in iter_tests(plan, machine, args.rate, args.seed, None if args.repeat == 0 else args.repeat, args.gap_s):
+        yield res.t_s, res.length_mm, np.rint(res.t_s * args.rate).astype(np.int64)
+
+
+def csv_tests(path: str, rate: float, repeat: int, gap_s: float) -> Iterator[Chunk]:
+    from ballbar.daemon.recordings import read_csv
+
+    t, length = read_csv(path)
+    t = t - t[0]
+    span = (t[-1] if t.shape[0] else 0.0) + 1.0 / rate + gap_s
+    i = 0
+    while repeat == 0 or i < repeat:
+        ti = t + i * span
+        yield ti, length, np.rint(ti * rate).astype(np.int64)
+        i += 1
+
+
+# ----------------------------------------------------------------------------- the port
+
+
+class PtyPort:
+    """The device's end of a pty, behind a stable symbolic link."""
+
+    def __init__(self, link: str | None) -> None:
+        self.link = link
+        self.master: int | None = None
+        self._slave: int | None = None
+        self.name = ""
+        self.open()
+
+    @property
+    def path(self) -> str:
+        return self.link or self.name
+
+    def open(self) -> None:
+        master, slave = pty.openpty()
+        tty.setraw(slave)  # no echo, no line discipline: bytes pass as they are
+        os.set_blocking(master, False)
+        self.master, self._slave = master, slave
+        self.name = os.ttyname(slave)
+        if self.link:
+            tmp = f"{self.link}.{os.getpid()}.tmp"
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            os.symlink(self.name, tmp)
+            os.replace(tmp, self.link)
+
+    def close(self) -> None:
+        if self.link:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.link)
+        for fd in (self.master, self._slave):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self.master = self._slave = None
+
+    @property
+    def is_open(self) -> bool:
+        return self.master is not None
+
+    def fileno(self) -> int | None:
+        return self.master
+
+    def write(self, data: bytes) -> int:
+        if self.master is None:
+            return 0
+        try:
+            return os.write(self.master, data)
+        except BlockingIOError:
+            return 0
+
+    def read(self) -> bytes:
+        if self.master is None:
+            return b""
+        try:
+            return os.read(self.master, 4096)
+        except (BlockingIOError, OSError):
+            return b""
+
+
+class SerialPort:
+    """An existing port (``--port``): a real adapter, a socat pty, ``socket://``.
+
+    Unplug and replug close and reopen it: the reader sees a stall, not an unplug.
+    """
+
+    def __init__(self, url: str, baud: int) -> None:
+        import serial
+
+        self._serial = serial
+        self.url = url
+        self.baud = baud
+        self.port: Any = None
+        self.open()
+
+    @property
+    def path(self) -> str:
+        return self.url
+
+    def open(self) -> None:
+        self.port = self._serial.serial_for_url(self.url, baudrate=self.baud, timeout=0)
+
+    def close(self) -> None:
+        if self.port is not None:
+            self.port.close()
+        self.port = None
+
+    @property
+    def is_open(self) -> bool:
+        return self.port is not None
+
+    def fileno(self) -> int | None:
+        try:
+            return int(self.port.fileno()) if self.port is not None else None
+        except Exception:
+            return None
+
+    def write(self, data: bytes) -> int:
+        return int(self.port.write(data) or 0) if self.port is not None else 0
+
+    def read(self) -> bytes:
+        if self.port is None:
+            return b""
+        n = self.port.in_waiting
+        return bytes(self.port.read(n)) if n else b""
+
+
+# ----------------------------------------------------------------------------- the device
+
+
+@dataclass
+class DeviceStats:
+    """What the device did; the host's counts must match these."""
+
+    generated: int = 0  # samples taken
+    sent: int = 0  # samples put on the wire intact
+    dropped: int = 0  # not sent on command (drop)
+    corrupted: int = 0  # sent corrupted (lost to the host)
+    corrupted_bytes: int = 0  # their bytes (ASCII: without the line end)
+    stalled: int = 0  # taken during a stall (lost)
+    unplugged: int = 0  # taken while unplugged (lost)
+    garbage_bytes: int = 0
+    garbage_lines: int = 0
+    resets: int = 0
+    requests: int = 0  # poll mode
+    next_seq: int = 0  # device counter of the next sample
+    last_seq: int = -1  # device counter of the last sample sent intact
+    tests: int = 0
+
+
+@dataclass
+class Settings:
+    protocol: str = "binary"
+    mode: str = "stream"
+    rate: float = 1000.0
+    speedup: float = 1.0
+    cal_mm: float = 100.0
+    range_mm: float = 2.5
+    fmt: ascii_proto.AsciiFormat = field(default_factory=ascii_proto.AsciiFormat)
+    seed: int = 0
+
+
+class SimDevice:
+    """The device's loop: pace samples, apply faults, write frames, obey commands."""
+
+    def __init__(self, feed: Feed, port: PtyPort | SerialPort, settings: Settings, out: TextIO) -> None:
+        self.feed = feed
+        self.port = port
+        self.s = settings
+        self.out = out
+        self.stats = DeviceStats()
+        self.rng = np.random.default_rng(settings.seed)
+        self.started = False
+        self.running = True
+        self.done = False
+        self.sim_t = feed.next_t  # device time now
+        self._last_wall = time.monotonic()
+        self._pending = bytearray()
+        self._garbage: list[int] = []
+        self._corrupt = 0
+        self._drop = 0
+        self._stall_until = -math.inf
+        self._replug_at: float | None = None
+        self._seq0 = 0  # counter offset since the last reset
+        self._t0 = 0.0  # clock offset since the last reset
+        self._req_buf = b""
+        self._last_answer: tuple[float, float, int] | None = None
+
+    # -- output -------------------------------------------------------------------
+
+    def emit(self, obj: dict[str, Any]) -> None:
+        self.out.write(json.dumps(obj) + "\n")
+        self.out.flush()
+
+    # -- commands -----------------------------------------------------------------
+
+    def command(self, line: str) -> None:
+        words = line.split()
+        if not words:
+            return
+        cmd, argv = words[0].lower(), words[1:]
+        try:
+            reply = self._command(cmd, argv)
+        except (ValueError, IndexError) as err:
+            self.emit({"ok": False, "cmd": cmd, "error": str(err) or "bad arguments"})
+            return
+        self.emit({"ok": True, "cmd": cmd, **reply})
+
+    def _command(self, cmd: str, argv: list[str]) -> dict[str, Any]:
+        def count() -> int:
+            n = int(argv[0]) if argv else 1
+            if n < 0:
+                raise ValueError("count must be >= 0")
+            return n
+
+        now = time.monotonic()
+        if cmd == "start":
+            self.started = True
+            self._last_wall = now
+            return {}
+        if cmd == "garbage":
+            n = count()
+            self._garbage.append(n)
+            return {"bytes": n}
+        if cmd == "corrupt":
+            n = count()
+            self._corrupt += n
+            return {"count": n}
+        if cmd == "drop":
+            n = count()
+            self._drop += n
+            return {"count": n}
+        if cmd == "stall":
+            s = float(argv[0])
+            if not s >= 0:
+                raise ValueError("seconds must be >= 0")
+            self._stall_until = now + s
+            return {"seconds": s}
+        if cmd == "unplug":
+            after = float(argv[0]) if argv else None
+            self._unplug()
+            self._replug_at = None if after is None else now + after
+            return {"replug_after_s": after}
+        if cmd == "replug":
+            self._replug()
+            return {"path": self.port.path}
+        if cmd == "reset":
+            self._seq0 = self.stats.next_seq + self._seq0
+            self._t0 = self.sim_t
+            self.stats.resets += 1
+            self.stats.next_seq = 0
+            return {}
+        if cmd == "stats":
+            return {"stats": asdict(self.stats)}
+        if cmd == "quit":
+            self.running = False
+            return {}
+        raise ValueError(f"unknown command {cmd!r}")
+
+    def _unplug(self) -> None:
+        if self.port.is_open:
+            self.port.close()
+            self._pending.clear()  # what the adapter held is gone with it
+            self.emit({"event": "unplugged"})
+
+    def _replug(self) -> None:
+        if not self.port.is_open:
+            self.port.open()
+            self._replug_at = None
+            self.emit({"event": "replugged", "path": self.port.path})
+
+    # -- samples ------------------------------------------------------------------
+
+    def _dev_fields(
+        self, t: NDArray[np.float64], seq: NDArray[np.int64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """The device's counter and clock (they restart at a reset)."""
+        return seq - self._seq0, t - self._t0
+
+    def _displacement(self, length: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        disp = length - self.s.cal_mm
+        over = np.abs(disp) > self.s.range_mm
+        status = np.where(over, int(Status.OVER_RANGE), 0) | int(Status.SIMULATED)
+        return np.clip(disp, -self.s.range_mm, self.s.range_mm), status.astype(np.int64)
+
+    def _garbage_bytes(self) -> bytes:
+        out = b""
+        for n in self._garbage:
+            if self.s.protocol == "binary":
+                # Bytes without A5 or 5A: no false sync word, not even with a neighbour.
+                g = self.rng.integers(0, 254, n)
+                g += g >= 0x5A
+                g += g >= 0xA5
+                out += g.astype(np.uint8).tobytes()
+            else:
+                junk = bytes(GARBAGE_CHARS[i] for i in self.rng.integers(0, len(GARBAGE_CHARS), n))
+                out += junk + self.s.fmt.eol
+                self.stats.garbage_lines += 1
+            self.stats.garbage_bytes += n
+        self._garbage.clear()
+        return out
+
+    def _encode(self, t: NDArray[np.float64], length: NDArray[np.float64], seq: NDArray[np.int64]) -> bytes:
+        dseq, dt = self._dev_fields(t, seq)
+        disp, status = self._displacement(length)
+        if self.s.protocol == "binary":
+            return binary_proto.encode_samples(dseq, dt, disp, status)
+        return ascii_proto.encode(disp, self.s.fmt, t_s=dt if self.s.fmt.ts_unit else None, status=status)
+
+    def _corrupt_one(self, data: bytes) -> bytes:
+        """One sample's bytes, damaged so that the decoder must drop exactly this sample."""
+        self.stats.corrupted_bytes += len(data.rstrip(b"\r\n")) if self.s.protocol == "ascii" else len(data)
+        if self.s.protocol == "binary":
+            for _ in range(100):
+                pos = int(self.rng.integers(2, binary_proto.FRAME_SIZE))
+                b = bytearray(data)
+                b[pos] ^= 1 << int(self.rng.integers(0, 8))
+                if b.find(binary_proto.SYNC, 1) < 0:  # no false sync word uncovered
+                    return bytes(b)
+            body = data[:2] + bytes(binary_proto.FRAME_SIZE - 4)
+            crc = binary_proto.crc16(body) ^ 0x0101  # a wrong CRC without A5 or 5A in it
+            return body + crc.to_bytes(2, "little")
+        line = data.rstrip(b"\r\n")
+        digits = [i for i, c in enumerate(line) if chr(c).isdigit()]
+        i = digits[-1] if digits else 0
+        return line[:i] + b"#" + line[i + 1 :] + data[len(line) :]
+
+    def _send_chunk(self, t: NDArray[np.float64], length: NDArray[np.float64], seq: NDArray[np.int64]) -> None:
+        n = t.shape[0]
+        keep = np.ones(n, bool)
+        if self._drop:
+            k = min(self._drop, n)
+            keep[:k] = False
+            self._drop -= k
+            self.stats.dropped += k
+        idx = np.flatnonzero(keep)
+        corrupt = idx[: self._corrupt]
+        self._corrupt -= corrupt.shape[0]
+        self.stats.corrupted += corrupt.shape[0]
+        out = bytearray(self._garbage_bytes())
+        if corrupt.shape[0] == 0:
+            out += self._encode(t[idx], length[idx], seq[idx])
+        else:
+            bad = set(corrupt.tolist())
+            for i in idx.tolist():
+                one = self._encode(t[i : i + 1], length[i : i + 1], seq[i : i + 1])
+                out += self._corrupt_one(one) if i in bad else one
+        intact = idx.shape[0] - corrupt.shape[0]
+        self.stats.sent += intact
+        if intact:
+            last = int(idx[~np.isin(idx, corrupt)][-1])
+            self.stats.last_seq = int(seq[last] - self._seq0)
+        self._pending += out
+
+    def _stream(self, now: float) -> None:
+        blocked = len(self._pending) >= PENDING_LIMIT
+        if not blocked:
+            self.sim_t += (now - self._last_wall) * self.s.speedup
+        self._last_wall = now
+        if blocked:
+            return
+        t, length, seq = self.feed.take_until(self.sim_t)
+        n = t.shape[0]
+        if n:
+            self.stats.generated += n
+            self.stats.next_seq = int(seq[-1] - self._seq0) + 1
+            if not self.port.is_open:
+                self.stats.unplugged += n
+            elif now < self._stall_until:
+                self.stats.stalled += n
+            else:
+                self._send_chunk(t, length, seq)
+
+    def _poll(self, now: float) -> None:
+        self.sim_t += (now - self._last_wall) * self.s.speedup
+        self._last_wall = now
+        t, length, seq = self.feed.take_until(self.sim_t)
+        if t.shape[0]:
+            self.stats.generated += t.shape[0]
+            self.stats.next_seq = int(seq[-1] - self._seq0) + 1
+            self._last_answer = (float(t[-1]), float(length[-1]), int(seq[-1]))
+        data = self.port.read() if self.port.is_open else b""
+        if not data:
+            return
+        buf = self._req_buf + data
+        req = self.s.fmt.request
+        n = buf.count(req)
+        self._req_buf = buf[buf.rfind(req) + len(req) :] if n else buf[-len(req) :]
+        for _ in range(n):
+            self.stats.requests += 1
+            if self._last_answer is None or now < self._stall_until:
+                continue
+            if self._drop:
+                self._drop -= 1
+                self.stats.dropped += 1
+                continue
+            ta, la, sa = self._last_answer
+            t1, l1, s1 = np.array([ta]), np.array([la]), np.array([sa], np.int64)
+            out = self._garbage_bytes()
+            one = self._encode(t1, l1, s1)
+            if self._corrupt:
+                self._corrupt -= 1
+                self.stats.corrupted += 1
+                one = self._corrupt_one(one)
+            else:
+                self.stats.sent += 1
+                self.stats.last_seq = sa - self._seq0
+            self._pending += out + one
+
+    def _flush(self) -> None:
+        if self._pending and self.port.is_open:
+            n = self.port.write(bytes(self._pending))
+            del self._pending[:n]
+
+    def step(self, now: float) -> None:
+        if self._replug_at is not None and now >= self._replug_at:
+            self._replug()
+        if not self.started:
+            self._last_wall = now
+            return
+        tests_before = self.feed.tests
+        if self.s.mode == "stream":
+            self._stream(now)
+        else:
+            self._poll(now)
+        self._flush()
+        if self.feed.tests != tests_before:
+            self.emit({"event": "test", "index": self.feed.tests - 1, "seq": self.stats.next_seq})
+        self.stats.tests = self.feed.tests
+        if self.feed.exhausted and not self._pending and not self.done:
+            self.done = True
+            self.emit({"event": "done", "stats": asdict(self.stats)})
+
+    def tick_s(self) -> float:
+        wall_rate = self.s.rate * self.s.speedup
+        return min(0.02, max(0.001, 1.0 / wall_rate))
+
+
+# ----------------------------------------------------------------------------- driving it
+
+
+class DeviceProcess:
+    """The device as a child process, driven through its stdin and stdout.
+
+    For tests and demos::
+
+        with DeviceProcess("--rate", "1000", "--wait") as dev:
+            src = open_source(dev.url)
+            dev.send("start")
+            dev.send("drop 5")
+            done = dev.wait_event("done", timeout=30)
+
+    No threads: stdout is read with ``select`` as replies are awaited.
+    """
+
+    def __init__(self, *args: str, timeout: float = 15.0) -> None:
+        import subprocess
+
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.tools.simdevice", *args],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+        )
+        assert self.proc.stdout is not None and self.proc.stdin is not None
+        self._out = self.proc.stdout
+        self._in = self.proc.stdin
+        self._buf = b""
+        self.events: list[dict[str, Any]] = []
+        try:
+            self.path = self._line(timeout)
+            self.ready: dict[str, Any] = json.loads(self._line(timeout))
+        except Exception:
+            self.close()
+            raise
+        self.url: str = self.ready["url"]
+
+    def _line(self, timeout: float) -> str:
+        deadline = time.monotonic() + timeout
+        fd = self._out.fileno()
+        while b"\n" not in self._buf:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"simdevice: no output within {timeout} s")
+            ready, _, _ = select.select([fd], [], [], left)
+            if ready:
+                chunk = os.read(fd, 65536)
+                if not chunk:
+                    raise EOFError(f"simdevice exited (code {self.proc.poll()})")
+                self._buf += chunk
+        line, self._buf = self._buf.split(b"\n", 1)
+        return line.decode()
+
+    def _pump(self, timeout: float) -> dict[str, Any]:
+        obj: dict[str, Any] = json.loads(self._line(timeout))
+        if "event" in obj:
+            self.events.append(obj)
+        return obj
+
+    def send(self, command: str, timeout: float = 10.0) -> dict[str, Any]:
+        """Send a command; its reply (events seen meanwhile go to :attr:`events`)."""
+        self._in.write(command.encode() + b"\n")
+        self._in.flush()
+        deadline = time.monotonic() + timeout
+        while True:
+            obj = self._pump(max(0.0, deadline - time.monotonic()))
+            if "ok" in obj:
+                if not obj["ok"]:
+                    raise ValueError(f"simdevice: {command!r}: {obj.get('error')}")
+                return obj
+
+    def poll_events(self) -> list[dict[str, Any]]:
+        """Events that have arrived, without waiting."""
+        while b"\n" in self._buf or select.select([self._out.fileno()], [], [], 0)[0]:
+            try:
+                self._pump(0.5)
+            except (TimeoutError, EOFError):
+                break
+        return self.events
+
+    def wait_event(self, name: str, timeout: float = 30.0) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        seen = 0
+        while True:
+            for ev in self.events[seen:]:
+                if ev.get("event") == name:
+                    return ev
+            seen = len(self.events)
+            self._pump(max(0.0, deadline - time.monotonic()))
+
+    def stats(self) -> dict[str, Any]:
+        stats: dict[str, Any] = self.send("stats")["stats"]
+        return stats
+
+    def close(self, timeout: float = 5.0) -> int | None:
+        """Ask it to quit, wait, kill it if it will not; close the pipes."""
+        import subprocess
+
+        if self.proc.poll() is None:
+            with contextlib.suppress(OSError, ValueError):
+                self._in.write(b"quit\n")
+                self._in.flush()
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout)
+        for pipe in (self._in, self._out):
+            with contextlib.suppress(OSError):
+                pipe.close()
+        return self.proc.returncode
+
+    def __enter__(self) -> DeviceProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m ballbar.tools.simdevice",
+        description="A simulated ball-bar interface on a pty; fault injection on stdin (see the module docstring).",
+    )
+    p.add_argument("--protocol", choices=["binary", "ascii"], default="binary")
+    p.add_argument("--mode", choices=["stream", "poll"], default="stream", help="ascii: answer requests (poll)")
+    p.add_argument("--rate", type=float, default=1000.0, help="device sample rate, Hz (15.625..10000)")
+    p.add_argument("--speedup", type=float, default=1.0, help="device time per wall time")
+    p.add_argument("--port", help="use this port (path or pyserial URL) instead of a new pty")
+    p.add_argument("--baud", type=int, default=2_000_000, help="with --port")
+    p.add_argument("--link", help="stable path to the pty (a symbolic link); default in a temporary directory")
+    p.add_argument("--csv", help="stream this recording (t_s,length_mm) instead of the simulator")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--repeat", type=int, default=1, help="tests in a row (0: forever)")
+    p.add_argument("--gap-s", type=float, default=0.0, help="device seconds between tests")
+    p.add_argument("--cal-mm", type=float, help="bar length at zero displacement (default: the plan's radius)")
+    p.add_argument("--range-mm", type=float, default=2.5, help="LVDT linear range, +- mm")
+    p.add_argument("--wait", action="store_true", help="stream only after the 'start' command")
+    p.add_argument("--exit-when-done", action="store_true", help="exit once every test is sent")
+    g = p.add_argument_group("ASCII format")
+    g.add_argument("--unit", choices=["mm", "um", "nm", "in"], default="mm")
+    g.add_argument("--timestamp", choices=["none", "s", "ms", "us"], default="none")
+    g.add_argument("--unit-suffix", action="store_true")
+    g.add_argument("--request", default="?\r", help="poll request (default '?\\r')")
+    t = p.add_argument_group("test plan and machine (the simulator)")
+    t.add_argument("--radius-mm", type=float, default=100.0)
+    t.add_argument("--feed-mm-min", type=float, default=1000.0)
+    t.add_argument("--plane", choices=["XY", "YZ", "ZX"], default="XY")
+    t.add_argument("--overshoot-deg", type=float, default=180.0)
+    t.add_argument("--data-arc-deg", type=float, default=360.0)
+    t.add_argument("--dwell-s", type=float, default=0.5)
+    t.add_argument("--directions", choices=["both", "ccw", "cw"], default="both")
+    t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="machine model parameter")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def source_url(path: str, s: Settings) -> str:
+    q: dict[str, str] = {"protocol": s.protocol, "rate": f"{s.rate:g}", "cal_mm": repr(s.cal_mm)}
+    if s.protocol == "ascii":
+        q["unit"] = s.fmt.unit
+        if s.fmt.ts_unit:
+            q["timestamp"] = s.fmt.ts_unit
+        if s.mode == "poll":
+            q["mode"] = "poll"
+            q["request"] = s.fmt.request.decode("latin-1")
+    return f"serial:{path}?{urllib.parse.urlencode(q)}"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    from ballbar.analysis.errors import BallbarError
+
+    if not 15.625 <= args.rate <= 10_000 or not args.speedup > 0 or args.repeat < 0:
+        log.error("--rate must be within 15.625..10000, --speedup > 0, --repeat >= 0")
+        return 2
+    if args.mode == "poll" and args.protocol != "ascii":
+        log.error("--mode poll needs --protocol ascii")
+        return 2
+    try:
+        fmt = ascii_proto.AsciiFormat(
+            unit=args.unit,
+            ts_unit=None if args.timestamp == "none" else args.timestamp,
+            unit_suffix=args.unit_suffix,
+            request=args.request.encode("latin-1"),
+        )
+        settings = Settings(
+            protocol=args.protocol,
+            mode=args.mode,
+            rate=args.rate,
+            speedup=args.speedup,
+            cal_mm=args.cal_mm if args.cal_mm is not None else args.radius_mm,
+            range_mm=args.range_mm,
+            fmt=fmt,
+            seed=args.seed,
+        )
+        tests = csv_tests(args.csv, args.rate, args.repeat, args.gap_s) if args.csv else simulator_tests(args)
+        feed = Feed(tests)
+    except (BallbarError, ValueError) as err:
+        log.error("%s", err)
+        return 2
+
+    tmpdir = None
+    try:
+        if args.port:
+            port: PtyPort | SerialPort = SerialPort(args.port, args.baud)
+        else:
+            link = args.link
+            if link is None:
+                tmpdir = tempfile.mkdtemp(prefix="ballbar-simdevice-")
+                link = os.path.join(tmpdir, "ttyBALLBAR0")
+            port = PtyPort(link)
+    except OSError as err:
+        log.error("cannot open the port: %s", err)
+        return 1
+
+    stop = False
+
+    def on_signal(signum: int, frame: object) -> None:
+        nonlocal stop
+        stop = True
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+    out = sys.stdout
+    dev = SimDevice(feed, port, settings, out)
+    out.write(port.path + "\n")
+    dev.emit({"event": "ready", "path": port.path, "url": source_url(port.path, settings)})
+    dev.started = not args.wait
+    stdin_fd: int | None = sys.stdin.fileno() if sys.stdin is not None else None
+    inbuf = b""
+    try:
+        while dev.running and not stop:
+            rlist = [stdin_fd] if stdin_fd is not None else []
+            if settings.mode == "poll" and port.is_open:
+                fd = port.fileno()
+                if fd is not None:
+                    rlist.append(fd)
+            try:
+                ready, _, _ = select.select(rlist, [], [], dev.tick_s())
+            except InterruptedError:
+                continue
+            if stdin_fd is not None and stdin_fd in ready:
+                chunk = os.read(stdin_fd, 4096)
+                if not chunk:
+                    stdin_fd = None  # EOF: keep running, commands are optional
+                inbuf += chunk
+                while b"\n" in inbuf:
+                    line, inbuf = inbuf.split(b"\n", 1)
+                    dev.command(line.decode("utf-8", "replace"))
+            dev.step(time.monotonic())
+            if dev.done and args.exit_when_done:
+                break
+    except BrokenPipeError:
+        pass  # the controlling process went away
+    finally:
+        port.close()
+        if tmpdir:
+            with contextlib.suppress(OSError):
+                os.rmdir(tmpdir)
+    return 0
+
+
+__all__ = [
+    "DeviceProcess",
+    "DeviceStats",
+    "Feed",
+    "PtyPort",
+    "SerialPort",
+    "Settings",
+    "SimDevice",
+    "main",
+    "source_url",
+]
+
+if __name__ == "__main__":
+    sys.exit(main())
