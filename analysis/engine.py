@@ -33,7 +33,7 @@ from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
 from .fit import Factor, FitResult, solve, sse_subset
 from .patterns import LIBRARY, Geometry, Pattern, design, select
-from .physics import Offset, make_offset
+from .physics import Offset, make_offset, takeup_angles
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import Schedule, arc_start_deg, feed_from_span, schedule
 
@@ -91,9 +91,11 @@ class CircleFit:
         keep_design: bool = False,
         offset: Offset | None = None,
         loop_lag_s: float | None = None,
+        takeup_rad: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         self.plan, self.machine, self.patterns = plan, machine, list(patterns)
         self.loop_lag_s = loop_lag_s
+        self.takeup_rad = takeup_rad
         self.d = direction
         self.timing = timing
         self.w = math.radians(spike_width_deg)
@@ -117,6 +119,7 @@ class CircleFit:
             pitch_y_mm=self.machine.pitch_y_mm,
             travel=self.d * (u - math.radians(arc_start_deg(self.plan, self.d))),
             loop_lag_s=self.loop_lag_s,
+            takeup_rad=self.takeup_rad,
         )
 
     def add(self, t: np.ndarray, L: np.ndarray) -> None:
@@ -216,7 +219,7 @@ class TestAnalyzer:
                     "test_index": self.test_index,
                     "t_s": self.last_t,
                     "message": f"the stream ended {self.last_t - self._fi.t_s:.1f} s after the feed-in "
-                    "at t={self._fi.t_s:.3f} s, before the feed-out",
+                    f"at t={self._fi.t_s:.3f} s, before the feed-out",
                 }
             )
         return out
@@ -379,12 +382,14 @@ class _Joint:
         keep: bool,
         windows: dict[int, tuple[float, float]] | None = None,
         loop_lag_s: float | None = None,
+        takeup_rad: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         self.patterns = list(patterns)
         self.circles: list[CircleFit] = []
         for d in plan.direction_list:
             cf = CircleFit(
-                plan, machine, _for_direction(patterns, d), d, timing, spike_width_deg, keep, offset, loop_lag_s
+                plan, machine, _for_direction(patterns, d), d, timing, spike_width_deg, keep, offset, loop_lag_s,
+                takeup_rad,
             )
             if windows is not None:
                 cf.t_start, cf.t_end = windows[d]  # the same samples whatever the timing
@@ -442,6 +447,7 @@ def _search(
     offset: Offset | None,
     n_eff: float,
     tau: float | None,
+    takeup: tuple[float, float],
 ) -> _Hyper:
     """Estimate the per-move overhead (the arc start's lag) and the spike width.
 
@@ -454,7 +460,7 @@ def _search(
     def sse(c: float, w_deg: float) -> float:
         timing = make_timing(plan, fi.t_s, feed_from_span(plan, span, c), c)
         timing.t_mid = base.t_mid
-        f = _Joint(plan, machine, patterns, timing, w_deg, ts, Ls, offset, False, windows, tau).factor()
+        f = _Joint(plan, machine, patterns, timing, w_deg, ts, Ls, offset, False, windows, tau, takeup).factor()
         return sse_subset(f.rows, range(f.p))
 
     # A residual below 1 nm rms is numerical, not signal: there the prior decides.
@@ -561,18 +567,23 @@ def analyze_test(
     ts, Ls = t[idx[::step]], L[idx[::step]]
     hyper = _Hyper()
     offset = None
+    takeup = (0.0, 0.0)
     if ts.size > 50:
         pre = _Joint(plan, machine, patterns, base, hyper.spike_width_deg, ts, Ls, None, True, windows, tau)
         pre_fit = pre.solve(options)
         rho = _lag1(pre.residuals(pre_fit.x))
         kappa = min(max((1 + rho) / (1 - rho), 1.0), 400.0) if rho < 1 else 400.0
         offset = make_offset(_values(pre_fit), tau, options.lost_motion, cos2)
+        if options.lost_motion == "deadband":
+            takeup = takeup_angles(_values(pre_fit), plan.radius_mm)
         # 2. Lag and spike width on that set, with the corrections applied.
-        hyper = _search(plan, machine, options, patterns, ts, Ls, fi, span, base, windows, offset, ts.size / kappa, tau)
+        hyper = _search(
+            plan, machine, options, patterns, ts, Ls, fi, span, base, windows, offset, ts.size / kappa, tau, takeup
+        )
     # 3. The full fit at those values, then the corrections to a fixed point.
     V = feed_from_span(plan, span, hyper.overhead_s)
     timing = make_timing(plan, fi.t_s, V, hyper.overhead_s)
-    joint = _Joint(plan, machine, patterns, timing, hyper.spike_width_deg, t, L, offset, True, None, tau)
+    joint = _Joint(plan, machine, patterns, timing, hyper.spike_width_deg, t, L, offset, True, None, tau, takeup)
     for c in joint.circles:
         if c.factor.n < 8:
             raise DataError(

@@ -49,6 +49,7 @@ class Geometry:
     pitch_y_mm: float | None = None
     travel: np.ndarray | None = None  # angle travelled since the arc began (rad); None: long enough
     loop_lag_s: float | None = None  # mean position-loop lag, where known: smooths command-side steps
+    takeup_rad: tuple[float, float] = (0.0, 0.0)  # X, Y: angle after a reversal until the table moves
 
     def __len__(self) -> int:
         return int(self.u.size)
@@ -195,12 +196,15 @@ def spike_travel(u: np.ndarray, d: np.ndarray, at_rad: float) -> np.ndarray:
 def _spike(at_deg: float, direction: int) -> ColumnFn:
     at = math.radians(at_deg)
 
+    axis = 0 if at_deg in (0.0, 180.0) else 1
+
     def fn(g: Geometry, w: float) -> np.ndarray:
         out = np.zeros(len(g))
         mine = g.d == direction
         if mine.any():
             du = spike_travel(g.u[mine], g.d[mine], at)
-            spike = np.exp(-du / w)
+            late = du - g.takeup_rad[axis]  # the table reverses once the dead band is taken up
+            spike = np.where(late >= 0, np.exp(-np.maximum(late, 0.0) / w), 0.0)
             if g.travel is not None:
                 spike[du > g.travel[mine]] = 0.0
             out[mine] = spike

@@ -109,3 +109,13 @@ def make_offset(
         return out
 
     return offset
+
+
+def takeup_angles(values: Mapping[str, float | None], radius_mm: float) -> tuple[float, float]:
+    """Per axis, the angle (rad) after a reversal before the table follows its motor."""
+    R_um = radius_mm * 1000.0
+    out = []
+    for key in ("backlash_x_um", "backlash_y_um"):
+        b = values.get(key) or 0.0
+        out.append(math.acos(1.0 - b / R_um) if 0 < b < R_um else 0.0)
+    return out[0], out[1]

@@ -113,7 +113,6 @@ class MachineConfig:
     kv_x_per_s: float | None = None
     kv_y_per_s: float | None = None
     controller: Literal["generic", "fanuc", "siemens", "heidenhain"] = "generic"
-    machine_id: str = "machine"
 
     def __post_init__(self) -> None:
         for name in ("pitch_x_mm", "pitch_y_mm", "kv_x_per_s", "kv_y_per_s"):
@@ -156,7 +155,7 @@ class AnalysisOptions:
     vif_limit: float = 1.0e4
     vibration_cutoff_cpr: float = 30.0
     spike_width_min_deg: float = 0.3
-    spike_width_max_deg: float = 30.0
+    spike_width_max_deg: float = 10.0
     estimate_lag: bool = True
     max_lag_s: float = 0.5
     patterns: tuple[str, ...] | None = None  # None: the whole library that the data supports

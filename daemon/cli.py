@@ -70,9 +70,27 @@ def build_parser() -> argparse.ArgumentParser:
             an.add_argument(flag, dest=dest, type=typ, help=help_)
     an.add_argument("--significance", type=float, help="F-test level (default 0.05)")
     an.add_argument("--servo-model", choices=("auto", "linear", "physical"), help="servo mismatch model")
+    an.add_argument("--lost-motion", choices=("deadband", "step"),
+                    help="backlash as a dead band with take-up (default) or the seed's step")
     an.add_argument("--patterns", help="comma-separated pattern names to fit (default: all that apply)")
     an.add_argument("--test", type=int, default=1, help="which test of the recording (1 = first)")
     an.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+
+    run = sub.add_parser("run", help="run the daemon (the service's main job)",
+                         description="Sample the ball-bar, fit each circle and test, log to MCAP, publish on "
+                         "Zenoh, stream to Rerun. Configuration: see daemon/default.toml.")
+    run.add_argument("--config", help="TOML configuration file (default: $BALLBAR_CONFIG, /etc/ballbar/ballbar.toml)")
+    run.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                     help="override one configuration key (value in TOML syntax); repeatable")
+    run.add_argument("--simulate", action="store_true",
+                     help="run against the built-in simulated ball-bar on a pty (state in ./ballbar-state)")
+    run.add_argument("--speedup", type=float, default=5.0, help="with --simulate: device time per wall time")
+    run.add_argument("--machine-id", help="daemon.machine_id")
+    run.add_argument("--state-dir", help="daemon.state_dir")
+    run.add_argument("--source", help="source.url")
+    run.add_argument("--tests", type=int, help="exit after this many test results")
+    run.add_argument("--duration-s", type=float, help="exit after this many seconds")
+    run.add_argument("--print-config", action="store_true", help="print the effective configuration and exit")
     return parser
 
 
@@ -106,6 +124,8 @@ def configs_from_args(args: argparse.Namespace) -> tuple[TestPlan, MachineConfig
         analysis_d["significance"] = args.significance
     if getattr(args, "servo_model", None) is not None:
         analysis_d["servo_model"] = args.servo_model
+    if getattr(args, "lost_motion", None) is not None:
+        analysis_d["lost_motion"] = args.lost_motion
     if getattr(args, "patterns", None):
         names = tuple(n.strip() for n in args.patterns.split(",") if n.strip())
         bad = [n for n in names if n not in BY_NAME]
@@ -180,10 +200,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    handlers = {"analyze": cmd_analyze}
+    from .run import cmd_run
+
+    handlers = {"analyze": cmd_analyze, "run": cmd_run}
+    from .config import ConfigError
+
     try:
         return handlers[args.command](args)
-    except UsageError as err:
+    except (UsageError, ConfigError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except BallbarError as err:

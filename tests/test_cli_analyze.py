@@ -32,7 +32,9 @@ def run(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, 
 
 
 def test_json_has_the_contract(good_csv: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, err = run(["analyze", str(good_csv), "--sample-hz", "100", "--json"], capsys)
+    # the recording follows the masks exactly: the seed's step backlash, no servo dynamics
+    masks = ["--lost-motion", "step", "--servo-model", "linear"]
+    code, out, err = run(["analyze", str(good_csv), "--sample-hz", "100", "--json", *masks], capsys)
     assert code == 0, err
     res = json.loads(out)
     for key in ("parameters", "iso230_4", "timing", "advice", "residual_rms_um"):

@@ -1,0 +1,281 @@
+"""The daemon's configuration: one typed object, filled in layers.
+
+Layers, later ones winning:
+
+1. the shipped defaults (``daemon/default.toml``, every key commented);
+2. the configuration file: ``--config FILE``, else ``$BALLBAR_CONFIG``, else
+   ``/etc/ballbar/ballbar.toml`` when it exists;
+3. the environment: ``BALLBAR__SECTION__KEY=value`` (double underscores; the
+   value is read as TOML, so ``BALLBAR__ZENOH__CONNECT='["tcp/10.0.0.5:7447"]'``,
+   and taken as a plain string when it is not valid TOML);
+4. the command line: ``--set section.key=value`` (TOML value) and the named flags.
+
+An unknown section or key, or a value of the wrong type, is one
+:class:`ConfigError` naming it (the command exits with code 2).
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from ballbar.analysis.errors import BallbarError, PlanError
+from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+
+DEFAULT_FILE = Path(__file__).with_name("default.toml")
+SYSTEM_FILE = Path("/etc/ballbar/ballbar.toml")
+ENV_PREFIX = "BALLBAR__"
+
+
+class ConfigError(BallbarError, ValueError):
+    """A configuration mistake: names the section and key."""
+
+
+@dataclass
+class DaemonSection:
+    machine_id: str = "machine"
+    state_dir: str = "/var/lib/ballbar"
+    status_interval_s: float = 1.0
+    log_level: str = "info"
+
+
+@dataclass
+class SourceSection:
+    url: str = "serial:/dev/ttyUSB0?protocol=binary&rate=1000"
+    cal_mm: float | None = None  # the bar's length at zero displacement; default: the plan's radius
+
+
+@dataclass
+class McapSection:
+    enabled: bool = True
+    rotate_per_test: bool = True
+    rotate_mb: float = 256.0
+    rotate_minutes: float = 60.0
+    quota_mb: float = 4096.0
+    keep_days: float = 90.0
+    flush_s: float = 0.5
+
+
+@dataclass
+class ZenohSection:
+    enabled: bool = True
+    mode: str = "peer"
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    config_file: str = ""
+    multicast_scouting: bool = True
+    samples_hz: float = 0.0  # decimated samples on ballbar/<machine>/samples; 0 = off
+
+
+@dataclass
+class RerunSection:
+    mode: str = "serve"  # serve: viewers connect here; connect: push to url; off
+    bind: str = "0.0.0.0"
+    port: int = 9876
+    url: str = "rerun+http://127.0.0.1:9876/proxy"
+    memory_limit_mb: float = 256.0
+    tolerance_um: float = 10.0
+    magnification: float = 0.0  # 0: automatic
+
+
+@dataclass
+class QueueSection:
+    analysis: int = 6000  # batches (~20 ms each): two minutes; drop_newest, counted
+    mcap: int = 6000  # drop_newest: a contiguous log, the gap counted
+    zenoh: int = 1000  # drop_oldest: the newest matters
+    rerun: int = 500  # drop_oldest
+
+
+SECTIONS: dict[str, type] = {
+    "daemon": DaemonSection,
+    "source": SourceSection,
+    "plan": TestPlan,
+    "machine": MachineConfig,
+    "analysis": AnalysisOptions,
+    "mcap": McapSection,
+    "zenoh": ZenohSection,
+    "rerun": RerunSection,
+    "queues": QueueSection,
+}
+
+
+@dataclass
+class Config:
+    daemon: DaemonSection
+    source: SourceSection
+    plan: TestPlan
+    machine: MachineConfig
+    analysis: AnalysisOptions
+    mcap: McapSection
+    zenoh: ZenohSection
+    rerun: RerunSection
+    queues: QueueSection
+
+    @property
+    def cal_mm(self) -> float:
+        return self.source.cal_mm if self.source.cal_mm is not None else self.plan.radius_mm
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for name in SECTIONS:
+            v = getattr(self, name)
+            out[name] = v.to_dict() if hasattr(v, "to_dict") else asdict(v)
+        for k, v in list(out["analysis"].items()):
+            if isinstance(v, tuple):
+                out["analysis"][k] = list(v)
+        return out
+
+
+def _check_type(where: str, value: Any, tp: Any) -> Any:
+    """``value`` converted to the field type ``tp``, or a ConfigError naming ``where``."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _check_type(where, value, a)
+            except ConfigError as err:
+                errors.append(str(err))
+        raise ConfigError(errors[0] if errors else f"{where}: bad value {value!r}")
+    if origin is typing.Literal:
+        if value not in args:
+            raise ConfigError(f"{where} must be one of {', '.join(map(repr, args))}, not {value!r}")
+        return value
+    if origin in (list, tuple):
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{where} must be a list, not {value!r}")
+        inner = args[0] if args else Any
+        items = [_check_type(f"{where}[{i}]", v, inner) for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if tp is Any:
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, not {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} must be a whole number, not {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{where} must be a number, not {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} must be a string, not {value!r}")
+        return value
+    return value
+
+
+def _build(name: str, cls: type, data: Mapping[str, Any]) -> Any:
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        if key not in known:
+            raise ConfigError(f"unknown key {name}.{key} (known: {', '.join(sorted(known))})")
+        kwargs[key] = _check_type(f"{name}.{key}", value, hints[key])
+    try:
+        return cls(**kwargs)
+    except PlanError as err:
+        raise ConfigError(f"[{name}] {err}") from err
+
+
+def _merge(base: dict[str, dict[str, Any]], layer: Mapping[str, Any], origin: str) -> None:
+    for section, values in layer.items():
+        if section not in SECTIONS:
+            raise ConfigError(f"{origin}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
+        if not isinstance(values, Mapping):
+            raise ConfigError(f"{origin}: [{section}] must be a table")
+        base.setdefault(section, {}).update(values)
+
+
+def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{os.fspath(path)}: cannot read: {err.strerror or err}") from err
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{os.fspath(path)}: not valid TOML: {err}") from err
+
+
+def parse_value(text: str) -> Any:
+    """A TOML value (``3``, ``true``, ``"x"``, ``[1, 2]``), or the text itself."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_assignment(item: str, origin: str) -> tuple[str, str, Any]:
+    key, sep, value = item.partition("=")
+    section, dot, name = key.strip().partition(".")
+    if not sep or not dot or not name:
+        raise ConfigError(f"{origin}: expected section.key=value, not {item!r}")
+    return section, name, parse_value(value.strip())
+
+
+def load(
+    config_file: str | None = None,
+    sets: Sequence[str] = (),
+    env: Mapping[str, str] | None = None,
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
+) -> Config:
+    """The configuration from the four layers (see the module docstring)."""
+    env = os.environ if env is None else env
+    merged: dict[str, dict[str, Any]] = {}
+    _merge(merged, read_toml(DEFAULT_FILE), str(DEFAULT_FILE))
+    path = config_file or env.get("BALLBAR_CONFIG") or (str(SYSTEM_FILE) if SYSTEM_FILE.exists() else None)
+    if path:
+        _merge(merged, read_toml(path), path)
+    for var, text in sorted(env.items()):
+        if not var.startswith(ENV_PREFIX):
+            continue
+        parts = var[len(ENV_PREFIX) :].lower().split("__")
+        if len(parts) != 2:
+            raise ConfigError(f"environment {var}: expected BALLBAR__SECTION__KEY")
+        _merge(merged, {parts[0]: {parts[1]: parse_value(text)}}, f"environment {var}")
+    for item in sets:
+        section, name, value = parse_assignment(item, "--set")
+        _merge(merged, {section: {name: value}}, "--set")
+    if overrides:
+        _merge(merged, overrides, "command line")
+    built = {name: _build(name, cls, merged.get(name, {})) for name, cls in SECTIONS.items()}
+    cfg = Config(**built)
+    _validate(cfg)
+    return cfg
+
+
+def _validate(cfg: Config) -> None:
+    if not cfg.daemon.machine_id or any(c in cfg.daemon.machine_id for c in "/*?$#"):
+        raise ConfigError(f"daemon.machine_id must be a non-empty key segment without / * ? $ #, "
+                          f"not {cfg.daemon.machine_id!r}")
+    if cfg.daemon.log_level not in ("debug", "info", "warning", "error"):
+        raise ConfigError(f"daemon.log_level must be debug, info, warning or error, not {cfg.daemon.log_level!r}")
+    if cfg.rerun.mode not in ("serve", "connect", "off"):
+        raise ConfigError(f"rerun.mode must be serve, connect or off, not {cfg.rerun.mode!r}")
+    if cfg.zenoh.mode not in ("peer", "client", "router"):
+        raise ConfigError(f"zenoh.mode must be peer, client or router, not {cfg.zenoh.mode!r}")
+    if not 0 < cfg.daemon.status_interval_s <= 60:
+        raise ConfigError("daemon.status_interval_s must be within (0, 60]")
+    for name in ("analysis", "mcap", "zenoh", "rerun"):
+        if getattr(cfg.queues, name) < 1:
+            raise ConfigError(f"queues.{name} must be at least 1")
+    if not 1 <= cfg.rerun.port <= 65535:
+        raise ConfigError(f"rerun.port must be within 1..65535, not {cfg.rerun.port}")
+    if cfg.source.cal_mm is not None and not cfg.source.cal_mm > 0:
+        raise ConfigError(f"source.cal_mm must be > 0, not {cfg.source.cal_mm}")

@@ -1,0 +1,312 @@
+"""The daemon: a source feeding listeners through bounded queues.
+
+::
+
+    source --read()--> main loop --> [queue] analysis (detector + incremental fit)
+                           |                   \\--> results/events --> the queues below
+                           +-------------> [queue] MCAP logger
+                           +-------------> [queue] Zenoh bus
+                           +-------------> [queue] Rerun viewer
+
+The main loop only reads the source and puts what it read into each queue; it
+never waits on a consumer.  Each queue has a bound and a drop policy
+(:mod:`.listeners`); what a queue drops is counted and shown in the status.
+The analysis queue and the MCAP queue drop new items when full (a contiguous
+prefix, the gap counted); the bus and the viewer drop the oldest (the newest
+matters).  The main loop also sends ``READY=1`` once the source is open,
+``WATCHDOG=1`` each status interval, and the status message.
+
+Results carry, besides the ``ballbar analyze --json`` object, ``machine_id``,
+``test_id`` (``<machine>-<UTC time of the feed-in>``), ``t_wall`` (ISO time of
+publication), ``t_host`` (monotonic) and ``last_sample_t`` (the time axis
+value of the last sample the analysis had seen).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+from ballbar.analysis.engine import TestAnalyzer
+from ballbar.analysis.errors import BallbarError
+
+from ballbar import SCHEMA_VERSION
+
+from .config import Config
+from .listeners import Listener, ListenerQueue, Message
+from .samples import SampleBatch
+from .sources import Source
+from .systemd import Notifier
+
+log = logging.getLogger(__name__)
+
+
+def utc_now() -> str:
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+class AnalysisListener(Listener):
+    """Feeds valid samples to :class:`TestAnalyzer`; hands its output to ``emit``.
+
+    The time axis is the device clock where the source has one (evenly spaced,
+    and with a simulated device sped up, the simulated time), else host time.
+    """
+
+    name = "analysis"
+
+    def __init__(self, cfg: Config, emit: Callable[[Message], None]) -> None:
+        self.cfg = cfg
+        self.emit = emit
+        self.analyzer = TestAnalyzer(cfg.plan, cfg.machine, cfg.analysis)
+        self.use_device_time: bool | None = None
+        self.test_id: str | None = None
+        self.last_t = math.nan
+        self.results = 0
+        self.tests = 0
+        self.errors = 0
+        self.fit_latency_ms: float | None = None
+        self.invalid = 0
+        self._lock = threading.Lock()
+
+    def on_batch(self, batch: SampleBatch) -> None:
+        if len(batch) == 0:
+            return
+        valid = batch.valid
+        self.invalid += int((~valid).sum())
+        if self.use_device_time is None:
+            self.use_device_time = bool(np.isfinite(batch.t_device).all())
+        t = batch.t_device if self.use_device_time else batch.t_host
+        good = valid & np.isfinite(t)
+        if not good.any():
+            return
+        t, L = t[good], batch.length_mm[good]
+        self.last_t = float(t[-1])
+        t0 = time.perf_counter()
+        try:
+            out = self.analyzer.feed(t, L)
+        except BallbarError as err:
+            # a batch the analysis cannot take (time going backwards after a device reset): start over
+            self.errors += 1
+            log.warning("analysis: %s; restarting test detection", err)
+            self.analyzer = TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, self.analyzer.hints)
+            self.emit(self._wrap({"kind": "event", "event": "analysis_reset", "message": str(err)}))
+            return
+        elapsed_ms = 1000.0 * (time.perf_counter() - t0)
+        for msg in out:
+            if msg["kind"] in ("circle", "test"):
+                self.fit_latency_ms = elapsed_ms
+                self.results += 1
+                self.tests += msg["kind"] == "test"
+            self.emit(self._wrap(msg))
+
+    def _wrap(self, msg: Message) -> Message:
+        if msg.get("event") == "feed_in":
+            stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+            self.test_id = f"{self.cfg.daemon.machine_id}-{stamp}"
+        msg = dict(msg)
+        msg.setdefault("schema_version", SCHEMA_VERSION)
+        msg["machine_id"] = self.cfg.daemon.machine_id
+        msg["test_id"] = self.test_id
+        msg["t_wall"] = utc_now()
+        msg["t_host"] = time.monotonic()
+        msg["last_sample_t"] = self.last_t
+        msg["time_axis"] = "device" if self.use_device_time else "host"
+        return msg
+
+    def stop(self) -> None:
+        with contextlib.suppress(BallbarError):
+            for msg in self.analyzer.finish():
+                if msg.get("event") == "test_incomplete":
+                    self.emit(self._wrap(msg))
+
+
+class LogListener(Listener):
+    """One log line per result and per notable event (journald under systemd)."""
+
+    name = "log"
+
+    def on_message(self, msg: Message) -> None:
+        kind = msg.get("kind")
+        if kind in ("circle", "test"):
+            setup = ("centre", "radius")
+            ranked = [r for r in msg.get("ranking", []) if r["significant"] and r["pattern"] not in setup]
+            top = ", ".join(_finding(msg, r["pattern"]) for r in ranked[:5]) or "nothing significant"
+            what = f"{msg.get('direction', '').upper()} circle" if kind == "circle" else "test"
+            extra = ""
+            if kind == "test":
+                iso = msg.get("iso230_4", {})
+                feed = msg["timing"]["measured_feed_mm_min"]
+                extra = f"; G(b) {iso.get('G_b_um') or float('nan'):.2f} um, feed {feed:.1f} mm/min"
+            log.info("%s %s: %s%s", msg.get("test_id"), what, top, extra)
+        elif kind == "event" and msg.get("event") in (
+            "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "test_rejected", "test_incomplete",
+            "analysis_reset",
+        ):
+            log.warning("event %s: %s", msg["event"], {k: v for k, v in msg.items() if k not in ("kind", "event")})
+
+    def stop(self) -> None:
+        pass
+
+
+def _finding(msg: Message, pattern: str) -> str:
+    params = msg.get("parameters", {})
+    keys = [k for k in params if k.startswith(pattern + "_") and params[k]["value"] is not None]
+    if not keys:
+        return pattern
+    k = keys[0]
+    p = params[k]
+    return f"{k} {p['value']:.3g} {'' if k.endswith(p['unit']) else p['unit']}".strip()
+
+
+class Daemon:
+    """Runs the pipeline until ``stop`` is set; see the module docstring."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        source: Source,
+        listeners: Sequence[tuple[Listener, int, str]],
+        notifier: Notifier | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.source = source
+        self.notifier = notifier or Notifier()
+        outputs = [*listeners, (LogListener(), 100, "drop_oldest")]
+        self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]
+        self.analysis = AnalysisListener(cfg, self.broadcast)
+        self.analysis_queue = ListenerQueue(self.analysis, cfg.queues.analysis, "drop_newest")
+        self.started = time.monotonic()
+        self.samples = 0
+        self.lost = 0
+        self.source_state = "starting"
+        self.last_event: dict[str, Any] | None = None
+        self._rate_mark = (self.started, 0)
+        self.rate_hz = 0.0
+        self.results_seen = 0
+        self.tests_seen = 0
+        self._count_lock = threading.Lock()
+
+    def broadcast(self, msg: Message) -> None:
+        """Hand a message to every output (never blocks: each queue has its policy)."""
+        if msg.get("kind") in ("circle", "test"):
+            with self._count_lock:
+                self.results_seen += 1
+                self.tests_seen += msg["kind"] == "test"
+        for q in self.outputs:
+            q.put_message(msg)
+
+    def _source_events(self, batch: SampleBatch) -> None:
+        for ev in batch.events:
+            d = ev.to_dict()
+            kind = d.pop("kind")
+            if kind == "lost":
+                self.lost += ev.count
+            self.source_state = {
+                "unplugged": "unplugged", "replugged": "connected", "opened": "connected", "stall": "stalled",
+                "resumed": "connected", "end": "ended",
+            }.get(kind, self.source_state)
+            msg = {"kind": "event", "event": kind, "origin": "source", "schema_version": SCHEMA_VERSION,
+                   "machine_id": self.cfg.daemon.machine_id, "t_wall": utc_now(), **d}
+            self.last_event = msg
+            self.broadcast(msg)
+
+    def status(self) -> Message:
+        now = time.monotonic()
+        t_mark, n_mark = self._rate_mark
+        if now - t_mark > 0:
+            self.rate_hz = (self.samples - n_mark) / (now - t_mark)
+        self._rate_mark = (now, self.samples)
+        queues = {q.listener.name: q.stats.to_dict() for q in [self.analysis_queue, *self.outputs]}
+        src: dict[str, Any] = {}
+        with contextlib.suppress(Exception):
+            st = self.source.stats()
+            src = st.to_dict() if hasattr(st, "to_dict") else dict(vars(st))
+        return {
+            "kind": "status",
+            "schema_version": SCHEMA_VERSION,
+            "machine_id": self.cfg.daemon.machine_id,
+            "t_wall": utc_now(),
+            "uptime_s": now - self.started,
+            "source_state": self.source_state,
+            "source": src,
+            "samples": self.samples,
+            "sample_rate_hz": self.rate_hz,
+            "lost_samples": self.lost,
+            "queues": queues,
+            "analysis": {
+                "results": self.analysis.results,
+                "tests": self.analysis.tests,
+                "fit_latency_ms": self.analysis.fit_latency_ms,
+                "invalid_samples": self.analysis.invalid,
+                "errors": self.analysis.errors,
+                "test_id": self.analysis.test_id,
+            },
+        }
+
+    def run(self, stop: threading.Event, max_tests: int | None = None, duration_s: float | None = None) -> int:
+        """Read, fan out, report, until ``stop`` (or the limits) say so; then shut down cleanly."""
+        interval = self.cfg.daemon.status_interval_s
+        if self.notifier.watchdog_s:
+            interval = min(interval, self.notifier.watchdog_s / 2)
+        self.broadcast({"kind": "config", "schema_version": SCHEMA_VERSION, "t_wall": utc_now(),
+                        "machine_id": self.cfg.daemon.machine_id, "config": self.cfg.to_dict()})
+        self.notifier.ready(f"reading {self.source.url}")
+        log.info("ready: reading %s", self.source.url)
+        next_status = time.monotonic() + interval
+        deadline = time.monotonic() + duration_s if duration_s else math.inf
+        code = 0
+        try:
+            while not stop.is_set():
+                batch = self.source.read(timeout=min(0.2, interval))
+                if batch is not None:
+                    if batch.events:
+                        self._source_events(batch)
+                    self.samples += len(batch)
+                    self.analysis_queue.put_batch(batch)
+                    for q in self.outputs:
+                        q.put_batch(batch)
+                    if self.source_state == "starting" and len(batch):
+                        self.source_state = "connected"
+                elif self.source.finished:
+                    log.info("the source has ended")
+                    break
+                now = time.monotonic()
+                if now >= next_status:
+                    self.notifier.watchdog()
+                    st = self.status()
+                    self.broadcast(st)
+                    self.notifier.status(
+                        f"{st['source_state']}, {st['sample_rate_hz']:.0f} samples/s, {st['lost_samples']} lost, "
+                        f"{st['analysis']['tests']} tests"
+                    )
+                    next_status = now + interval
+                if max_tests is not None and self.tests_seen >= max_tests:
+                    break
+                if now >= deadline:
+                    break
+        finally:
+            self.shutdown()
+        return code
+
+    def shutdown(self, budget_s: float = 4.0) -> None:
+        """Stop within ``budget_s``: the source, then the analysis, then the outputs in parallel."""
+        self.notifier.stopping()
+        t0 = time.monotonic()
+        with contextlib.suppress(Exception):
+            self.source.close()
+        self.analysis_queue.close(timeout=budget_s * 0.4)
+        left = max(0.5, budget_s - (time.monotonic() - t0))
+        threads = [threading.Thread(target=q.close, args=(left * 0.9,), daemon=True) for q in self.outputs]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join(left)
+        log.info("stopped in %.2f s", time.monotonic() - t0)
+        self.notifier.close()
