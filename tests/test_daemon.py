@@ -1,0 +1,139 @@
+"""The daemon as a process: configuration errors, systemd notification, SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ballbar.daemon import config as cfgmod
+
+QUIET = ["--set", "mcap.enabled=false", "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"']
+UNIT = Path(__file__).resolve().parents[1] / "systemd" / "ballbar.service"
+
+
+def ballbar(*args: str, env: dict[str, str] | None = None, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+def test_defaults_load_and_layers_apply(tmp_path: Path) -> None:
+    f = tmp_path / "site.toml"
+    f.write_text('[daemon]\nmachine_id = "mill-7"\n[plan]\nradius_mm = 150.0\n')
+    cfg = cfgmod.load(str(f), ["plan.feed_mm_min=2000"], env={"BALLBAR__ZENOH__MODE": "client"})
+    assert cfg.daemon.machine_id == "mill-7" and cfg.plan.radius_mm == 150.0
+    assert cfg.plan.feed_mm_min == 2000.0 and cfg.zenoh.mode == "client"
+    assert cfg.cal_mm == 150.0  # the bar's calibration defaults to the plan's radius
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--set", "plan.radius=3"], "unknown key plan.radius"),
+        (["--set", "nope.x=1"], "unknown section [nope]"),
+        (["--set", "plan.radius_mm=-1"], "radius_mm must be > 0"),
+        (["--set", 'zenoh.mode="satellite"'], "zenoh.mode must be peer, client or router"),
+        (["--set", "queues.mcap=0"], "queues.mcap must be at least 1"),
+        (["--set", "daemon.status_interval_s=true"], "daemon.status_interval_s must be a number"),
+    ],
+)
+def test_bad_configuration_is_one_error_exit_2(args: list[str], needle: str) -> None:
+    proc = ballbar("run", *args, "--print-config")
+    assert proc.returncode == 2, proc.stderr
+    assert needle in proc.stderr and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+def test_environment_override_names_a_bad_key() -> None:
+    env = dict(os.environ, BALLBAR__DAEMON__NOPE="1")
+    proc = ballbar("run", "--print-config", env=env)
+    assert proc.returncode == 2 and "unknown key daemon.nope" in proc.stderr
+
+
+def test_shipped_default_file_holds_every_key() -> None:
+    data = cfgmod.read_toml(cfgmod.DEFAULT_FILE)
+    for name, cls in cfgmod.SECTIONS.items():
+        from dataclasses import fields
+
+        documented = set(data.get(name, {}))
+        text = cfgmod.DEFAULT_FILE.read_text()
+        for f in fields(cls):
+            assert f.name in documented or f"# {f.name}" in text, f"{name}.{f.name} is not in default.toml"
+
+
+@pytest.fixture
+def notify_socket(tmp_path: Path):
+    path = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    sock.settimeout(0.2)
+    yield sock, path
+    sock.close()
+
+
+def _read_all(sock: socket.socket, until: float, want: str) -> list[str]:
+    got: list[str] = []
+    while time.monotonic() < until:
+        try:
+            got.append(sock.recv(4096).decode())
+        except TimeoutError:
+            continue
+        if any(want in g for g in got):
+            break
+    return got
+
+
+def test_notify_ready_watchdog_and_sigterm_within_5_s(notify_socket, tmp_path: Path) -> None:
+    sock, path = notify_socket
+    env = dict(os.environ, NOTIFY_SOCKET=path, WATCHDOG_USEC="2000000", PYTHONUNBUFFERED="1")
+    env.pop("WATCHDOG_PID", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ballbar.daemon.cli", "run", "--source", "sim:?rate=1000&speedup=1&repeat=0",
+         "--state-dir", str(tmp_path), *QUIET],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        got = _read_all(sock, time.monotonic() + 30, "READY=1")
+        assert any("READY=1" in g for g in got), got
+        got = _read_all(sock, time.monotonic() + 5, "WATCHDOG=1")
+        assert any("WATCHDOG=1" in g for g in got), got
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=10)
+        elapsed = time.monotonic() - t0
+        got = _read_all(sock, time.monotonic() + 1, "STOPPING=1")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert code == 0, proc.stderr.read() if proc.stderr else ""
+    assert elapsed < 5.0
+    assert any("STOPPING=1" in g for g in got)
+
+
+systemd_analyze = shutil.which("systemd-analyze")
+
+
+@pytest.mark.skipif(systemd_analyze is None, reason="systemd-analyze is not installed")
+def test_unit_verifies_and_is_hardened(tmp_path: Path) -> None:
+    exe = shutil.which("ballbar") or str(Path(sys.executable).with_name("ballbar"))
+    assert Path(exe).exists()
+    unit = tmp_path / "ballbar.service"
+    text = UNIT.read_text().replace("/opt/ballbar/venv/bin/ballbar", exe)
+    unit.write_text(text)
+    v = subprocess.run([systemd_analyze, "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    assert v.returncode == 0, v.stderr
+    s = subprocess.run([systemd_analyze, "security", "--offline=yes", str(unit)], capture_output=True,
+                       text=True, timeout=60)
+    m = re.search(r"Overall exposure level for \S+: ([0-9.]+)", s.stdout + s.stderr)
+    assert m, s.stdout[-500:]
+    assert float(m.group(1)) <= 2.0
+    for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "DynamicUser=yes", "StateDirectory=ballbar"):
+        assert key in text
