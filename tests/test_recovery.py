@@ -182,3 +182,41 @@ def test_reversal_spikes_with_their_width() -> None:
     for key in ("x_pos_ccw", "x_neg_cw", "y_pos_cw", "y_neg_ccw"):
         p = res["parameters"][f"reversal_spike_{key}_um"]
         assert abs(p["value"] - truth[f"reversal_spike_{key}_um"]) < 0.1 * truth[f"reversal_spike_{key}_um"], key
+
+
+def test_cyclic_error_given_the_screw_pitch() -> None:
+    from ballbar.analysis import MachineConfig
+
+    plan = TestPlan(sample_hz=1000.0)
+    sim = simulate(plan, MachineModel(cyclic_x_um=0.5, cyclic_x_phase_deg=30.0, pitch_x_mm=10.0), 1000.0)
+    res = [r for r in analyze_recording(sim.t_s, sim.length_mm, plan, MachineConfig(pitch_x_mm=10.0))
+           if r["kind"] == "test"][0]
+    assert abs(res["parameters"]["cyclic_x_um"]["value"] - 0.5) < 0.02
+    assert abs(res["parameters"]["cyclic_x_phase_deg"]["value"] - 30.0) < 2.0
+    assert res["parameters"]["cyclic_y_um"]["identifiable"] is False  # no Y pitch configured
+
+
+def test_vibration_and_stick_slip_from_the_residual() -> None:
+    plan = TestPlan(sample_hz=1000.0)
+    res, _ = analyse(plan, MachineModel(vibration_um=0.5, vibration_hz=40.0, noise_um=0.1), 1000.0)
+    nz = res["noise"]
+    # RMS above 30 cycles/rev: the 40 Hz sine (0.5/sqrt 2) and the white noise (0.1 um rms)
+    assert abs(nz["vibration_um"] - math.hypot(0.5 / math.sqrt(2), 0.1)) < 0.02
+    assert abs(nz["vibration_peak_hz"] - 40.0) < 0.5 and nz["vibration_significant"]
+    assert not nz["stick_slip_x_significant"]
+    res, _ = analyse(plan, MachineModel(stick_slip_um=0.5, stick_slip_speed_mm_s=0.5, noise_um=0.05), 1000.0)
+    nz = res["noise"]
+    assert nz["stick_slip_x_significant"] and nz["stick_slip_y_significant"]
+    assert not nz["vibration_significant"]
+
+
+def test_iso_230_4_circularity_of_a_known_ellipse() -> None:
+    plan = TestPlan(sample_hz=100.0)
+    res, _ = analyse(plan, MachineModel(squareness_urad=40.0, centre_x_um=30.0), 100.0)
+    iso = res["iso230_4"]
+    # dR = S R sin u cos u: its range about the least-squares circle is S R (1e-3 um per urad mm)
+    for key in ("G_ccw_um", "G_cw_um", "G_b_um"):
+        assert abs(iso[key] - 40.0 * R * 1e-3) < 0.02, key
+    assert iso["H_um"] < 0.02  # the same path both ways
+    assert iso["F_max_um"] > 30.0  # F is about the pivot: the centre offset stays in
+    assert iso["conditions"]["centre_removal"].startswith("least squares")
