@@ -18,12 +18,13 @@ reading times the format's ``scale`` and unit gives millimetres.  The same
 decoder reads streamed lines and the answers to polled requests; in polled
 mode the host sends :attr:`AsciiFormat.request` once per sample.
 
-Decoding is vectorised: line ends are found with numpy, and the lines are
-scanned one character position at a time for all lines at once (a small state
-machine per line held in numpy arrays; Horner's rule builds the digits exactly
-in float64, divided once by the power of ten of the fraction: the same
-correctly rounded double that ``float()`` gives).  Only
-lines that fail that fast path are looked at one by one (fault words, errors).
+Decoding is vectorised: line ends are found with numpy, the lines become the
+columns of a (character position, line) byte matrix, and tokens and numbers are
+found with whole-matrix operations and reductions down the columns: each digit
+times ten to the number of digits after it, summed exactly in float64 and
+divided once by the power of ten of the fraction, which is the same correctly
+rounded double that ``float()`` gives.  Only lines that fail that fast path are
+looked at one by one (fault words, errors).
 """
 
 from __future__ import annotations
@@ -170,7 +171,8 @@ _CLASS[[ord(" "), ord("\t"), ord(","), ord(";")]] = _SEP
 _LOWER = np.arange(256, dtype=np.int64)
 _LOWER[ord("A") : ord("Z") + 1] += 32
 _P10 = 10.0 ** np.arange(_MAX_FRAC + 1)
-_BLOCK = 1 << 16  # lines per vectorised block (bounds the temporaries)
+_P256 = 256 ** np.arange(7, dtype=np.int64)  # packs up to 7 letters of a unit into an int64
+_BLOCK = 8192  # lines per vectorised block: temporaries stay in cache
 _FAULT_RE = re.compile(rb"^[ \t,;]*(?:(?P<ts>\d+(?:\.\d*)?)[ \t,;]+)?(?P<word>[+-]?[A-Za-z]+)[ \t,;]*$")
 
 
@@ -270,98 +272,87 @@ def _unit_codes(unit: str) -> list[tuple[int, int]]:
     return out
 
 
-class _Number:
-    """Column-scan state for one numeric field of every row."""
+def _number(
+    mat: NDArray[np.uint8],
+    cls: NDArray[np.uint8],
+    pos: NDArray[np.int16],
+    here: NDArray[np.bool_],
+    start: NDArray[np.bool_],
+    signed: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The number whose characters are marked ``here`` in each line (column).
 
-    def __init__(self, rows: int) -> None:
-        self.mant = np.zeros(rows)
-        self.nd = np.zeros(rows, np.int16)
-        self.frac = np.zeros(rows, np.int16)
-        self.dot = np.zeros(rows, bool)
-        self.neg = np.zeros(rows, bool)
-
-    def step(
-        self,
-        col: NDArray[np.uint8],
-        k: NDArray[np.uint8],
-        here: NDArray[np.bool_],
-        start: NDArray[np.bool_],
-        bad: NDArray[np.bool_],
-        signed: bool,
-    ) -> None:
-        digit = here & (k == _DIGIT)
-        if digit.any():
-            np.multiply(self.mant, 10.0, out=self.mant, where=digit)
-            np.add(self.mant, col - 48.0, out=self.mant, where=digit)
-            self.nd += digit
-            self.frac += digit & self.dot
-        dot = here & (k == _DOT)
-        if dot.any():
-            bad |= dot & self.dot
-            self.dot |= dot
-        sign = here & (k == _SIGN)
-        if sign.any():
-            bad |= (sign & ~start) if signed else sign
-            self.neg |= sign & (col == ord("-"))
-
-    def value(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        ok = (self.nd >= 1) & (self.mant < _MAX_MANTISSA) & (self.frac <= _MAX_FRAC)
-        val = self.mant / _P10[np.clip(self.frac, 0, _MAX_FRAC)]
-        return np.where(self.neg, -val, val), ok
+    Masks are applied by multiplying (``np.where`` is several times slower here).
+    """
+    width = mat.shape[0]
+    digit = here & (cls == _DIGIT)
+    dot = here & (cls == _DOT)
+    sign = here & (cls == _SIGN)
+    nd = digit.sum(axis=0)
+    last = (pos * digit).max(axis=0)
+    dot_at = width - ((width - pos) * dot).max(axis=0)  # width: no point
+    # A digit weighs ten to the number of digits after it (the point is not a digit):
+    # every term is an exact integer in float64, and so is their sum below 2**53.
+    exp = last - pos - ((pos < dot_at) & (dot_at < last))
+    mant = ((mat - 48.0) * digit * np.take(_P10, exp, mode="clip")).sum(axis=0)
+    frac = (digit & (pos > dot_at)).sum(axis=0)
+    ok = (nd >= 1) & (mant < _MAX_MANTISSA) & (frac <= _MAX_FRAC) & (dot.sum(axis=0) <= 1)
+    ok &= ~np.any(sign & ~start, axis=0) if signed else ~np.any(sign, axis=0)
+    val = mant / np.take(_P10, frac, mode="clip")
+    if signed:
+        val = np.where(np.any(sign & (mat == ord("-")), axis=0), -val, val)
+    return val, ok
 
 
 def _parse_block(
     padded: NDArray[np.uint8], starts: NDArray[np.intp], lens: NDArray[np.intp], fmt: AsciiFormat
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8], dict[str, int]]:
-    """Parse lines ``padded[starts[i] : starts[i] + lens[i]]``, one byte column at a time.
+    """Parse lines ``padded[starts[i] : starts[i] + lens[i]]`` all at once.
 
-    Each step is a handful of numpy operations over all the lines at once; the
-    loop runs once per character position (at most ``max_line`` times).
+    The lines are the columns of a (position, line) byte matrix; every step is a
+    numpy operation over the whole matrix or a reduction down its columns, so a
+    call costs a fixed few dozen numpy operations whatever the number of lines.
     """
     rows = starts.shape[0]
+    width = int(lens.max())
     want = 2 if fmt.ts_unit is not None else 1
-    n_num = np.zeros(rows, np.int16)
-    n_alpha = np.zeros(rows, np.int16)
-    bad = np.zeros(rows, bool)
-    any_tok = np.zeros(rows, bool)
-    prev_tok = np.zeros(rows, bool)
-    prev_num = np.zeros(rows, bool)
-    code = np.zeros(rows, np.int64)
-    alen = np.zeros(rows, np.int16)
-    value = _Number(rows)
-    stamp = _Number(rows) if want == 2 else None
-    for j in range(int(lens.max())):
-        col = np.where(j < lens, padded[starts + j], 0).astype(np.uint8)
-        k = _CLASS[col]
-        is_tok = (k != _PAD) & (k != _SEP)
-        isnum = (k == _DIGIT) | (k == _DOT) | (k == _SIGN)
-        isalpha = k == _ALPHA
-        start = is_tok & (~prev_tok | (isnum != prev_num))
-        nstart = start & isnum
-        n_num += nstart
-        n_alpha += start & isalpha
-        bad |= (k == _OTHER) | (nstart & (n_alpha > 0))
-        any_tok |= is_tok
-        value.step(col, k, isnum & (n_num == want), nstart, bad, signed=True)
-        if stamp is not None:
-            stamp.step(col, k, isnum & (n_num == 1), nstart, bad, signed=False)
-        in_unit = isalpha & (n_alpha == 1)
-        if in_unit.any():
-            lower = _LOWER[col]
-            np.multiply(code, 256, out=code, where=in_unit)
-            np.add(code, lower, out=code, where=in_unit)
-            alen += in_unit
-        prev_tok, prev_num = is_tok, isnum
-    val, ok = value.value()
-    ok &= ~bad & (n_num == want) & (n_alpha <= 1)
-    if stamp is not None:
-        ts, t_ok = stamp.value()
-        ok &= t_ok
-    else:
+    col = np.arange(width, dtype=np.int16)[:, None]
+    pos = np.repeat(col, rows, axis=1)
+    mat = padded[starts[None, :] + col]
+    mat *= col < lens[None, :]
+    cls = _CLASS[mat]
+    is_tok = (cls != _PAD) & (cls != _SEP)
+    isnum = (cls >= _DIGIT) & (cls <= _SIGN)
+    isalpha = cls == _ALPHA
+    prev_tok = np.zeros_like(is_tok)
+    prev_tok[1:] = is_tok[:-1]
+    prev_num = np.zeros_like(isnum)
+    prev_num[1:] = isnum[:-1]
+    # A token starts after a separator, or where digits turn into letters ("0.12mm").
+    start = is_tok & (~prev_tok | (isnum != prev_num))
+    nstart = start & isnum
+    astart = start & isalpha
+    n_num = nstart.sum(axis=0)
+    n_alpha = astart.sum(axis=0)
+    last_num = (pos * nstart).max(axis=0)  # where the reading (the last number) starts
+    first_alpha = width - ((width - pos) * astart).max(axis=0)
+    any_tok = is_tok.any(axis=0)
+    bad = np.any(cls == _OTHER, axis=0) | (first_alpha < last_num)  # no number after letters
+    if want == 1:
+        val, ok = _number(mat, cls, pos, isnum, nstart, signed=True)
         ts = np.zeros(rows)
+    else:
+        val, ok = _number(mat, cls, pos, isnum & (pos >= last_num), nstart, signed=True)
+        ts, t_ok = _number(mat, cls, pos, isnum & (pos < last_num), nstart, signed=False)
+        ok &= t_ok
+    ok &= ~bad & (n_num == want) & (n_alpha <= 1)
     unit_ok = n_alpha == 0
-    for length, c in _unit_codes(fmt.unit):
-        unit_ok |= (alen == length) & (code == c)
+    if not unit_ok.all():
+        alen = isalpha.sum(axis=0)
+        exp = (pos * isalpha).max(axis=0) - pos
+        code = (_LOWER[mat] * isalpha * np.take(_P256, exp, mode="clip")).sum(axis=0)
+        for length, c in _unit_codes(fmt.unit):
+            unit_ok |= (alen == length) & (code == c)
     status = np.zeros(rows, np.uint8)
     good = ok & unit_ok
     dropped = {BAD_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
