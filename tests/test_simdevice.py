@@ -167,7 +167,7 @@ def test_ascii_timestamped_two_tests_at_10khz_wall_rate() -> None:
 @pytest.mark.parametrize("protocol", ["binary", "ascii"])
 def test_injected_faults_are_counted_exactly(protocol: str) -> None:
     extra = ["--timestamp=us"] if protocol == "ascii" else []
-    dev, col = start(f"--protocol={protocol}", *extra, "--rate=1000", "--speedup=5", *PLAN_ARGS)
+    dev, col = start(f"--protocol={protocol}", *extra, "--rate=1000", "--speedup=10", *PLAN_ARGS)
     try:
         col.until(lambda: col.n > 500, 10.0, "500 samples")
         for cmd in ("garbage 100", "corrupt 3", "drop 5", "garbage 7", "stall 0.7", "corrupt 2", "drop 1"):
@@ -193,7 +193,7 @@ def test_injected_faults_are_counted_exactly(protocol: str) -> None:
 
 
 def test_unplug_and_replug_during_a_test() -> None:
-    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=5", *PLAN_ARGS)
+    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=10", *PLAN_ARGS)
     try:
         col.until(lambda: col.n > 1000, 10.0, "1000 samples")
         dev.send("unplug 0.5")
@@ -218,7 +218,7 @@ def test_unplug_and_replug_during_a_test() -> None:
 
 
 def test_device_reset_is_reported() -> None:
-    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=5", *PLAN_ARGS)
+    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=10", *PLAN_ARGS)
     try:
         col.until(lambda: col.n > 500, 10.0, "500 samples")
         dev.send("reset")
