@@ -110,6 +110,7 @@ class TestDetector:
         self.lmax = -np.inf
         self.n_seen = 0
         self.final = False
+        self._in_shape: tuple[np.ndarray, np.ndarray] | None = None
 
     # What the samples held, for the error message when nothing was found.
     def seen_range(self) -> tuple[float, float]:
@@ -170,6 +171,8 @@ class TestDetector:
             return None
         dst_after = np.flatnonzero(dst[src_idx[0] :])
         if dst_after.size == 0:
+            if self.final and self.in_test:
+                return self._truncated_feed_out(tb, Lb, s + int(src_idx[-1]))
             # keep scanning from the last source sample next time
             self.scan_from = s + int(src_idx[-1])
             return None
@@ -227,7 +230,13 @@ class TestDetector:
         hi = i
         lo = int(np.searchsorted(t, t[hi] - win))
         cur = float(np.median(L[lo : hi + 1]))
-        while lo > 0:
+        while True:
+            if lo <= 0:
+                # the recording begins on (or in) the step: its first sample is the level, and the
+                # samples seen are the step's, not noise
+                cur = float(L[0])
+                tol = self._tolerance(np.empty(0))
+                break
             lo2 = min(int(np.searchsorted(t, t[lo] - win)), lo - 1)
             prev = float(np.median(L[lo2:lo]))
             if abs(prev - cur) <= tol:
@@ -281,6 +290,10 @@ class TestDetector:
                 x = (0.5 - f0) / (f1 - f0) if f1 != f0 else 0.5
                 tc = float(t[a + j - 1] + x * (t[a + j] - t[a + j - 1]))
             method = "ramp"
+        if kind == "feed_in":
+            # the step's shape, progress 0..1 against time from its centroid: a feed-out cut short by
+            # the end of a recording is timed against it (the same move, mirrored)
+            self._in_shape = (t[a : b + 1] - tc, (L[a : b + 1] - before) / height)
         tau = self._tail_tau(t, L, a, b, tc, after)
         log.debug("%s at %.4f s (%s, %d samples, tau %.4f s)", kind, tc, method, inner, tau)
         return StepEvent(kind, tc, float(t[a]), float(t[b]), before, after, inner, method, tau)
@@ -328,6 +341,31 @@ class TestDetector:
         if not (tau > 0 and float(np.sqrt(np.mean(resid**2))) < 0.05 * amp):
             return float("nan")
         return float(tau)
+
+    def _truncated_feed_out(self, t: np.ndarray, L: np.ndarray, last_on: int) -> StepEvent | None:
+        """A feed-out the recording ends inside: timed against the feed-in's mirrored shape.
+
+        Needs the step to be at least half done; each sample between 10 % and
+        90 % of it gives the centroid through the feed-in's progress curve.
+        """
+        if self._in_shape is None:
+            return None
+        s_in, p_in = self._in_shape
+        order = np.argsort(p_in, kind="stable")
+        p_sorted, s_sorted = np.maximum.accumulate(p_in[order]), s_in[order]
+        level, a, _ = self._settle(t, L, last_on, forward=False)
+        p = (L[a:] - level) / self.f
+        if p.size < 2 or p[-1] < 0.5:
+            return None
+        use = (p > 0.1) & (p < 0.9)
+        if not use.any():
+            return None
+        tc = float(np.mean(t[a:][use] - np.interp(p[use], p_sorted, s_sorted)))
+        self.in_test = False
+        self.scan_from = t.size
+        log.warning("the recording ends inside the feed-out: timed against the feed-in's shape")
+        return StepEvent("feed_out", tc, float(t[a]), float(t[-1]), level, level + self.f,
+                         int(t.size - a), "mirrored", float("nan"))
 
     def samples(self) -> tuple[np.ndarray, np.ndarray]:
         """The samples held: from the current (or just ended) test's feed-in on."""

@@ -223,3 +223,14 @@ def test_iso_230_4_circularity_of_a_known_ellipse() -> None:
     f_max = float(np.max(30.0 * np.cos(u) + 40.0 * R * 1e-3 * np.sin(u) * np.cos(u))) + truth["servo_radius_um"]
     assert abs(iso["F_max_um"] - f_max) < 0.05
     assert iso["conditions"]["centre_removal"].startswith("least squares")
+
+
+@pytest.mark.parametrize("fs", [100.0, 1000.0])
+def test_recording_that_starts_on_the_feed_in_and_ends_inside_the_feed_out(fs: float) -> None:
+    plan = TestPlan(sample_hz=fs)
+    m = MachineModel(lead_s=0.0, tail_s=0.0, backlash_x_um=4.0, squareness_urad=20.0, centre_x_um=10.0)
+    res, truth = analyse(plan, m, fs)
+    assert res["timing"]["feed_out_method"] == "mirrored"
+    assert abs(res["timing"]["measured_feed_mm_min"] - 1000.0) < 0.2
+    for field in ("backlash_x_um", "squareness_urad", "centre_x_um"):
+        assert abs(res["parameters"][field]["value"] - truth[field]) < 2 * tol(field), field
