@@ -1,0 +1,790 @@
+"""The Zenoh side of the daemon: results, events and status for plant services.
+
+:class:`ZenohBus` is a :class:`~ballbar.daemon.listeners.Listener`: it runs on
+its own queue's thread, so nothing it does can hold up sampling, and it
+publishes every message it is given under ``ballbar/<machine>/...``.
+
+Key space
+---------
+``<machine>`` is ``daemon.machine_id`` (one key chunk: no ``/ * $ ? #``).
+Every payload is one JSON object, encoding ``application/json``, with
+``schema_version`` (1), ``kind``, ``machine_id`` and ``t_wall`` (ISO 8601 UTC,
+when the daemon produced it); non-finite numbers are sent as ``null``.
+
+================================  ==========  ====================================================
+key                               how         what
+================================  ==========  ====================================================
+``ballbar/<m>/result/circle``     put         each circle's fit (``kind: "circle"``), as soon as
+                                              its data arc is complete (provisional timing)
+``ballbar/<m>/result/test``       put         each test's result (``kind: "test"``): the
+                                              ``ballbar analyze --json`` object plus ``test_id``
+``ballbar/<m>/event``             put         ``kind: "event"``; ``event`` says which: feed_in,
+                                              feed_out, test_rejected, test_incomplete, unplugged,
+                                              replugged, lost, stall, resumed, device_reset, ...
+``ballbar/<m>/status``            put         ``kind: "status"`` every status interval: rates,
+                                              losses, queue depths, source state, fit latency,
+                                              and ``zenoh``: this publisher's own counters
+``ballbar/<m>/config``            put         ``kind: "config"``: the effective configuration, at
+                                              start
+``ballbar/<m>/samples``           put         ``kind: "samples"``, decimated samples (off unless
+                                              ``samples_hz`` > 0): one message per ~20 ms batch with
+                                              columns ``t_host``, ``t_device``, ``length_mm``,
+                                              ``seq``, ``status``; the first sample of each
+                                              1/``samples_hz`` slot, unfiltered: for display only
+``ballbar/<m>/last/<topic>``      queryable   the last payload put on ``circle``, ``test``
+                                              (results), ``event``, ``status``, ``config``; no
+                                              reply when there is none yet. ``last/*`` gives all.
+``ballbar/<m>/history/test``      queryable   results kept by the daemon, one reply:
+``ballbar/<m>/history/circle``                ``{"kind": "history", "topic", "machine_id",
+                                              "count", "more", "results": [...]}``, oldest first.
+                                              Parameters (``;``-separated; ``&`` accepted):
+                                              ``since=<ISO 8601 or Unix seconds>`` (exclusive,
+                                              compared with ``t_wall``), ``limit=N`` (default 100,
+                                              at most 1000). Without ``since``: the newest
+                                              ``limit``. With it: the oldest ``limit`` after it;
+                                              ``more: true`` means ask again with ``since`` = the
+                                              last ``t_wall`` received.
+``ballbar/<m>/alive``             liveliness  a token while the daemon runs: withdrawn at once on
+                                              a clean stop or a crash, after the lease (10 s) when
+                                              the host vanishes
+================================  ==========  ====================================================
+
+A late joiner subscribes first, then asks ``history`` (``since`` its last
+result), and drops live results it already had (same ``kind``, ``test_id``,
+``t_wall``, ``direction``): ``python -m ballbar.tools.subscribe --history``
+does exactly that.
+
+Delivery
+--------
+Results, events and the configuration are put with ``CongestionControl.BLOCK``
+at ``Priority.DATA_HIGH``: a subscriber that is slow for a moment still gets
+every one.  A subscriber that stops reading (a frozen process) can then hold
+one put, once its backlog fills Zenoh's queue, for Zenoh's
+``transport/link/tx/queue/congestion_control/block/wait_before_close`` (5 s by
+default); after that Zenoh drops what that link cannot take without waiting
+again, until it drains.  Other subscribers get every result meanwhile (after
+the one pause), and the bus's queue (``drop_oldest``) absorbs the pause:
+sampling never waits.  The frozen subscriber stays connected and, once it
+reads again, receives live results again; those it missed are in ``history``.
+Status and samples are best effort (``DROP``, priorities ``DATA`` and
+``DATA_LOW``): the next one supersedes.
+
+The history is the daemon's own: a bounded in-memory record of the results
+that went through :meth:`ZenohBus.on_message`, seeded at start by an optional
+``history_loader`` (results persisted before a restart, e.g. read back from the
+MCAP recordings; each a result message, oldest first).
+
+Connection
+----------
+:class:`ZenohConfig` passes the Zenoh settings through.  With no config file
+the default is a **peer listening on tcp/127.0.0.1:7447**, multicast scouting
+off and shared memory off: nothing goes to the LAN, no router is needed, and
+``python -m ballbar.tools.subscribe`` (a client of tcp/127.0.0.1:7447 by
+default) finds it.  To serve the plant, listen on a routable address
+(``listen = ["tcp/0.0.0.0:7447"]``) and let services connect, or make the
+daemon a ``client`` of the plant's router (``connect = ["tcp/ROUTER:7447"]``).
+A peer that only connects to a router without a listener of its own is not
+routed to other peers: give it a listener or use ``client``.  A Zenoh config
+file (JSON5; TLS, access control) is the base; fields set here override it.
+
+If the session cannot be opened (the router is down, the port is taken), the
+bus logs one line, keeps results for ``last`` and ``history`` and retries in the
+background: the daemon keeps measuring and recording.  :meth:`ZenohBus.stop`
+withdraws the liveliness token first (immediate, even with a frozen peer), then
+closes the session within ``close_timeout_s``; a close that Zenoh cannot finish
+(a frozen peer with a backlog holds it ~10 s) is left to end in the background.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import json
+import logging
+import math
+import re
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from ballbar.analysis.errors import BallbarError
+
+from ballbar import SCHEMA_VERSION
+
+from .listeners import Listener, Message
+from .samples import SampleBatch
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 7447
+DEFAULT_LISTEN = (f"tcp/127.0.0.1:{DEFAULT_PORT}",)
+DEFAULT_CONNECT = (f"tcp/127.0.0.1:{DEFAULT_PORT}",)  # where tools look for a local daemon
+MODES = ("peer", "client", "router")
+#: Topics published, by message kind.
+TOPICS: dict[str, str] = {
+    "circle": "result/circle",
+    "test": "result/test",
+    "event": "event",
+    "status": "status",
+    "config": "config",
+    "samples": "samples",
+}
+LAST_TOPICS = ("circle", "test", "event", "status", "config")
+HISTORY_TOPICS = ("circle", "test")
+HISTORY_LIMIT = 100
+HISTORY_LIMIT_MAX = 1000
+_RELIABLE = ("circle", "test", "event", "config")
+_BAD_CHUNK = re.compile(r"[/*$?#\s]")
+
+
+class BusError(BallbarError, ConnectionError):
+    """The Zenoh session could not be opened or used."""
+
+
+class BusConfigError(BallbarError, ValueError):
+    """A Zenoh setting is invalid: the message names the key."""
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+def zenoh_message(err: BaseException) -> str:
+    """A Zenoh error as one line: the inner message, without the Rust source location."""
+    text = str(err)
+    m = re.search(r'msg: "((?:[^"\\]|\\.)*)"', text)
+    if m:
+        text = m.group(1).replace('\\"', '"')
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", text)
+    text = re.sub(r"\s+", " ", text).strip()
+    return text.rstrip(".!").strip() or type(err).__name__
+
+
+@dataclass
+class ZenohConfig:
+    """Zenoh settings, passed through to :class:`zenoh.Config`.
+
+    ``None`` means "not set": the config file's value if there is a file, else
+    the loopback default (``peer``; listen on ``tcp/127.0.0.1:7447`` for a peer
+    or router, nothing for a client; connect nowhere; multicast scouting off;
+    shared memory off).  ``options`` are any other Zenoh keys, as paths
+    (``"transport/link/tx/lease": 5000``), applied last.
+    """
+
+    mode: str | None = None
+    listen: list[str] | None = None
+    connect: list[str] | None = None
+    config_file: str | None = None
+    multicast_scouting: bool | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def to_zenoh_config(self) -> zenoh.Config:
+        """The :class:`zenoh.Config`; a bad value raises :class:`BusConfigError` naming its key."""
+        if self.mode is not None and self.mode not in MODES:
+            raise BusConfigError(f"zenoh mode: {self.mode!r} is not one of {', '.join(MODES)}")
+        for name in ("listen", "connect"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, str) or not all(isinstance(v, str) for v in value)):
+                raise BusConfigError(
+                    f"zenoh {name}: expected a list of endpoints such as ['tcp/127.0.0.1:7447'], not {value!r}"
+                )
+        if self.config_file:
+            path = Path(self.config_file)
+            if not path.is_file():
+                raise BusConfigError(f"zenoh config_file: {self.config_file}: no such file")
+            try:
+                cfg = zenoh.Config.from_file(str(path))
+            except zenoh.ZError as err:
+                raise BusConfigError(f"zenoh config_file: {self.config_file}: {zenoh_message(err)}") from err
+        else:
+            cfg = zenoh.Config()
+            mode = self.mode or "peer"
+            _insert(cfg, "mode", mode, "mode")
+            _insert(cfg, "listen/endpoints", [] if mode == "client" else list(DEFAULT_LISTEN), "listen")
+            _insert(cfg, "connect/endpoints", [], "connect")
+            _insert(cfg, "scouting/multicast/enabled", False, "multicast_scouting")
+            # Small JSON payloads gain nothing from it, and each session would keep /dev/shm segments.
+            _insert(cfg, "transport/shared_memory/enabled", False, "transport/shared_memory/enabled")
+        if self.mode is not None:
+            _insert(cfg, "mode", self.mode, "mode")
+        if self.listen is not None:
+            _insert(cfg, "listen/endpoints", list(self.listen), "listen")
+        if self.connect is not None:
+            _insert(cfg, "connect/endpoints", list(self.connect), "connect")
+        if self.multicast_scouting is not None:
+            _insert(cfg, "scouting/multicast/enabled", bool(self.multicast_scouting), "multicast_scouting")
+        for key, value in self.options.items():
+            _insert(cfg, key, value, key)
+        return cfg
+
+    def describe(self) -> str:
+        """One line for the log: where the session listens and connects."""
+        cfg = self.to_zenoh_config()
+        mode = json.loads(cfg.get_json("mode") or "null") or "peer"
+        listen = _endpoints(cfg.get_json("listen/endpoints"), mode)
+        connect = _endpoints(cfg.get_json("connect/endpoints"), mode)
+        scouting = json.loads(cfg.get_json("scouting/multicast/enabled") or "null")
+        return (
+            f"{mode}, listen {', '.join(listen) or '-'}, connect {', '.join(connect) or '-'}, "
+            f"multicast scouting {'off' if scouting is False else 'on'}"
+            + (f", file {self.config_file}" if self.config_file else "")
+        )
+
+
+def _endpoints(text: str, mode: str) -> list[str]:
+    value = json.loads(text) if text else []
+    if isinstance(value, dict):  # per-mode lists
+        value = value.get(mode) or []
+    return [str(v) for v in value or []]
+
+
+def _insert(cfg: zenoh.Config, key: str, value: Any, name: str) -> None:
+    try:
+        text = json.dumps(value)
+    except (TypeError, ValueError) as err:
+        raise BusConfigError(f"zenoh {name}: {value!r} is not a JSON value") from err
+    try:
+        cfg.insert_json5(key, text)
+    except zenoh.ZError as err:
+        raise BusConfigError(f"zenoh {name}: {text}: {zenoh_message(err)}") from err
+
+
+def check_machine(machine: str) -> str:
+    """``machine`` as a key chunk, or :class:`BusConfigError`."""
+    if not machine or _BAD_CHUNK.search(machine):
+        raise BusConfigError(f"machine_id: {machine!r} must be a non-empty key chunk without / * $ ? # or spaces")
+    return machine
+
+
+# --------------------------------------------------------------------------- JSON and time
+
+
+def utc_now() -> str:
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def parse_time_us(value: str | float | int) -> int:
+    """Microseconds since the Unix epoch from Unix seconds or ISO 8601 (naive means UTC)."""
+    if isinstance(value, int | float):
+        if not math.isfinite(value):
+            raise ValueError(f"{value!r} is not a time")
+        return round(float(value) * 1e6)
+    text = value.strip()
+    try:
+        return round(float(text) * 1e6)
+    except ValueError:
+        pass
+    try:
+        t = dt.datetime.fromisoformat(text)
+    except ValueError as err:
+        raise ValueError(f"{text!r} is neither ISO 8601 nor Unix seconds") from err
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.UTC)
+    return (t - dt.datetime(1970, 1, 1, tzinfo=dt.UTC)) // dt.timedelta(microseconds=1)
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Mapping):
+        return dict(obj)
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    return str(obj)
+
+
+def _finite(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Mapping):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _finite(obj.item())
+    return obj
+
+
+def dumps(msg: Any) -> bytes:
+    """Compact, strict JSON: NaN and infinities become ``null``, numpy values plain numbers."""
+    try:
+        text = json.dumps(msg, separators=(",", ":"), allow_nan=False, default=_default)
+    except ValueError:
+        text = json.dumps(_finite(msg), separators=(",", ":"), allow_nan=False, default=_default)
+    return text.encode()
+
+
+def _params(query: zenoh.Query) -> dict[str, str]:
+    """Selector parameters; Zenoh separates them with ``;``, a URL habit with ``&``: both work."""
+    out: dict[str, str] = {}
+    for part in re.split(r"[;&]", str(query.parameters)):
+        if part:
+            k, _, v = part.partition("=")
+            out[k.strip()] = v.strip()
+    return out
+
+
+# --------------------------------------------------------------------------- the bus
+
+
+@dataclass
+class _Counters:
+    published: dict[str, int] = field(default_factory=dict)
+    put_errors: int = 0
+    not_connected: int = 0
+    slow_puts: int = 0
+    max_put_ms: float = 0.0
+    queries: int = 0
+    query_errors: int = 0
+    skipped: int = 0
+
+
+class ZenohBus(Listener):
+    """Publishes messages under ``ballbar/<machine>/``; answers ``last`` and ``history``.
+
+    The session opens in the constructor (a bad setting raises
+    :class:`BusConfigError`; a session that cannot open is retried in the
+    background).  ``on_message`` and ``on_batch`` never raise for bus trouble:
+    it is counted (``stats()``, and ``zenoh`` in the published status).
+    """
+
+    name = "zenoh"
+
+    def __init__(
+        self,
+        machine: str,
+        config: ZenohConfig | None = None,
+        *,
+        samples_hz: float = 0.0,
+        history_size: int = 500,
+        history_loader: Callable[[], Iterable[Message]] | None = None,
+        close_timeout_s: float = 2.0,
+        slow_put_s: float = 0.1,
+    ) -> None:
+        self.machine = check_machine(machine)
+        self.config = config or ZenohConfig()
+        self._zconfig = self.config.to_zenoh_config()  # raises BusConfigError before anything opens
+        if samples_hz < 0 or not math.isfinite(samples_hz):
+            raise BusConfigError(f"zenoh samples_hz: {samples_hz!r} must be 0 (off) or a positive rate")
+        if history_size < 1:
+            raise BusConfigError(f"zenoh history_size: {history_size!r} must be at least 1")
+        self.samples_hz = float(samples_hz)
+        self.close_timeout_s = close_timeout_s
+        self.slow_put_s = slow_put_s
+        self.prefix = f"ballbar/{self.machine}"
+        self._lock = threading.Lock()
+        self._last: dict[str, bytes] = {}
+        self._history: dict[str, deque[tuple[int, bytes]]] = {k: deque(maxlen=history_size) for k in HISTORY_TOPICS}
+        self._counters = _Counters(published=dict.fromkeys(TOPICS.values(), 0))
+        self._warned_kinds: set[str] = set()
+        self._last_slot = -(2**62)
+        self._session: zenoh.Session | None = None
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._keep: list[Any] = []  # queryables and the liveliness token, alive while the session is
+        self._token: zenoh.LivelinessToken | None = None
+        self._open_error: str | None = None
+        self._stopping = threading.Event()
+        self._closed = threading.Event()
+        self._opener: threading.Thread | None = None
+        self._closer: threading.Thread | None = None
+        if history_loader is not None:
+            self._load_history(history_loader)
+        try:
+            self._open()
+        except BusError as err:
+            self._open_error = str(err)
+            log.warning("%s; retrying in the background", err)
+            self._opener = threading.Thread(target=self._retry_open, name=f"zenoh-open-{machine}", daemon=True)
+            self._opener.start()
+
+    @classmethod
+    def from_config(cls, cfg: Any, history_loader: Callable[[], Iterable[Message]] | None = None) -> ZenohBus:
+        """From the daemon's configuration: ``cfg.daemon.machine_id`` and the ``[zenoh]`` section.
+
+        Empty ``listen``, ``connect`` and ``config_file`` mean "not set" (the
+        defaults above); ``options``, ``history_size`` and ``close_timeout_s``
+        are read when the section has them.
+        """
+        z = cfg.zenoh
+        zc = ZenohConfig(
+            mode=getattr(z, "mode", None) or None,
+            listen=list(getattr(z, "listen", None) or []) or None,
+            connect=list(getattr(z, "connect", None) or []) or None,
+            config_file=getattr(z, "config_file", None) or None,
+            multicast_scouting=getattr(z, "multicast_scouting", None),
+            options=dict(getattr(z, "options", None) or {}),
+        )
+        return cls(
+            cfg.daemon.machine_id,
+            zc,
+            samples_hz=float(getattr(z, "samples_hz", 0.0) or 0.0),
+            history_size=int(getattr(z, "history_size", 500)),
+            close_timeout_s=float(getattr(z, "close_timeout_s", 2.0)),
+            history_loader=history_loader,
+        )
+
+    # ------------------------------------------------------------------ session
+
+    def _open(self) -> None:
+        try:
+            session = zenoh.open(self._zconfig)
+        except zenoh.ZError as err:
+            raise BusError(f"zenoh: cannot open a session ({self.config.describe()}): {zenoh_message(err)}") from err
+        try:
+            pubs: dict[str, zenoh.Publisher] = {}
+            for kind, topic in TOPICS.items():
+                if kind == "samples" and not self.samples_hz:
+                    continue
+                reliable = kind in _RELIABLE
+                pubs[kind] = session.declare_publisher(
+                    f"{self.prefix}/{topic}",
+                    encoding=zenoh.Encoding.APPLICATION_JSON,
+                    congestion_control=zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP,
+                    priority=(
+                        zenoh.Priority.DATA_HIGH
+                        if reliable
+                        else zenoh.Priority.DATA_LOW
+                        if kind == "samples"
+                        else zenoh.Priority.DATA
+                    ),
+                )
+            keep: list[Any] = [
+                session.declare_queryable(f"{self.prefix}/last/*", self._on_last, complete=True),
+                session.declare_queryable(f"{self.prefix}/history/*", self._on_history, complete=True),
+            ]
+            token = session.liveliness().declare_token(f"{self.prefix}/alive")
+        except zenoh.ZError as err:
+            with contextlib.suppress(zenoh.ZError):
+                session.close()
+            raise BusError(f"zenoh: cannot declare {self.prefix}/...: {zenoh_message(err)}") from err
+        with self._lock:
+            if self._stopping.is_set():
+                stale = True
+            else:
+                stale = False
+                self._session, self._publishers, self._keep, self._token = session, pubs, keep, token
+                self._open_error = None
+        if stale:
+            with contextlib.suppress(zenoh.ZError):
+                session.close()
+            return
+        log.info("zenoh: publishing under %s/ (%s)", self.prefix, self.config.describe())
+        last = self._last.get("config")
+        if last is not None:  # the configuration went out before the session was up
+            self._put("config", last)
+
+    def _retry_open(self) -> None:
+        delay = 0.5
+        while not self._stopping.wait(delay):
+            try:
+                self._open()
+                return
+            except BusError as err:
+                if str(err) != self._open_error:
+                    log.warning("%s; still retrying", err)
+                self._open_error = str(err)
+                delay = min(delay * 2, 30.0)
+
+    @property
+    def connected(self) -> bool:
+        """Whether the session is open (not whether anyone listens)."""
+        return self._session is not None
+
+    def has_subscribers(self, kind: str) -> bool:
+        """Whether a subscriber matches the topic of message ``kind`` (``circle``, ``test``, ...)."""
+        pub = self._publishers.get(kind)
+        if pub is None:
+            return False
+        try:
+            status: Any = pub.matching_status
+        except zenoh.ZError:
+            return False
+        return bool(getattr(status, "matching", status))  # a MatchingStatus, though the stub says bool
+
+    # ------------------------------------------------------------------ listener
+
+    def on_message(self, msg: Message) -> None:
+        kind = str(msg.get("kind", ""))
+        if kind not in TOPICS or kind == "samples":
+            self._counters.skipped += 1
+            if kind not in self._warned_kinds:
+                self._warned_kinds.add(kind)
+                log.warning("zenoh: no topic for messages of kind %r; not published", kind)
+            return
+        body = dict(msg)
+        body.setdefault("schema_version", SCHEMA_VERSION)
+        body.setdefault("machine_id", self.machine)
+        if not isinstance(body.get("t_wall"), str):
+            body["t_wall"] = utc_now()
+        if kind == "status":
+            body.setdefault("zenoh", self.stats())
+        payload = dumps(body)
+        with self._lock:
+            self._last[kind] = payload
+            if kind in self._history:
+                self._history[kind].append((_record_time(body), payload))
+        self._put(kind, payload)
+
+    def on_batch(self, batch: SampleBatch) -> None:
+        if not self.samples_hz or len(batch) == 0 or "samples" not in self._publishers:
+            return
+        t = batch.t_host
+        slot = np.floor(t * self.samples_hz).astype(np.int64)
+        before = np.maximum.accumulate(np.concatenate(([self._last_slot], slot[:-1])))
+        keep = np.flatnonzero(slot > before)
+        self._last_slot = max(self._last_slot, int(slot.max()))
+        if keep.size == 0:
+            return
+        body = {
+            "schema_version": SCHEMA_VERSION,
+            "kind": "samples",
+            "machine_id": self.machine,
+            "t_wall": utc_now(),
+            "source": batch.source,
+            "samples_hz": self.samples_hz,
+            "t_host": batch.t_host[keep],
+            "t_device": batch.t_device[keep],
+            "length_mm": batch.length_mm[keep],
+            "seq": batch.seq[keep],
+            "status": batch.status[keep],
+        }
+        self._put("samples", dumps(_finite(body)))
+
+    def _put(self, kind: str, payload: bytes) -> None:
+        pub = self._publishers.get(kind)
+        if pub is None:
+            self._counters.not_connected += 1
+            return
+        t0 = time.monotonic()
+        try:
+            pub.put(payload)
+        except zenoh.ZError as err:
+            c = self._counters
+            c.put_errors += 1
+            if c.put_errors == 1 or c.put_errors % 100 == 0:
+                log.warning("zenoh: put on %s failed (%d so far): %s", TOPICS[kind], c.put_errors, zenoh_message(err))
+            return
+        took = time.monotonic() - t0
+        c = self._counters
+        c.published[TOPICS[kind]] += 1
+        c.max_put_ms = max(c.max_put_ms, took * 1000.0)
+        if took > self.slow_put_s:
+            c.slow_puts += 1
+            log.warning("zenoh: a put on %s took %.2f s (a subscriber is not reading)", TOPICS[kind], took)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the status: connection, peers, what went out, what could not."""
+        c = self._counters
+        out: dict[str, Any] = {
+            "connected": self._session is not None,
+            "open_error": self._open_error,
+            "published": dict(c.published),
+            "put_errors": c.put_errors,
+            "not_connected": c.not_connected,
+            "slow_puts": c.slow_puts,
+            "max_put_ms": round(c.max_put_ms, 3),
+            "queries": c.queries,
+            "query_errors": c.query_errors,
+            "skipped": c.skipped,
+            "history": {k: len(v) for k, v in self._history.items()},
+        }
+        session = self._session
+        if session is not None:
+            with contextlib.suppress(zenoh.ZError):
+                info = session.info
+                out["zid"] = str(info.zid())
+                links = {"peer": 0, "client": 0, "router": 0}  # sessions connected to this one, by kind
+                for tr in info.transports():
+                    what = str(tr.whatami).lower()
+                    links[what] = links.get(what, 0) + 1
+                out["links"] = links
+        return out
+
+    # ------------------------------------------------------------------ queryables
+
+    def _on_last(self, query: zenoh.Query) -> None:
+        self._counters.queries += 1
+        try:
+            for kind in LAST_TOPICS:
+                key = f"{self.prefix}/last/{kind}"
+                if not query.key_expr.intersects(key):
+                    continue
+                with self._lock:
+                    payload = self._last.get(kind)
+                if payload is not None:
+                    query.reply(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+        except zenoh.ZError as err:  # the querier went away, or we are closing
+            self._counters.query_errors += 1
+            log.debug("zenoh: reply to %s failed: %s", query.selector, zenoh_message(err))
+
+    def _on_history(self, query: zenoh.Query) -> None:
+        self._counters.queries += 1
+        try:
+            try:
+                since_us, limit = self._history_params(_params(query))
+            except ValueError as err:
+                self._counters.query_errors += 1
+                query.reply_err(
+                    dumps({"schema_version": SCHEMA_VERSION, "kind": "error", "error": str(err)}),
+                    encoding=zenoh.Encoding.APPLICATION_JSON,
+                )
+                return
+            for kind in HISTORY_TOPICS:
+                key = f"{self.prefix}/history/{kind}"
+                if query.key_expr.intersects(key):
+                    query.reply(
+                        key, self.history_payload(kind, since_us, limit), encoding=zenoh.Encoding.APPLICATION_JSON
+                    )
+        except zenoh.ZError as err:
+            self._counters.query_errors += 1
+            log.debug("zenoh: reply to %s failed: %s", query.selector, zenoh_message(err))
+
+    @staticmethod
+    def _history_params(params: Mapping[str, str]) -> tuple[int | None, int]:
+        unknown = sorted(set(params) - {"since", "limit"})
+        if unknown:
+            raise ValueError(f"history: unknown parameter {unknown[0]!r} (since, limit)")
+        since = params.get("since") or None
+        since_us = None
+        if since is not None:
+            try:
+                since_us = parse_time_us(since)
+            except ValueError as err:
+                raise ValueError(f"history: since: {err}") from err
+        limit_text = params.get("limit") or str(HISTORY_LIMIT)
+        try:
+            limit = int(limit_text)
+        except ValueError:
+            raise ValueError(f"history: limit: {limit_text!r} is not a whole number") from None
+        if not 1 <= limit <= HISTORY_LIMIT_MAX:
+            raise ValueError(f"history: limit: {limit} is not between 1 and {HISTORY_LIMIT_MAX}")
+        return since_us, limit
+
+    def history_payload(self, kind: str, since_us: int | None = None, limit: int = HISTORY_LIMIT) -> bytes:
+        """The ``history/<kind>`` reply: results after ``since_us``, oldest first (see the module doc)."""
+        with self._lock:
+            records = list(self._history[kind])
+        if since_us is None:
+            chosen, more = records[-limit:], len(records) > limit
+        else:
+            after = [r for r in records if r[0] > since_us]
+            chosen, more = after[:limit], len(after) > limit
+        head = dumps(
+            {
+                "schema_version": SCHEMA_VERSION,
+                "kind": "history",
+                "topic": kind,
+                "machine_id": self.machine,
+                "count": len(chosen),
+                "more": more,
+            }
+        )
+        return head[:-1] + b',"results":[' + b",".join(p for _, p in chosen) + b"]}"
+
+    def _load_history(self, loader: Callable[[], Iterable[Message]]) -> None:
+        t0 = time.monotonic()
+        n = 0
+        try:
+            for msg in loader():
+                kind = msg.get("kind")
+                if kind not in self._history:
+                    continue
+                body = dict(msg)
+                body.setdefault("schema_version", SCHEMA_VERSION)
+                body.setdefault("machine_id", self.machine)
+                payload = dumps(body)
+                self._history[kind].append((_record_time(body), payload))
+                n += 1
+        except Exception as err:  # a damaged recording must not keep the bus from starting
+            log.warning("zenoh: history loader failed after %d results: %s", n, err)
+        for dq in self._history.values():  # keep it ordered by time, whatever the loader's order
+            ordered = sorted(dq, key=lambda r: r[0])
+            dq.clear()
+            dq.extend(ordered)
+        for kind, dq in self._history.items():
+            if dq:
+                self._last[kind] = dq[-1][1]
+        log.info("zenoh: history seeded with %d results in %.2f s", n, time.monotonic() - t0)
+
+    # ------------------------------------------------------------------ stop
+
+    def stop(self) -> None:
+        """Withdraw the token, close the session within ``close_timeout_s``; safe to call twice."""
+        self._stopping.set()
+        if self._opener is not None:
+            self._opener.join(min(0.5, self.close_timeout_s))  # it only waits on _stopping, or is mid-open
+        with self._lock:
+            session, token = self._session, self._token
+            self._session, self._token = None, None
+            self._publishers = {}
+            self._keep = []
+        if session is None:
+            self._closed.set()
+            return
+        if token is not None:
+            try:
+                token.undeclare()  # first: healthy peers see the daemon go even if the close hangs
+            except zenoh.ZError as err:
+                log.debug("zenoh: undeclaring the liveliness token: %s", zenoh_message(err))
+        t0 = time.monotonic()
+        self._closer = threading.Thread(
+            target=self._close, args=(session,), name=f"zenoh-close-{self.machine}", daemon=True
+        )
+        self._closer.start()
+        self._closer.join(self.close_timeout_s)
+        if self._closer.is_alive():
+            log.warning(
+                "zenoh: the session did not close within %.1f s (a peer is not reading); "
+                "leaving it to finish in the background",
+                self.close_timeout_s,
+            )
+        else:
+            log.debug("zenoh: session closed in %.3f s", time.monotonic() - t0)
+
+    def _close(self, session: zenoh.Session) -> None:
+        t0 = time.monotonic()
+        try:
+            session.close()
+        except zenoh.ZError as err:
+            log.warning("zenoh: closing the session after %.1f s: %s", time.monotonic() - t0, zenoh_message(err))
+        finally:
+            self._closed.set()
+
+    def wait_closed(self, timeout: float | None = None) -> bool:
+        """Wait for a close left in the background by :meth:`stop`; True once it is done."""
+        return self._closed.wait(timeout)
+
+
+def _record_time(body: Mapping[str, Any]) -> int:
+    t = body.get("t_wall")
+    if isinstance(t, str | int | float):
+        with contextlib.suppress(ValueError):
+            return parse_time_us(t)
+    return parse_time_us(time.time())
+
+
+__all__ = [
+    "DEFAULT_CONNECT",
+    "DEFAULT_LISTEN",
+    "HISTORY_LIMIT",
+    "HISTORY_LIMIT_MAX",
+    "SCHEMA_VERSION",
+    "TOPICS",
+    "BusConfigError",
+    "BusError",
+    "ZenohBus",
+    "ZenohConfig",
+    "check_machine",
+    "dumps",
+    "parse_time_us",
+    "zenoh_message",
+]
