@@ -1,0 +1,277 @@
+"""Print what ballbar daemons publish on Zenoh, one JSON object per line.
+
+::
+
+    python -m ballbar.tools.subscribe                      # every machine's results, as they come
+    python -m ballbar.tools.subscribe --machine mill-3 --history --topic result --topic event
+    python -m ballbar.tools.subscribe --connect tcp/10.0.0.5:7447 --topic all
+
+Each line is a payload exactly as published (``kind`` says what it is;
+``machine_id`` whose).  With ``--history`` the results the daemons still hold
+come first (oldest first, ``--since`` bounding them), then live ones, without
+duplicates: the pattern for a plant service that starts late.  ``--alive``
+adds a line ``{"kind": "alive", "machine_id": ..., "alive": true|false}`` when
+a daemon appears or goes.
+
+By default the tool is a Zenoh client of ``tcp/127.0.0.1:7447``, where a
+daemon with the default settings listens.  Exit codes: 0 done (SIGINT, SIGTERM,
+``--count`` reached, or ``--timeout`` without ``--count``); 1 no connection, or
+``--timeout`` before ``--count`` lines; 2 a usage error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from types import FrameType
+from typing import Any
+
+import zenoh
+from ballbar.daemon.bus import (
+    DEFAULT_CONNECT,
+    HISTORY_LIMIT_MAX,
+    HISTORY_TOPICS,
+    BusConfigError,
+    ZenohConfig,
+    parse_time_us,
+    zenoh_message,
+)
+
+log = logging.getLogger("ballbar.subscribe")
+
+TOPIC_KEYS = {
+    "result": ("result/*",),
+    "circle": ("result/circle",),
+    "test": ("result/test",),
+    "event": ("event",),
+    "status": ("status",),
+    "config": ("config",),
+    "samples": ("samples",),
+    "all": ("**",),
+}
+HISTORY_FOR = {"result": HISTORY_TOPICS, "circle": ("circle",), "test": ("test",), "all": HISTORY_TOPICS}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="ballbar-subscribe", description="Print what ballbar daemons publish, one JSON object a line.")
+    p.add_argument("--machine", default="*", help="machine_id to follow (default: * = every machine)")
+    p.add_argument(
+        "--topic",
+        action="append",
+        choices=sorted(TOPIC_KEYS),
+        help="what to print (repeatable; default: result = circle and test results)",
+    )
+    p.add_argument("--history", action="store_true", help="first the results the daemons still hold")
+    p.add_argument("--since", help="with --history: only results after this time (ISO 8601 or Unix seconds)")
+    p.add_argument("--limit", type=int, default=HISTORY_LIMIT_MAX, help="with --history: at most this many per topic")
+    p.add_argument("--alive", action="store_true", help="also print daemons appearing and going (liveliness)")
+    p.add_argument("--mode", choices=("client", "peer"), default="client", help="Zenoh mode (default: client)")
+    p.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"Zenoh endpoint to connect to (repeatable; default {DEFAULT_CONNECT[0]})",
+    )
+    p.add_argument("--listen", action="append", metavar="ENDPOINT", help="Zenoh endpoint to listen on (peer mode)")
+    p.add_argument("--config", metavar="FILE", help="a Zenoh JSON5 config file (TLS, access control)")
+    p.add_argument("--count", type=int, help="exit after printing this many lines")
+    p.add_argument("--timeout", type=float, help="exit after this many seconds")
+    p.add_argument("--query-timeout", type=float, default=5.0, help="seconds to wait for history replies")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more logging on stderr")
+    return p
+
+
+def _identity(obj: dict[str, Any]) -> tuple[Any, ...]:
+    return (obj.get("kind"), obj.get("machine_id"), obj.get("test_id"), obj.get("t_wall"), obj.get("direction"))
+
+
+class _Printer:
+    def __init__(self, count: int | None) -> None:
+        self.count = count
+        self.printed = 0
+        self.seen: set[tuple[Any, ...]] = set()
+
+    def emit(self, obj: dict[str, Any], dedupe: bool = False) -> bool:
+        """Print one line; False once ``count`` lines are out."""
+        if dedupe:
+            ident = _identity(obj)
+            if ident in self.seen:
+                return True
+            self.seen.add(ident)
+        sys.stdout.write(json.dumps(obj, separators=(",", ":")) + "\n")
+        sys.stdout.flush()
+        self.printed += 1
+        return self.count is None or self.printed < self.count
+
+
+def _history(
+    session: zenoh.Session, machine: str, kinds: Sequence[str], since: str | None, limit: int, timeout: float
+) -> list[dict[str, Any]]:
+    """The results the daemons hold, oldest first: the newest ``limit`` per machine and topic, or,
+    with ``since``, up to ``limit`` after it, asking page after page while a daemon says ``more``."""
+    out: list[dict[str, Any]] = []
+    answered = False
+    for kind in kinds:
+        todo: list[tuple[str, str | None]] = [(machine, since)]
+        got: dict[str, int] = {}
+        while todo:
+            m, start = todo.pop()
+            params = f"limit={min(limit, HISTORY_LIMIT_MAX)}" + (f";since={start}" if start else "")
+            for reply in session.get(f"ballbar/{m}/history/{kind}?{params}", timeout=timeout):
+                if reply.ok is None:
+                    err = reply.err
+                    log.warning("history %s: %s", kind, err.payload.to_string() if err is not None else "no reply")
+                    continue
+                answered = True
+                doc = json.loads(reply.ok.payload.to_bytes())
+                who = str(doc.get("machine_id", m))
+                results = list(doc.get("results") or [])[: limit - got.get(who, 0)]
+                got[who] = got.get(who, 0) + len(results)
+                out.extend(results)
+                if start is not None and doc.get("more") and results and got[who] < limit:
+                    todo.append((who, str(results[-1]["t_wall"])))
+    if not answered:
+        log.warning("no daemon answered on ballbar/%s/history", machine)
+    out.sort(key=lambda r: _time_key(r.get("t_wall")))
+    return out
+
+
+def _time_key(t: Any) -> int:
+    try:
+        return parse_time_us(t) if isinstance(t, str | int | float) else 0
+    except ValueError:
+        return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(args.verbose, 2), stream=sys.stderr, format="%(name)s: %(message)s"
+    )
+    if args.count is not None and args.count < 1:
+        print("ballbar-subscribe: --count must be at least 1", file=sys.stderr)
+        return 2
+    if args.limit < 1:
+        print("ballbar-subscribe: --limit must be at least 1", file=sys.stderr)
+        return 2
+    if args.since:
+        try:
+            parse_time_us(args.since)
+        except ValueError as err:
+            print(f"ballbar-subscribe: --since: {err}", file=sys.stderr)
+            return 2
+    topics = args.topic or ["result"]
+    zc = ZenohConfig(
+        mode=args.mode,
+        connect=args.connect if args.connect else (None if args.config else list(DEFAULT_CONNECT)),
+        listen=args.listen if args.listen else ([] if args.mode == "peer" and not args.config else None),
+        config_file=args.config,
+    )
+    try:
+        session = zenoh.open(zc.to_zenoh_config())
+    except BusConfigError as err:
+        print(f"ballbar-subscribe: {err}", file=sys.stderr)
+        return 2
+    except zenoh.ZError as err:
+        print(f"ballbar-subscribe: cannot connect ({zc.describe()}): {zenoh_message(err)}", file=sys.stderr)
+        return 1
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    inbox: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        try:
+            obj = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            log.warning("%s: not JSON (%d bytes)", sample.key_expr, len(sample.payload))
+            return
+        inbox.put(obj if isinstance(obj, dict) else {"key": str(sample.key_expr), "value": obj})
+
+    def on_alive(sample: zenoh.Sample) -> None:
+        parts = str(sample.key_expr).split("/")
+        inbox.put(
+            {
+                "kind": "alive",
+                "machine_id": parts[1] if len(parts) > 2 else str(sample.key_expr),
+                "alive": sample.kind == zenoh.SampleKind.PUT,
+            }
+        )
+
+    code = 0
+    printer = _Printer(args.count)
+    deadline = time.monotonic() + args.timeout if args.timeout is not None else None
+    try:
+        keys = sorted({k for t in topics for k in TOPIC_KEYS[t]})
+        subs = [session.declare_subscriber(f"ballbar/{args.machine}/{k}", on_sample) for k in keys]
+        if args.alive:
+            subs.append(
+                session.liveliness().declare_subscriber(f"ballbar/{args.machine}/alive", on_alive, history=True)
+            )
+        going = True
+        dedupe = False
+        if args.history:
+            kinds = sorted({k for t in topics for k in HISTORY_FOR.get(t, ())})
+            for obj in _history(session, args.machine, kinds, args.since, args.limit, args.query_timeout):
+                dedupe = True
+                going = printer.emit(obj, dedupe=True)
+                if not going or stop.is_set():
+                    break
+        while going and not stop.is_set():
+            wait = 0.1
+            if deadline is not None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                wait = min(wait, left)
+            try:
+                obj = inbox.get(timeout=wait)
+            except queue.Empty:
+                continue
+            going = printer.emit(obj, dedupe=dedupe and obj.get("kind") in HISTORY_TOPICS)
+        if args.count is not None and printer.printed < args.count and not stop.is_set():
+            log.warning("%d of %d lines before the timeout", printer.printed, args.count)
+            code = 1
+        log.debug("%d subscriptions, %d lines", len(subs), printer.printed)
+    except BrokenPipeError:  # piped into head: the reader is done; keep the interpreter's exit quiet
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    finally:
+        _close(session)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    return code
+
+
+def _close(session: zenoh.Session, timeout: float = 2.0) -> None:
+    """Close, but never hang on a peer that stopped reading (then the process exit ends it)."""
+
+    def run() -> None:
+        with contextlib.suppress(zenoh.ZError):
+            session.close()
+
+    th = threading.Thread(target=run, name="zenoh-close", daemon=True)
+    th.start()
+    th.join(timeout)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
