@@ -1,4 +1,4 @@
-"""Reading recordings: CSV now, the daemon's MCAP logs once they exist.
+"""Reading recordings: CSV, and the daemon's MCAP logs (:mod:`.mcap_log`).
 
 CSV format: a header line naming at least the columns ``t_s`` (seconds, any
 origin, increasing) and ``length_mm`` (absolute bar length in millimetres), then
@@ -110,8 +110,17 @@ def _raise_bad_line(name: str, lines: list[str], header_at: int, ncols: int, use
 
 
 def read_recording(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
-    """``(t_s, length_mm)`` of a recording, by its file type."""
+    """``(t_s, length_mm)`` of a recording, by its file type.
+
+    ``.mcap``: the daemon's log (:func:`ballbar.daemon.mcap_log.read_mcap`: the
+    device clock where the samples have one, else the host's; samples flagged
+    over range or sensor fault left out; a killed writer's file up to its last
+    whole chunk).  A directory holding ``.mcap`` files: those files joined, in
+    the order of their names.  Anything else: CSV.
+    """
     name = os.fspath(path)
-    if name.lower().endswith(".mcap"):
-        raise DataError(f"{name}: MCAP recordings are read once the daemon's logger exists; use CSV")
+    if name.lower().endswith(".mcap") or (os.path.isdir(name) and any(Path(name).glob("*.mcap"))):
+        from .mcap_log import read_mcap  # imported here: reading CSV needs no MCAP machinery
+
+        return read_mcap(name)
     return read_csv(name)

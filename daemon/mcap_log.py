@@ -1,0 +1,1344 @@
+"""The daemon's MCAP log: every sample, event, result, status and the configuration.
+
+:class:`McapLogger` is the listener (name ``"mcap"``) that writes them;
+:func:`read_mcap` and :func:`read_log` read them back, also from files whose
+writer was killed.  Any MCAP reader opens the files (Foxglove, the ``mcap``
+CLI, the ``mcap`` Python and npm packages): every channel is JSON
+(``message_encoding = "json"``) with a JSON Schema (``encoding = "jsonschema"``).
+
+Files
+-----
+``STATE_DIR/recordings/<machine>_<UTC start, YYYYmmddTHHMMSSZ>_<seq>.mcap``; the
+names sort in time order.  A file starts with a metadata record ``ballbar``
+(``format`` = ``ballbar-mcap/1``, ``machine_id``, ``host_clock_offset_ns``,
+``created_utc``, ``reason`` = start, test, size, age or recovery, ``software``).
+A new file begins at each test (the analysis's ``feed_in`` event), when a file
+reaches ``rotate_bytes`` or ``rotate_s``, and after a write error.  Size and
+age rotations wait for a test in progress to end (up to twice the limit), so
+that a test is never split.  The per-test file first repeats the last
+``preroll_s`` seconds of samples (flagged ``preroll``) since the feed-in was
+recognised a little after it happened: a test's file holds the whole test, and
+``ballbar analyze FILE`` finds it as the file's first test.  Retention runs at
+each new file and every minute: the oldest files go while the directory holds
+more than ``quota_bytes``, and every file last written more than ``keep_days``
+ago; the open file never goes, nor files not named like the logger's.
+
+Channels
+--------
+All times are integer nanoseconds.  ``log_time`` is host wall-clock time (Unix
+epoch, UTC): the host's monotonic clock plus ``host_clock_offset_ns``, measured
+once when the logger starts, so that wall-clock steps (NTP) never reorder
+samples.  ``publish_time`` is the wall-clock time the record was written.
+
+``/ballbar/samples`` (schema ``ballbar.Samples``): the samples, one message per
+flush (about ``flush_s`` of them), columns delta-encoded as JSON integer arrays::
+
+    {"source": "serial:/dev/ttyUSB0", "count": n, "preroll": false,
+     "seq_first": 1000, "seq_delta": [1, 1, ...],                       # n - 1 each
+     "t_host_first": {"sec": 1767225600, "nsec": 5000}, "t_host_delta_ns": [1000013, ...],
+     "t_device_first": {"sec": 12, "nsec": 0}, "t_device_delta_ns": [1000000, ...],
+     "length_first_pm": 100001234567, "length_delta_pm": [-120, 87, ...],
+     "length_missing": [],                                              # sample indices
+     "status": [0, 0, ...]}                                             # n
+
+    value[0] = *_first, value[i] = value[i-1] + *_delta[i-1]
+
+``seq``: the source's sample number.  ``t_host``: when the sample was taken,
+on the host's clock (wall-clock ns, see above).  ``t_device``: the device's
+sample clock, ns, or ``null`` (both fields) where the source has none.
+``length``: the absolute bar length in picometres (1e-9 mm); indices in
+``length_missing`` had no number (NaN: a sensor fault) and hold the previous
+value as a placeholder.  ``status``: :class:`ballbar.protocol.Status` bits
+(1 over range, 2 sensor fault: not measurements; 128 simulated).
+``preroll``: samples repeated at the head of a per-test file; the previous file
+ended with them.  ``log_time`` is the first sample's host time.  Times and
+lengths are stored to 1 ns and 1 pm, the resolution of the CSV format; read
+back, each value is the stored integer divided by 1e9 (a correctly rounded
+double), the same number the CSV would give.
+
+``/ballbar/events`` (``ballbar.Event``): ``{"event": NAME, "t_host": s, ...}``;
+a source's events (``opened``, ``unplugged``, ``replugged``, ``lost`` with
+``count`` and ``seq``, ``decode_errors`` with ``counts``, ``stall``,
+``resumed``, ``device_reset``, ``end``; the fields of
+:meth:`~ballbar.daemon.samples.SourceEvent.to_dict`) and the pipeline's
+(``feed_in``, ``feed_out``, ``circle_done``, ``test_rejected``,
+``test_incomplete``, ...), plus the logger's own ``log_gap``: ``count`` samples
+that could not be written over ``gap_s`` seconds, ``detail`` the error.
+``t_host`` is the host's monotonic clock in seconds (``log_time`` is the same
+instant on the wall clock).
+
+``/ballbar/results`` (``ballbar.Result``): the analysis results, ``kind`` =
+``circle`` or ``test``, as ``ballbar analyze --json`` prints them plus
+``machine_id``, ``test_id``, ``t_host``, ``last_sample_t``.
+
+``/ballbar/status`` (``ballbar.Status``): the daemon's status messages
+(``kind`` = ``status``: rates, losses, queue depths, source state).
+
+``/ballbar/config`` (``ballbar.Config``): the effective configuration
+(``kind`` = ``config``), at start and again at the head of every new file.
+
+``/ballbar/other`` (``ballbar.Message``): any other message kind, as it came.
+
+Crash safety
+------------
+Chunks are zstd-compressed and closed (``Writer.flush``) at most ``flush_s``
+(0.5 s) after the first record in them was handed over, by a small flush thread
+whatever the caller does; the kernel then has them, so a killed daemon
+(``kill -9``) loses at most the last ``flush_s`` (not a power cut: files are
+fsync'ed only when closed).  :func:`read_log` reads such a file up to its last
+whole chunk.  ``stop()`` (SIGTERM) writes the footer and indexes.
+
+Write errors
+------------
+A full disk (``ENOSPC``) or any other ``OSError`` on write: one ``ERROR`` log
+line, the file is dropped (what reached it stays readable; an empty one is
+deleted), its unwritten samples and all that follow are counted as lost, and
+a new file is tried after a backoff (``retry_min_s`` doubling to
+``retry_max_s``).  The first file that works again starts with a ``log_gap``
+event and a ``WARNING`` log line.  Nothing is raised into the pipeline.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import logging
+import math
+import os
+import re
+import struct
+import threading
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import zstandard
+from ballbar.analysis.errors import BallbarError, DataError
+from ballbar.protocol import INVALID
+from mcap.exceptions import McapError
+from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+from numpy.typing import NDArray
+
+from ballbar import __version__
+
+from .listeners import Listener
+from .listeners import Message as ListenerMessage
+from .samples import SampleBatch, SourceEvent
+
+log = logging.getLogger(__name__)
+
+FORMAT = "ballbar-mcap/1"
+METADATA_NAME = "ballbar"
+RECORDINGS = "recordings"
+
+TOPIC_SAMPLES = "/ballbar/samples"
+TOPIC_EVENTS = "/ballbar/events"
+TOPIC_RESULTS = "/ballbar/results"
+TOPIC_STATUS = "/ballbar/status"
+TOPIC_CONFIG = "/ballbar/config"
+TOPIC_OTHER = "/ballbar/other"
+
+NS = 1_000_000_000
+PM_PER_MM = 1_000_000_000
+MAX_BLOCK = 1 << 16  # samples per message at most
+MAX_ABS_LENGTH_MM = 1.0e6  # beyond this a length is stored as missing (it would overflow the integers' exactness)
+RETENTION_EVERY_S = 60.0
+_MAGIC = b"\x89MCAP0\r\n"
+_NAME_RE = re.compile(r"^(?P<machine>.+)_(?P<ts>\d{8}T\d{6}Z)_(?P<seq>\d+)\.mcap$")
+
+
+class LogConfigError(BallbarError, ValueError):
+    """An invalid option of the MCAP logger."""
+
+
+# ----------------------------------------------------------------------------- schemas
+
+_TIME = {
+    "type": "object",
+    "title": "time",
+    "description": "nanoseconds as {sec, nsec}; nsec in 0..999999999",
+    "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}},
+    "required": ["sec", "nsec"],
+}
+_INTS = {"type": "array", "items": {"type": "integer"}}
+
+SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
+    TOPIC_SAMPLES: (
+        "ballbar.Samples",
+        {
+            "title": "ballbar.Samples",
+            "description": (
+                "Ball-bar samples, columns delta-encoded: value[0] = X_first, value[i] = value[i-1] + "
+                "X_delta[i-1]. Lengths in picometres, times in nanoseconds (t_host: wall clock, UTC; "
+                "t_device: the device's sample clock, null when it has none)."
+            ),
+            "type": "object",
+            "properties": {
+                "source": {"type": "string", "description": "the source's URL"},
+                "count": {"type": "integer", "minimum": 1, "description": "number of samples n"},
+                "preroll": {
+                    "type": "boolean",
+                    "description": "repeated at the head of a per-test file; the previous file ended with them",
+                },
+                "seq_first": {"type": "integer", "description": "sample number of the first sample"},
+                "seq_delta": {**_INTS, "description": "n-1 steps of the sample number (>1: samples lost)"},
+                "t_host_first": {**_TIME, "description": "host wall-clock time of the first sample"},
+                "t_host_delta_ns": {**_INTS, "description": "n-1 steps of the host time, ns"},
+                "t_device_first": {"oneOf": [_TIME, {"type": "null"}], "description": "device clock"},
+                "t_device_delta_ns": {"oneOf": [_INTS, {"type": "null"}], "description": "n-1 steps, ns"},
+                "length_first_pm": {"type": "integer", "description": "absolute bar length, picometres"},
+                "length_delta_pm": {**_INTS, "description": "n-1 steps of the length, picometres"},
+                "length_missing": {**_INTS, "description": "indices of samples without a length (NaN)"},
+                "status": {**_INTS, "description": "n status bytes: 1 over range, 2 sensor fault, 128 simulated"},
+            },
+            "required": [
+                "source", "count", "seq_first", "seq_delta", "t_host_first", "t_host_delta_ns",
+                "t_device_first", "t_device_delta_ns", "length_first_pm", "length_delta_pm", "status",
+            ],
+        },
+        "ball-bar samples, delta-encoded columns; see the ballbar.Samples schema",
+    ),
+    TOPIC_EVENTS: (
+        "ballbar.Event",
+        {
+            "title": "ballbar.Event",
+            "description": "A source, pipeline or logger event.",
+            "type": "object",
+            "properties": {
+                "event": {"type": "string", "description": "what happened (unplugged, lost, feed_in, log_gap, ...)"},
+                "t_host": {"type": "number", "description": "host monotonic clock, s"},
+                "source": {"type": "string"},
+                "count": {"type": "integer", "description": "samples (lost, log_gap)"},
+                "seq": {"type": "integer", "description": "first sample number concerned"},
+                "gap_s": {"type": "number", "description": "duration of an outage or stall, s"},
+                "detail": {"type": "string"},
+                "counts": {"type": "object", "additionalProperties": {"type": "integer"}},
+            },
+            "required": ["event"],
+            "additionalProperties": True,
+        },
+        "source, pipeline and logger events",
+    ),
+    TOPIC_RESULTS: (
+        "ballbar.Result",
+        {
+            "title": "ballbar.Result",
+            "description": "An analysis result: one circle (provisional) or a whole test, as `ballbar analyze --json`.",
+            "type": "object",
+            "properties": {
+                "kind": {"type": "string", "enum": ["circle", "test"]},
+                "machine_id": {"type": "string"},
+                "test_id": {"type": ["string", "integer", "null"]},
+                "test_index": {"type": "integer"},
+                "t_host": {"type": "number", "description": "host monotonic clock, s"},
+            },
+            "required": ["kind"],
+            "additionalProperties": True,
+        },
+        "analysis results (circle, test)",
+    ),
+    TOPIC_STATUS: (
+        "ballbar.Status",
+        {
+            "title": "ballbar.Status",
+            "description": "The daemon's periodic status: rates, losses, queue depths, source state.",
+            "type": "object",
+            "properties": {"kind": {"const": "status"}},
+            "additionalProperties": True,
+        },
+        "daemon status",
+    ),
+    TOPIC_CONFIG: (
+        "ballbar.Config",
+        {
+            "title": "ballbar.Config",
+            "description": "The daemon's effective configuration.",
+            "type": "object",
+            "properties": {"kind": {"const": "config"}},
+            "additionalProperties": True,
+        },
+        "effective configuration, at start and at the head of every file",
+    ),
+    TOPIC_OTHER: (
+        "ballbar.Message",
+        {
+            "title": "ballbar.Message",
+            "description": "A pipeline message of another kind, as it came.",
+            "type": "object",
+            "properties": {"kind": {"type": "string"}},
+            "additionalProperties": True,
+        },
+        "other pipeline messages",
+    ),
+}
+
+_RESULT_KINDS = frozenset({"circle", "test"})
+_TEST_END_EVENTS = frozenset({"test_rejected", "test_incomplete", "test_aborted"})
+
+
+# ----------------------------------------------------------------------------- exact scaling
+
+
+_SPLIT = 134217729.0  # 2**27 + 1: Veltkamp's splitter for float64
+
+
+def _split(a: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    c = _SPLIT * a
+    hi = c - (c - a)
+    return hi, a - hi
+
+
+def scaled_ints(x: NDArray[np.float64], scale: int) -> NDArray[np.int64]:
+    """``round(x * scale)`` computed exactly (ties to even), as ``"%.9f" % x`` rounds for ``scale = 1e9``.
+
+    ``x * scale`` in floating point can land on the other side of a half; the
+    product's error term (Dekker's two-product) says which side is right.  Only
+    finite ``|x * scale| < 2**62`` are meaningful.
+    """
+    b = float(scale)
+    p = x * b
+    ah, al = _split(x)
+    bh, bl = _split(np.array(b))
+    err = ((ah * bh - p) + ah * bl + al * bh) + al * bl
+    r = np.rint(p)
+    # Only a product that rounded onto a half can be on the wrong side; then the error's sign decides.
+    # (An exact half, err == 0, is a true tie: rint already rounded it to even, as printf does.)
+    frac = p - r  # exact
+    r = r + ((frac == 0.5) & (err > 0)) - ((frac == -0.5) & (err < 0))
+    return r.astype(np.int64)
+
+
+def _time_obj(ns: int) -> dict[str, int]:
+    sec, nsec = divmod(int(ns), NS)
+    return {"sec": sec, "nsec": nsec}
+
+
+def _time_ns(obj: Mapping[str, Any]) -> int:
+    return int(obj["sec"]) * NS + int(obj["nsec"])
+
+
+# ----------------------------------------------------------------------------- samples records
+
+
+def encode_samples(
+    t_host_ns: NDArray[np.int64],
+    t_device_ns: NDArray[np.int64] | None,
+    length_pm: NDArray[np.int64],
+    missing: NDArray[np.intp],
+    seq: NDArray[np.int64],
+    status: NDArray[np.uint8],
+    source: str,
+    preroll: bool = False,
+) -> dict[str, Any]:
+    """One ``ballbar.Samples`` message (a dict) from integer columns; see the module docstring."""
+    n = int(t_host_ns.shape[0])
+    return {
+        "source": source,
+        "count": n,
+        "preroll": preroll,
+        "seq_first": int(seq[0]),
+        "seq_delta": np.diff(seq).tolist(),
+        "t_host_first": _time_obj(int(t_host_ns[0])),
+        "t_host_delta_ns": np.diff(t_host_ns).tolist(),
+        "t_device_first": None if t_device_ns is None else _time_obj(int(t_device_ns[0])),
+        "t_device_delta_ns": None if t_device_ns is None else np.diff(t_device_ns).tolist(),
+        "length_first_pm": int(length_pm[0]),
+        "length_delta_pm": np.diff(length_pm).tolist(),
+        "length_missing": missing.tolist(),
+        "status": status.tolist(),
+    }
+
+
+@dataclass
+class DecodedSamples:
+    """The integer columns of one ``ballbar.Samples`` message."""
+
+    t_host_ns: NDArray[np.int64]
+    t_device_ns: NDArray[np.int64] | None
+    length_pm: NDArray[np.int64]
+    missing: NDArray[np.intp]
+    seq: NDArray[np.int64]
+    status: NDArray[np.uint8]
+    source: str
+    preroll: bool
+
+
+def _undelta(first: int, delta: Sequence[int], n: int, what: str) -> NDArray[np.int64]:
+    if len(delta) != n - 1:
+        raise ValueError(f"{what} has {len(delta)} steps for {n} samples")
+    out = np.empty(n, np.int64)
+    out[0] = first
+    if n > 1:
+        np.cumsum(np.asarray(delta, dtype=np.int64), out=out[1:])
+        out[1:] += first
+    return out
+
+
+def decode_samples(msg: Mapping[str, Any]) -> DecodedSamples:
+    """Integer columns of a ``ballbar.Samples`` message; ``ValueError``/``KeyError``/``TypeError`` if malformed."""
+    n = int(msg["count"])
+    if n < 1:
+        raise ValueError(f"count is {n}")
+    dev_first = msg.get("t_device_first")
+    status = np.asarray(msg["status"], dtype=np.int64)
+    if status.shape != (n,) or (status.size and (status.min() < 0 or status.max() > 255)):
+        raise ValueError("status is not n bytes")
+    missing = np.asarray(msg.get("length_missing") or [], dtype=np.intp)
+    if missing.size and (missing.min() < 0 or missing.max() >= n):
+        raise ValueError("length_missing index out of range")
+    return DecodedSamples(
+        t_host_ns=_undelta(_time_ns(msg["t_host_first"]), msg["t_host_delta_ns"], n, "t_host_delta_ns"),
+        t_device_ns=None
+        if dev_first is None
+        else _undelta(_time_ns(dev_first), msg["t_device_delta_ns"], n, "t_device_delta_ns"),
+        length_pm=_undelta(int(msg["length_first_pm"]), msg["length_delta_pm"], n, "length_delta_pm"),
+        missing=missing,
+        seq=_undelta(int(msg["seq_first"]), msg["seq_delta"], n, "seq_delta"),
+        status=status.astype(np.uint8),
+        source=str(msg.get("source", "")),
+        preroll=bool(msg.get("preroll", False)),
+    )
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    return str(obj)
+
+
+def _finite_only(obj: Any) -> Any:
+    """NaN and infinities as null (JSON has no such numbers)."""
+    if isinstance(obj, float | np.floating):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, Mapping):
+        return {str(k): _finite_only(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple | set | frozenset):
+        return [_finite_only(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite_only(obj.tolist())
+    return obj
+
+
+def to_json(obj: Any) -> bytes:
+    """Compact JSON; non-finite numbers become null."""
+    try:
+        text = json.dumps(obj, separators=(",", ":"), allow_nan=False, default=_json_default)
+    except ValueError:
+        text = json.dumps(_finite_only(obj), separators=(",", ":"), allow_nan=False, default=_json_default)
+    return text.encode("utf-8")
+
+
+# ----------------------------------------------------------------------------- the writer
+
+
+def _open_output(path: Path) -> IO[bytes]:
+    """A new file for writing; refuses to overwrite.  (Tests replace this to simulate a full disk.)"""
+    return open(path, "xb")
+
+
+def _safe_machine(machine_id: str) -> str:
+    s = re.sub(r"[^A-Za-z0-9.-]+", "-", machine_id).strip("-.")
+    return s or "machine"
+
+
+@dataclass
+class _LogFile:
+    path: Path
+    fh: IO[bytes]
+    writer: Writer
+    channels: dict[str, int]
+    opened: float  # host monotonic
+    reason: str
+    seqs: dict[int, int] = field(default_factory=dict)
+    samples: int = 0
+    unflushed_samples: int = 0
+    flushed_records: int = 0
+    bytes_counted: int = 0
+    first_t: float = math.nan  # host time of the first and newest sample in it
+    last_t: float = math.nan
+    has_test: bool = False
+
+    def close_quietly(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            self.fh.close()
+
+
+@dataclass
+class _Pending:
+    batches: list[SampleBatch] = field(default_factory=list)
+    n: int = 0
+
+    def clear(self) -> None:
+        self.batches.clear()
+        self.n = 0
+
+
+class McapLogger(Listener):
+    """Writes everything a pipeline delivers to rotating MCAP files; see the module docstring.
+
+    Thread-safe: the pipeline's listener thread calls ``on_*``, a small flush
+    thread (``mcap-flush``) closes chunks on time, and ``stop()`` may come from
+    any thread.  Never raises from ``on_*``: write errors are logged, counted and
+    retried (:meth:`stats`).
+    """
+
+    name = "mcap"
+
+    def __init__(
+        self,
+        state_dir: str | os.PathLike[str],
+        machine_id: str,
+        *,
+        rotate_bytes: int = 256 << 20,
+        rotate_s: float = 3600.0,
+        rotate_per_test: bool = True,
+        quota_bytes: int = 8 << 30,
+        keep_days: float = 365.0,
+        flush_s: float = 0.5,
+        chunk_size: int = 4 << 20,
+        preroll_s: float = 10.0,
+        retry_min_s: float = 1.0,
+        retry_max_s: float = 60.0,
+    ) -> None:
+        checks = [
+            (rotate_bytes >= 4096, f"rotate_bytes must be >= 4096, not {rotate_bytes!r}"),
+            (rotate_s > 0, f"rotate_s must be > 0, not {rotate_s!r}"),
+            (quota_bytes >= 2 * rotate_bytes, f"quota_bytes {quota_bytes} must be >= 2 * rotate_bytes {rotate_bytes}"),
+            (keep_days > 0, f"keep_days must be > 0, not {keep_days!r}"),
+            (0 < flush_s <= 0.9, f"flush_s must be within (0, 0.9] (1 s old samples must be on disk), not {flush_s!r}"),
+            (chunk_size >= 1024, f"chunk_size must be >= 1024, not {chunk_size!r}"),
+            (preroll_s >= 0, f"preroll_s must be >= 0, not {preroll_s!r}"),
+            (0 < retry_min_s <= retry_max_s, f"need 0 < retry_min_s <= retry_max_s, not {retry_min_s}, {retry_max_s}"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise LogConfigError(f"mcap log: {msg}")
+        self.state_dir = Path(state_dir)
+        self.directory = self.state_dir / RECORDINGS
+        self.machine_id = machine_id
+        self._machine = _safe_machine(machine_id)
+        self.rotate_bytes = int(rotate_bytes)
+        self.rotate_s = float(rotate_s)
+        self.rotate_per_test = rotate_per_test
+        self.quota_bytes = int(quota_bytes)
+        self.keep_days = float(keep_days)
+        self.flush_s = float(flush_s)
+        self.chunk_size = int(chunk_size)
+        self.preroll_s = float(preroll_s)
+        self.retry_min_s = float(retry_min_s)
+        self.retry_max_s = float(retry_max_s)
+        # Host monotonic -> wall clock, once: log times stay monotonic if the wall clock steps.
+        self.host_clock_offset_ns = time.time_ns() - time.monotonic_ns()
+
+        self._lock = threading.RLock()
+        self._file: _LogFile | None = None
+        self._pending = _Pending()
+        self._ring: deque[SampleBatch] = deque()
+        self._dirty_since: float | None = None
+        self._config: ListenerMessage | None = None
+        self._recent_events: deque[tuple[str, float, str]] = deque(maxlen=256)
+        self._in_test = False
+        self._stopped = False
+        self._file_seq = 0
+        self._last_retention = -math.inf
+        self._next_reason = "start"
+        # failures
+        self._failing = False
+        self._fail_since = 0.0
+        self._fail_lost = 0
+        self._fail_detail = ""
+        self._retry_at = -math.inf
+        self._backoff = self.retry_min_s
+        # counters
+        self._c: dict[str, int] = dict.fromkeys(
+            ("files", "bytes", "samples", "messages", "samples_lost", "messages_lost", "write_errors",
+             "deleted_files", "deleted_bytes", "encode_errors"),
+            0,
+        )
+        self._last_error = ""
+
+        self._wake = threading.Event()
+        self._thread = threading.Thread(target=self._flusher, name="mcap-flush", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ Listener
+
+    def on_batch(self, batch: SampleBatch) -> None:
+        with self._lock:
+            if self._stopped:
+                return
+            now = time.monotonic()
+            n = len(batch)
+            if n:
+                self._remember(batch)
+            if not self._ensure_file(now):
+                self._lose(n)
+                self._c["messages_lost"] += len(batch.events)
+                return
+            for ev in batch.events:
+                d = self._event_dict(ev)
+                self._recent_events.append((d["event"], round(ev.t_host, 6), ev.source))
+                self._write(TOPIC_EVENTS, d, self._wall_ns(ev.t_host))
+            if n:
+                self._pending.batches.append(batch)
+                self._pending.n += n
+                self._mark_dirty(now)
+                if self._pending.n >= MAX_BLOCK:
+                    self._write_pending()
+            self._tick(now)
+
+    def on_message(self, msg: ListenerMessage) -> None:
+        with self._lock:
+            if self._stopped:
+                return
+            now = time.monotonic()
+            kind = str(msg.get("kind", ""))
+            if kind == "event":
+                self._on_event_message(msg, now)
+            elif not self._ensure_file(now):
+                self._c["messages_lost"] += 1
+            else:
+                topic = {
+                    "circle": TOPIC_RESULTS, "test": TOPIC_RESULTS, "status": TOPIC_STATUS, "config": TOPIC_CONFIG,
+                }.get(kind, TOPIC_OTHER)
+                self._write(topic, msg, self._msg_time_ns(msg))
+                if kind == "test":
+                    self._in_test = False
+            if kind == "config":  # after the write: a file opened for it must not repeat it
+                self._config = msg
+            self._tick(now)
+
+    def on_idle(self) -> None:
+        with self._lock:
+            if not self._stopped:
+                self._tick(time.monotonic())
+
+    def flush(self) -> None:
+        """Write what is pending and close the chunk now."""
+        with self._lock:
+            if self._file is not None and not self._stopped:
+                self._flush_file()
+
+    def stop(self) -> None:
+        """Write what is pending, finish the file (footer, indexes), stop the flush thread.  Idempotent."""
+        with self._lock:
+            if self._stopped:
+                return
+            self._stopped = True
+            if self._file is not None:
+                self._close_file()
+            if self._pending.n:  # no file could take them
+                self._lose_pending()
+            self._ring.clear()
+        self._wake.set()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(5.0)
+        c = self._c
+        log.info(
+            "mcap log stopped: %d files, %d samples, %d messages, %d bytes written; %d samples lost",
+            c["files"], c["samples"], c["messages"], c["bytes"], c["samples_lost"],
+        )
+
+    # ------------------------------------------------------------------ inspection
+
+    @property
+    def current_path(self) -> Path | None:
+        with self._lock:
+            return self._file.path if self._file is not None else None
+
+    def stats(self) -> dict[str, Any]:
+        """Counters and state, JSON-ready (for the status message)."""
+        with self._lock:
+            state = "stopped" if self._stopped else "failed" if self._failing else "writing" if self._file else "idle"
+            return {
+                **self._c,
+                "state": state,
+                "file": str(self._file.path) if self._file else None,
+                "pending_samples": self._pending.n,
+                "last_error": self._last_error,
+            }
+
+    # ------------------------------------------------------------------ internals: timing
+
+    def _flusher(self) -> None:
+        tick = min(0.05, self.flush_s / 5.0)
+        while not self._wake.wait(tick):
+            try:
+                with self._lock:
+                    if self._stopped:
+                        return
+                    self._tick(time.monotonic())
+            except Exception:  # the flush thread must outlive any surprise
+                log.exception("mcap log: flush thread error")
+
+    def _mark_dirty(self, now: float) -> None:
+        if self._dirty_since is None:
+            self._dirty_since = now
+
+    def _tick(self, now: float) -> None:
+        f = self._file
+        if f is not None and self._dirty_since is not None and now - self._dirty_since >= self.flush_s:
+            self._flush_file()
+            f = self._file
+        if f is not None and now - f.opened >= self.rotate_s * (2.0 if self._in_test else 1.0):
+            self._rotate("age", now)
+        if now - self._last_retention >= RETENTION_EVERY_S:
+            self._retention(now)
+
+    def _wall_ns(self, t_host: float) -> int:
+        return self.host_clock_offset_ns + round(t_host * 1e9)
+
+    def _msg_time_ns(self, msg: Mapping[str, Any]) -> int:
+        t = msg.get("t_host")
+        if isinstance(t, int | float) and not isinstance(t, bool) and math.isfinite(t):
+            return self._wall_ns(float(t))
+        return self._wall_ns(time.monotonic())
+
+    def _remember(self, batch: SampleBatch) -> None:
+        """Keep the last ``preroll_s`` of samples for the head of a per-test file."""
+        if not (self.rotate_per_test and self.preroll_s > 0):
+            return
+        self._ring.append(batch)
+        newest = float(batch.t_host[-1])
+        while self._ring and float(self._ring[0].t_host[-1]) < newest - self.preroll_s:
+            self._ring.popleft()
+
+    # ------------------------------------------------------------------ internals: events and rotation
+
+    @staticmethod
+    def _event_dict(ev: SourceEvent) -> dict[str, Any]:
+        d = ev.to_dict()
+        name = d.pop("kind")
+        return {"event": name, **d}
+
+    def _on_event_message(self, msg: ListenerMessage, now: float) -> None:
+        d = {k: v for k, v in msg.items() if k != "kind"}
+        name = str(d.get("event", ""))
+        d["event"] = name
+        t = d.get("t_host")
+        if isinstance(t, int | float) and (name, round(float(t), 6), str(d.get("source", ""))) in self._recent_events:
+            return  # a source event the pipeline forwarded: already written from its batch
+        if name == "feed_in":
+            self._test_started(now)
+        if not self._ensure_file(now):
+            self._c["messages_lost"] += 1
+            return
+        self._write(TOPIC_EVENTS, d, self._msg_time_ns(d))
+        if name == "feed_in" and self._file is not None:
+            self._file.has_test = True
+        if name in _TEST_END_EVENTS:
+            self._in_test = False
+
+    def _test_started(self, now: float) -> None:
+        f = self._file
+        if f is not None and self.rotate_per_test:
+            span = f.last_t - f.first_t if f.samples else 0.0
+            if f.has_test or span > self.preroll_s:
+                self._rotate("test", now)
+                self._write_preroll()
+        self._in_test = True
+
+    def _write_preroll(self) -> None:
+        if self._file is None or not self._ring:
+            return
+        for b in list(self._ring):
+            self._write_samples([b], preroll=True)
+            if self._file is None:
+                return
+        self._mark_dirty(time.monotonic())
+
+    def _rotate(self, reason: str, now: float) -> None:
+        if self._file is not None:
+            log.info("mcap log: rotating %s (%s)", self._file.path.name, reason)
+            self._close_file()
+        self._next_reason = reason
+        self._ensure_file(now)
+
+    # ------------------------------------------------------------------ internals: files
+
+    def _ensure_file(self, now: float) -> bool:
+        if self._file is not None:
+            return True
+        if self._stopped or now < self._retry_at:
+            return False
+        return self._open_file(now)
+
+    def _new_path(self) -> Path:
+        ts = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        prefix = f"{self._machine}_{ts}_"
+        taken = [int(m["seq"]) for p in self.directory.glob(f"{prefix}*.mcap") if (m := _NAME_RE.match(p.name))]
+        self._file_seq = max([self._file_seq, *taken]) + 1
+        return self.directory / f"{prefix}{self._file_seq:04d}.mcap"
+
+    def _open_file(self, now: float) -> bool:
+        path: Path | None = None
+        fh: IO[bytes] | None = None
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            path = self._new_path()
+            fh = _open_output(path)
+            writer = Writer(fh, chunk_size=self.chunk_size, compression=CompressionType.ZSTD)
+            writer.start(profile="", library=f"ballbar {__version__}")
+            writer.add_metadata(
+                METADATA_NAME,
+                {
+                    "format": FORMAT,
+                    "machine_id": self.machine_id,
+                    "host_clock_offset_ns": str(self.host_clock_offset_ns),
+                    "created_utc": datetime.now(UTC).isoformat(timespec="milliseconds"),
+                    "reason": "recovery" if self._failing else self._next_reason,
+                    "software": f"ballbar {__version__}",
+                },
+            )
+            channels: dict[str, int] = {}
+            for topic, (schema_name, schema, description) in SCHEMAS.items():
+                sid = writer.register_schema(schema_name, "jsonschema", to_json(schema))
+                channels[topic] = writer.register_channel(topic, "json", sid, {"description": description})
+        except OSError as err:
+            if fh is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    fh.close()
+            self._failed(err, path, delete=path if fh is not None else None, now=now)
+            return False
+        self._file = _LogFile(path, fh, writer, channels, now, self._next_reason)
+        self._c["files"] += 1
+        self._next_reason = "recovery"  # a file opened other than by _rotate follows a write error
+        # At the file's own start: an old log_time would stretch the file's time range to the daemon's start.
+        if self._config is not None:
+            self._write(TOPIC_CONFIG, self._config, self._wall_ns(now))
+        if self._failing:
+            gap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
+                   "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
+            self._write(TOPIC_EVENTS, gap, self._wall_ns(now))
+        if self._file is not None:
+            self._flush_file()  # proves the disk takes data again, and makes the head readable at once
+        if self._file is None:
+            return False
+        if self._failing:
+            log.warning(
+                "mcap log: writing again to %s after %.1f s; %d samples could not be logged",
+                path.name, now - self._fail_since, self._fail_lost,
+            )
+            self._failing = False
+            self._backoff = self.retry_min_s
+        log.info("mcap log: writing %s", path)
+        self._retention(now)
+        return True
+
+    def _close_file(self) -> None:
+        f = self._file
+        assert f is not None
+        self._write_pending()
+        if self._file is None:
+            return
+        try:
+            f.writer.finish()
+            f.fh.flush()
+            os.fsync(f.fh.fileno())
+            size = f.fh.tell()
+            f.fh.close()
+        except OSError as err:
+            self._failed(err, f.path)
+            return
+        except ValueError as err:  # a file object closed under us: treat as a write error
+            self._failed(OSError(errno.EIO, str(err)), f.path)
+            return
+        self._c["bytes"] += size - f.bytes_counted
+        self._file = None
+        self._dirty_since = None
+
+    def _flush_file(self) -> None:
+        f = self._file
+        if f is None:
+            return
+        self._write_pending()
+        if self._file is None:
+            return
+        try:
+            f.writer.flush()
+            size = f.fh.tell()
+        except OSError as err:
+            self._failed(err, f.path)
+            return
+        self._c["bytes"] += size - f.bytes_counted
+        f.bytes_counted = size
+        f.unflushed_samples = 0
+        f.flushed_records += 1
+        self._dirty_since = None
+        if size >= self.rotate_bytes * (2 if self._in_test else 1):
+            self._rotate("size", time.monotonic())
+
+    def _write(self, topic: str, payload: Mapping[str, Any], log_time: int) -> None:
+        """One message on ``topic``; an encoding problem drops the message, a write error the file."""
+        f = self._file
+        if f is None:
+            self._c["messages_lost"] += 1
+            return
+        try:
+            data = to_json(payload)
+        except (TypeError, ValueError, RecursionError) as err:
+            self._c["encode_errors"] += 1
+            log.error("mcap log: cannot encode a message for %s (dropped): %s", topic, err)
+            return
+        ch = f.channels[topic]
+        seq = f.seqs.get(ch, 0)
+        f.seqs[ch] = seq + 1
+        try:
+            f.writer.add_message(ch, log_time=max(0, log_time), data=data, publish_time=time.time_ns(), sequence=seq)
+        except OSError as err:
+            self._failed(err, f.path)
+            self._c["messages_lost"] += 1
+            return
+        self._c["messages"] += 1
+        self._mark_dirty(time.monotonic())
+
+    def _write_pending(self) -> None:
+        if not self._pending.n:
+            return
+        batches = list(self._pending.batches)
+        self._pending.clear()
+        self._write_samples(batches, preroll=False)
+
+    def _write_samples(self, batches: list[SampleBatch], preroll: bool) -> None:
+        """Samples as ``ballbar.Samples`` messages: split where the source or the device clock's presence changes.
+
+        On a write error the samples of this call not yet written are counted lost (preroll copies are not:
+        the previous file has them).
+        """
+        total = sum(len(b) for b in batches)
+        done = 0
+        for source, b in _runs(batches):
+            f = self._file
+            if f is None:
+                break
+            th = b.t_host
+            ok = np.isfinite(th)
+            if not ok.all():
+                bad = int((~ok).sum())
+                log.warning("mcap log: %d samples without a host time dropped", bad)
+                if not preroll:
+                    self._c["samples_lost"] += bad
+                done += bad
+                b = _take(b, ok)
+                th = b.t_host
+                if not len(b):
+                    continue
+            L = b.length_mm
+            finite = np.isfinite(L) & (np.abs(np.where(np.isfinite(L), L, 0.0)) < MAX_ABS_LENGTH_MM)
+            missing = np.flatnonzero(~finite)
+            if missing.size:  # placeholder: the previous finite value (0 before the first)
+                idx = np.where(finite, np.arange(L.size), 0)
+                np.maximum.accumulate(idx, out=idx)
+                L = np.where(finite[idx], L[idx], 0.0)
+            length_pm = scaled_ints(L, PM_PER_MM)
+            t_host_ns = scaled_ints(th, NS) + self.host_clock_offset_ns
+            td = b.t_device
+            t_device_ns = scaled_ints(td, NS) if np.isfinite(td[0]) else None
+            for i in range(0, len(b), MAX_BLOCK):
+                j = min(i + MAX_BLOCK, len(b))
+                m = missing[(missing >= i) & (missing < j)] - i
+                msg = encode_samples(
+                    t_host_ns[i:j], None if t_device_ns is None else t_device_ns[i:j], length_pm[i:j], m,
+                    b.seq[i:j], b.status[i:j], source, preroll,
+                )
+                self._write(TOPIC_SAMPLES, msg, int(t_host_ns[i]))
+                if self._file is None:
+                    break
+                done += j - i
+                if not preroll:
+                    f.samples += j - i
+                    f.unflushed_samples += j - i
+                    self._c["samples"] += j - i
+                    if math.isnan(f.first_t):
+                        f.first_t = float(th[i])
+                    f.last_t = float(th[j - 1])
+        if done < total and not preroll:
+            self._lose(total - done)
+
+    def _lose(self, n: int) -> None:
+        self._c["samples_lost"] += n
+        self._fail_lost += n
+
+    def _lose_pending(self) -> None:
+        self._lose(self._pending.n)
+        self._pending.clear()
+
+    def _failed(self, err: OSError, path: Path | None, *, delete: Path | None = None, now: float | None = None) -> None:
+        """A write error: drop the file, count what it did not get, retry later."""
+        now = time.monotonic() if now is None else now
+        f = self._file
+        lost = self._pending.n + (f.unflushed_samples if f is not None else 0)
+        self._pending.clear()
+        self._c["write_errors"] += 1
+        self._c["samples"] -= f.unflushed_samples if f is not None else 0
+        detail = f"{err.strerror or err}" + (f" (errno {err.errno})" if err.errno else "")
+        self._last_error = f"{path.name if path else self.directory}: {detail}"
+        if not self._failing:
+            self._failing = True
+            self._fail_since = now
+            self._fail_lost = 0
+            self._fail_detail = detail
+            log.error(
+                "mcap log: cannot write %s: %s; dropping the file and logging nothing until writes work "
+                "again (retrying in %.0f s)",
+                path or self.directory, detail, self._backoff,
+            )
+        else:
+            log.debug("mcap log: still cannot write %s: %s", path or self.directory, detail)
+        self._lose(lost)
+        if f is not None:
+            f.close_quietly()
+            if f.flushed_records <= 1:  # at most the head (metadata, config): nothing worth keeping
+                delete = f.path
+        self._file = None
+        self._dirty_since = None
+        if delete is not None:
+            with contextlib.suppress(OSError):
+                delete.unlink()
+        self._retry_at = now + self._backoff
+        self._backoff = min(self._backoff * 2.0, self.retry_max_s)
+
+    # ------------------------------------------------------------------ retention
+
+    def _retention(self, now: float) -> None:
+        self._last_retention = now
+        current = self._file.path if self._file is not None else None
+        try:
+            files = list_recordings(self.directory)
+        except OSError as err:
+            log.warning("mcap log: cannot list %s for retention: %s", self.directory, err.strerror or err)
+            return
+        sizes: dict[Path, int] = {}
+        mtimes: dict[Path, float] = {}
+        for p in files:
+            try:
+                st = p.stat()
+            except OSError:
+                continue
+            sizes[p], mtimes[p] = st.st_size, st.st_mtime
+        total = sum(sizes.values())
+        cutoff = time.time() - self.keep_days * 86400.0
+        for p in sizes:
+            if p == current:
+                continue
+            old = mtimes[p] < cutoff
+            if not (old or total > self.quota_bytes):
+                continue
+            try:
+                p.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as err:
+                log.warning("mcap log: cannot delete %s: %s", p.name, err.strerror or err)
+                continue
+            total -= sizes[p]
+            self._c["deleted_files"] += 1
+            self._c["deleted_bytes"] += sizes[p]
+            log.info("mcap log: deleted %s (%s)", p.name, "older than keep_days" if old else "over quota")
+
+
+def _runs(batches: Sequence[SampleBatch]) -> Iterator[tuple[str, SampleBatch]]:
+    """Consecutive samples with one source and one device-clock presence, as single batches."""
+    parts: list[tuple[str, bool, SampleBatch]] = []
+    for b in batches:
+        if not len(b):
+            continue
+        has = np.isfinite(b.t_device)
+        cuts = np.flatnonzero(np.diff(has.astype(np.int8))) + 1
+        for piece in np.split(np.arange(len(b)), cuts):
+            sub = b if piece.size == len(b) else _take(b, piece)
+            key = bool(has[piece[0]])
+            if parts and parts[-1][0] == b.source and parts[-1][1] == key:
+                prev = parts[-1][2]
+                parts[-1] = (b.source, key, SampleBatch.concat([prev, sub]))
+            else:
+                parts.append((b.source, key, sub))
+    for source, _key, b in parts:
+        yield source, b
+
+
+def _take(b: SampleBatch, index: Any) -> SampleBatch:
+    return SampleBatch(
+        b.t_host[index], b.t_device[index], b.length_mm[index], b.seq[index], b.status[index], (), b.source
+    )
+
+
+def list_recordings(directory: str | os.PathLike[str]) -> list[Path]:
+    """The logger's files in ``directory``, oldest first (by the UTC time and number in their names)."""
+    d = Path(directory)
+    found = []
+    for p in d.iterdir():
+        m = _NAME_RE.match(p.name)
+        if m and p.is_file():
+            found.append((m["ts"], int(m["seq"]), p.name, p))
+    return [p for *_k, p in sorted(found)]
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+@dataclass
+class McapLog:
+    """What a log file (or several) holds.
+
+    ``samples``: every sample in file order (valid or not), ``t_host`` on the
+    writer's monotonic clock in seconds (wall time minus the file's
+    ``host_clock_offset_ns``).  ``t_wall_ns``: the same instants on the wall
+    clock.  ``preroll``: samples repeated at the head of a per-test file.
+    ``complete``: every file ended with its footer; ``problem``: why reading
+    stopped early ("" if it did not).
+    """
+
+    paths: list[str]
+    samples: SampleBatch
+    t_wall_ns: NDArray[np.int64]
+    preroll: NDArray[np.bool_]
+    events: list[dict[str, Any]] = field(default_factory=list)
+    results: list[dict[str, Any]] = field(default_factory=list)
+    status: list[dict[str, Any]] = field(default_factory=list)
+    config: list[dict[str, Any]] = field(default_factory=list)
+    other: list[dict[str, Any]] = field(default_factory=list)
+    metadata: dict[str, str] = field(default_factory=dict)
+    complete: bool = True
+    problem: str = ""
+
+    def time_axis(self) -> tuple[NDArray[np.float64], str]:
+        """The analysis time axis of the valid samples: ``(t_s, "device" | "host")``.
+
+        The device clock where every valid sample has one and it runs forward
+        (it is evenly spaced and free of host latency); else the host's
+        monotonic clock, the time the live pipeline used for such a source.
+        """
+        valid = self.samples.valid
+        td = self.samples.t_device[valid]
+        if td.size and np.isfinite(td).all() and bool(np.all(np.diff(td) > 0)):
+            return td, "device"
+        return self.samples.t_host[valid], "host"
+
+
+_TOPIC_LISTS = {TOPIC_EVENTS: "events", TOPIC_RESULTS: "results", TOPIC_STATUS: "status",
+                TOPIC_CONFIG: "config", TOPIC_OTHER: "other"}
+
+
+def _read_one(path: str) -> McapLog:
+    name = path
+    try:
+        fh = open(name, "rb")  # noqa: SIM115 - closed below
+    except FileNotFoundError:
+        raise DataError(f"{name}: no such file") from None
+    except IsADirectoryError:
+        raise DataError(f"{name}: is a directory, not a recording") from None
+    except OSError as err:
+        raise DataError(f"{name}: cannot read: {err.strerror or err}") from err
+    with fh:
+        head = fh.read(len(_MAGIC))
+        if head != _MAGIC:
+            what = "empty file" if not head else "not an MCAP file (no MCAP magic at the start)"
+            raise DataError(f"{name}: {what}")
+        fh.seek(0)
+        return _parse(name, fh)
+
+
+def _parse(name: str, fh: IO[bytes]) -> McapLog:
+    channels: dict[int, str] = {}
+    lists: dict[str, list[dict[str, Any]]] = {k: [] for k in _TOPIC_LISTS.values()}
+    meta: dict[str, str] = {}
+    decoded: list[DecodedSamples] = []
+    complete = False
+    problem = ""
+    n_msg = 0
+    reader = StreamReader(fh, record_size_limit=1 << 30)
+    try:
+        for rec in reader.records:
+            if isinstance(rec, Channel):
+                channels[rec.id] = rec.topic
+            elif isinstance(rec, Metadata) and rec.name == METADATA_NAME:
+                meta = dict(rec.metadata)
+            elif isinstance(rec, Message):
+                n_msg += 1
+                topic = channels.get(rec.channel_id)
+                if topic is None:
+                    raise DataError(f"{name}: message {n_msg} is on channel {rec.channel_id}, never declared")
+                if topic == TOPIC_SAMPLES:
+                    try:
+                        decoded.append(decode_samples(json.loads(rec.data)))
+                    except (ValueError, KeyError, TypeError, OverflowError) as err:
+                        raise DataError(
+                            f"{name}: message {n_msg} on {TOPIC_SAMPLES} is not a ballbar.Samples record: {err}"
+                        ) from None
+                elif topic in _TOPIC_LISTS:
+                    try:
+                        obj = json.loads(rec.data)
+                    except ValueError:
+                        continue  # a bad side record does not hide the samples
+                    if isinstance(obj, dict):
+                        lists[_TOPIC_LISTS[topic]].append(obj)
+            elif isinstance(rec, Footer):
+                complete = True
+            elif isinstance(rec, Schema | Chunk):
+                pass
+    except (McapError, struct.error, ValueError, EOFError, MemoryError, zstandard.ZstdError) as err:
+        # A killed writer leaves a partial record: a short read, a torn zstd frame, a bad length.
+        detail = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+        problem = f"ends early after {sum(d.seq.size for d in decoded)} samples ({detail})"
+    if meta and not meta.get("format", "").startswith("ballbar-mcap/1"):
+        raise DataError(f"{name}: format {meta.get('format')!r} is not one this version reads (ballbar-mcap/1)")
+    offset = int(meta.get("host_clock_offset_ns", "0") or 0)
+    log_ = _assemble([name], decoded, offset)
+    log_.metadata = meta
+    log_.complete = complete
+    log_.problem = problem
+    for k, v in lists.items():
+        setattr(log_, k, v)
+    return log_
+
+
+def _assemble(paths: list[str], decoded: list[DecodedSamples], offset_ns: int) -> McapLog:
+    if not decoded:
+        empty = SampleBatch.empty()
+        return McapLog(paths, empty, np.empty(0, np.int64), np.empty(0, bool))
+    wall = np.concatenate([d.t_host_ns for d in decoded])
+    t_host = (wall - offset_ns) / 1e9
+    t_dev = np.concatenate([
+        d.t_device_ns / 1e9 if d.t_device_ns is not None else np.full(d.seq.size, np.nan) for d in decoded
+    ])
+    length = np.concatenate([d.length_pm / 1e9 for d in decoded])
+    base = 0
+    for d in decoded:
+        if d.missing.size:
+            length[base + d.missing] = np.nan
+        base += d.seq.size
+    batch = SampleBatch.from_columns(
+        t_host, t_dev, length,
+        np.concatenate([d.seq for d in decoded]),
+        np.concatenate([d.status for d in decoded]),
+        source=decoded[0].source,
+    )
+    pre = np.concatenate([np.full(d.seq.size, d.preroll) for d in decoded])
+    return McapLog(paths, batch, wall, pre)
+
+
+def read_log(path: str | os.PathLike[str]) -> McapLog:
+    """Everything in one log file; a truncated file (killed writer) is read up to its last whole chunk.
+
+    Raises :class:`DataError` (one line, naming the file) when the file is
+    missing, not MCAP, or holds a malformed samples record.
+    """
+    out = _read_one(os.fspath(path))
+    if out.problem:
+        log.warning("%s: %s; the writer was probably killed", os.fspath(path), out.problem)
+    return out
+
+
+def read_logs(paths: Iterable[str | os.PathLike[str]]) -> McapLog:
+    """Several files in the given order, joined; preroll samples already in the file before are dropped."""
+    parts = [read_log(p) for p in paths]
+    if not parts:
+        raise DataError("no MCAP files given")
+    keep_batches: list[SampleBatch] = []
+    walls: list[NDArray[np.int64]] = []
+    pres: list[NDArray[np.bool_]] = []
+    last_wall: int | None = None
+    for p in parts:
+        s, wall, pre = p.samples, p.t_wall_ns, p.preroll
+        if last_wall is not None and pre.any():
+            keep = ~(pre & (wall <= last_wall))
+            s, wall, pre = _take(s, keep), wall[keep], pre[keep]
+        if wall.size:
+            last_wall = int(wall.max()) if last_wall is None else max(last_wall, int(wall.max()))
+        keep_batches.append(s)
+        walls.append(wall)
+        pres.append(pre)
+    out = McapLog(
+        [q for p in parts for q in p.paths],
+        SampleBatch.concat(keep_batches),
+        np.concatenate(walls),
+        np.concatenate(pres),
+        complete=all(p.complete for p in parts),
+        problem="; ".join(f"{p.paths[0]}: {p.problem}" for p in parts if p.problem),
+        metadata=parts[0].metadata,
+    )
+    for k in _TOPIC_LISTS.values():
+        setattr(out, k, [x for p in parts for x in getattr(p, k)])
+    return out
+
+
+def read_mcap(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(t_s, length_mm)`` of the valid samples of a log file, or of a directory of them joined.
+
+    ``t_s``: :meth:`McapLog.time_axis` (device clock where present, else host
+    monotonic clock), seconds.  Samples with OVER_RANGE or SENSOR_FAULT are left out.
+    """
+    name = os.fspath(path)
+    if os.path.isdir(name):
+        files = list_recordings(name) or sorted(Path(name).glob("*.mcap"))
+        if not files:
+            raise DataError(f"{name}: a directory without .mcap files")
+        lg = read_logs(files)
+    else:
+        lg = read_log(name)
+    n = len(lg.samples)
+    if n == 0:
+        why = f" ({lg.problem})" if lg.problem else ""
+        raise DataError(f"{name}: no samples on {TOPIC_SAMPLES}{why}")
+    valid = lg.samples.valid
+    nv = int(valid.sum())
+    if nv == 0:
+        raise DataError(f"{name}: all {n} samples are flagged over range or sensor fault")
+    t, axis = lg.time_axis()
+    L = lg.samples.length_mm[valid]
+    bad = ~np.isfinite(L)
+    if bad.any():  # a NaN without a fault flag: not a measurement either
+        log.warning("%s: %d samples without a length (and no fault flag) left out", name, int(bad.sum()))
+        t, L = t[~bad], L[~bad]
+        if not L.size:
+            raise DataError(f"{name}: no sample has a length")
+    if np.any(np.diff(t) < 0):
+        order = np.argsort(t, kind="stable")
+        log.warning("%s: %d samples out of time order (%s clock); sorted", name, int(np.sum(np.diff(t) < 0)), axis)
+        t, L = t[order], L[order]
+    if nv < n:
+        log.info("%s: %d of %d samples flagged invalid (%s) and left out", name, n - nv, n, INVALID)
+    return np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(L, dtype=np.float64)
+
+
+__all__ = [
+    "FORMAT",
+    "SCHEMAS",
+    "TOPIC_CONFIG",
+    "TOPIC_EVENTS",
+    "TOPIC_OTHER",
+    "TOPIC_RESULTS",
+    "TOPIC_SAMPLES",
+    "TOPIC_STATUS",
+    "DecodedSamples",
+    "LogConfigError",
+    "McapLog",
+    "McapLogger",
+    "decode_samples",
+    "encode_samples",
+    "list_recordings",
+    "read_log",
+    "read_logs",
+    "read_mcap",
+    "scaled_ints",
+    "to_json",
+]

@@ -1,0 +1,692 @@
+"""The MCAP log: round trip, size, crash safety, rotation, retention, full disk, analyze equivalence."""
+
+from __future__ import annotations
+
+import errno
+import io
+import json
+import logging
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from decimal import ROUND_HALF_EVEN, Decimal
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from ballbar.analysis.errors import DataError
+from ballbar.analysis.plan import TestPlan
+from ballbar.daemon import mcap_log
+from ballbar.daemon.cli import main as cli_main
+from ballbar.daemon.mcap_log import (
+    SCHEMAS,
+    TOPIC_SAMPLES,
+    LogConfigError,
+    McapLogger,
+    list_recordings,
+    read_log,
+    read_logs,
+    read_mcap,
+    scaled_ints,
+)
+from ballbar.daemon.recordings import read_recording
+from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
+from ballbar.daemon.timebase import ClockMap
+from ballbar.protocol import Status
+from ballbar.tools.simulator import MachineModel, simulate, write_csv
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.writer import Writer
+
+pytestmark = pytest.mark.usefixtures("no_leaks")
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def grid(ns: np.ndarray) -> np.ndarray:
+    """Numbers the log stores exactly: integers of 1e-9 (ns of a second, pm of a millimetre)."""
+    return np.asarray(ns, dtype=np.int64) / 1e9
+
+
+def make_batch(
+    k0: int, n: int, *, fs: float = 1000.0, t0: float = 100.0, device: bool = True, source: str = "sim:",
+    status: int = 0, events: tuple[SourceEvent, ...] = (),
+) -> SampleBatch:
+    """n samples from sample number k0, on the exact grid; the length wobbles by micrometres."""
+    k = np.arange(k0, k0 + n)
+    step_ns = round(1e9 / fs)
+    t_dev = grid(k * step_ns) if device else np.full(n, np.nan)
+    t_host = grid(round(t0 * 1e9) + k * (step_ns + 13))  # a host clock 13 ppm fast
+    length = grid(100_000_000_000 + np.rint(3e6 * np.sin(k / 50.0)).astype(np.int64) + (k * 7919) % 211)
+    return SampleBatch.from_columns(t_host, t_dev, length, k, np.full(n, status), events, source)
+
+
+def sim_batches(t_s: np.ndarray, length: np.ndarray, fs: float, per: int, status: int = 0) -> Iterator[SampleBatch]:
+    """A simulated test as a serial source delivers it: device clock, host clock from a lower-envelope map."""
+    cm = ClockMap()
+    rng = np.random.default_rng(7)
+    for i in range(0, t_s.size, per):
+        t = t_s[i : i + per]
+        cm.update(float(t[-1]), 5000.0 + float(t[-1]) * (1 + 30e-6) + rng.exponential(0.5e-3))
+        yield SampleBatch.from_columns(
+            cm.offset + cm.ratio * t, t, length[i : i + per], np.rint(t * fs), np.full(t.size, status), (), "serial:x"
+        )
+
+
+def feed_paced(lg: McapLogger, batches: Iterator[SampleBatch], fs: float, flush_s: float) -> int:
+    """Feed as fast as possible, closing a chunk every ``flush_s`` of samples: the chunking the
+    flush timer gives at real-time pace (its worst case: it flushes 0.5..0.55 s after the first record)."""
+    n = since = 0
+    per_flush = fs * flush_s
+    for b in batches:
+        lg.on_batch(b)
+        n += len(b)
+        since += len(b)
+        if since >= per_flush:
+            lg.flush()
+            since = 0
+    return n
+
+
+def files(state: Path) -> list[Path]:
+    return list_recordings(state / "recordings")
+
+
+def assert_same_samples(a: SampleBatch, b: SampleBatch) -> None:
+    assert len(a) == len(b)
+    for name in ("t_host", "t_device", "length_mm"):
+        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+    assert np.array_equal(a.seq, b.seq)
+    assert np.array_equal(a.status, b.status)
+
+
+@pytest.fixture
+def state(tmp_path: Path) -> Path:
+    return tmp_path / "state"
+
+
+# ----------------------------------------------------------------------------- round trip
+
+
+def test_round_trip_is_exact(state: Path) -> None:
+    lost = SourceEvent(EventKind.LOST, t_host=100.5, source="sim:", count=3, seq=40, detail="gap")
+    unplug = SourceEvent(EventKind.UNPLUGGED, t_host=100.9, source="sim:", detail="device reports readiness")
+    parts = [
+        make_batch(0, 40),
+        make_batch(43, 30, events=(lost,)),  # a 3-sample gap
+        make_batch(73, 25, device=False),  # no device clock: split into its own message
+        make_batch(98, 10, source="serial:/dev/ttyUSB1"),  # another source
+        make_batch(108, 5, status=int(Status.OVER_RANGE)),
+        SampleBatch.empty(events=(unplug,), source="sim:"),
+    ]
+    fault = make_batch(113, 6, status=int(Status.SENSOR_FAULT))
+    fault = SampleBatch.from_columns(
+        fault.t_host, fault.t_device, np.where(np.arange(6) % 2, np.nan, fault.length_mm), fault.seq, fault.status
+    )
+    parts.append(fault)
+    parts.append(make_batch(119, 1))  # a lone sample
+    config = {"kind": "config", "machine_id": "m1", "plan": {"radius_mm": 100.0}, "t_host": 99.0}
+    circle = {"kind": "circle", "test_index": 1, "t_host": 100.2, "parameters": {"x": {"value": 1.5}}}
+    test = {"kind": "test", "test_index": 1, "t_host": 100.3, "nan": math.nan, "np": np.float64(2.5)}
+    status = {"kind": "status", "t_host": 100.4, "rate_hz": 999.8}
+    feed_in = {"kind": "event", "event": "feed_in", "t_host": 100.1, "t_s": 1.25}
+    odd = {"kind": "weird", "x": 1}
+    lg = McapLogger(state, "mill 7/A")
+    lg.on_message(config)
+    for i, b in enumerate(parts):
+        lg.on_batch(b)
+        if i == 1:
+            for m in (feed_in, circle, test, status, odd):
+                lg.on_message(m)
+    # the pipeline forwards the source event too: written once
+    lg.on_message({"kind": "event", **{("event" if k == "kind" else k): v for k, v in lost.to_dict().items()}})
+    lg.stop()
+    lg.stop()  # idempotent
+    (path,) = files(state)
+    assert path.name.startswith("mill-7-A_") and path.name.endswith("_0001.mcap")
+    out = read_log(path)
+    assert out.complete and out.problem == ""
+    assert_same_samples(SampleBatch.concat([b for b in parts if len(b)]), out.samples)
+    assert not out.preroll.any()
+    assert out.metadata["format"] == "ballbar-mcap/1" and out.metadata["machine_id"] == "mill 7/A"
+    # host wall time = monotonic + the offset, exactly
+    assert np.array_equal(out.t_wall_ns, scaled_ints(out.samples.t_host, 10**9) + lg.host_clock_offset_ns)
+    assert [e["event"] for e in out.events] == ["lost", "feed_in", "unplugged"]
+    assert out.events[0] == {"event": "lost", **{k: v for k, v in lost.to_dict().items() if k != "kind"}}
+    assert out.config == [config]
+    assert [r["kind"] for r in out.results] == ["circle", "test"]
+    assert out.results[1]["nan"] is None and out.results[1]["np"] == 2.5
+    assert out.status == [status] and out.other == [odd]
+    st = lg.stats()
+    assert st["samples"] == len(out.samples) and st["samples_lost"] == 0 and st["state"] == "stopped"
+
+    # read_mcap: the valid samples only; the device clock is missing for some, so the host clock
+    t, L = read_mcap(path)
+    v = out.samples.valid
+    assert np.array_equal(t, out.samples.t_host[v]) and np.array_equal(L, out.samples.length_mm[v])
+
+
+def test_device_clock_is_the_axis_where_every_sample_has_one(state: Path) -> None:
+    lg = McapLogger(state, "m")
+    batches = [make_batch(0, 50), make_batch(50, 50, status=int(Status.SENSOR_FAULT)), make_batch(100, 50)]
+    for b in batches:
+        lg.on_batch(b)
+    lg.stop()
+    t, L = read_recording(files(state)[0])
+    allb = SampleBatch.concat(batches)
+    v = allb.valid
+    assert np.array_equal(t, allb.t_device[v]) and np.array_equal(L, allb.length_mm[v]) and t.size == 100
+
+
+@pytest.mark.parametrize("scale", [10**9])
+def test_values_round_like_the_csv_format(scale: int) -> None:
+    """Any float is stored as the integer that "%.9f" prints, including ties and near-ties."""
+    rng = np.random.default_rng(3)
+    x = np.concatenate([
+        rng.uniform(-1e3, 1e3, 20000),
+        100.0 + rng.normal(0, 1e-3, 20000),
+        (np.arange(2000) + 0.5) / 1e9 + 100.0,  # near half-picometre after rounding to float
+        np.arange(-50, 50) / 1024.0,  # exact binary ties at the 10th decimal
+        np.array([0.0, -0.0, 5e-10, -5e-10, 1.5e-9, 2.5e-9]),
+    ])
+    got = scaled_ints(x, scale)
+    want = np.array([int(Decimal(v).scaleb(9).quantize(Decimal(1), rounding=ROUND_HALF_EVEN)) for v in x.tolist()])
+    assert np.array_equal(got, want)
+    # and the CSV text of each value parses to the same float as the stored integer / 1e9
+    assert all(float(f"{v:.9f}") == k / 1e9 for v, k in zip(x[::97].tolist(), got[::97].tolist(), strict=True))
+
+
+# ----------------------------------------------------------------------------- size
+
+
+def test_under_8_bytes_per_sample_at_1khz(state: Path) -> None:
+    plan = TestPlan()
+    r = simulate(plan, MachineModel(noise_um=0.1, backlash_x_um=3.0, squareness_urad=15.0), 1000.0)
+    lg = McapLogger(state, "m", rotate_per_test=False)
+    n = feed_paced(lg, sim_batches(r.t_s, r.length_mm, 1000.0, 20), 1000.0, lg.flush_s)
+    lg.stop()
+    (path,) = files(state)
+    per = path.stat().st_size / n
+    logging.getLogger(__name__).warning("MCAP log at 1 kHz, noise 0.1 um: %.2f bytes/sample (%d samples)", per, n)
+    print(f"\nMCAP log at 1 kHz, noise 0.1 um: {per:.2f} bytes/sample over {n} samples")
+    assert per < 8.0
+    t, _L = read_mcap(path)  # and it is all there
+    assert t.size == n and np.array_equal(t, r.t_s)
+
+
+# ----------------------------------------------------------------------------- crash safety
+
+CHILD = r"""
+import os, sys, time
+import numpy as np
+from ballbar.analysis.plan import TestPlan
+from ballbar.daemon.mcap_log import McapLogger
+from ballbar.daemon.samples import SampleBatch
+from ballbar.tools.simulator import MachineModel, simulate
+
+state, report = sys.argv[1], sys.argv[2]
+r = simulate(TestPlan(), MachineModel(noise_um=0.1), 1000.0, seed=5)
+lg = McapLogger(state, "crash")
+fd = os.open(report, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
+start = time.monotonic()
+i = 0
+while i < r.t_s.size:
+    time.sleep(0.02)
+    now = time.monotonic()
+    j = int(np.searchsorted(r.t_s, now - start, side="right"))
+    if j <= i:
+        continue
+    t = r.t_s[i:j]
+    lg.on_batch(SampleBatch.from_columns(start + t, t, r.length_mm[i:j], np.arange(i, j), np.zeros(j - i)))
+    os.write(fd, f"{j - 1} {time.monotonic():.6f}\n".encode())  # handed over up to sample j - 1, at this time
+    i = j
+"""
+
+
+def test_kill_9_loses_nothing_older_than_1_s(state: Path, tmp_path: Path) -> None:
+    report = tmp_path / "report.txt"
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(state), str(report)])  # a fresh interpreter
+    try:
+        deadline = time.monotonic() + 30.0
+        handed_s = 0.0
+        while time.monotonic() < deadline and handed_s < 3.0:
+            time.sleep(0.1)
+            lines = report.read_text().splitlines() if report.exists() else []
+            if len(lines) > 1:
+                handed_s = float(lines[-2].split()[1]) - float(lines[0].split()[1])
+        assert handed_s >= 3.0, "the writer never got going"
+        t_kill = time.monotonic()
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait(10)
+    records = [ln.split() for ln in report.read_text().splitlines()]  # whole lines: one small O_APPEND write each
+    old_enough = [int(s) for s, t in records if float(t) <= t_kill - 1.0]
+    must_have = old_enough[-1]
+    assert len(old_enough) >= 50 and must_have >= 1500  # the test means something
+
+    (path,) = files(state)
+    # the seeking reader needs the footer that never came (any of its errors will do)
+    with open(path, "rb") as fh, pytest.raises(Exception):  # noqa: B017
+        list(make_reader(fh).iter_messages())
+    out = read_log(path)
+    assert not out.complete and "ends early" in out.problem
+    seq = out.samples.seq
+    assert seq.size > must_have and np.array_equal(seq, np.arange(seq.size)), "a hole or a loss before the end"
+    r = simulate(TestPlan(), MachineModel(noise_um=0.1), 1000.0, seed=5)
+    m = seq.size
+    assert np.array_equal(out.samples.t_device, grid(scaled_ints(r.t_s[:m], 10**9)))
+    assert np.array_equal(out.samples.length_mm, grid(scaled_ints(r.length_mm[:m], 10**9)))
+    # the independent reader recovers the same closed chunks
+    with open(path, "rb") as fh:
+        n_indep = 0
+        try:
+            for _s, ch, msg in NonSeekingReader(fh).iter_messages(log_time_order=False):
+                if ch.topic == TOPIC_SAMPLES:
+                    n_indep += json.loads(msg.data)["count"]
+        except Exception:  # EndOfFile or a torn record: where the writer died
+            pass
+    assert n_indep == m
+
+    # restart: a new file beside the killed one, both read, joined without loss
+    lg = McapLogger(state, "crash")
+    lg.on_batch(make_batch(100_000, 100, t0=10_000.0))
+    lg.stop()
+    assert len(files(state)) == 2 and files(state)[0] == path
+    joined = read_logs(files(state))
+    assert len(joined.samples) == m + 100 and not joined.complete
+
+
+def test_flush_thread_bounds_the_unwritten_tail(state: Path) -> None:
+    """With no further call, what was handed over is in a closed chunk within flush_s."""
+    lg = McapLogger(state, "m", flush_s=0.2)
+    try:
+        lg.on_batch(make_batch(0, 30))
+        lg.on_message({"kind": "status", "t_host": 100.0})
+        time.sleep(0.45)
+        out = read_log(files(state)[0])  # still open: no footer yet
+        assert not out.complete and len(out.samples) == 30 and len(out.status) == 1
+    finally:
+        lg.stop()
+
+
+def test_stop_writes_a_file_the_seeking_reader_opens(state: Path) -> None:
+    lg = McapLogger(state, "m")
+    lg.on_message({"kind": "config", "x": 1})
+    for k in range(0, 300, 20):
+        lg.on_batch(make_batch(k, 20))
+    lg.stop()
+    lg.on_batch(make_batch(300, 20))  # after stop: ignored, no new file
+    (path,) = files(state)
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        topics = {c.id: c.topic for c in summary.channels.values()}
+        counts = {topics[cid]: n for cid, n in summary.statistics.channel_message_counts.items()}
+        assert counts == {"/ballbar/config": 1, TOPIC_SAMPLES: counts[TOPIC_SAMPLES]}
+        total = sum(json.loads(m.data)["count"] for _s, _c, m in reader.iter_messages(topics=[TOPIC_SAMPLES]))
+    assert total == 300
+
+
+# ----------------------------------------------------------------------------- independent reading
+
+
+def _validate(value: Any, schema: dict[str, Any], where: str = "$") -> None:
+    """The JSON Schema subset the log's schemas use (type, properties, required, items, oneOf, const, enum)."""
+    if "oneOf" in schema:
+        errors = []
+        for alt in schema["oneOf"]:
+            try:
+                _validate(value, alt, where)
+            except AssertionError as err:
+                errors.append(err)
+        assert len(errors) == len(schema["oneOf"]) - 1, f"{where}: matches not exactly one of oneOf"
+        return
+    types = schema.get("type")
+    py: dict[str, type | tuple[type, ...]] = {
+        "object": dict, "array": list, "string": str, "boolean": bool, "null": type(None),
+        "integer": int, "number": (int, float),
+    }
+    if types is not None:
+        names = types if isinstance(types, list) else [types]
+        ok = any(isinstance(value, py[t]) and not (t in ("integer", "number") and isinstance(value, bool))
+                 for t in names)
+        assert ok, f"{where}: {value!r:.40} is not {types}"
+    if "const" in schema:
+        assert value == schema["const"], where
+    if "enum" in schema:
+        assert value in schema["enum"], where
+    if isinstance(value, dict):
+        for key in schema.get("required", []):
+            assert key in value, f"{where}: missing {key}"
+        for key, sub in schema.get("properties", {}).items():
+            if key in value:
+                _validate(value[key], sub, f"{where}.{key}")
+        if schema.get("additionalProperties") is False:
+            assert set(value) <= set(schema.get("properties", {})), where
+    if isinstance(value, list) and "items" in schema:
+        for i, item in enumerate(value):
+            _validate(item, schema["items"], f"{where}[{i}]")
+
+
+def test_mcap_package_reads_every_channel_and_messages_follow_their_schemas(state: Path) -> None:
+    lg = McapLogger(state, "m")
+    lg.on_message({"kind": "config", "t_host": 99.0})
+    lg.on_batch(make_batch(0, 50, events=(SourceEvent(EventKind.OPENED, 99.5, "sim:", detail="x"),)))
+    lg.on_batch(make_batch(50, 20, device=False))
+    lg.on_message({"kind": "event", "event": "feed_in", "t_host": 100.0})
+    lg.on_message({"kind": "circle", "t_host": 100.1})
+    lg.on_message({"kind": "test", "t_host": 100.2, "test_id": "t1"})
+    lg.on_message({"kind": "status", "t_host": 100.3})
+    lg.on_message({"kind": "other"})
+    lg.stop()
+    (path,) = files(state)
+    seen: dict[str, int] = {}
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        for schema, channel, message in reader.iter_messages():
+            assert schema is not None and schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            name, sch, _desc = SCHEMAS[channel.topic]
+            assert schema.name == name and json.loads(schema.data) == json.loads(json.dumps(sch))
+            _validate(json.loads(message.data), json.loads(schema.data), channel.topic)
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            assert channel.metadata["description"]
+        assert reader.get_header().library.startswith("ballbar")
+        (meta,) = list(reader.iter_metadata())
+        assert meta.name == "ballbar" and meta.metadata["format"] == "ballbar-mcap/1"
+    assert set(seen) == set(SCHEMAS)
+    assert seen[TOPIC_SAMPLES] == 2  # split where the device clock stops
+
+
+# ----------------------------------------------------------------------------- truncation and bad files
+
+
+def test_any_truncation_reads_a_prefix(state: Path, tmp_path: Path) -> None:
+    lg = McapLogger(state, "m")
+    for k in range(0, 2000, 100):
+        lg.on_batch(make_batch(k, 100))
+        lg.flush()
+    lg.stop()
+    (path,) = files(state)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    previous = -1
+    for size in [*range(8, len(data), max(1, len(data) // 150)), len(data) - 1]:
+        cut.write_bytes(data[:size])
+        out = read_log(cut)
+        seq = out.samples.seq
+        assert np.array_equal(seq, np.arange(seq.size)) and seq.size >= previous
+        previous = seq.size
+    assert previous == 2000  # all chunks are in before the summary starts
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"", "empty file"),
+        (b"t_s,length_mm\n0,1\n", "not an MCAP file"),
+        (b"\x89MCAP0\r\n", "no samples on /ballbar/samples"),
+    ],
+)
+def test_bad_files_give_one_line_errors(tmp_path: Path, content: bytes, message: str) -> None:
+    p = tmp_path / "x.mcap"
+    p.write_bytes(content)
+    with pytest.raises(DataError, match=message) as info:
+        read_recording(p)
+    assert "\n" not in str(info.value) and str(p) in str(info.value)
+
+
+def test_foreign_mcap_and_directories(tmp_path: Path) -> None:
+    p = tmp_path / "foreign.mcap"
+    with open(p, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema("x", "jsonschema", b"{}")
+        w.add_message(w.register_channel("/other", "json", sid), log_time=1, data=b"{}", publish_time=1)
+        w.finish()
+    with pytest.raises(DataError, match="no samples on /ballbar/samples"):
+        read_mcap(p)
+    bad = tmp_path / "bad.mcap"
+    with open(bad, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema("x", "jsonschema", b"{}")
+        w.add_message(w.register_channel(TOPIC_SAMPLES, "json", sid), log_time=1, data=b'{"count":2}', publish_time=1)
+        w.finish()
+    with pytest.raises(DataError, match=r"message 1 on /ballbar/samples is not a ballbar.Samples record"):
+        read_mcap(bad)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(DataError, match=r"no such file|is a directory"):
+        read_recording(empty / "nothing.mcap")
+    with pytest.raises(DataError, match="is a directory"):
+        read_recording(empty)  # a directory without .mcap files goes to the CSV reader, which says so
+
+
+# ----------------------------------------------------------------------------- rotation and retention
+
+
+def test_rotation_per_test_gives_each_test_its_own_whole_file(state: Path) -> None:
+    lg = McapLogger(state, "m", preroll_s=2.0)
+    lg.on_message({"kind": "config", "n": 1})
+    batches = [make_batch(k, 10, fs=100.0) for k in range(0, 1500, 10)]  # 15 s at 100 Hz
+    for b in batches[:20]:
+        lg.on_batch(b)
+    lg.on_message({"kind": "event", "event": "feed_in", "t_host": 101.9})  # 2 s after start: no new file yet
+    assert len(files(state)) == 1
+    for b in batches[20:80]:
+        lg.on_batch(b)
+    lg.on_message({"kind": "test", "t_host": 107.0})
+    for b in batches[80:100]:
+        lg.on_batch(b)
+    lg.on_message({"kind": "event", "event": "feed_in", "t_host": 109.9})  # the second test: a new file
+    for b in batches[100:]:
+        lg.on_batch(b)
+    lg.stop()
+    f1, f2 = files(state)
+    a, b2 = read_log(f1), read_log(f2)
+    assert a.samples.seq[0] == 0 and a.samples.seq[-1] == 999 and not a.preroll.any()
+    assert b2.metadata["reason"] == "test" and b2.config == [{"kind": "config", "n": 1}]
+    assert b2.preroll[0] and b2.samples.seq[0] <= 999 - 150  # at least ~2 s before the feed-in, repeated
+    assert not b2.preroll[b2.samples.seq >= 1000].any()
+    assert [e["event"] for e in b2.events] == ["feed_in"] and [e["event"] for e in a.events] == ["feed_in"]
+    joined = read_logs([f1, f2])
+    assert_same_samples(joined.samples, SampleBatch.concat(batches))
+    t, _L = read_mcap(state / "recordings")  # a directory: the same, joined
+    assert t.size == 1500
+
+
+def test_rotation_by_size_and_age(state: Path) -> None:
+    lg = McapLogger(state, "m", rotate_bytes=4096, quota_bytes=1 << 30, rotate_per_test=False)
+    batches = [make_batch(k, 100) for k in range(0, 20_000, 100)]
+    for i, b in enumerate(batches):
+        lg.on_batch(b)
+        if i % 5 == 4:
+            lg.flush()
+    lg.stop()
+    fs = files(state)
+    assert len(fs) >= 5
+    assert all(p.stat().st_size < 2 * 4096 + 8192 for p in fs)
+    assert [read_log(p).metadata["reason"] for p in fs][:2] == ["start", "size"]
+    assert_same_samples(read_logs(fs).samples, SampleBatch.concat(batches))
+
+    aged = state.parent / "aged"
+    lg = McapLogger(aged, "m", rotate_s=0.25)
+    for k in range(0, 600, 50):
+        lg.on_batch(make_batch(k, 50))
+        time.sleep(0.07)
+    lg.stop()
+    fs = files(aged)
+    assert len(fs) >= 2 and read_log(fs[1]).metadata["reason"] == "age"
+    assert read_logs(fs).samples.seq.tolist() == list(range(600))
+
+
+def test_size_rotation_waits_for_the_test_to_end(state: Path) -> None:
+    lg = McapLogger(state, "m", rotate_bytes=4096, quota_bytes=1 << 30, rotate_per_test=False)
+    lg.on_message({"kind": "event", "event": "feed_in", "t_host": 100.0})
+    k = 0
+    while lg.stats()["bytes"] < 6000:
+        lg.on_batch(make_batch(k, 100))
+        lg.flush()
+        k += 100
+    assert len(files(state)) == 1  # past rotate_bytes, but in a test
+    lg.on_message({"kind": "test", "t_host": 110.0})
+    lg.on_batch(make_batch(k, 100))
+    lg.flush()
+    lg.stop()
+    assert len(files(state)) == 2
+
+
+def test_retention_deletes_the_oldest_beyond_quota_and_the_too_old(state: Path) -> None:
+    rec = state / "recordings"
+    rec.mkdir(parents=True)
+    now = time.time()
+    made = []
+    for i, (ts, age_days) in enumerate(
+        [("20240101T000000Z", 30), ("20240102T000000Z", 20), ("20240103T000000Z", 400),  # last written long ago
+         ("20240104T000000Z", 10), ("20240105T000000Z", 1)]
+    ):
+        p = rec / f"m_{ts}_{i + 1:04d}.mcap"
+        p.write_bytes(b"x" * 3000)
+        os.utime(p, (now - age_days * 86400, now - age_days * 86400))
+        made.append(p)
+    keep = rec / "notes.mcap.txt"
+    keep.write_bytes(b"y" * 100_000)  # not a log file: never touched, not counted
+    lg = McapLogger(state, "m", rotate_bytes=4096, quota_bytes=10_000, keep_days=365)
+    lg.on_batch(make_batch(0, 10))
+    current = lg.current_path
+    lg.stop()
+    left = files(state)
+    # oldest first until <= 10 000 bytes with the open file counted (two go), and the one older than keep_days
+    assert made[0] not in left and made[1] not in left and made[2] not in left
+    assert made[3] in left and made[4] in left and current in left and keep.exists()
+    assert lg.stats()["deleted_files"] == 3
+
+
+# ----------------------------------------------------------------------------- write errors
+
+
+class _Disk:
+    full = False
+
+
+class _FullDiskRaw(io.FileIO):
+    """A file on a disk that can fill up: writes fail with ENOSPC while ``_Disk.full``."""
+
+    def write(self, b: Any) -> int:
+        if _Disk.full:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return super().write(b)
+
+
+def test_full_disk_drops_the_file_counts_losses_and_resumes(
+    state: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(mcap_log, "_open_output", lambda p: io.BufferedWriter(_FullDiskRaw(p, "xb")))
+    monkeypatch.setattr(_Disk, "full", False)
+    caplog.set_level(logging.INFO, logger="ballbar.daemon.mcap_log")
+    lg = McapLogger(state, "m", retry_min_s=0.1, retry_max_s=0.2)
+    k = 0
+    total = 0
+
+    def feed(n_batches: int, flush_every: int = 5) -> float:
+        nonlocal k, total
+        worst = 0.0
+        for i in range(n_batches):
+            t0 = time.perf_counter()
+            lg.on_batch(make_batch(k, 50))
+            if i % flush_every == flush_every - 1:
+                lg.flush()
+            worst = max(worst, time.perf_counter() - t0)
+            k += 50
+            total += 50
+        return worst
+
+    try:
+        feed(20)
+        first = lg.current_path
+        _Disk.full = True
+        worst = feed(40)  # 2000 samples into a full disk
+        time.sleep(0.25)
+        worst = max(worst, feed(20))  # retries fail too
+        st = lg.stats()
+        assert st["state"] == "failed" and st["samples_lost"] > 0 and "No space left" in st["last_error"]
+        assert worst < 0.2  # nothing stalls
+        errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+        assert len(errors) == 1 and "No space left on device" in errors[0].getMessage()
+        assert "\n" not in errors[0].getMessage()
+        _Disk.full = False
+        time.sleep(0.25)  # past the backoff
+        feed(20)
+        assert lg.stats()["state"] == "writing"
+        assert any("writing again" in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+    finally:
+        _Disk.full = False
+        lg.stop()
+    st = lg.stats()
+    fs = files(state)
+    assert fs[0] == first and len(fs) == 2  # the stub files of failed retries were removed
+    joined = read_logs(fs)
+    assert len(joined.samples) + st["samples_lost"] == total  # every sample is in a file or counted lost
+    seq = joined.samples.seq
+    assert np.array_equal(seq, np.unique(seq))
+    gap = [e for e in read_log(fs[1]).events if e["event"] == "log_gap"]
+    assert len(gap) == 1 and gap[0]["count"] == st["samples_lost"] and "No space left" in gap[0]["detail"]
+    assert read_log(fs[1]).metadata["reason"] == "recovery"
+
+
+def test_unwritable_state_dir_never_raises(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    blocker = tmp_path / "state"
+    blocker.write_text("a file where the state directory should be")
+    lg = McapLogger(blocker, "m", retry_min_s=0.05)
+    for k in range(0, 500, 50):
+        lg.on_batch(make_batch(k, 50))
+        lg.on_message({"kind": "status"})
+    lg.stop()
+    assert lg.stats()["samples_lost"] == 500 and lg.stats()["write_errors"] >= 1
+    assert sum(r.levelno >= logging.ERROR for r in caplog.records) == 1
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [{"flush_s": 1.5}, {"flush_s": 0}, {"rotate_bytes": 10}, {"quota_bytes": 1000}, {"retry_min_s": 0}],
+)
+def test_bad_options_are_one_line_errors(tmp_path: Path, kw: dict[str, Any]) -> None:
+    with pytest.raises(LogConfigError, match=r"^mcap log: ") as info:
+        McapLogger(tmp_path, "m", **kw)
+    assert "\n" not in str(info.value)
+
+
+# ----------------------------------------------------------------------------- analyze equivalence
+
+
+def test_analyze_of_the_log_equals_analyze_of_the_csv(
+    state: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    plan = TestPlan(feed_mm_min=2000.0, sample_hz=250.0)  # small enough to analyse twice in about a second
+    machine = MachineModel(noise_um=0.2, backlash_x_um=4.0, squareness_urad=20.0)
+    r = simulate(plan, machine, 250.0, seed=11)
+    csv = tmp_path / "test.csv"
+    write_csv(str(csv), r.t_s, r.length_mm)
+    lg = McapLogger(state, "m")
+    lg.on_message({"kind": "config", "plan": {"feed_mm_min": 2000.0, "sample_hz": 250.0}})
+    feed_paced(lg, sim_batches(r.t_s, r.length_mm, 250.0, 5, status=int(Status.SIMULATED)), 250.0, 0.5)
+    lg.stop()
+    (path,) = files(state)
+    args = ["--feed-mm-min", "2000", "--sample-hz", "250", "--json"]
+    outs = []
+    for p in (csv, path):
+        code = cli_main(["analyze", str(p), *args])
+        out, err = capsys.readouterr()
+        assert code == 0, err
+        res = json.loads(out)
+        res.pop("source")
+        outs.append(res)
+    assert outs[0] == outs[1]
+    assert outs[0]["parameters"]["backlash_x_um"]["significant"]
