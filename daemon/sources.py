@@ -393,7 +393,7 @@ class SerialSource(Source):
         self._stats.connected = True
         self._last_rx = now
         self._stalled = False
-        self._tick0, self._out = None, None
+        self._out = None  # the poll clock keeps running: ticks missed while away are lost
         if not self._ever_open:
             self._ever_open = True
             self._event(EventKind.OPENED, detail=f"{self.port_url} ({self.protocol}, {self.mode})")
@@ -543,8 +543,9 @@ class SerialSource(Source):
             if now >= due:
                 late = int((now - due) / period)
                 if late > 0:
-                    self._lose(self._k, late, "poll_late")
+                    self._lose(self._k, late, self._gap_cause or "poll_late")
                     self._k += late
+                self._gap_cause = None
                 if not self._send_request():
                     return self._flush_poll()
                 self._out = (self._k, time.monotonic())

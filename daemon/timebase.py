@@ -128,6 +128,7 @@ class Stamper:
         self._clk_raw: float | None = None
         self._seq: int | None = None  # last unwrapped sample number handed out
         self._td = math.nan  # last unwrapped device time
+        self._clk_base = 0.0  # unwrapped device time minus the raw clock
         self._th = -math.inf  # last host time handed out
         self._th_read = math.nan  # host time of the last read that had samples
 
@@ -158,33 +159,43 @@ class Stamper:
         td = np.full(n, math.nan)
         clk = r.clock_s
         if clk is not None:
-            d = np.empty(n)
-            d[1:] = np.diff(clk)
-            d[0] = 0.0 if self._clk_raw is None else clk[0] - self._clk_raw
+            raw_d = np.empty(n)
+            raw_d[1:] = np.diff(clk)
+            raw_d[0] = 0.0 if self._clk_raw is None else clk[0] - self._clk_raw
             w = self.clock_wrap_s
+            wraps = np.zeros(n)
             if w is not None:
-                d = np.mod(d, w)
+                d = np.mod(raw_d, w)
                 back = d > w / 2
+                wraps[(raw_d < 0) & ~back] = 1.0
                 if self._clk_raw is not None and self.clock.ready and not math.isnan(self._th_read):
                     # After an outage of more than a quarter wrap the wrap count is
                     # ambiguous: the host clock decides.
                     expect = (t_read - self._th_read) / self.clock.ratio
                     if expect > w / 4:
-                        d[0] += w * max(0.0, round((expect - d[0]) / w))
+                        extra = max(0.0, round((expect - d[0]) / w))
+                        d[0] += w * extra
+                        wraps[0] += extra
                         back[0] = False
             else:
+                d = raw_d
                 back = d < 0
             restart |= back
             if r.seq is None and self.rate_hz:
                 steps = np.maximum(np.rint(d * self.rate_hz).astype(np.int64), 1)
+            # Device time is the raw clock plus a base that grows by a wrap at each
+            # wrap (so it is exactly what the device sent until the first wrap).
+            cbase = (0.0 if first else self._clk_base) + (w or 0.0) * np.cumsum(wraps)
             # Across a restart the clock's own reading is the time since it began
-            # (a lower bound: at least one period has passed).
-            d = np.where(restart, np.maximum(clk, 1.0 / self.rate_hz if self.rate_hz else 1e-6), d)
-            if first:
-                d[0] = clk[0]
-                td = np.cumsum(d)
-            else:
-                td = self._td + np.cumsum(d)
+            # (a lower bound: at least one period has passed): re-base to continue.
+            floor = 1.0 / self.rate_hz if self.rate_hz else 1e-6
+            for i in np.flatnonzero(restart).tolist():
+                if first and i == 0:
+                    continue
+                prev = self._td if i == 0 else clk[i - 1] + cbase[i - 1]
+                cbase[i:] += prev + max(float(clk[i]), floor) - clk[i] - cbase[i]
+            td = clk + cbase
+            self._clk_base = float(cbase[-1])
             self._clk_raw = float(clk[-1])
 
         if first:

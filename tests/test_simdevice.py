@@ -244,16 +244,37 @@ def test_polled_ascii_gauge() -> None:
         col.until(lambda: col.src.stats().lost_by_cause.get("poll_timeout", 0) >= 3, 10.0, "3 poll timeouts")
         n0 = col.n
         col.until(lambda: col.n >= n0 + 50, 10.0, "50 more answers")
+        dev.send("unplug 0.3")
+        col.until(lambda: "replugged" in col.kinds(), 10.0, "replugged")
+        n1 = col.n
+        col.until(lambda: col.n >= n1 + 50, 10.0, "50 answers after the replug")
         st = col.src.stats()
     finally:
         finish(dev, col)
     got = col.merged()
     assert st.lost_by_cause["poll_timeout"] == 3
+    # The ticks the host could not poll while the gauge was away are lost, not skipped.
+    assert st.lost_by_cause["outage"] >= 0.25 * 200
+    assert (st.unplugs, st.replugs) == (1, 1)
     # Every tick is either a sample or a counted loss.
     assert got.seq[-1] - got.seq[0] + 1 == st.samples + st.lost
     assert np.all(np.diff(got.seq) >= 1) and np.all(np.diff(got.t_host) > 0)
     assert np.all(np.abs(got.length_mm - 50.0) < 1.6)
     assert np.isnan(got.t_device).all()
+
+
+def test_lowest_rate() -> None:
+    dev, col = start("--protocol=binary", "--rate=15.625", "--speedup=40", *PLAN_ARGS)
+    try:
+        done = run_to_done(dev, col)
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    got = col.merged()
+    assert done["generated"] == done["sent"] == st.samples == got.seq.shape[0] > 200
+    assert got.seq.tolist() == list(range(got.seq.shape[0])) and st.lost == 0
+    # 15.625 Hz: 64 000 us per sample, exactly as the device clock said.
+    assert np.array_equal(got.t_device, np.arange(got.seq.shape[0]) * 64_000 / 1e6)
 
 
 def test_command_line_errors() -> None:

@@ -453,3 +453,26 @@ def test_sample_batch_columns_records_and_truthiness() -> None:
     with pytest.raises(ValueError, match="length_mm"):
         SampleBatch.from_columns([1.0], [1.0], [1.0, 2.0], [1], [0])
     assert math.isnan(SampleBatch.from_columns([1.0], [math.nan], [1.0], [0], [0]).t_device[0])
+
+
+def test_stamper_resolves_wraps_across_a_long_outage_with_the_host_clock() -> None:
+    from ballbar.daemon.timebase import Stamper
+    from ballbar.protocol import Readings
+    from ballbar.protocol.binary import CLOCK_WRAP_S
+
+    st = Stamper(SEQ_MODULUS, CLOCK_WRAP_S, 1000.0)
+
+    def readings(k0: int, n: int) -> Readings:
+        k = np.arange(k0, k0 + n)
+        clock_us = (k * 1000) % 2**32  # 1 kHz on the device's wrapping microsecond clock
+        return Readings(np.zeros(n), np.zeros(n, np.uint8), k % SEQ_MODULUS, clock_us / 1e6)
+
+    # One second of samples read in 20 ms batches, host and device clocks in step.
+    for i in range(50):
+        st.stamp(readings(i * 20, 20), t_read=100.0 + (i + 1) * 0.02)
+    # An outage of 1.3 wraps of the 32-bit microsecond clock (93 min), then samples again.
+    k0 = 1000 + int(1.3 * CLOCK_WRAP_S * 1000)
+    out = st.stamp(readings(k0, 20), t_read=100.0 + (k0 + 20) / 1000)
+    assert out.gaps == [(1000, k0 - 1000)]
+    assert out.t_device[0] == pytest.approx(k0 / 1000, abs=1e-6)
+    assert out.t_host[-1] == pytest.approx(100.0 + (k0 + 19) / 1000, abs=0.05)
