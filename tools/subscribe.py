@@ -77,7 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--history", action="store_true", help="first the results the daemons still hold")
     p.add_argument("--since", help="with --history: only results after this time (ISO 8601 or Unix seconds)")
-    p.add_argument("--limit", type=int, default=HISTORY_LIMIT_MAX, help="with --history: at most this many per topic")
+    p.add_argument(
+        "--limit", type=int, default=HISTORY_LIMIT_MAX, help="with --history: at most this many per machine and topic"
+    )
     p.add_argument("--alive", action="store_true", help="also print daemons appearing and going (liveliness)")
     p.add_argument("--mode", choices=("client", "peer"), default="client", help="Zenoh mode (default: client)")
     p.add_argument(
