@@ -65,11 +65,14 @@ class McapSection:
 @dataclass
 class ZenohSection:
     enabled: bool = True
-    mode: str = "peer"
+    mode: str = ""  # peer, client, router; empty: the config file's, else peer
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
     config_file: str = ""
-    multicast_scouting: bool = True
+    multicast_scouting: bool = False
+    history_size: int = 500
+    close_timeout_s: float = 2.0
+    options: dict[str, Any] = field(default_factory=dict)  # raw zenoh keys, applied last
     samples_hz: float = 0.0  # decimated samples on ballbar/<machine>/samples; 0 = off
 
 
@@ -152,6 +155,10 @@ def _check_type(where: str, value: Any, tp: Any) -> Any:
         if value not in args:
             raise ConfigError(f"{where} must be one of {', '.join(map(repr, args))}, not {value!r}")
         return value
+    if origin is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where} must be a table, not {value!r}")
+        return dict(value)
     if origin in (list, tuple):
         if not isinstance(value, list | tuple):
             raise ConfigError(f"{where} must be a list, not {value!r}")
@@ -268,7 +275,7 @@ def _validate(cfg: Config) -> None:
         raise ConfigError(f"daemon.log_level must be debug, info, warning or error, not {cfg.daemon.log_level!r}")
     if cfg.rerun.mode not in ("serve", "connect", "off"):
         raise ConfigError(f"rerun.mode must be serve, connect or off, not {cfg.rerun.mode!r}")
-    if cfg.zenoh.mode not in ("peer", "client", "router"):
+    if cfg.zenoh.mode not in ("", "peer", "client", "router"):
         raise ConfigError(f"zenoh.mode must be peer, client or router, not {cfg.zenoh.mode!r}")
     if not 0 < cfg.daemon.status_interval_s <= 60:
         raise ConfigError("daemon.status_interval_s must be within (0, 60]")
