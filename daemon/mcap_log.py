@@ -82,10 +82,10 @@ instant on the wall clock).
 Crash safety
 ------------
 Chunks are zstd-compressed and closed (``Writer.flush``) at most ``flush_s``
-(0.5 s) after the first record in them was handed over, by a small flush thread
-whatever the caller does; the kernel then has them, so a killed daemon
-(``kill -9``) loses at most the last ``flush_s`` (not a power cut: files are
-fsync'ed only when closed).  :func:`read_log` reads such a file up to its last
+(0.5 s) plus a 50 ms tick after the first record in them was handed over, by a
+small flush thread, whatever the caller does; the kernel then has them, so a
+killed daemon (``kill -9``) loses at most that last half second (a power cut
+can lose more: files are fsync'ed only when closed).  :func:`read_log` reads such a file up to its last
 whole chunk.  ``stop()`` (SIGTERM) writes the footer and indexes.
 
 Write errors
@@ -554,11 +554,11 @@ class McapLogger(Listener):
         self._ring: deque[SampleBatch] = deque()
         self._dirty_since: float | None = None
         self._config: ListenerMessage | None = None
-        self._recent_events: deque[tuple[str, float, str]] = deque(maxlen=256)
+        self._seen_events: dict[tuple[str, float, str], None] = {}  # recent events, oldest first
         self._in_test = False
         self._stopped = False
         self._file_seq = 0
-        self._last_retention = -math.inf
+        self._last_retention = time.monotonic()  # first run when the first file opens
         self._next_reason = "start"
         # failures
         self._failing = False
@@ -579,6 +579,26 @@ class McapLogger(Listener):
         self._thread = threading.Thread(target=self._flusher, name="mcap-flush", daemon=True)
         self._thread.start()
 
+    @classmethod
+    def from_config(cls, cfg: Any) -> McapLogger:
+        """From the daemon's configuration: ``cfg.daemon`` (``machine_id``, ``state_dir``) and ``[mcap]``.
+
+        ``rotate_mb`` and ``quota_mb`` are MiB (2**20 bytes), ``rotate_minutes``
+        minutes; keys the section lacks keep the defaults above.
+        """
+        m = cfg.mcap
+        kw: dict[str, Any] = {}
+        if getattr(m, "rotate_mb", None) is not None:
+            kw["rotate_bytes"] = int(float(m.rotate_mb) * (1 << 20))
+        if getattr(m, "quota_mb", None) is not None:
+            kw["quota_bytes"] = int(float(m.quota_mb) * (1 << 20))
+        if getattr(m, "rotate_minutes", None) is not None:
+            kw["rotate_s"] = float(m.rotate_minutes) * 60.0
+        for key in ("rotate_per_test", "keep_days", "flush_s", "preroll_s", "chunk_size"):
+            if getattr(m, key, None) is not None:
+                kw[key] = getattr(m, key)
+        return cls(cfg.daemon.state_dir, cfg.daemon.machine_id, **kw)
+
     # ------------------------------------------------------------------ Listener
 
     def on_batch(self, batch: SampleBatch) -> None:
@@ -595,8 +615,8 @@ class McapLogger(Listener):
                 return
             for ev in batch.events:
                 d = self._event_dict(ev)
-                self._recent_events.append((d["event"], round(ev.t_host, 6), ev.source))
-                self._write(TOPIC_EVENTS, d, self._wall_ns(ev.t_host))
+                if self._first_sighting(d["event"], ev.t_host, ev.source):
+                    self._write(TOPIC_EVENTS, d, self._wall_ns(ev.t_host))
             if n:
                 self._pending.batches.append(batch)
                 self._pending.n += n
@@ -734,8 +754,8 @@ class McapLogger(Listener):
         name = str(d.get("event", ""))
         d["event"] = name
         t = d.get("t_host")
-        if isinstance(t, int | float) and (name, round(float(t), 6), str(d.get("source", ""))) in self._recent_events:
-            return  # a source event the pipeline forwarded: already written from its batch
+        if isinstance(t, int | float) and not self._first_sighting(name, float(t), str(d.get("source", ""))):
+            return
         if name == "feed_in":
             self._test_started(now)
         if not self._ensure_file(now):
@@ -746,6 +766,17 @@ class McapLogger(Listener):
             self._file.has_test = True
         if name in _TEST_END_EVENTS:
             self._in_test = False
+
+    def _first_sighting(self, name: str, t_host: float, source: str) -> bool:
+        """False for an event already written: a source event comes both in its batch and as the
+        pipeline's message (either first); it is written once, as it came first."""
+        key = (name, round(t_host, 6), source)
+        if key in self._seen_events:
+            return False
+        self._seen_events[key] = None
+        if len(self._seen_events) > 256:
+            del self._seen_events[next(iter(self._seen_events))]
+        return True
 
     def _test_started(self, now: float) -> None:
         f = self._file
@@ -1023,6 +1054,8 @@ class McapLogger(Listener):
         current = self._file.path if self._file is not None else None
         try:
             files = list_recordings(self.directory)
+        except FileNotFoundError:
+            return
         except OSError as err:
             log.warning("mcap log: cannot list %s for retention: %s", self.directory, err.strerror or err)
             return
