@@ -1,0 +1,1361 @@
+"""The Rerun streamer: live polar plots, findings and trends for a remote viewer.
+
+:class:`RerunViewer` is a :class:`~ballbar.daemon.listeners.Listener`.  It logs
+into its own :class:`rerun.RecordingStream` (application ``ballbar``, one
+recording per daemon run), never the global one, and reaches viewers one of two
+ways:
+
+``serve``    (default) the daemon hosts a gRPC server (``bind``:``port``, 9876);
+             viewers connect whenever they like with
+             ``rerun rerun+http://DAEMON:9876/proxy`` and receive the buffered
+             history, bounded by ``server_memory_limit`` (oldest data dropped
+             first; static data such as the reference circles is kept).
+``connect``  the daemon pushes to a viewer listening at ``url``
+             (``rerun`` started on a workstation listens on 9876 by default).
+``off``      nothing is created; every call is a no-op.
+
+What is logged (timelines: ``time``, wall clock of the sample or of the
+message; ``test``, the test's sequence number within this daemon run)::
+
+    polar/reference/{nominal,band,scale,axes}  static: nominal circle, tolerance band,
+                                               scale rings, the plane's axes
+    polar/{ccw,cw}/measured    LineStrips2D of the magnified radial deviation, updated
+                               live during the data arc, redrawn with each result's timing
+    polar/{ccw,cw}/model       the fitted model, rebuilt from the result's parameters
+    length                     Scalars: the bar length L (mm), decimated to <= length_hz
+    findings                   TextDocument (markdown): ranking, parameters, ISO 230-4, advice
+    trends/um/{backlash_x,backlash_y,circularity_G_b}, trends/ms/servo_mismatch,
+    trends/urad/squareness, trends/ppm/scale_mismatch
+                               Scalars, one point per test
+    events                     TextLog: feed-in/out, rejected tests, source events
+
+The polar plot.  A sample's deviation ``dR = L - R`` (um) is drawn at radius
+``R0 + k dR`` with ``R0 = 100`` display units and ``k = R0 / (2 s)``: a
+deviation of ``s`` sits halfway between the nominal circle and its centre or
+its double (the scale rings, labelled, mark ``+-s``).  ``s`` is ``scale_um``,
+or, by default, automatic: a round value (1, 2, 5 x 10^n um) that fits the
+last test, growing at once when a live circle outgrows it; the band and the
+scale rings are logged on the timelines whenever ``s`` changes, so that an
+older circle is always seen against its own scale.  With
+``remove_setup`` the set-up terms of the latest result (pivot offset
+``centre_*_um`` and ``radius_um``) are subtracted from the measured and the
+model curves alike, as commercial ball-bar software draws them.  A sample's
+angle comes from the test program's timing (DOMAIN.md section 1): live, from
+the feed-in event and the feed ratio and overhead learnt on the previous test
+(exactly the engine's provisional timing); after each circle and test result,
+from that result's ``timing``.
+
+Never blocking the daemon.  The listener's own queue already decouples it;
+beyond that, data is only logged while a sink exists (no unbounded buffering
+for an absent viewer), the server's buffer is bounded, and :meth:`stop`
+returns within ``stop_timeout_s`` even when a viewer is frozen mid-stream.
+Facts of rerun-sdk 0.41 that shape the ``connect`` mode (checked on this
+machine):
+
+- a ``GrpcSink`` created while nothing listens never delivers: the bounded
+  flush issued while it is still connecting breaks its stream once it connects
+  ("gracefully disconnected"); and a sink whose viewer went away never
+  reconnects.  So the viewer probes the address over TCP on a thread of its
+  own and (re)creates the sink only when something listens, then re-sends
+  the scene (blueprint, references, the current test, findings, trends);
+- a frozen (stopped, not dead) viewer makes ``disconnect()`` wait forever and
+  the SDK's exit hook with it, so :meth:`stop` disconnects on a helper thread
+  and, if that does not finish in time, keeps the recording referenced and
+  unregisters the SDK's exit hook (logged) so that the daemon can still exit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ipaddress
+import logging
+import math
+import socket
+import threading
+import time
+import urllib.parse
+import uuid
+from collections import deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
+from typing import Any, Literal
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+from ballbar.analysis.patterns import LIBRARY, Geometry, Pattern, design
+from ballbar.analysis.physics import make_offset, takeup_angles
+from ballbar.analysis.plan import MachineConfig, TestPlan
+from ballbar.analysis.program import arc_start_deg, data_start_deg, schedule
+from numpy.typing import NDArray
+
+from .listeners import Listener, Message
+from .samples import EventKind, SampleBatch, SourceEvent
+
+log = logging.getLogger(__name__)
+
+Mode = Literal["serve", "connect", "off"]
+Clock = Literal["auto", "device", "host"]
+FloatArray = NDArray[np.float64]
+
+APPLICATION_ID = "ballbar"
+R0 = 100.0  # display radius of the nominal circle (arbitrary units of the 2D view)
+DIRECTIONS: dict[int, str] = {1: "ccw", -1: "cw"}
+COLOURS: dict[str, tuple[int, int, int]] = {
+    "ccw": (40, 110, 230),
+    "ccw_model": (10, 30, 110),
+    "cw": (235, 85, 40),
+    "cw_model": (120, 25, 0),
+    "nominal": (140, 140, 140),
+    "band": (60, 170, 60),
+    "scale": (210, 210, 210),
+    "axes": (110, 110, 110),
+}
+# (entity under trends/, result field or ISO key, label)
+TRENDS: tuple[tuple[str, str, str], ...] = (
+    ("um/backlash_x", "backlash_x_um", "backlash X (um)"),
+    ("um/backlash_y", "backlash_y_um", "backlash Y (um)"),
+    ("um/circularity_G_b", "G_b_um", "circularity G(b) (um)"),
+    ("ms/servo_mismatch", "servo_mismatch_ms", "servo mismatch (ms)"),
+    ("urad/squareness", "squareness_urad", "squareness (urad)"),
+    ("ppm/scale_mismatch", "scale_mismatch_ppm", "scale mismatch (ppm)"),
+)
+WARN_EVENTS = frozenset(
+    {"test_rejected", "test_incomplete", "test_aborted", "unplugged", "lost", "stall", "device_reset", "decode_errors"}
+)
+AUTO_SCALE_START_UM = 20.0
+AUTO_SCALE_FILL = 1.6  # automatic scale: the largest deviation reaches 0.8 R0 from the nominal circle
+PRE_TEST_S = 10.0  # samples kept while no test runs: the feed-in event comes after the step settled
+TRENDS_KEPT = 5000  # tests whose trend points are re-sent to a viewer that (re)connects
+
+
+class ViewerConfigError(ValueError):
+    """An invalid viewer option (unknown key or bad value); the message names it."""
+
+
+@dataclass(frozen=True)
+class ViewerOptions:
+    """The streamer's configuration (the ``[viewer]`` section of the daemon's).
+
+    ``mode``: ``serve``, ``connect`` or ``off``.  ``bind``/``port``: where the
+    ``serve`` mode listens (``0.0.0.0``: every interface, viewers anywhere on
+    the network).  ``url``: the viewer to push to in ``connect`` mode,
+    ``rerun+http://HOST:PORT/proxy``.  ``server_memory_limit``: the serve
+    mode's history buffer (rerun syntax: ``256MiB``, ``10%``).
+
+    ``tolerance_um``: half-width of the tolerance band; ``scale_um``: the
+    deviation drawn halfway between the nominal circle and its centre (None:
+    automatic, starting at ``AUTO_SCALE_START_UM``);
+    ``polar_points``: points per drawn circle; ``polar_update_s``: how often
+    the live circle is redrawn; ``length_hz``: rate of the length series;
+    ``buffer_hz``: rate at which the current test's samples are kept for the
+    polar plot; ``remove_setup``: subtract the latest centre and radius
+    estimates from the curves.  ``clock``: which sample time the analysis runs
+    on (``auto``: the device clock where the source has one, corrected by the
+    times the analysis messages carry).  ``retry_s``: probe/rebind period;
+    ``stop_timeout_s``: bound on :meth:`RerunViewer.stop`.
+    """
+
+    mode: Mode = "serve"
+    bind: str = "0.0.0.0"  # every interface: the viewer is normally on another machine
+    port: int = 9876
+    url: str = "rerun+http://127.0.0.1:9876/proxy"
+    server_memory_limit: str = "256MiB"
+    application_id: str = APPLICATION_ID
+    recording_name: str = ""
+    tolerance_um: float = 10.0
+    scale_um: float | None = None
+    polar_points: int = 2000
+    polar_update_s: float = 0.5
+    length_hz: float = 200.0
+    buffer_hz: float = 1000.0
+    max_buffer_samples: int = 1_000_000
+    remove_setup: bool = True
+    clock: Clock = "auto"
+    retry_s: float = 2.0
+    health_s: float = 10.0
+    stop_timeout_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        checks: list[tuple[bool, str]] = [
+            (self.mode in ("serve", "connect", "off"), f"viewer mode must be serve, connect or off, not {self.mode!r}"),
+            (_is_ip(self.bind), f"viewer bind must be an IP address, not {self.bind!r}"),
+            (isinstance(self.port, int) and 0 < self.port < 65536, f"viewer port must be 1..65535, not {self.port!r}"),
+            (
+                _proxy_address(self.url) is not None,
+                f"viewer url must be rerun+http://HOST:PORT/proxy, not {self.url!r}",
+            ),
+            (
+                self.clock in ("auto", "device", "host"),
+                f"viewer clock must be auto, device or host, not {self.clock!r}",
+            ),
+            (bool(self.application_id), "viewer application_id must not be empty"),
+            (bool(self.server_memory_limit), "viewer server_memory_limit must not be empty"),
+        ]
+        for name in (
+            "tolerance_um",
+            "polar_update_s",
+            "length_hz",
+            "buffer_hz",
+            "retry_s",
+            "health_s",
+            "stop_timeout_s",
+        ):
+            v = getattr(self, name)
+            ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+            checks.append((ok, f"viewer {name} must be a number > 0, not {v!r}"))
+        s = self.scale_um
+        ok = s is None or (isinstance(s, int | float) and not isinstance(s, bool) and math.isfinite(s) and s > 0)
+        checks.append((ok, f"viewer scale_um must be a number > 0 or unset (automatic), not {s!r}"))
+        for name, lo in (("polar_points", 16), ("max_buffer_samples", 10_000)):
+            v = getattr(self, name)
+            checks.append((isinstance(v, int) and v >= lo, f"viewer {name} must be an integer >= {lo}, not {v!r}"))
+        for ok, msg in checks:
+            if not ok:
+                raise ViewerConfigError(msg)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ViewerOptions:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ViewerConfigError(f"unknown viewer key {unknown[0]!r} (known: {', '.join(sorted(known))})")
+        return cls(**dict(data))
+
+    @property
+    def address(self) -> str:
+        """Where viewers find the stream: the URL to give ``rerun``."""
+        if self.mode == "serve":
+            host = "127.0.0.1" if self.bind in ("0.0.0.0", "::") else self.bind
+            return f"rerun+http://{_host_for_url(host)}:{self.port}/proxy"
+        return self.url
+
+
+def _is_ip(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _host_for_url(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
+
+
+def _proxy_address(url: str) -> tuple[str, int] | None:
+    """``(host, port)`` of a ``rerun+http://HOST:PORT/proxy`` URL, None if it is not one."""
+    try:
+        p = urllib.parse.urlsplit(url)
+        port = p.port
+    except ValueError:
+        return None
+    if p.scheme not in ("rerun", "rerun+http", "rerun+https") or not p.hostname or p.path != "/proxy":
+        return None
+    return p.hostname, port or 9876
+
+
+def _tcp_listening(host: str, port: int, timeout: float) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+def _port_free(bind: str, port: int) -> bool:
+    """Whether ``bind:port`` can be listened on (SO_REUSEADDR, as the SDK's server does)."""
+    family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((bind, port))
+        except OSError:
+            return False
+    return True
+
+
+# --------------------------------------------------------------------------- pure helpers
+
+
+def _num(v: Any) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
+def _param(result: Mapping[str, Any], field: str) -> float | None:
+    p = result.get("parameters", {}).get(field)
+    return _num(p.get("value")) if isinstance(p, Mapping) else None
+
+
+@dataclass(frozen=True)
+class ArcTiming:
+    """The timing of one direction's data arc, on the analysis clock.
+
+    A sample at ``t`` in ``[start_s, end_s]`` is at angle
+    ``u = u_ds + d V (t - start_s) / R`` (DOMAIN.md section 1).
+    """
+
+    direction: int
+    feed_in_s: float
+    feed_mm_s: float
+    start_s: float
+    end_s: float
+    spike_width_deg: float
+    loop_lag_s: float | None = None
+
+    def angle_rad(self, plan: TestPlan, t: FloatArray) -> FloatArray:
+        u_ds = math.radians(data_start_deg(plan, self.direction))
+        return np.asarray(u_ds + self.direction * self.feed_mm_s * (t - self.start_s) / plan.radius_mm)
+
+
+def provisional_timing(
+    plan: TestPlan, direction: int, feed_in_s: float, feed_ratio: float, overhead_s: float, spike_width_deg: float
+) -> ArcTiming:
+    """The engine's provisional timing of a test that began (feed-in centroid) at ``feed_in_s``."""
+    V = plan.feed_mm_s * feed_ratio
+    sched = schedule(plan, V, overhead_s)
+    return ArcTiming(
+        direction,
+        feed_in_s,
+        V,
+        feed_in_s + sched.data_start_s[direction],
+        feed_in_s + sched.data_end_s[direction],
+        spike_width_deg,
+    )
+
+
+def result_timing(result: Mapping[str, Any], direction: int) -> ArcTiming | None:
+    """A circle or test result's timing of ``direction``'s data arc (None: not in it)."""
+    tm = result.get("timing") or {}
+    name = DIRECTIONS[direction]
+    t_ref = _num(tm.get("feed_in_s"))
+    w = _num(tm.get("spike_width_deg")) or 3.0
+    if result.get("kind") == "circle":
+        feed, start, end = (_num(tm.get(k)) for k in ("assumed_feed_mm_min", "data_start_s", "data_end_s"))
+        if result.get("direction") != name or None in (t_ref, feed, start, end):
+            return None
+        assert t_ref is not None and feed is not None and start is not None and end is not None
+        return ArcTiming(direction, t_ref, feed / 60.0, start, end, w)
+    arc = (tm.get("data_arcs") or {}).get(name) or {}
+    feed, start, end = _num(tm.get("measured_feed_mm_min")), _num(arc.get("start_s")), _num(arc.get("end_s"))
+    if None in (t_ref, feed, start, end):
+        return None
+    assert t_ref is not None and feed is not None and start is not None and end is not None
+    lag_ms = _num(tm.get("loop_lag_ms"))
+    return ArcTiming(direction, t_ref, feed / 60.0, start, end, w, lag_ms / 1000.0 if lag_ms is not None else None)
+
+
+def _patterns_for(plan: TestPlan, machine: MachineConfig, direction: int) -> list[Pattern]:
+    out = []
+    for p in LIBRARY:
+        if p.needs == "pitch_x" and machine.pitch_x_mm is None:
+            continue
+        if p.needs == "pitch_y" and machine.pitch_y_mm is None:
+            continue
+        if p.reversal is not None and p.reversal[2] != direction:
+            continue
+        out.append(p)
+    return out
+
+
+def _coefficients(result: Mapping[str, Any], patterns: Sequence[Pattern]) -> FloatArray:
+    """The fitted parameters in the patterns' column order; not fitted: 0.
+
+    Cyclic errors are reported as amplitude and phase; their columns are
+    ``(c cos phi, c sin phi)`` (:mod:`ballbar.analysis.report`).
+    """
+    x: list[float] = []
+    for p in patterns:
+        if p.name.startswith("cyclic_"):
+            amp = _param(result, f"{p.name}_um") or 0.0
+            phase = math.radians(_param(result, f"{p.name}_phase_deg") or 0.0)
+            x += [amp * math.cos(phase), amp * math.sin(phase)]
+        else:
+            x += [_param(result, f) or 0.0 for f in p.fields]
+    return np.asarray(x, dtype=float)
+
+
+def _radial_cos2(plan: TestPlan, machine: MachineConfig, source: str) -> float | None:
+    """Mean ``cos 2u`` of the radii along which the loop lag was measured (engine ``loop_lag``).
+
+    The result does not say which of feed-in and feed-out resolved the lag:
+    both are assumed (the usual case).
+    """
+    if (machine.kv_x_per_s and machine.kv_y_per_s) or not source.startswith("approach"):
+        return None
+    dirs = plan.direction_list
+    u_in = math.radians(arc_start_deg(plan, dirs[0]))
+    u_out = math.radians(arc_start_deg(plan, dirs[-1])) + dirs[-1] * math.radians(plan.arc_deg)
+    return 0.5 * (math.cos(2 * u_in) + math.cos(2 * u_out))
+
+
+def model_deviation_um(result: Mapping[str, Any], direction: int, u: FloatArray) -> FloatArray | None:
+    """The fitted model's radial deviation (um) at angles ``u`` (rad) of ``direction``'s data arc.
+
+    Rebuilt from the result's parameters with the pattern library, the
+    result's timing (feed, spike width, loop lag) and, for a test result, the
+    physical corrections the fit applied (servo remainder, dead-band backlash
+    and the spikes' start after its take-up, :mod:`ballbar.analysis.physics`).
+    ``u`` must lie within the data arc (``data_start_deg`` onwards in the
+    direction of travel).  None when the result lacks what is needed.
+
+    Not exact where the result does not carry what the fit used: the take-up
+    angles come from the final backlash here but from a preliminary fit in
+    the engine, and the lag's ``cos 2u`` assumes both feed-in and feed-out
+    resolved it; both differences are far below a micrometre.
+    """
+    timing = result_timing(result, direction)
+    if timing is None or "plan" not in result:
+        return None
+    plan = TestPlan.from_dict(dict(result["plan"]))
+    machine = MachineConfig.from_dict(dict(result.get("machine") or {}))
+    patterns = _patterns_for(plan, machine, direction)
+    u = np.asarray(u, dtype=float)
+    d = float(direction)
+    u_ds = math.radians(data_start_deg(plan, direction))
+    test = result.get("kind") == "test"
+    fit = result.get("fit") or {}
+    deadband = test and str(fit.get("lost_motion_model", "")).startswith("dead band")
+    values = {f: _param(result, f) for f in ("servo_mismatch_ms", "backlash_x_um", "backlash_y_um")}
+    t_rel = (timing.start_s - timing.feed_in_s) + d * (u - u_ds) * plan.radius_mm / timing.feed_mm_s
+    g = Geometry(
+        u=u,
+        d=np.full(u.size, d),
+        t_min=t_rel / 60.0,
+        V=timing.feed_mm_s,
+        R=plan.radius_mm,
+        pitch_x_mm=machine.pitch_x_mm,
+        pitch_y_mm=machine.pitch_y_mm,
+        travel=d * (u - math.radians(arc_start_deg(plan, direction))),
+        loop_lag_s=timing.loop_lag_s,
+        takeup_rad=takeup_angles(values, plan.radius_mm) if deadband else (0.0, 0.0),
+    )
+    dr = design(patterns, g, math.radians(timing.spike_width_deg)) @ _coefficients(result, patterns)
+    if test:
+        lost_motion = "deadband" if deadband else "step"
+        cos2 = _radial_cos2(plan, machine, str((result.get("timing") or {}).get("loop_lag_source", "")))
+        offset = make_offset(values, timing.loop_lag_s, lost_motion, cos2)
+        if offset is not None:
+            dr = dr + offset(g)
+    return np.asarray(dr, dtype=float)
+
+
+def setup_deviation_um(result: Mapping[str, Any] | None, u: FloatArray) -> FloatArray:
+    """The set-up terms (pivot offset and bar length) of ``result`` at angles ``u``; 0 without."""
+    if result is None:
+        return np.zeros_like(u)
+    x0, y0, c = (_param(result, f) or 0.0 for f in ("centre_x_um", "centre_y_um", "radius_um"))
+    return np.asarray(x0 * np.cos(u) + y0 * np.sin(u) + c)
+
+
+def polar_points(u: FloatArray, dr_um: FloatArray, scale_um: float) -> FloatArray:
+    """``(n, 2)`` display points of deviations ``dr_um`` at angles ``u`` (rad), magnified."""
+    r = np.maximum(R0 + (R0 / (2.0 * scale_um)) * dr_um, 0.0)
+    return np.column_stack([r * np.cos(u), r * np.sin(u)])
+
+
+def nice_scale_um(max_abs_um: float) -> float:
+    """The automatic scale for deviations up to ``max_abs_um``: 1, 2 or 5 x 10^n um, at least 1 um."""
+    x = max(max_abs_um / AUTO_SCALE_FILL, 1.0)
+    e = 10.0 ** math.floor(math.log10(x))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        if m * e >= x * (1 - 1e-9):
+            return m * e
+    return 10.0 * e  # pragma: no cover - the loop always returns
+
+
+def _circle(radius: float, n: int = 721) -> FloatArray:
+    a = np.linspace(0.0, 2.0 * math.pi, n)
+    return np.column_stack([radius * np.cos(a), radius * np.sin(a)])
+
+
+def _fmt(v: Any, nd: int = 3) -> str:
+    x = _num(v)
+    return "–" if x is None else f"{x:.{nd}f}"
+
+
+def _fmt_p(p: Any) -> str:
+    x = _num(p)
+    if x is None:
+        return "–"
+    return "< 1e-300" if x == 0 else f"{x:.1e}"
+
+
+def findings_markdown(result: Mapping[str, Any]) -> str:
+    """A circle or test result as a markdown report: ranking, parameters, ISO 230-4, advice."""
+    plan = result.get("plan") or {}
+    tm = result.get("timing") or {}
+    idx = result.get("test_index", "?")
+    if result.get("kind") == "circle":
+        title = f"## Test {idx}: {str(result.get('direction', '')).upper()} circle (provisional)"
+    else:
+        title = f"## Test {idx}"
+    if result.get("test_id"):
+        title += f" · `{result['test_id']}`"
+    machine = (result.get("machine") or {}).get("machine_id") or result.get("machine_id") or ""
+    feed = _num(tm.get("measured_feed_mm_min")) or _num(tm.get("assumed_feed_mm_min"))
+    lines = [
+        title,
+        "",
+        f"machine `{machine}` · plane {plan.get('plane', '?')} · R {plan.get('radius_mm', '?')} mm · "
+        f"F {plan.get('feed_mm_min', '?')} mm/min ({'measured' if result.get('kind') == 'test' else 'assumed'} "
+        f"{_fmt(feed, 1)}) · data arc {plan.get('data_arc_deg', '?')}° · {plan.get('directions', '?')}",
+        "",
+        f"residual {_fmt(result.get('residual_rms_um'))} µm rms · arc-start lag {_fmt(tm.get('lag_s'), 4)} s · "
+        f"spike width {_fmt(tm.get('spike_width_deg'), 2)}°",
+        "",
+        "### Ranked findings",
+        "",
+        "| # | pattern | share % | effect µm | p | significant |",
+        "|---|---|---:|---:|---:|---|",
+    ]
+    ranking = list(result.get("ranking") or [])
+    shown = [r for r in ranking if r.get("significant")] or ranking[:3]
+    for i, r in enumerate(shown[:12], 1):
+        lines.append(
+            f"| {i} | {r.get('pattern')} | {_fmt(r.get('share_pct'), 2)} | {_fmt(r.get('effect_um'))} | "
+            f"{_fmt_p(r.get('p_value'))} | {'**yes**' if r.get('significant') else 'no'} |"
+        )
+    params = result.get("parameters") or {}
+    sig = [
+        (k, p)
+        for k, p in params.items()
+        if isinstance(p, Mapping) and p.get("significant") and _num(p.get("value")) is not None
+    ]
+    if sig:
+        lines += ["", "### Parameters (significant)", "", "| parameter | value | ± | unit |", "|---|---:|---:|---|"]
+        for k, p in sig:
+            lines.append(f"| {k} | {_fmt(p.get('value'), 3)} | {_fmt(p.get('stderr'), 3)} | {p.get('unit', '')} |")
+    iso = result.get("iso230_4")
+    if iso:
+        lines += [
+            "",
+            "### ISO 230-4",
+            "",
+            "| G CCW | G CW | G(b) | H | F max | F min |",
+            "|---:|---:|---:|---:|---:|---:|",
+            "| "
+            + " | ".join(_fmt(iso.get(k), 2) for k in ("G_ccw_um", "G_cw_um", "G_b_um", "H_um", "F_max_um", "F_min_um"))
+            + " |",
+            "",
+            "µm; " + str((iso.get("conditions") or {}).get("centre_removal", "")),
+        ]
+    nz = result.get("noise")
+    if nz:
+        lines += [
+            "",
+            f"Vibration {_fmt(nz.get('vibration_um'))} µm above {nz.get('vibration_cutoff_cpr')} cycles/rev; "
+            f"stick-slip X {_fmt(nz.get('stick_slip_x_um'))} µm, Y {_fmt(nz.get('stick_slip_y_um'))} µm",
+        ]
+    lines += ["", "### Advice", ""]
+    advice = list(result.get("advice") or [])
+    if not advice:
+        lines.append("nothing significant to adjust")
+    for a in advice:
+        cp = f" (`{a['controller_parameter']}`)" if a.get("controller_parameter") else ""
+        lines.append(f"- {a.get('action', '')}{cp}")
+    return "\n".join(lines) + "\n"
+
+
+def default_blueprint() -> rrb.Blueprint:
+    """The layout: polar plot and length on the left; findings, trends and events on the right."""
+    bound = 1.75 * R0
+    trends = rrb.Grid(
+        rrb.TimeSeriesView(name="backlash, circularity (µm)", origin="trends/um"),
+        rrb.TimeSeriesView(name="servo mismatch (ms)", origin="trends/ms"),
+        rrb.TimeSeriesView(name="squareness (µrad)", origin="trends/urad"),
+        rrb.TimeSeriesView(name="scale mismatch (ppm)", origin="trends/ppm"),
+        grid_columns=2,
+        name="Trends across tests",
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(
+                    name="Radial deviation (magnified): CCW blue, CW orange, fits dark",
+                    origin="polar",
+                    visual_bounds=rrb.VisualBounds2D(x_range=[-bound, bound], y_range=[-bound, bound]),
+                ),
+                rrb.TimeSeriesView(
+                    name="Bar length L (mm)",
+                    origin="length",
+                    time_ranges=rrb.VisibleTimeRange(
+                        "time",
+                        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-300.0),
+                        end=rrb.TimeRangeBoundary.cursor_relative(),
+                    ),
+                ),
+                row_shares=[3, 1],
+            ),
+            rrb.Vertical(
+                rrb.TextDocumentView(name="Findings", origin="findings"),
+                trends,
+                rrb.TextLogView(name="Events", origin="events"),
+                row_shares=[3, 2, 1],
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(timeline="time"),
+        collapse_panels=False,
+    )
+
+
+# --------------------------------------------------------------------------- the listener
+
+
+class _Prober:
+    """Probes a viewer's address over TCP on its own thread (connect mode).
+
+    ``up``: the last probe's answer; ``failures``: failed probes so far, so
+    that the listener can tell that the viewer was gone at some moment since
+    it made its sink (a restarted viewer needs a new sink).
+    """
+
+    def __init__(self, host: str, port: int, period_s: float) -> None:
+        self.host, self.port, self.period_s = host, port, period_s
+        self.up = False
+        self.failures = 0
+        self.probes = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rerun-viewer-probe", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ok = _tcp_listening(self.host, self.port, timeout=min(0.5, self.period_s))
+            if not ok:
+                self.failures += 1
+            self.up = ok
+            self.probes += 1
+            self._stop.wait(self.period_s)
+
+    def close(self, timeout: float = 0.6) -> None:
+        self._stop.set()
+        self._thread.join(timeout)
+
+
+_ABANDONED: list[rr.RecordingStream] = []  # recordings whose disconnect did not finish: never collected
+
+
+class RerunViewer(Listener):
+    """Streams samples and results to Rerun viewers; see the module docstring.
+
+    ``plan``/``machine``: the configured test plan, needed to draw the live
+    circle before the first result arrives (a ``config`` or result message
+    carrying a ``plan`` also sets it).  ``recording_id``: default a new UUID.
+    """
+
+    name = "rerun"
+
+    def __init__(
+        self,
+        options: ViewerOptions | None = None,
+        *,
+        plan: TestPlan | None = None,
+        machine: MachineConfig | None = None,
+        recording_id: str | None = None,
+    ) -> None:
+        self.options = options or ViewerOptions()
+        self.plan = plan
+        self.machine = machine
+        self.recording_id = recording_id or str(uuid.uuid4())
+        self._closed = False
+        self._stop_lock = threading.Lock()
+        self._rec: rr.RecordingStream | None = None
+        self._sink_live = False
+        self._sink_failures = 0  # the prober's failure count when the sink was made
+        self._next_retry = 0.0
+        self._next_health = 0.0
+        self._prober: _Prober | None = None
+        self._err_next_log = 0.0
+        self._err_count = 0
+        self.counters: dict[str, int] = {
+            "batches": 0,
+            "samples": 0,
+            "messages": 0,
+            "polar_draws": 0,
+            "sinks": 0,
+            "errors": 0,
+            "skipped": 0,
+        }
+        # the analysis clock (see ViewerOptions.clock) and the latest sample times seen on each
+        self._use_host = self.options.clock == "host"
+        self._latest_host = -math.inf
+        self._latest_device = -math.inf
+        # samples kept for the polar plot: (t_host, t_device, L) chunks
+        self._chunks: list[tuple[FloatArray, FloatArray, FloatArray]] = []
+        self._n_kept = 0
+        self._keep_every = 1  # extra thinning after the buffer hit max_buffer_samples
+        self._rate_hz = float("nan")
+        # the current test
+        self._test_index = 0
+        self._in_test = False
+        self._live: dict[int, ArcTiming] = {}  # provisional timing per direction
+        self._final: dict[int, Mapping[str, Any]] = {}  # direction -> latest result drawn for it
+        self._next_polar = 0.0
+        # what a (re)connecting viewer is sent again
+        self._strips: dict[str, tuple[FloatArray, str, str, float, float]] = {}
+        self._scale_um = self.options.scale_um or AUTO_SCALE_START_UM
+        self._setup_result: Mapping[str, Any] | None = None
+        self._hints = (1.0, 0.0, 3.0)  # feed ratio, overhead (s), spike width (deg) from the last test
+        self._findings_md = ""
+        self._trends: deque[tuple[int, float, dict[str, float]]] = deque(maxlen=TRENDS_KEPT)
+        if self.options.mode == "off":
+            self._closed = True
+            return
+        self._rec = rr.RecordingStream(self.options.application_id, recording_id=self.recording_id)
+        if self.options.mode == "connect":
+            addr = _proxy_address(self.options.url)
+            assert addr is not None  # validated by ViewerOptions
+            self._prober = _Prober(addr[0], addr[1], self.options.retry_s)
+        self._maintain(time.monotonic())
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> RerunViewer:
+        """From the daemon's configuration: ``[rerun]``, ``plan``, ``machine``, ``daemon.machine_id``.
+
+        Every :class:`ViewerOptions` field the section has is taken as it is;
+        besides, ``memory_limit_mb`` (MiB) sets ``server_memory_limit`` and
+        ``magnification`` (0: automatic) how many times a deviation is drawn
+        larger than the radius (``r/R0 = 1 + M dR/R``), i.e.
+        ``scale_um = 500 R / M``.  Keys the section lacks keep the defaults.
+        """
+        sec = cfg.rerun
+        plan: TestPlan | None = getattr(cfg, "plan", None)
+        machine: MachineConfig | None = getattr(cfg, "machine", None)
+        kw: dict[str, Any] = {f.name: getattr(sec, f.name) for f in fields(ViewerOptions) if hasattr(sec, f.name)}
+        mem = getattr(sec, "memory_limit_mb", None)
+        if mem is not None:
+            kw["server_memory_limit"] = f"{max(1, round(float(mem)))}MiB"
+        mag = getattr(sec, "magnification", None)
+        if mag and plan is not None:
+            kw["scale_um"] = 500.0 * plan.radius_mm / float(mag)
+        machine_id = getattr(getattr(cfg, "daemon", None), "machine_id", "") or ""
+        kw.setdefault("recording_name", f"ballbar {machine_id} {time.strftime('%Y-%m-%d %H:%M:%S')}".strip())
+        return cls(ViewerOptions(**kw), plan=plan, machine=machine)
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def address(self) -> str:
+        return self.options.address
+
+    @property
+    def connected(self) -> bool:
+        """A sink exists: serving, or pushing to a viewer that answered the last probe."""
+        return self._sink_live
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "mode": self.options.mode,
+            "address": self.address,
+            "connected": self._sink_live,
+            "clock": "host" if self._use_host else "device",
+            "buffered_samples": self._n_kept,
+            **self.counters,
+        }
+
+    # ------------------------------------------------------------------ sinks
+
+    def _maintain(self, now: float) -> None:
+        """(Re)create the sink when needed; in connect mode, notice a viewer that went away."""
+        rec = self._rec
+        if rec is None:
+            return
+        if self.options.mode == "serve":
+            if not self._sink_live and now >= self._next_retry:
+                self._next_retry = now + self.options.retry_s
+                if not _port_free(self.options.bind, self.options.port):
+                    log.warning(
+                        "rerun viewer: %s:%d is in use; retrying every %.0f s",
+                        self.options.bind,
+                        self.options.port,
+                        self.options.retry_s,
+                    )
+                    return
+                rec.set_sinks(
+                    rr.GrpcServerSink(
+                        self.options.bind, self.options.port, server_memory_limit=self.options.server_memory_limit
+                    ),
+                    default_blueprint=default_blueprint(),
+                )
+                self._on_new_sink(
+                    "serving on %s:%d (viewers: rerun %s)", self.options.bind, self.options.port, self.address
+                )
+            return
+        pr = self._prober
+        assert pr is not None
+        if self._sink_live and pr.failures != self._sink_failures:
+            log.info("rerun viewer at %s went away; reconnecting when it answers", self.options.url)
+            self._sink_live = False
+        if self._sink_live and now >= self._next_health:
+            # A dead sink (viewer restarted between two probes) fails its flush at once.
+            self._next_health = now + self.options.health_s
+            try:
+                rec.flush(timeout_sec=1.0)
+            except Exception as err:  # rerun raises a bare RuntimeError
+                log.info("rerun viewer at %s: stream lost (%s); reconnecting", self.options.url, err)
+                self._sink_live = False
+        if not self._sink_live and pr.up and now >= self._next_retry:
+            self._next_retry = now + self.options.retry_s
+            self._sink_failures = pr.failures
+            rec.set_sinks(rr.GrpcSink(self.options.url), default_blueprint=default_blueprint())
+            self._next_health = now + self.options.health_s
+            self._on_new_sink("pushing to %s", self.options.url)
+
+    def _on_new_sink(self, msg: str, *args: Any) -> None:
+        self._sink_live = True
+        self.counters["sinks"] += 1
+        log.info("rerun viewer: " + msg, *args)
+        self._send_scene()
+
+    def _send_scene(self) -> None:
+        """Everything a viewer that has just (re)connected needs, besides the live stream."""
+        rec = self._rec
+        assert rec is not None
+        rec.send_blueprint(default_blueprint())
+        name = self.options.recording_name or (
+            f"ballbar {time.strftime('%Y-%m-%d %H:%M:%S')}" + (f" {self.machine.machine_id}" if self.machine else "")
+        )
+        rec.send_recording_name(name)
+        self._log_static()
+        rec.set_time("time", timestamp=time.time())
+        rec.set_time("test", sequence=self._test_index)
+        self._log_scale()
+        if self._findings_md:
+            rec.log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN))
+        if self._trends:
+            self._send_trends(list(self._trends))
+        for path, strip in self._strips.items():
+            self._log_strip(path, *strip)
+
+    def _log_static(self) -> None:
+        rec = self._rec
+        assert rec is not None
+        radius = f"{self.plan.radius_mm:g} mm" if self.plan else "R"
+        ax1, ax2 = self.plan.axes if self.plan else ("X", "Y")
+        radii = rr.Radius.ui_points(0.75)
+        rec.log(
+            "polar/reference/nominal",
+            rr.LineStrips2D(
+                [_circle(R0)], colors=[COLOURS["nominal"]], radii=radii, labels=[f"nominal {radius}"], draw_order=1.0
+            ),
+            static=True,
+        )
+        e = 1.65 * R0
+        rec.log(
+            "polar/reference/axes",
+            rr.LineStrips2D(
+                [[[-e, 0.0], [e, 0.0]], [[0.0, -e], [0.0, e]]],
+                colors=[COLOURS["axes"]],
+                radii=rr.Radius.ui_points(0.5),
+                labels=[f"+{ax1}", f"+{ax2}"],
+                draw_order=0.4,
+            ),
+            static=True,
+        )
+        rec.log("length", rr.SeriesLines(names="L (mm)", colors=[(90, 90, 90)]), static=True)
+        for path, _field, label in TRENDS:
+            rec.log(
+                f"trends/{path}",
+                rr.SeriesLines(names=label),
+                rr.SeriesPoints(names=label, marker_sizes=4.0),
+                static=True,
+            )
+
+    def _log_scale(self) -> None:
+        """The scale-dependent references, at the current time (the caller sets the timelines)."""
+        rec = self._rec
+        assert rec is not None
+        tol, s = self.options.tolerance_um, self._scale_um
+        k = R0 / (2.0 * s)
+        rec.log(
+            "polar/reference/band",
+            rr.LineStrips2D(
+                [_circle(R0 + k * tol), _circle(max(R0 - k * tol, 0.0))],
+                colors=[COLOURS["band"]],
+                radii=rr.Radius.ui_points(0.75),
+                labels=[f"+{tol:g} µm", f"-{tol:g} µm"],
+                draw_order=2.0,
+            ),
+        )
+        rec.log(
+            "polar/reference/scale",
+            rr.LineStrips2D(
+                [_circle(R0 * 1.5), _circle(R0 * 0.5)],
+                colors=[COLOURS["scale"]],
+                radii=rr.Radius.ui_points(0.5),
+                labels=[f"+{s:g} µm", f"-{s:g} µm"],
+                draw_order=0.5,
+            ),
+        )
+
+    def _set_scale(self, scale_um: float) -> None:
+        if self.options.scale_um is not None or scale_um == self._scale_um:
+            return
+        log.debug("rerun viewer: polar scale %g -> %g um", self._scale_um, scale_um)
+        self._scale_um = scale_um
+        if self._sink_live:
+            rec = self._rec
+            assert rec is not None
+            rec.set_time("time", timestamp=time.time())
+            rec.set_time("test", sequence=self._test_index)
+            self._log_scale()
+            self._redraw_all()
+
+    # ------------------------------------------------------------------ listener interface
+
+    def on_batch(self, batch: SampleBatch) -> None:
+        if self._closed:
+            return
+        try:
+            self._on_batch(batch)
+        except Exception:
+            self._failed("on_batch")
+
+    def on_message(self, msg: Message) -> None:
+        if self._closed:
+            return
+        try:
+            self._on_message(msg)
+        except Exception:
+            self._failed("on_message")
+
+    def on_idle(self) -> None:
+        if self._closed:
+            return
+        try:
+            self._maintain(time.monotonic())
+        except Exception:
+            self._failed("on_idle")
+
+    def _failed(self, where: str) -> None:
+        # Logged at most once a minute: a bug that fails every batch must not flood the journal.
+        if self._closed:
+            return  # stop() took the stream away mid-call
+        self.counters["errors"] += 1
+        self._err_count += 1
+        now = time.monotonic()
+        if now >= self._err_next_log:
+            log.exception("rerun viewer: %s failed (%d failures since the last report)", where, self._err_count)
+            self._err_count = 0
+            self._err_next_log = now + 60.0
+
+    # ------------------------------------------------------------------ samples
+
+    def _on_batch(self, batch: SampleBatch) -> None:
+        now = time.monotonic()
+        self._maintain(now)
+        self.counters["batches"] += 1
+        for ev in batch.events:
+            self._source_event(ev)
+        n = len(batch)
+        if n == 0:
+            return
+        ok = batch.valid & np.isfinite(batch.t_host) & np.isfinite(batch.length_mm)
+        if n >= 2:
+            dt = float(np.median(np.diff(batch.t_host)))
+            if dt > 0:
+                self._rate_hz = 1.0 / dt
+        self._latest_host = max(self._latest_host, float(batch.t_host[-1]))
+        if np.isfinite(batch.t_device[-1]):
+            self._latest_device = max(self._latest_device, float(batch.t_device[-1]))
+        elif self.options.clock == "auto":
+            self._use_host = True
+        self.counters["samples"] += n
+        self._keep(batch, ok)
+        if not self._sink_live:
+            self.counters["skipped"] += 1
+            return
+        self._log_length(batch, ok)
+        if self._in_test and now >= self._next_polar:
+            self._next_polar = now + self.options.polar_update_s
+            self._redraw_live()
+
+    def _stride(self, limit_hz: float) -> int:
+        if not math.isfinite(self._rate_hz):
+            return 1
+        return max(1, int(self._rate_hz // limit_hz))
+
+    def _keep(self, batch: SampleBatch, ok: NDArray[np.bool_]) -> None:
+        """Keep the samples (decimated by sample number) that the polar plot may need."""
+        stride = self._stride(self.options.buffer_hz) * self._keep_every
+        m = ok & (batch.seq % stride == 0)
+        if m.any():
+            self._chunks.append((batch.t_host[m], batch.t_device[m], batch.length_mm[m]))
+            self._n_kept += int(m.sum())
+        if not self._in_test:
+            horizon = self._latest_host - PRE_TEST_S
+            while self._chunks and self._chunks[0][0][-1] < horizon:
+                self._n_kept -= self._chunks.pop(0)[0].size
+        elif self._n_kept > self.options.max_buffer_samples:
+            th, td, L = self._buffer()
+            self._chunks = [(th[::2], td[::2], L[::2])]
+            self._n_kept = int(self._chunks[0][0].size)
+            self._keep_every *= 2
+            log.info(
+                "rerun viewer: test longer than %d samples kept; now keeping every %d-th",
+                self.options.max_buffer_samples,
+                stride * 2,
+            )
+
+    def _buffer(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        if not self._chunks:
+            z = np.empty(0)
+            return z, z, z
+        if len(self._chunks) > 1:
+            th, td, L = (np.concatenate(c) for c in zip(*self._chunks, strict=True))
+            self._chunks = [(th, td, L)]
+        return self._chunks[0]
+
+    def _analysis_time(self) -> tuple[FloatArray, FloatArray]:
+        th, td, L = self._buffer()
+        return (th if self._use_host else td), L
+
+    def _log_length(self, batch: SampleBatch, ok: NDArray[np.bool_]) -> None:
+        rec = self._rec
+        assert rec is not None
+        m = ok & (batch.seq % self._stride(self.options.length_hz) == 0)
+        if not m.any():
+            return
+        wall = batch.t_host[m] + (time.time() - time.monotonic())
+        rec.send_columns(
+            "length",
+            indexes=[rr.TimeColumn("time", timestamp=wall)],
+            columns=rr.Scalars.columns(scalars=batch.length_mm[m]),
+        )
+
+    def _source_event(self, ev: SourceEvent) -> None:
+        detail = ", ".join(
+            f"{k} {v}" for k, v in (("count", ev.count), ("gap_s", round(ev.gap_s, 3)), ("detail", ev.detail)) if v
+        )
+        if ev.counts:
+            detail += (", " if detail else "") + ", ".join(f"{k} {v}" for k, v in ev.counts.items())
+        level = "WARN" if str(ev.kind) in WARN_EVENTS else "INFO"
+        if ev.kind == EventKind.DEVICE_RESET:
+            self._end_test()
+        self._text_event(
+            f"source {ev.source or ''} {ev.kind}: {detail}".replace("  ", " "),
+            level,
+            ev.t_host + (time.time() - time.monotonic()),
+        )
+
+    def _text_event(self, text: str, level: str, wall: float | None = None) -> None:
+        if not self._sink_live:
+            return
+        rec = self._rec
+        assert rec is not None
+        rec.set_time("time", timestamp=wall if wall is not None else time.time())
+        rec.log("events", rr.TextLog(text, level=level))
+
+    # ------------------------------------------------------------------ messages
+
+    def _on_message(self, msg: Message) -> None:
+        self._maintain(time.monotonic())
+        self.counters["messages"] += 1
+        kind = msg.get("kind")
+        if kind == "config":
+            cfg = msg.get("config")
+            if isinstance(cfg, Mapping) and isinstance(cfg.get("plan"), Mapping):
+                self._set_plan(cfg["plan"], cfg.get("machine"))
+        elif kind in ("circle", "test"):
+            if isinstance(msg.get("plan"), Mapping):
+                self._set_plan(msg["plan"], msg.get("machine"))
+            self._check_clock(msg)
+            self._result(msg)
+        elif kind == "event" and msg.get("origin") != "source":  # source events come with their batch
+            self._check_clock(msg)
+            self._event(msg)
+
+    def _set_plan(self, plan: Mapping[str, Any], machine: Any) -> None:
+        try:
+            new = TestPlan.from_dict(dict(plan))
+            mach = MachineConfig.from_dict(dict(machine)) if isinstance(machine, Mapping) else self.machine
+        except (TypeError, ValueError) as err:
+            log.warning("rerun viewer: ignoring a plan it cannot read: %s", err)
+            return
+        changed = new != self.plan
+        self.plan, self.machine = new, mach
+        if changed and self._sink_live:
+            self._log_static()
+
+    def _check_clock(self, msg: Message) -> None:
+        """Follow the clock the analysis runs on: the message's ``time_axis``, else its times.
+
+        Without ``time_axis``, an engine time (``last_sample_t``, an event's
+        ``t_s``) must lie near the newest sample's time on that clock.
+        """
+        if self.options.clock != "auto":
+            return
+        axis = msg.get("time_axis")
+        use_host = self._use_host
+        if axis in ("device", "host"):
+            use_host = axis == "host"
+        elif (t := _num(msg.get("last_sample_t")) or _num(msg.get("t_s"))) is not None:
+
+            def near(latest: float) -> bool:
+                return latest - 600.0 <= t <= latest + 60.0
+
+            if use_host and not near(self._latest_host) and near(self._latest_device):
+                use_host = False
+            elif not use_host and not near(self._latest_device) and near(self._latest_host):
+                use_host = True
+        if use_host == self._use_host:
+            return
+        self._use_host = use_host
+        log.info("rerun viewer: the analysis runs on the %s clock", "host" if self._use_host else "device")
+        self._redraw_all()
+
+    def _event(self, msg: Message) -> None:
+        ev = str(msg.get("event", ""))
+        idx = msg.get("test_index")
+        text = f"test {idx}: {ev}" + (f" at t={msg['t_s']:.3f} s" if _num(msg.get("t_s")) is not None else "")
+        if msg.get("message"):
+            text += f": {msg['message']}"
+        if ev == "feed_in" and isinstance(idx, int) and _num(msg.get("t_s")) is not None:
+            self._start_test(idx, float(msg["t_s"]))
+        elif ev in ("test_rejected", "test_incomplete", "test_aborted"):
+            self._end_test()
+        self._text_event(text, "WARN" if ev in WARN_EVENTS else "INFO")
+
+    def _start_test(self, index: int, feed_in_s: float) -> None:
+        self._test_index = index
+        self._in_test = True
+        self._final = {}
+        self._live = {}
+        if self.plan is not None:
+            ratio, overhead, width = self._hints
+            self._live = {
+                d: provisional_timing(self.plan, d, feed_in_s, ratio, overhead, width) for d in self.plan.direction_list
+            }
+        # keep the samples from shortly before the feed-in: the data arc may start right after it
+        t, _L = self._analysis_time()
+        if t.size and self._chunks:
+            keep = t >= feed_in_s - 1.0
+            th, td, L = self._chunks[0]
+            self._chunks = [(th[keep], td[keep], L[keep])]
+            self._n_kept = int(keep.sum())
+        if self._sink_live:
+            rec = self._rec
+            assert rec is not None
+            rec.set_time("time", timestamp=time.time())
+            rec.set_time("test", sequence=index)
+            for name in DIRECTIONS.values():
+                rec.log(f"polar/{name}", rr.Clear(recursive=True))
+            self._log_scale()  # again each test: the server's bounded buffer drops the oldest data
+        self._strips.clear()
+
+    def _end_test(self) -> None:
+        self._in_test = False
+        self._live = {}
+        self._keep_every = 1
+
+    def _result(self, res: Message) -> None:
+        idx = res.get("test_index")
+        if isinstance(idx, int) and idx != self._test_index:
+            self._test_index = idx
+        if res.get("kind") == "test":
+            tm = res.get("timing") or {}
+            ratio = _num(tm.get("feed_ratio"))
+            overhead = _num(tm.get("overhead_s"))
+            width = _num(tm.get("spike_width_deg"))
+            if ratio is not None and overhead is not None:
+                self._hints = (ratio, overhead, width or self._hints[2])
+            for d in DIRECTIONS:
+                if result_timing(res, d) is not None:
+                    self._final[d] = res
+            if self.options.scale_um is None:
+                devs = [self._measured(d, t) for d in DIRECTIONS if (t := result_timing(res, d)) is not None]
+                peak = max((float(np.abs(dr).max()) for _u, dr in devs if dr.size), default=None)
+                if peak is not None:
+                    self._scale_um = nice_scale_um(peak)  # redrawn below
+                    if self._sink_live:
+                        rec = self._rec
+                        assert rec is not None
+                        rec.set_time("time", timestamp=time.time())
+                        rec.set_time("test", sequence=self._test_index)
+                        self._log_scale()
+        else:
+            d = 1 if res.get("direction") == "ccw" else -1
+            self._final[d] = res
+        if self.options.remove_setup and _param(res, "centre_x_um") is not None:
+            self._setup_result = res
+        self._findings_md = findings_markdown(res)
+        trend = self._trend_values(res) if res.get("kind") == "test" else {}
+        if trend and isinstance(idx, int):
+            self._trends.append((idx, time.time(), trend))
+        if self._sink_live:
+            rec = self._rec
+            assert rec is not None
+            rec.set_time("time", timestamp=time.time())
+            rec.set_time("test", sequence=self._test_index)
+            rec.log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN))
+            if trend and isinstance(idx, int):
+                self._send_trends([self._trends[-1]])
+            self._redraw_all()
+        if res.get("kind") == "test":
+            self._end_test()
+
+    @staticmethod
+    def _trend_values(res: Mapping[str, Any]) -> dict[str, float]:
+        out: dict[str, float] = {}
+        iso = res.get("iso230_4") or {}
+        for path, field, _label in TRENDS:
+            v = _num(iso.get(field)) if field.startswith("G_") else _param(res, field)
+            if v is not None:
+                out[path] = v
+        return out
+
+    def _send_trends(self, points: Sequence[tuple[int, float, dict[str, float]]]) -> None:
+        rec = self._rec
+        assert rec is not None
+        for path, _field, _label in TRENDS:
+            rows = [(i, w, vals[path]) for i, w, vals in points if path in vals]
+            if not rows:
+                continue
+            rec.send_columns(
+                f"trends/{path}",
+                indexes=[
+                    rr.TimeColumn("test", sequence=[r[0] for r in rows]),
+                    rr.TimeColumn("time", timestamp=[r[1] for r in rows]),
+                ],
+                columns=rr.Scalars.columns(scalars=[r[2] for r in rows]),
+            )
+
+    # ------------------------------------------------------------------ polar plot
+
+    def _redraw_live(self) -> None:
+        t, _L = self._analysis_time()
+        if not t.size:
+            return
+        for d, timing in self._live.items():
+            if d not in self._final and t[-1] > timing.start_s:
+                self._draw_measured(d, timing)
+
+    def _redraw_all(self) -> None:
+        if not self._sink_live:
+            return
+        for d in DIRECTIONS:
+            res = self._final.get(d)
+            timing = result_timing(res, d) if res is not None else self._live.get(d)
+            if timing is None:
+                continue
+            self._draw_measured(d, timing)
+            if res is not None:
+                self._draw_model(d, res)
+
+    def _measured(self, d: int, timing: ArcTiming) -> tuple[FloatArray, FloatArray]:
+        """Angles (rad) and deviations (um, set-up removed) of the kept samples of ``d``'s data arc."""
+        plan = self.plan
+        t, L = self._analysis_time()
+        m = (t >= timing.start_s) & (t <= timing.end_s)
+        if plan is None or m.sum() < 2:
+            z = np.empty(0)
+            return z, z
+        t, L = t[m], L[m]
+        expected = (timing.end_s - timing.start_s) * (self._rate_hz if math.isfinite(self._rate_hz) else 1.0)
+        step = max(
+            1,
+            math.ceil(
+                min(expected, 1e9)
+                / (self._stride(self.options.buffer_hz) * self._keep_every)
+                / self.options.polar_points
+            ),
+        )
+        t, L = t[::step], L[::step]
+        u = timing.angle_rad(plan, t)
+        return u, (L - plan.radius_mm) * 1000.0 - setup_deviation_um(self._setup_result, u)
+
+    def _draw_measured(self, d: int, timing: ArcTiming) -> None:
+        u, dr = self._measured(d, timing)
+        if not u.size:
+            return
+        peak = float(np.abs(dr).max())
+        if self.options.scale_um is None and peak > AUTO_SCALE_FILL * self._scale_um:
+            self._set_scale(nice_scale_um(peak))  # grows at once; redraws everything, this curve included
+            return
+        name = DIRECTIONS[d]
+        self._log_strip(f"polar/{name}/measured", polar_points(u, dr, self._scale_um), name, name.upper(), 1.5, 10.0)
+        self.counters["polar_draws"] += 1
+
+    def _draw_model(self, d: int, res: Mapping[str, Any]) -> None:
+        plan = TestPlan.from_dict(dict(res["plan"]))
+        u_ds = math.radians(data_start_deg(plan, d))
+        u = u_ds + d * np.linspace(0.0, math.radians(plan.data_arc_deg), self.options.polar_points)
+        dr = model_deviation_um(res, d, u)
+        if dr is None:
+            return
+        dr = dr - setup_deviation_um(self._setup_result, u)
+        name = DIRECTIONS[d]
+        label = f"{name.upper()} fit" + (" (provisional)" if res.get("kind") == "circle" else "")
+        self._log_strip(f"polar/{name}/model", polar_points(u, dr, self._scale_um), f"{name}_model", label, 0.6, 11.0)
+
+    def _log_strip(self, path: str, pts: FloatArray, colour: str, label: str, width: float, order: float) -> None:
+        self._strips[path] = (pts, colour, label, width, order)
+        rec = self._rec
+        assert rec is not None
+        rec.set_time("time", timestamp=time.time())
+        rec.set_time("test", sequence=self._test_index)
+        rec.log(
+            path,
+            rr.LineStrips2D(
+                [pts], colors=[COLOURS[colour]], radii=rr.Radius.ui_points(width), labels=[label], draw_order=order
+            ),
+        )
+
+    # ------------------------------------------------------------------ stop
+
+    def stop(self) -> None:
+        """Close the sink within ``stop_timeout_s``, whatever the viewer does; safe to call twice."""
+        with self._stop_lock:
+            self._closed = True
+            rec, self._rec = self._rec, None
+            prober, self._prober = self._prober, None
+        if prober is not None:
+            prober.close()
+        if rec is None:
+            return
+        t0 = time.monotonic()
+        done = threading.Event()
+
+        def close() -> None:
+            with contextlib.suppress(Exception):  # a lost viewer fails the flush; nothing to do about it
+                rec.flush(timeout_sec=max(0.1, self.options.stop_timeout_s / 2))
+            rec.disconnect()
+            done.set()
+
+        th = threading.Thread(target=close, name="rerun-viewer-stop", daemon=True)
+        th.start()
+        th.join(self.options.stop_timeout_s)
+        self._sink_live = False
+        if not done.is_set():
+            # A frozen viewer holds the SDK's connection: dropping the recording or the SDK's own
+            # exit hook would wait for it forever.  Keep it referenced and let the process exit.
+            _ABANDONED.append(rec)
+            rr.unregister_shutdown()
+            log.warning(
+                "rerun viewer: the viewer did not let go within %.1f s; abandoning the stream",
+                self.options.stop_timeout_s,
+            )
+        log.info(
+            "rerun viewer stopped in %.3f s (%s)",
+            time.monotonic() - t0,
+            ", ".join(f"{k} {v}" for k, v in self.counters.items()),
+        )
+
+
+__all__ = [
+    "ArcTiming",
+    "RerunViewer",
+    "ViewerConfigError",
+    "ViewerOptions",
+    "default_blueprint",
+    "findings_markdown",
+    "model_deviation_um",
+    "polar_points",
+    "provisional_timing",
+    "result_timing",
+    "setup_deviation_um",
+]
