@@ -355,6 +355,7 @@ class SerialSource(Source):
         self._stalled = False
         self._gap_cause: str | None = None
         self._duplicates = 0
+        self._unsolicited = 0
         # poll mode
         self._tick0: float | None = None
         self._k = 0
@@ -394,6 +395,8 @@ class SerialSource(Source):
         self._last_rx = now
         self._stalled = False
         self._out = None  # the poll clock keeps running: ticks missed while away are lost
+        # A stream may be joined mid-line: the first line may be the tail of one.
+        self._decoder.discard(rejoin=self.mode == "stream")
         if not self._ever_open:
             self._ever_open = True
             self._event(EventKind.OPENED, detail=f"{self.port_url} ({self.protocol}, {self.mode})")
@@ -406,7 +409,7 @@ class SerialSource(Source):
     def _port_lost(self, err: BaseException) -> None:
         now = time.monotonic()
         self._drop_port()
-        self._decoder.flush()  # a partial frame of the old connection is garbage now
+        self._decoder.discard()  # a partial frame or line of the old connection is garbage now
         self._down_since = now
         self._retry_s = self.retry_min_s
         self._next_retry = now + self._retry_s
@@ -518,6 +521,8 @@ class SerialSource(Source):
         now = dict(self._decoder.dropped)
         if self._duplicates:
             now["duplicate"] = self._duplicates
+        if self._unsolicited:
+            now["unsolicited"] = self._unsolicited
         delta = {k: v - self._reported.get(k, 0) for k, v in now.items() if v != self._reported.get(k, 0)}
         if delta:
             self._reported = now
@@ -573,7 +578,7 @@ class SerialSource(Source):
             r = self._decoder.feed(data)
             for i in range(len(r)):
                 if self._out is None:
-                    self._duplicates += 1  # an answer nobody asked for
+                    self._unsolicited += 1  # an answer nobody asked for
                     continue
                 k, t_sent = self._out
                 self._pending.append((k, 0.5 * (t_sent + t_read), float(r.value_mm[i]), int(r.status[i])))
@@ -590,16 +595,13 @@ class SerialSource(Source):
             stale = port.in_waiting
             if stale:  # a late answer to a timed-out request: not this one's
                 port.read(stale)
-                self._decoder.flush()
-                self._reported_stale(stale)
+                self._decoder.discard()
+                self._decoder.dropped["stale_bytes"] = self._decoder.dropped.get("stale_bytes", 0) + stale
             port.write(self.fmt.request)
         except (serial.SerialException, OSError) as err:
             self._port_lost(err)
             return False
         return True
-
-    def _reported_stale(self, n: int) -> None:
-        self._decoder.dropped["stale_bytes"] = self._decoder.dropped.get("stale_bytes", 0) + n
 
     def _flush_poll(self) -> SampleBatch | None:
         self._poll_batch_start = time.monotonic()

@@ -80,8 +80,10 @@ class AsciiFormat:
 
     Decoding uses ``unit``, ``scale``, ``ts_unit`` (``None``: the lines carry no
     timestamp) and ``max_line`` (longer lines are dropped).  Encoding also uses
-    ``decimals`` (``None``: 0.01 um resolution in the unit), ``unit_suffix``,
-    ``separator`` and ``eol``.  ``request`` is what the host sends in polled mode.
+    ``decimals`` (``None``: 0.01 um resolution in the unit), ``width`` and
+    ``ts_width`` (minimum field widths, zero-padded: gauges write fixed-width
+    lines; 0: no padding), ``unit_suffix``, ``separator`` and ``eol``.
+    ``request`` is what the host sends in polled mode.
     """
 
     unit: Unit = "mm"
@@ -89,6 +91,8 @@ class AsciiFormat:
     ts_unit: TsUnit | None = None
     max_line: int = 64
     decimals: int | None = None
+    width: int = 0
+    ts_width: int = 0
     unit_suffix: bool = False
     separator: str = " "
     eol: bytes = b"\r\n"
@@ -109,6 +113,8 @@ class AsciiFormat:
             raise ValueError(f"eol must be CR, LF or CR LF, not {self.eol!r}")
         if not self.request:
             raise ValueError("request must not be empty")
+        if not (0 <= self.width <= 32 and 0 <= self.ts_width <= 32):
+            raise ValueError("width and ts_width must be within 0..32")
 
     @property
     def mm_per_count(self) -> float:
@@ -140,7 +146,8 @@ def encode(
     d = fmt.digits
     suffix = f" {fmt.unit}" if fmt.unit_suffix else ""
     eol = fmt.eol.decode("ascii")
-    texts = [f"{v:+.{d}f}{suffix}" for v in vals.tolist()]
+    w = fmt.width
+    texts = [f"{v:+0{w}.{d}f}{suffix}" for v in vals.tolist()]
     for i in np.flatnonzero(st & int(Status.OVER_RANGE) | ~np.isfinite(vals)).tolist():
         texts[i] = "OVER"
     for i in np.flatnonzero(st & int(Status.SENSOR_FAULT)).tolist():
@@ -151,7 +158,8 @@ def encode(
         ts = np.broadcast_to(np.asarray(t_s, dtype=np.float64), (n,)) / TS_S[fmt.ts_unit]
         td = {"s": 6, "ms": 3, "us": 0}[fmt.ts_unit]
         sep = fmt.separator
-        texts = [f"{t:.{td}f}{sep}{x}" for t, x in zip(ts.tolist(), texts, strict=True)]
+        tw = fmt.ts_width
+        texts = [f"{t:0{tw}.{td}f}{sep}{x}" for t, x in zip(ts.tolist(), texts, strict=True)]
     return "".join(x + eol for x in texts).encode("ascii")
 
 
@@ -173,6 +181,7 @@ _LOWER[ord("A") : ord("Z") + 1] += 32
 _P10 = 10.0 ** np.arange(_MAX_FRAC + 1)
 _P256 = 256 ** np.arange(7, dtype=np.int64)  # packs up to 7 letters of a unit into an int64
 _BLOCK = 8192  # lines per vectorised block: temporaries stay in cache
+_LINE_RE = re.compile(rb"[^\r\n]+(?=[\r\n])")  # a complete, non-empty line
 _FAULT_RE = re.compile(rb"^[ \t,;]*(?:(?P<ts>\d+(?:\.\d*)?)[ \t,;]+)?(?P<word>[+-]?[A-Za-z]+)[ \t,;]*$")
 
 
@@ -393,11 +402,18 @@ class AsciiDecoder:
         self.fmt = fmt or AsciiFormat()
         self._pending = b""
         self._discarding = False
+        self._rejoin = False
         self.lines = 0
         self.dropped: dict[str, int] = {BAD_LINE: 0, LONG_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
 
     def feed(self, data: bytes | bytearray | memoryview, final: bool = False) -> Readings:
         buffer = self._pending + bytes(data) if self._pending else bytes(data)
+        if self._rejoin:
+            settled = self._settle(buffer, final)
+            if settled is None:
+                self._pending = buffer
+                return _empty(self.fmt)
+            buffer = settled
         res = decode(buffer, self.fmt, final=final, skip_first=self._discarding)
         self._pending = buffer[res.consumed :]
         self._discarding = res.discarding
@@ -406,8 +422,38 @@ class AsciiDecoder:
         return res.readings
 
     def flush(self) -> Readings:
-        """End of stream (or a reconnection): parse or drop the unterminated tail."""
+        """End of stream (a file): parse or drop the unterminated last line."""
         return self.feed(b"", final=True)
+
+    def discard(self, rejoin: bool = False) -> None:
+        """Drop an unterminated line (a connection ended mid-line), counting it as skipped.
+
+        Never parsed: ``+0.12`` cut from ``+0.12345`` would be a wrong reading.
+        ``rejoin``: the next bytes come from a stream joined at an unknown point
+        and may begin with the tail of a line (``2345`` of ``+0.12345``).  The
+        first line is then held until the next one arrives and kept only if it
+        is as long (gauges write fixed-width lines); a shorter or longer one is
+        dropped and counted as skipped bytes.
+        """
+        self.dropped[SKIPPED_BYTES] += len(self._pending)
+        self._pending = b""
+        self._discarding = False
+        self._rejoin = rejoin
+
+    def _settle(self, buffer: bytes, final: bool) -> bytes | None:
+        """Decide on the first line after a rejoin; ``None``: not enough lines yet."""
+        lines = _LINE_RE.finditer(buffer)
+        first, second = next(lines, None), next(lines, None)
+        if first is None or second is None:
+            if final or len(buffer) > 4 * self.fmt.max_line:
+                self._rejoin = False
+                return buffer
+            return None
+        self._rejoin = False
+        if first.end() - first.start() != second.end() - second.start():
+            self.dropped[SKIPPED_BYTES] += first.end() - first.start()
+            return buffer[first.end() :]
+        return buffer
 
     @property
     def pending(self) -> int:

@@ -292,6 +292,14 @@ class BinaryDecoder:
         add_counts(self.dropped, res.dropped)
         return frames_to_readings(res.frames)
 
+    def discard(self, rejoin: bool = False) -> None:
+        """Drop an incomplete tail (a connection ended mid-frame), counting it as skipped.
+
+        ``rejoin`` is for the line protocol's sake: frames resynchronise by themselves.
+        """
+        self.dropped[SKIPPED_BYTES] += len(self._pending)
+        self._pending = b""
+
     @property
     def pending(self) -> int:
         """Bytes held back waiting for the rest of a frame."""

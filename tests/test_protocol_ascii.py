@@ -151,6 +151,8 @@ FORMATS = st.builds(
     scale=st.sampled_from([1.0, -1.0, 0.5, 10.0]),
     ts_unit=st.sampled_from([None, "s", "ms", "us"]),
     unit_suffix=st.booleans(),
+    width=st.sampled_from([0, 12]),
+    ts_width=st.sampled_from([0, 14]),
     separator=st.sampled_from([" ", ",", "\t", "; "]),
     eol=st.sampled_from([b"\r\n", b"\n", b"\r"]),
 )
@@ -219,3 +221,31 @@ def test_any_bytes_never_raise_and_chunking_does_not_matter(fmt: AsciiFormat, da
     assert ts == ([] if whole.readings.clock_s is None else whole.readings.clock_s.tolist())
     assert dec.dropped == whole.dropped
     assert dec.pending == 0
+
+
+@pytest.mark.parametrize(
+    ("stream", "kept", "skipped"),
+    [
+        (b"2345\r\n+0.12346\r\n+0.12347\r\n", [0.12346, 0.12347], 4),  # joined mid-line
+        (b"+0.12345\r\n+0.12346\r\n", [0.12345, 0.12346], 0),  # joined at a line start
+        (b"\n+0.12345\r\n+0.12346\r\n", [0.12345, 0.12346], 0),  # joined between CR and LF
+        (b"45 mm\r\n+0.12346 mm\r\n", [0.12346], 5),
+    ],
+)
+def test_rejoined_stream_drops_a_leading_line_tail(stream: bytes, kept: list[float], skipped: int) -> None:
+    for chunk in (len(stream), 1, 3):
+        dec = AsciiDecoder(MM)
+        dec.discard(rejoin=True)
+        got: list[float] = []
+        for i in range(0, len(stream), chunk):
+            got += dec.feed(stream[i : i + chunk]).value_mm.tolist()
+        assert got == kept
+        assert dec.dropped["skipped_bytes"] == skipped
+
+
+def test_discard_drops_a_cut_line_instead_of_parsing_it() -> None:
+    dec = AsciiDecoder(MM)
+    assert dec.feed(b"+0.1\r\n+0.12").value_mm.tolist() == [0.1]
+    dec.discard()
+    assert dec.pending == 0 and dec.dropped["skipped_bytes"] == 5
+    assert len(dec.flush()) == 0

@@ -376,6 +376,24 @@ def test_ascii_lines_without_clock_get_host_times(dev: FakeDevice) -> None:
     assert st.decode == {"bad_line": 1, "skipped_bytes": 5}
 
 
+def test_a_line_cut_by_an_unplug_is_dropped_not_parsed(dev: FakeDevice) -> None:
+    with open_source(f"serial:{dev.link}?protocol=ascii&retry_min_s=0.02", cal_mm=0.0) as src:
+        src.read(0.05)  # opened
+        dev.write(b"45\r\n+0.1\r\n+0.12")  # joined mid-line; then the rest of "+0.12345" never comes
+        batch, _ = read_all(src, 1)
+        time.sleep(0.05)
+        dev.unplug()
+        events = read_until(src, EventKind.UNPLUGGED)
+        dev.plug()
+        events += read_until(src, EventKind.REPLUGGED)
+        dev.write(b"345\r\n+0.2\r\n")  # the new connection begins mid-line too
+        more, _ = read_all(src, 1)
+        src.read(0.05)
+        st = src.stats()
+    assert batch.length_mm.tolist() == [0.1] and more.length_mm.tolist() == [0.2]
+    assert st.decode == {"skipped_bytes": 2 + 5 + 3}
+
+
 # ----------------------------------------------------------------------------- replay and simulator
 
 

@@ -13,21 +13,20 @@
    A rate is sustained when every sample arrives with zero loss and the achieved
    rate is within 2 % of the nominal one (the device waits for a slow reader
    instead of losing samples, so a reader that cannot keep up shows as a lower
-   achieved rate).  Reader CPU is this process's CPU time over wall time, in
-   percent of one core; device CPU the simulated device's (a Python process
-   too: at the highest rates it, not the reader, is the limit); medians of the
-   repeats.
+   achieved rate).  Reader CPU is this process's CPU time over the run's wall
+   time, in percent of one core; device CPU the simulated device's over the same
+   window (a Python process too: at the highest rates it, not the reader, is
+   the limit); medians of the repeats.
 """
 
 from __future__ import annotations
 
 import argparse
-import resource
 import statistics
 import struct
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -188,11 +187,11 @@ def pty_run(protocol: str, wall_hz: float, seconds: float) -> dict[str, Any]:
     rate = min(wall_hz, 10_000.0)
     speedup = wall_hz / rate
     extra = ["--timestamp=us"] if protocol == "ascii" else []
-    child0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     args = (f"--protocol={protocol}", *extra, f"--rate={rate:g}", f"--speedup={speedup:g}", "--repeat=0", "--wait")
     with DeviceProcess(*args) as dev, open_source(dev.url) as src:
         src.read(1.0)  # opened
         dev.send("start")
+        dev_cpu0 = dev.stats()["cpu_s"]
         c0, w0 = time.process_time(), time.monotonic()
         n, last, ordered = 0, -1, True
         while time.monotonic() - w0 < seconds:
@@ -202,7 +201,8 @@ def pty_run(protocol: str, wall_hz: float, seconds: float) -> dict[str, Any]:
                 last = int(b.seq[-1])
                 n += len(b)
         c1, w1 = time.process_time(), time.monotonic()
-        sent_by = dev.stats()["last_seq"]
+        dev_stats = dev.stats()
+        sent_by = dev_stats["last_seq"]
         deadline = time.monotonic() + 5.0
         while last < sent_by and time.monotonic() < deadline:
             b = src.read(0.1)
@@ -210,10 +210,19 @@ def pty_run(protocol: str, wall_hz: float, seconds: float) -> dict[str, Any]:
                 ordered &= bool(b.seq[0] > last)
                 last = int(b.seq[-1])
         st = src.stats()
-    child1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    device_cpu = (child1.ru_utime + child1.ru_stime - child0.ru_utime - child0.ru_stime) / (time.monotonic() - w0)
+    device_cpu = (dev_stats["cpu_s"] - dev_cpu0) / (w1 - w0)
     achieved = n / (w1 - w0)
-    ok = st.lost == 0 and not st.decode and ordered and last >= sent_by and achieved >= 0.98 * wall_hz
+    why = [
+        reason
+        for reason, bad in (
+            ("lost", st.lost > 0),
+            ("decode errors", bool(st.decode)),
+            ("out of order", not ordered),
+            ("missing tail", last < sent_by),
+            ("too slow", achieved < 0.98 * wall_hz),
+        )
+        if bad
+    ]
     return {
         "protocol": protocol,
         "rate": wall_hz,
@@ -222,30 +231,32 @@ def pty_run(protocol: str, wall_hz: float, seconds: float) -> dict[str, Any]:
         "device_cpu": 100.0 * device_cpu,
         "lost": st.lost,
         "decode": sum(st.decode.values()),
-        "ok": ok,
+        "ok": not why,
+        "why": ", ".join(why),
     }
 
 
-def bench_pty(protocols: Sequence[str], rates: Sequence[float], seconds: float, repeats: int) -> list[dict[str, Any]]:
-    rows = []
+def bench_pty(
+    protocols: Sequence[str], rates: Sequence[float], seconds: float, repeats: int
+) -> Iterator[dict[str, Any]]:
+    """One row per protocol and rate (medians of ``repeats`` runs), up to the first failure."""
     for protocol in protocols:
         for rate in rates:
             runs = [pty_run(protocol, rate, seconds) for _ in range(repeats)]
-            rows.append(
-                {
-                    "protocol": protocol,
-                    "rate": rate,
-                    "achieved": statistics.median(r["achieved"] for r in runs),
-                    "cpu": statistics.median(r["cpu"] for r in runs),
-                    "device_cpu": statistics.median(r["device_cpu"] for r in runs),
-                    "lost": sum(r["lost"] for r in runs),
-                    "decode": sum(r["decode"] for r in runs),
-                    "ok": all(r["ok"] for r in runs),
-                }
-            )
-            if not rows[-1]["ok"]:
+            row = {
+                "protocol": protocol,
+                "rate": rate,
+                "achieved": statistics.median(r["achieved"] for r in runs),
+                "cpu": statistics.median(r["cpu"] for r in runs),
+                "device_cpu": statistics.median(r["device_cpu"] for r in runs),
+                "lost": sum(r["lost"] for r in runs),
+                "decode": sum(r["decode"] for r in runs),
+                "ok": all(r["ok"] for r in runs),
+                "why": "; ".join(sorted({r["why"] for r in runs if r["why"]})),
+            }
+            yield row
+            if not row["ok"]:
                 break  # higher rates will not do better
-    return rows
 
 
 # ----------------------------------------------------------------------------- report
@@ -295,7 +306,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     for r in bench_pty(("binary", "ascii"), rates, seconds, pty_reps):
         print(
             f"{r['protocol']:<10}{r['rate']:>10.0f}{r['achieved']:>13.0f}{r['cpu']:>11.1f}%{r['device_cpu']:>11.1f}%"
-            f"{r['lost']:>6}{r['decode']:>9}  {'yes' if r['ok'] else 'NO'}"
+            f"{r['lost']:>6}{r['decode']:>9}  {'yes' if r['ok'] else 'NO: ' + r['why']}",
+            flush=True,
         )
         if r["ok"]:
             best[r["protocol"]] = max(best.get(r["protocol"], 0.0), r["rate"])

@@ -18,7 +18,8 @@ stdout, one line each:
 3. and on: one JSON object per command answered and per event (``started``,
    ``unplugged``, ``replugged``, ``test``, ``done``).
 
-Device time runs ``speedup`` times faster than wall time: at ``--rate 1000
+ASCII lines are fixed width (zero-padded reading and timestamp), as gauges
+write them.  Device time runs ``speedup`` times faster than wall time: at ``--rate 1000
 --speedup 10`` the device clock and sample counter advance as at 1 kHz and
 10 000 frames leave per wall second.  If the reader does not keep up (the pty
 buffer fills), the device waits rather than losing samples; samples are lost
@@ -294,6 +295,7 @@ class DeviceStats:
     next_seq: int = 0  # device counter of the next sample
     last_seq: int = -1  # device counter of the last sample sent intact
     tests: int = 0
+    cpu_s: float = 0.0  # the device process's CPU time so far
 
 
 @dataclass
@@ -399,6 +401,7 @@ class SimDevice:
             self.stats.next_seq = 0
             return {}
         if cmd == "stats":
+            self.stats.cpu_s = time.process_time()
             return {"stats": asdict(self.stats)}
         if cmd == "quit":
             self.running = False
@@ -773,11 +776,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.error("--mode poll needs --protocol ascii")
         return 2
     try:
+        ts_unit = None if args.timestamp == "none" else args.timestamp
+        # Fixed-width lines, as gauges write them: a sign, the digits the range
+        # needs, the point and the decimals; timestamps zero-padded to 12 digits.
+        probe = ascii_proto.AsciiFormat(unit=args.unit)
+        int_digits = len(str(int(args.range_mm / ascii_proto.UNIT_MM[args.unit])))
         fmt = ascii_proto.AsciiFormat(
             unit=args.unit,
-            ts_unit=None if args.timestamp == "none" else args.timestamp,
+            ts_unit=ts_unit,
             unit_suffix=args.unit_suffix,
             request=args.request.encode("latin-1"),
+            width=1 + int_digits + 1 + probe.digits if probe.digits else 1 + int_digits,
+            ts_width={"s": 13, "ms": 13, "us": 12}.get(args.timestamp, 0),
         )
         settings = Settings(
             protocol=args.protocol,
