@@ -5,5 +5,12 @@ The distribution maps the repository's top-level folders to subpackages:
 ``daemon/`` -> ``ballbar.daemon``, ``tools/`` -> ``ballbar.tools``.
 """
 
+import os as _os
+
+# The fits are small dense problems on a 2-core PC beside the machine: BLAS threads only
+# contend with the sampling thread. A default, set before numpy loads; the environment wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    _os.environ.setdefault(_var, "1")
+
 __version__ = "0.1.0"
 SCHEMA_VERSION = 1

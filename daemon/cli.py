@@ -63,7 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     an = sub.add_parser("analyze", help="analyse a recording (CSV t_s,length_mm)",
                         description="Analyse a ball-bar recording: ranked findings, ISO 230-4, advice.")
-    an.add_argument("file", help="recording: CSV with header t_s,length_mm")
+    an.add_argument("file", help="recording: CSV with header t_s,length_mm, or the daemon's MCAP "
+                    "(a file or a directory; its recorded plan is the default)")
     an.add_argument("--plan", dest="plan_file", help="TOML or JSON file with [plan], [machine], [analysis]")
     for flags in (PLAN_FLAGS, MACHINE_FLAGS):
         for flag, dest, typ, help_ in flags:
@@ -110,8 +111,28 @@ def load_config_file(path: str) -> dict[str, Any]:
     return data
 
 
+def recorded_config(path: str) -> dict[str, Any]:
+    """The plan, machine and analysis a daemon recording was made with (empty for CSV)."""
+    if not (path.lower().endswith(".mcap") or os.path.isdir(path)):
+        return {}
+    from .mcap_log import read_log
+
+    try:
+        configs = read_log(path).config
+    except BallbarError:
+        return {}  # read_recording reports what is wrong with the file
+    if not configs:
+        return {}
+    cfg = configs[-1].get("config", {})
+    return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis") if isinstance(cfg.get(k), dict)}
+
+
 def configs_from_args(args: argparse.Namespace) -> tuple[TestPlan, MachineConfig, AnalysisOptions]:
-    base: dict[str, Any] = load_config_file(args.plan_file) if args.plan_file else {}
+    """Recorded configuration (MCAP), then --plan FILE, then the flags."""
+    base: dict[str, Any] = recorded_config(args.file) if getattr(args, "file", None) else {}
+    if args.plan_file:
+        for key, value in load_config_file(args.plan_file).items():
+            base.setdefault(key, {}).update(value)
     plan_d = dict(base.get("plan", {}))
     machine_d = dict(base.get("machine", {}))
     analysis_d = dict(base.get("analysis", {}))

@@ -6,11 +6,14 @@ import argparse
 import contextlib
 import json
 import logging
+import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
+
+from ballbar.analysis.errors import BallbarError
 
 from .config import Config, ConfigError, load
 from .errors import SourceConfigError
@@ -38,12 +41,31 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
     if cfg.zenoh.enabled:
         from .bus import ZenohBus
 
-        out.append((ZenohBus.from_config(cfg), cfg.queues.zenoh, "drop_oldest"))
+        loader = recorded_results(cfg) if cfg.mcap.enabled else None
+        out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
     if cfg.rerun.mode != "off":
         from .viewer import RerunViewer
 
         out.append((RerunViewer.from_config(cfg), cfg.queues.rerun, "drop_oldest"))
     return out
+
+
+def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[dict[str, Any]]]:
+    """Results the daemon logged before this start (its MCAP records), for the bus's history."""
+
+    def load() -> list[dict[str, Any]]:
+        from .mcap_log import list_recordings, read_log
+
+        out: list[dict[str, Any]] = []
+        files = list_recordings(os.path.join(cfg.daemon.state_dir, "recordings"))[-newest_files:]
+        for path in files:
+            try:
+                out.extend(read_log(path).results)
+            except BallbarError as err:
+                log.warning("history: %s", err)
+        return out
+
+    return load
 
 
 @contextlib.contextmanager

@@ -224,6 +224,12 @@ class Daemon:
             self.rate_hz = (self.samples - n_mark) / (now - t_mark)
         self._rate_mark = (now, self.samples)
         queues = {q.listener.name: q.stats.to_dict() for q in [self.analysis_queue, *self.outputs]}
+        outputs: dict[str, Any] = {}
+        for q in self.outputs:
+            stats = getattr(q.listener, "stats", None)
+            if callable(stats):
+                with contextlib.suppress(Exception):
+                    outputs[q.listener.name] = stats()
         src: dict[str, Any] = {}
         with contextlib.suppress(Exception):
             st = self.source.stats()
@@ -240,6 +246,7 @@ class Daemon:
             "sample_rate_hz": self.rate_hz,
             "lost_samples": self.lost,
             "queues": queues,
+            "outputs": outputs,
             "analysis": {
                 "results": self.analysis.results,
                 "tests": self.analysis.tests,
