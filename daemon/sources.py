@@ -561,17 +561,19 @@ class SerialSource(Source):
         until = min(nxt, self._poll_batch_start + self.batch_s)
         if deadline is not None:
             until = min(until, deadline)
-        port = self._port
-        if port is None:
-            return self._flush_poll()
-        try:
-            avail = port.in_waiting
-        except (serial.SerialException, OSError) as err:
-            self._port_lost(err)
-            return self._flush_poll()
-        data = self._read_port(max(1, avail), until - now)
+        # Returns at the first byte of the answer; the rest of what came is read at once.
+        data = self._read_port(1, until - now)
         if data is None:
             return self._flush_poll()
+        if data:
+            port = self._port
+            try:
+                avail = port.in_waiting if port is not None else 0
+                if avail and port is not None:
+                    data += port.read(avail)
+            except (serial.SerialException, OSError) as err:
+                self._port_lost(err)
+                return self._flush_poll()
         t_read = time.monotonic()
         self._check_stall(t_read, bool(data))
         if data:

@@ -168,7 +168,6 @@ def encode(
 # Character classes for the byte matrix.
 _PAD, _DIGIT, _DOT, _SIGN, _ALPHA, _SEP, _OTHER = range(7)
 _CLASS = np.full(256, _OTHER, dtype=np.uint8)
-_CLASS[0] = _PAD
 _CLASS[ord("0") : ord("9") + 1] = _DIGIT
 _CLASS[ord(".")] = _DOT
 _CLASS[[ord("+"), ord("-")]] = _SIGN
@@ -180,7 +179,11 @@ _LOWER = np.arange(256, dtype=np.int64)
 _LOWER[ord("A") : ord("Z") + 1] += 32
 _P10 = 10.0 ** np.arange(_MAX_FRAC + 1)
 _P256 = 256 ** np.arange(7, dtype=np.int64)  # packs up to 7 letters of a unit into an int64
+_SMALL_BYTES = 128  # up to this many bytes (a polled answer) plain Python is faster than numpy
 _BLOCK = 8192  # lines per vectorised block: temporaries stay in cache
+_EOL_RE = re.compile(rb"[\r\n]")
+_ALLOWED_RE = re.compile(rb"[0-9.+\-A-Za-z\xb5\xc2 \t,;]*")
+_TOKEN_RE = re.compile(rb"(?P<num>[0-9.+\-]+)|[A-Za-z\xb5\xc2]+")
 _LINE_RE = re.compile(rb"[^\r\n]+(?=[\r\n])")  # a complete, non-empty line
 _FAULT_RE = re.compile(rb"^[ \t,;]*(?:(?P<ts>\d+(?:\.\d*)?)[ \t,;]+)?(?P<word>[+-]?[A-Za-z]+)[ \t,;]*$")
 
@@ -208,6 +211,8 @@ def decode(
     ``skip_first``: the bytes up to the first line end belong to a line that was
     already counted as too long.
     """
+    if len(buffer) <= _SMALL_BYTES:
+        return _decode_small(bytes(buffer), fmt, final, skip_first)
     buf = np.frombuffer(buffer, dtype=np.uint8)
     n = buf.shape[0]
     dropped = {BAD_LINE: 0, LONG_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
@@ -257,6 +262,44 @@ def decode(
         status = np.concatenate(stats)
     else:
         value, stamp, status = np.empty(0), np.empty(0), np.empty(0, np.uint8)
+    readings = Readings(
+        value_mm=value * fmt.mm_per_count,
+        status=status,
+        seq=None,
+        clock_s=stamp * TS_S[fmt.ts_unit] if fmt.ts_unit is not None else None,
+    )
+    return Decoded(consumed, readings, dropped, discarding)
+
+
+def _decode_small(buffer: bytes, fmt: AsciiFormat, final: bool, skip_first: bool) -> Decoded:
+    """:func:`decode` for a few bytes (a polled answer): the same rules, in plain Python,
+    without numpy's fixed cost per call."""
+    n = len(buffer)
+    dropped = {BAD_LINE: 0, LONG_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
+    eol = [m.start() for m in _EOL_RE.finditer(buffer)]
+    ends = [*eol, n] if final and n and (not eol or eol[-1] != n - 1) else eol
+    consumed = n if final else (eol[-1] + 1 if eol else 0)
+    segs = list(zip([0, *(e + 1 for e in eol)], ends, strict=False))
+    discarding = False
+    if skip_first:
+        if not segs:
+            dropped[SKIPPED_BYTES] += n
+            return Decoded(n, _empty(fmt), dropped, not final)
+        dropped[SKIPPED_BYTES] += segs[0][1] - segs[0][0]
+        segs = segs[1:]
+    if not final and n - consumed > fmt.max_line:
+        dropped[LONG_LINE] += 1
+        dropped[SKIPPED_BYTES] += n - consumed
+        consumed, discarding = n, True
+    lines = []
+    for a, b in segs:
+        if b - a > fmt.max_line:
+            dropped[LONG_LINE] += 1
+            dropped[SKIPPED_BYTES] += b - a
+        elif b > a:
+            lines.append(buffer[a:b])
+    value, stamp, status, d = _parse_lines(lines, fmt)
+    add_counts(dropped, d)
     readings = Readings(
         value_mm=value * fmt.mm_per_count,
         status=status,
@@ -328,8 +371,7 @@ def _parse_block(
     col = np.arange(width, dtype=np.int16)[:, None]
     pos = np.repeat(col, rows, axis=1)
     mat = padded[starts[None, :] + col]
-    mat *= col < lens[None, :]
-    cls = _CLASS[mat]
+    cls = _CLASS[mat] * (col < lens[None, :])  # _PAD (0) past the end of each line
     is_tok = (cls != _PAD) & (cls != _SEP)
     isnum = (cls >= _DIGIT) & (cls <= _SIGN)
     isalpha = cls == _ALPHA
@@ -362,29 +404,85 @@ def _parse_block(
         code = (_LOWER[mat] * isalpha * np.take(_P256, exp, mode="clip")).sum(axis=0)
         for length, c in _unit_codes(fmt.unit):
             unit_ok |= (alen == length) & (code == c)
-    status = np.zeros(rows, np.uint8)
     good = ok & unit_ok
+    status = np.zeros(rows, np.uint8)
     dropped = {BAD_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
-    # Lines that fail the fast path: a fault word, a wrong unit, or a bad line.
     for i in np.flatnonzero(~good & (any_tok | bad)).tolist():
         line = padded[starts[i] : starts[i] + lens[i]].tobytes()
-        if ok[i]:  # a good number with a wrong unit
-            dropped[BAD_UNIT] += 1
-            dropped[SKIPPED_BYTES] += int(lens[i])
-            continue
-        m = _FAULT_RE.match(line)
-        word = m.group("word").upper().decode() if m else ""
-        has_ts = m is not None and m.group("ts") is not None
-        if m is not None and word in FAULT_WORDS and has_ts == (fmt.ts_unit is not None):
+        fault = _not_a_reading(line, bool(ok[i]), fmt, dropped)
+        if fault is not None:
             good[i] = True
-            val[i] = math.nan
-            status[i] = FAULT_WORDS[word]
-            if has_ts:
-                ts[i] = float(m.group("ts"))
-        else:
-            dropped[BAD_LINE] += 1
-            dropped[SKIPPED_BYTES] += int(lens[i])
+            val[i], ts[i], status[i] = math.nan, fault[0], fault[1]
     return val[good], ts[good], status[good], dropped
+
+
+def _not_a_reading(line: bytes, number_ok: bool, fmt: AsciiFormat, dropped: dict[str, int]) -> tuple[float, int] | None:
+    """A line that is not a plain reading: ``(timestamp, status)`` of a fault word, or
+    ``None`` after counting why it was dropped (a wrong unit, or not the grammar)."""
+    if not number_ok:
+        m = _FAULT_RE.match(line)
+        if m is not None:
+            word = m.group("word").upper().decode()
+            has_ts = m.group("ts") is not None
+            if word in FAULT_WORDS and has_ts == (fmt.ts_unit is not None):
+                return (float(m.group("ts")) if has_ts else 0.0), FAULT_WORDS[word]
+    dropped[BAD_UNIT if number_ok else BAD_LINE] += 1
+    dropped[SKIPPED_BYTES] += len(line)
+    return None
+
+
+def _scalar_number(tok: bytes, signed: bool) -> float | None:
+    """One number token, by the same rules as :func:`_number`."""
+    neg = tok[:1] == b"-"
+    body = tok[1:] if tok[:1] in (b"+", b"-") else tok
+    if (body is not tok and not signed) or b"+" in body or b"-" in body or body.count(b".") > 1:
+        return None
+    digits = body.replace(b".", b"")
+    if not digits:
+        return None
+    mant = int(digits)
+    frac = len(body) - body.index(b".") - 1 if b"." in body else 0
+    if mant >= 2**53 or frac > _MAX_FRAC:
+        return None
+    val = float(mant) / _P10[frac]
+    return -val if neg else val
+
+
+def _parse_lines(
+    lines: list[bytes], fmt: AsciiFormat
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8], dict[str, int]]:
+    """:func:`_parse_block` for a few lines, one by one (same grammar, same results)."""
+    want = 2 if fmt.ts_unit is not None else 1
+    units = {w.lower() for w in _UNIT_SPELLINGS[fmt.unit]}
+    vals: list[float] = []
+    stamps: list[float] = []
+    stats: list[int] = []
+    dropped = {BAD_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
+    for line in lines:
+        toks = list(_TOKEN_RE.finditer(line)) if _ALLOWED_RE.fullmatch(line) else None
+        if toks is not None and not toks:
+            continue  # only separators: not a line
+        number_ok = unit_ok = False
+        if toks is not None:
+            nums = [t for t in toks if t.group("num") is not None]
+            alphas = [t for t in toks if t.group("num") is None]
+            if len(nums) == want and len(alphas) <= 1 and (not alphas or alphas[0].start() > nums[-1].start()):
+                v = _scalar_number(nums[-1].group(), signed=True)
+                t = _scalar_number(nums[0].group(), signed=False) if want == 2 else 0.0
+                number_ok = v is not None and t is not None
+                unit_ok = not alphas or alphas[0].group().lower() in units
+                if number_ok and unit_ok:
+                    assert v is not None and t is not None
+                    vals.append(v)
+                    stamps.append(t)
+                    stats.append(0)
+                    continue
+        fault = _not_a_reading(line, number_ok, fmt, dropped)
+        if fault is not None:
+            vals.append(math.nan)
+            stamps.append(fault[0])
+            stats.append(fault[1])
+    return np.array(vals, np.float64), np.array(stamps, np.float64), np.array(stats, np.uint8), dropped
 
 
 class AsciiDecoder:

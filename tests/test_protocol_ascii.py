@@ -249,3 +249,26 @@ def test_discard_drops_a_cut_line_instead_of_parsing_it() -> None:
     dec.discard()
     assert dec.pending == 0 and dec.dropped["skipped_bytes"] == 5
     assert len(dec.flush()) == 0
+
+
+PIECES = [b"0", b"1", b"9", b"12", b".", b"+", b"-", b" ", b",", b"\t", b";", b"mm", b"MM", b"um", "µm".encode()]
+PIECES += [b"\xb5m", b"in", b"x", b"OVER", b"err", b"\x00", b"#", b"12345678901234567", b"0.000000001"]
+
+
+@settings(deadline=None, max_examples=300)
+@given(
+    st.sampled_from([MM, TS, AsciiFormat(unit="um"), AsciiFormat(unit="in", ts_unit="ms")]),
+    st.lists(st.lists(st.sampled_from(PIECES), max_size=8).map(b"".join), min_size=1, max_size=12),
+)
+def test_the_few_line_parser_agrees_with_the_vectorised_one(fmt: AsciiFormat, lines: list[bytes]) -> None:
+    from ballbar.protocol.ascii import _parse_block, _parse_lines
+
+    lines = [ln for ln in lines if ln] or [b"1"]
+    buf = b"".join(ln + b"\n" for ln in lines)
+    lens = np.array([len(ln) for ln in lines])
+    starts = np.concatenate(([0], np.cumsum(lens + 1)[:-1]))
+    padded = np.frombuffer(buf + bytes(int(lens.max())), np.uint8)
+    a = _parse_block(padded, starts, lens, fmt)
+    b = _parse_lines(lines, fmt)
+    assert same(a[0].tolist(), b[0].tolist())
+    assert a[1].tolist() == b[1].tolist() and a[2].tolist() == b[2].tolist() and a[3] == b[3]
