@@ -661,6 +661,7 @@ class RerunViewer(Listener):
         self.plan = plan
         self.machine = machine
         self.recording_id = recording_id or str(uuid.uuid4())
+        self._recording_name = self.options.recording_name or f"ballbar {time.strftime('%Y-%m-%d %H:%M:%S')}"
         self._closed = False
         self._stop_lock = threading.Lock()
         self._rec: rr.RecordingStream | None = None
@@ -696,7 +697,8 @@ class RerunViewer(Listener):
         self._final: dict[int, Mapping[str, Any]] = {}  # direction -> latest result drawn for it
         self._next_polar = 0.0
         # what a (re)connecting viewer is sent again
-        self._strips: dict[str, tuple[FloatArray, str, str, float, float]] = {}
+        # path -> (u rad, dR um, colour, label, line width, draw order): see "polar plot" below
+        self._curves: dict[str, tuple[FloatArray, FloatArray, str, str, float, float]] = {}
         self._scale_um = self.options.scale_um or AUTO_SCALE_START_UM
         self._setup_result: Mapping[str, Any] | None = None
         self._hints = (1.0, 0.0, 3.0)  # feed ratio, overhead (s), spike width (deg) from the last test
@@ -816,20 +818,15 @@ class RerunViewer(Listener):
         rec = self._rec
         assert rec is not None
         rec.send_blueprint(default_blueprint())
-        name = self.options.recording_name or (
-            f"ballbar {time.strftime('%Y-%m-%d %H:%M:%S')}" + (f" {self.machine.machine_id}" if self.machine else "")
-        )
-        rec.send_recording_name(name)
+        rec.send_recording_name(self._recording_name)
         self._log_static()
-        rec.set_time("time", timestamp=time.time())
-        rec.set_time("test", sequence=self._test_index)
+        self._set_times()
         self._log_scale()
         if self._findings_md:
             rec.log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN))
         if self._trends:
             self._send_trends(list(self._trends))
-        for path, strip in self._strips.items():
-            self._log_strip(path, *strip)
+        self._emit()
 
     def _log_static(self) -> None:
         rec = self._rec
@@ -891,19 +888,6 @@ class RerunViewer(Listener):
                 draw_order=0.5,
             ),
         )
-
-    def _set_scale(self, scale_um: float) -> None:
-        if self.options.scale_um is not None or scale_um == self._scale_um:
-            return
-        log.debug("rerun viewer: polar scale %g -> %g um", self._scale_um, scale_um)
-        self._scale_um = scale_um
-        if self._sink_live:
-            rec = self._rec
-            assert rec is not None
-            rec.set_time("time", timestamp=time.time())
-            rec.set_time("test", sequence=self._test_index)
-            self._log_scale()
-            self._redraw_all()
 
     # ------------------------------------------------------------------ listener interface
 
@@ -1137,15 +1121,14 @@ class RerunViewer(Listener):
             th, td, L = self._chunks[0]
             self._chunks = [(th[keep], td[keep], L[keep])]
             self._n_kept = int(keep.sum())
+        self._curves.clear()
         if self._sink_live:
             rec = self._rec
             assert rec is not None
-            rec.set_time("time", timestamp=time.time())
-            rec.set_time("test", sequence=index)
+            self._set_times()
             for name in DIRECTIONS.values():
                 rec.log(f"polar/{name}", rr.Clear(recursive=True))
             self._log_scale()  # again each test: the server's bounded buffer drops the oldest data
-        self._strips.clear()
 
     def _end_test(self) -> None:
         self._in_test = False
@@ -1166,17 +1149,6 @@ class RerunViewer(Listener):
             for d in DIRECTIONS:
                 if result_timing(res, d) is not None:
                     self._final[d] = res
-            if self.options.scale_um is None:
-                devs = [self._measured(d, t) for d in DIRECTIONS if (t := result_timing(res, d)) is not None]
-                peak = max((float(np.abs(dr).max()) for _u, dr in devs if dr.size), default=None)
-                if peak is not None:
-                    self._scale_um = nice_scale_um(peak)  # redrawn below
-                    if self._sink_live:
-                        rec = self._rec
-                        assert rec is not None
-                        rec.set_time("time", timestamp=time.time())
-                        rec.set_time("test", sequence=self._test_index)
-                        self._log_scale()
         else:
             d = 1 if res.get("direction") == "ccw" else -1
             self._final[d] = res
@@ -1189,12 +1161,11 @@ class RerunViewer(Listener):
         if self._sink_live:
             rec = self._rec
             assert rec is not None
-            rec.set_time("time", timestamp=time.time())
-            rec.set_time("test", sequence=self._test_index)
+            self._set_times()
             rec.log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN))
             if trend and isinstance(idx, int):
                 self._send_trends([self._trends[-1]])
-            self._redraw_all()
+        self._redraw_all()  # cached even without a viewer: one that connects later gets this test
         if res.get("kind") == "test":
             self._end_test()
 
@@ -1225,29 +1196,36 @@ class RerunViewer(Listener):
             )
 
     # ------------------------------------------------------------------ polar plot
+    #
+    # Curves are kept in micrometres (angle, raw dR = L - R, or the model's dR) and turned into
+    # display points when logged: a new scale, a new set-up estimate or a viewer that connects
+    # later all re-emit them consistently, even after the samples behind them were let go.
 
     def _redraw_live(self) -> None:
         t, _L = self._analysis_time()
         if not t.size:
             return
+        paths = []
         for d, timing in self._live.items():
-            if d not in self._final and t[-1] > timing.start_s:
-                self._draw_measured(d, timing)
+            if d not in self._final and t[-1] > timing.start_s and self._update_measured(d, timing):
+                paths.append(f"polar/{DIRECTIONS[d]}/measured")
+        if paths and not self._fit_scale(grow_only=True):
+            self._emit(paths)
 
     def _redraw_all(self) -> None:
-        if not self._sink_live:
-            return
+        """Recompute every curve of the current test that the kept samples allow, rescale, emit."""
         for d in DIRECTIONS:
             res = self._final.get(d)
             timing = result_timing(res, d) if res is not None else self._live.get(d)
-            if timing is None:
-                continue
-            self._draw_measured(d, timing)
+            if timing is not None:
+                self._update_measured(d, timing)
             if res is not None:
-                self._draw_model(d, res)
+                self._update_model(d, res)
+        self._fit_scale(grow_only=not any(r.get("kind") == "test" for r in self._final.values()))
+        self._emit()
 
     def _measured(self, d: int, timing: ArcTiming) -> tuple[FloatArray, FloatArray]:
-        """Angles (rad) and deviations (um, set-up removed) of the kept samples of ``d``'s data arc."""
+        """Angles (rad) and raw deviations ``L - R`` (um) of the kept samples of ``d``'s data arc."""
         plan = self.plan
         t, L = self._analysis_time()
         m = (t >= timing.start_s) & (t <= timing.end_s)
@@ -1255,55 +1233,78 @@ class RerunViewer(Listener):
             z = np.empty(0)
             return z, z
         t, L = t[m], L[m]
-        expected = (timing.end_s - timing.start_s) * (self._rate_hz if math.isfinite(self._rate_hz) else 1.0)
-        step = max(
-            1,
-            math.ceil(
-                min(expected, 1e9)
-                / (self._stride(self.options.buffer_hz) * self._keep_every)
-                / self.options.polar_points
-            ),
+        # a fixed step over the whole arc, so that a growing live curve keeps its points
+        kept_hz = (self._rate_hz if math.isfinite(self._rate_hz) else 1.0) / (
+            self._stride(self.options.buffer_hz) * self._keep_every
         )
+        step = max(1, math.ceil(min((timing.end_s - timing.start_s) * kept_hz, 1e9) / self.options.polar_points))
         t, L = t[::step], L[::step]
-        u = timing.angle_rad(plan, t)
-        return u, (L - plan.radius_mm) * 1000.0 - setup_deviation_um(self._setup_result, u)
+        return timing.angle_rad(plan, t), (L - plan.radius_mm) * 1000.0
 
-    def _draw_measured(self, d: int, timing: ArcTiming) -> None:
+    def _update_measured(self, d: int, timing: ArcTiming) -> bool:
         u, dr = self._measured(d, timing)
         if not u.size:
-            return
-        peak = float(np.abs(dr).max())
-        if self.options.scale_um is None and peak > AUTO_SCALE_FILL * self._scale_um:
-            self._set_scale(nice_scale_um(peak))  # grows at once; redraws everything, this curve included
-            return
+            return False
         name = DIRECTIONS[d]
-        self._log_strip(f"polar/{name}/measured", polar_points(u, dr, self._scale_um), name, name.upper(), 1.5, 10.0)
-        self.counters["polar_draws"] += 1
+        self._curves[f"polar/{name}/measured"] = (u, dr, name, name.upper(), 1.5, 10.0)
+        return True
 
-    def _draw_model(self, d: int, res: Mapping[str, Any]) -> None:
+    def _update_model(self, d: int, res: Mapping[str, Any]) -> None:
         plan = TestPlan.from_dict(dict(res["plan"]))
         u_ds = math.radians(data_start_deg(plan, d))
         u = u_ds + d * np.linspace(0.0, math.radians(plan.data_arc_deg), self.options.polar_points)
         dr = model_deviation_um(res, d, u)
         if dr is None:
             return
-        dr = dr - setup_deviation_um(self._setup_result, u)
         name = DIRECTIONS[d]
         label = f"{name.upper()} fit" + (" (provisional)" if res.get("kind") == "circle" else "")
-        self._log_strip(f"polar/{name}/model", polar_points(u, dr, self._scale_um), f"{name}_model", label, 0.6, 11.0)
+        self._curves[f"polar/{name}/model"] = (u, dr, f"{name}_model", label, 0.6, 11.0)
 
-    def _log_strip(self, path: str, pts: FloatArray, colour: str, label: str, width: float, order: float) -> None:
-        self._strips[path] = (pts, colour, label, width, order)
+    def _fit_scale(self, grow_only: bool) -> bool:
+        """The automatic scale for the measured curves; True when it changed (everything re-emitted)."""
+        if self.options.scale_um is not None:
+            return False
+        peaks = [
+            float(np.abs(dr - setup_deviation_um(self._setup_result, u)).max())
+            for path, (u, dr, *_rest) in self._curves.items()
+            if path.endswith("/measured")
+        ]
+        if not peaks:
+            return False
+        new = nice_scale_um(max(peaks))
+        if new == self._scale_um or (grow_only and new < self._scale_um):
+            return False
+        log.debug("rerun viewer: polar scale %g -> %g um", self._scale_um, new)
+        self._scale_um = new
+        if self._sink_live:
+            self._set_times()
+            self._log_scale()
+        self._emit()
+        return True
+
+    def _emit(self, paths: Sequence[str] | None = None) -> None:
+        """Log cached curves at the current scale, set-up removed (all of them by default)."""
+        if not self._sink_live:
+            return
+        rec = self._rec
+        assert rec is not None
+        self._set_times()
+        for path in paths if paths is not None else list(self._curves):
+            u, dr, colour, label, width, order = self._curves[path]
+            pts = polar_points(u, dr - setup_deviation_um(self._setup_result, u), self._scale_um)
+            rec.log(
+                path,
+                rr.LineStrips2D(
+                    [pts], colors=[COLOURS[colour]], radii=rr.Radius.ui_points(width), labels=[label], draw_order=order
+                ),
+            )
+            self.counters["polar_draws"] += 1
+
+    def _set_times(self) -> None:
         rec = self._rec
         assert rec is not None
         rec.set_time("time", timestamp=time.time())
         rec.set_time("test", sequence=self._test_index)
-        rec.log(
-            path,
-            rr.LineStrips2D(
-                [pts], colors=[COLOURS[colour]], radii=rr.Radius.ui_points(width), labels=[label], draw_order=order
-            ),
-        )
 
     # ------------------------------------------------------------------ stop
 
