@@ -115,10 +115,10 @@ def recorded_config(path: str) -> dict[str, Any]:
     """The plan, machine and analysis a daemon recording was made with (empty for CSV)."""
     if not (path.lower().endswith(".mcap") or os.path.isdir(path)):
         return {}
-    from .mcap_log import read_log
+    from .mcap_log import list_recordings, read_log, read_logs
 
     try:
-        configs = read_log(path).config
+        configs = (read_logs(list_recordings(path)) if os.path.isdir(path) else read_log(path)).config
     except BallbarError:
         return {}  # read_recording reports what is wrong with the file
     if not configs:

@@ -41,8 +41,13 @@ class Notifier:
         try:
             if self._sock is None:
                 self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+                # Never wait on the manager: a receiver that stops reading would block the working loop.
+                self._sock.setblocking(False)
             self._sock.sendto(message.encode(), addr)
             return True
+        except BlockingIOError:
+            log.debug("sd_notify: the receiver's queue is full; %r dropped", message.split("\n", 1)[0])
+            return False
         except OSError as err:
             log.warning("sd_notify failed: %s", err)
             return False

@@ -137,3 +137,20 @@ def test_unit_verifies_and_is_hardened(tmp_path: Path) -> None:
     assert float(m.group(1)) <= 2.0
     for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "DynamicUser=yes", "StateDirectory=ballbar"):
         assert key in text
+
+
+def test_notify_never_blocks_when_nobody_reads(tmp_path: Path) -> None:
+    from ballbar.daemon.systemd import Notifier
+
+    path = str(tmp_path / "deaf.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    try:
+        n = Notifier({"NOTIFY_SOCKET": path})
+        t0 = time.monotonic()
+        sent = [n.notify("WATCHDOG=1") for _ in range(500)]  # far beyond the socket's queue
+        assert time.monotonic() - t0 < 2.0
+        assert sent[0] and not all(sent)
+        n.close()
+    finally:
+        sock.close()
