@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from ballbar.daemon import config as cfgmod
 
 QUIET = ["--set", "mcap.enabled=false", "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"']
