@@ -17,8 +17,9 @@ ways:
 What is logged (timelines: ``time``, wall clock of the sample or of the
 message; ``test``, the test's sequence number within this daemon run)::
 
-    polar/reference/{nominal,band,scale,axes}  static: nominal circle, tolerance band,
-                                               scale rings, the plane's axes
+    polar/reference/{nominal,axes}   static: the nominal circle, the plane's axes
+    polar/reference/{band,scale}     the tolerance band and the +-s scale rings (they
+                                     depend on the scale s; logged when it changes)
     polar/{ccw,cw}/measured    LineStrips2D of the magnified radial deviation, updated
                                live during the data arc, redrawn with each result's timing
     polar/{ccw,cw}/model       the fitted model, rebuilt from the result's parameters
@@ -62,6 +63,13 @@ machine):
   the SDK's exit hook with it, so :meth:`stop` disconnects on a helper thread
   and, if that does not finish in time, keeps the recording referenced and
   unregisters the SDK's exit hook (logged) so that the daemon can still exit.
+  Until its TCP connection times out, a frozen viewer also holds what is sent
+  to it, and ``log`` blocks once the SDK's queues (hundreds of MB) are full:
+  at this streamer's rate (tens of kB/s) that takes hours, and the listener's
+  queue shields the daemon meanwhile.
+
+In ``serve`` mode a viewer that is still connected keeps the server's socket
+after :meth:`stop` until it leaves or the process exits (rerun 0.41).
 """
 
 from __future__ import annotations
@@ -83,6 +91,7 @@ from typing import Any, Literal
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.patterns import LIBRARY, Geometry, Pattern, design
 from ballbar.analysis.physics import make_offset, takeup_angles
 from ballbar.analysis.plan import MachineConfig, TestPlan
@@ -129,13 +138,13 @@ PRE_TEST_S = 10.0  # samples kept while no test runs: the feed-in event comes af
 TRENDS_KEPT = 5000  # tests whose trend points are re-sent to a viewer that (re)connects
 
 
-class ViewerConfigError(ValueError):
+class ViewerConfigError(BallbarError, ValueError):
     """An invalid viewer option (unknown key or bad value); the message names it."""
 
 
 @dataclass(frozen=True)
 class ViewerOptions:
-    """The streamer's configuration (the ``[viewer]`` section of the daemon's).
+    """The streamer's configuration (from the daemon's ``[rerun]`` section: :meth:`RerunViewer.from_config`).
 
     ``mode``: ``serve``, ``connect`` or ``off``.  ``bind``/``port``: where the
     ``serve`` mode listens (``0.0.0.0``: every interface, viewers anywhere on
@@ -153,7 +162,9 @@ class ViewerOptions:
     estimates from the curves.  ``clock``: which sample time the analysis runs
     on (``auto``: the device clock where the source has one, corrected by the
     times the analysis messages carry).  ``retry_s``: probe/rebind period;
-    ``stop_timeout_s``: bound on :meth:`RerunViewer.stop`.
+    ``health_s``: how often a pushed stream is checked (a flush that fails
+    at once: the viewer restarted between two probes); ``stop_timeout_s``:
+    bound on :meth:`RerunViewer.stop`.
     """
 
     mode: Mode = "serve"
@@ -466,6 +477,16 @@ def nice_scale_um(max_abs_um: float) -> float:
     return 10.0 * e  # pragma: no cover - the loop always returns
 
 
+def _rate(t: FloatArray, previous: float) -> float:
+    """Sample rate (Hz) from a batch's times; ``previous`` when they do not tell."""
+    d = np.diff(t)
+    d = d[np.isfinite(d)]
+    if not d.size:
+        return previous
+    dt = float(np.median(d))
+    return 1.0 / dt if dt > 0 else previous
+
+
 def _circle(radius: float, n: int = 721) -> FloatArray:
     a = np.linspace(0.0, 2.0 * math.pi, n)
     return np.column_stack([radius * np.cos(a), radius * np.sin(a)])
@@ -689,15 +710,16 @@ class RerunViewer(Listener):
         self._chunks: list[tuple[FloatArray, FloatArray, FloatArray]] = []
         self._n_kept = 0
         self._keep_every = 1  # extra thinning after the buffer hit max_buffer_samples
-        self._rate_hz = float("nan")
+        self._rate_hz = float("nan")  # on the analysis clock
+        self._host_hz = float("nan")
         # the current test
         self._test_index = 0
         self._in_test = False
         self._live: dict[int, ArcTiming] = {}  # provisional timing per direction
         self._final: dict[int, Mapping[str, Any]] = {}  # direction -> latest result drawn for it
         self._next_polar = 0.0
-        # what a (re)connecting viewer is sent again
-        # path -> (u rad, dR um, colour, label, line width, draw order): see "polar plot" below
+        # what a (re)connecting viewer is sent again; curves: path -> (u rad, dR um, colour, label,
+        # line width, draw order), see "polar plot" below
         self._curves: dict[str, tuple[FloatArray, FloatArray, str, str, float, float]] = {}
         self._scale_um = self.options.scale_um or AUTO_SCALE_START_UM
         self._setup_result: Mapping[str, Any] | None = None
@@ -826,7 +848,7 @@ class RerunViewer(Listener):
             rec.log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN))
         if self._trends:
             self._send_trends(list(self._trends))
-        self._emit()
+        self._redraw_all()
 
     def _log_static(self) -> None:
         rec = self._rec
@@ -940,9 +962,10 @@ class RerunViewer(Listener):
             return
         ok = batch.valid & np.isfinite(batch.t_host) & np.isfinite(batch.length_mm)
         if n >= 2:
-            dt = float(np.median(np.diff(batch.t_host)))
-            if dt > 0:
-                self._rate_hz = 1.0 / dt
+            # sample rates on the host clock (the length series) and on the analysis clock (the
+            # polar plot); they differ for a simulator or a replay running faster than real time
+            self._host_hz = _rate(batch.t_host, self._host_hz)
+            self._rate_hz = _rate(batch.t_host if self._use_host else batch.t_device, self._rate_hz)
         self._latest_host = max(self._latest_host, float(batch.t_host[-1]))
         if np.isfinite(batch.t_device[-1]):
             self._latest_device = max(self._latest_device, float(batch.t_device[-1]))
@@ -958,10 +981,11 @@ class RerunViewer(Listener):
             self._next_polar = now + self.options.polar_update_s
             self._redraw_live()
 
-    def _stride(self, limit_hz: float) -> int:
-        if not math.isfinite(self._rate_hz):
+    def _stride(self, limit_hz: float, rate_hz: float | None = None) -> int:
+        rate = self._rate_hz if rate_hz is None else rate_hz
+        if not math.isfinite(rate):
             return 1
-        return max(1, int(self._rate_hz // limit_hz))
+        return max(1, int(rate / limit_hz + 1e-6))  # 999.9999 Hz from float times is 1 kHz
 
     def _keep(self, batch: SampleBatch, ok: NDArray[np.bool_]) -> None:
         """Keep the samples (decimated by sample number) that the polar plot may need."""
@@ -1001,7 +1025,7 @@ class RerunViewer(Listener):
     def _log_length(self, batch: SampleBatch, ok: NDArray[np.bool_]) -> None:
         rec = self._rec
         assert rec is not None
-        m = ok & (batch.seq % self._stride(self.options.length_hz) == 0)
+        m = ok & (batch.seq % self._stride(self.options.length_hz, self._host_hz) == 0)
         if not m.any():
             return
         wall = batch.t_host[m] + (time.time() - time.monotonic())

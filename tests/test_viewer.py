@@ -379,6 +379,27 @@ def test_serve_mode_late_viewer_gets_the_history(script: Script, receivers: list
     check_stream(read_rrd(rx.rrd), script)
 
 
+def test_faster_than_real_time_source(script: Script, receivers: list[Receiver], tmp_path: Path) -> None:
+    """A replay at 10x: the length series is decimated on the host clock, the circles on the device's."""
+    fast: list[tuple[str, Any]] = []
+    for kind, x in script.items:
+        if kind == "batch":
+            x = SampleBatch.from_columns(1000.0 + x.t_device / 10.0, x.t_device, x.length_mm, x.seq, x.status)
+        fast.append((kind, x))
+    port = free_port()
+    rx = Receiver(tmp_path, "fast", port)
+    receivers.append(rx)
+    v = connected_viewer(f"rerun+http://127.0.0.1:{port}/proxy", length_hz=200.0)
+    feed(v, fast)
+    v.stop()
+    rx.finish()
+    saved = read_rrd(rx.rrd)
+    n_length = sum(np.atleast_1d(x).size for x in saved.columns["/length"]["Scalars:scalars"])
+    assert n_length == pytest.approx(script.L.size / 5, rel=0.05)  # 1000 Hz on the host clock -> 200 Hz
+    for name in ("ccw", "cw"):
+        assert len(strip(saved, f"/polar/{name}/measured")) > 500  # every kept sample of the arc
+
+
 def test_serve_mode_waits_for_a_busy_port(caplog: pytest.LogCaptureFixture) -> None:
     with socket.socket() as blocker:
         blocker.bind(("127.0.0.1", 0))
