@@ -113,9 +113,9 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from ballbar.analysis.errors import BallbarError
 
 from ballbar import SCHEMA_VERSION
+from ballbar.analysis.errors import BallbarError
 
 from .listeners import Listener, Message
 from .samples import SampleBatch

@@ -119,8 +119,6 @@ from typing import IO, Any
 
 import numpy as np
 import zstandard
-from ballbar.analysis.errors import BallbarError, DataError
-from ballbar.protocol import INVALID
 from mcap.exceptions import McapError
 from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
@@ -128,6 +126,8 @@ from mcap.writer import CompressionType, Writer
 from numpy.typing import NDArray
 
 from ballbar import __version__
+from ballbar.analysis.errors import BallbarError, DataError
+from ballbar.protocol import INVALID
 
 from .listeners import Listener
 from .listeners import Message as ListenerMessage

@@ -19,6 +19,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
 from ballbar.analysis.errors import DataError
 
 log = logging.getLogger(__name__)

@@ -34,10 +34,10 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from ballbar.analysis.engine import TestAnalyzer
-from ballbar.analysis.errors import BallbarError
 
 from ballbar import SCHEMA_VERSION
+from ballbar.analysis.engine import TestAnalyzer
+from ballbar.analysis.errors import BallbarError
 
 from .config import Config
 from .listeners import Listener, ListenerQueue, Message

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from ballbar.analysis.patterns import Geometry, design, select
 from ballbar.analysis.plan import TestPlan
 from ballbar.analysis.program import schedule

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
+
 from ballbar.daemon.bus import (
     DEFAULT_LISTEN,
     BusConfigError,

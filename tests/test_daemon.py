@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+
 from ballbar.daemon import config as cfgmod
 
 QUIET = ["--set", "mcap.enabled=false", "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"']

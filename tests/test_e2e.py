@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+
 from ballbar.daemon.cli import main as cli_main
 from ballbar.daemon.mcap_log import list_recordings, read_logs
 from ballbar.tools.simdevice import DeviceProcess

@@ -6,10 +6,11 @@ import math
 
 import numpy as np
 import pytest
+from masksynth import FULL_TRUTH, mask_recording
+
 from ballbar.analysis import AnalysisOptions, TestPlan
 from ballbar.analysis.engine import TestAnalyzer, analyze_recording
 from ballbar.analysis.errors import DetectionError
-from masksynth import FULL_TRUTH, mask_recording
 
 # The recordings here follow the masks exactly: no dead band, no servo dynamics.
 MASKS = AnalysisOptions(servo_model="linear", lost_motion="step")

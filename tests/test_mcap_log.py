@@ -19,6 +19,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.writer import Writer
+
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import TestPlan
 from ballbar.daemon import mcap_log
@@ -39,8 +42,6 @@ from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.daemon.timebase import ClockMap
 from ballbar.protocol import Status
 from ballbar.tools.simulator import MachineModel, simulate, write_csv
-from mcap.reader import NonSeekingReader, make_reader
-from mcap.writer import Writer
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+
 from ballbar.analysis import TestPlan
 from ballbar.analysis.engine import analyze_recording
 from ballbar.tools.simulator import MachineModel, simulate

@@ -8,6 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+
 from ballbar.analysis.errors import PlanError
 from ballbar.analysis.plan import TestPlan
 from ballbar.analysis.program import centroid_span_s, feed_from_span

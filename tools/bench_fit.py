@@ -33,6 +33,7 @@ import time  # noqa: E402
 from collections.abc import Callable, Sequence  # noqa: E402
 
 import numpy as np  # noqa: E402
+
 from ballbar.analysis import AnalysisOptions, MachineConfig, TestPlan  # noqa: E402
 from ballbar.analysis.engine import CircleFit, TestAnalyzer, analyze_recording, make_timing  # noqa: E402
 from ballbar.analysis.fit import solve  # noqa: E402

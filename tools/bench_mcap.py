@@ -28,6 +28,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
+
 from ballbar.analysis.plan import TestPlan
 from ballbar.daemon.mcap_log import McapLogger, list_recordings, read_mcap
 from ballbar.daemon.samples import SampleBatch

@@ -100,10 +100,11 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
+from scipy.signal import lfilter
+
 from ballbar.analysis.errors import PlanError
 from ballbar.analysis.plan import TestPlan
 from ballbar.analysis.program import Move, data_start_deg, moves
-from scipy.signal import lfilter
 
 log = logging.getLogger(__name__)
 

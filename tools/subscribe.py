@@ -36,6 +36,7 @@ from types import FrameType
 from typing import Any
 
 import zenoh
+
 from ballbar.daemon.bus import (
     DEFAULT_CONNECT,
     HISTORY_LIMIT_MAX,
