@@ -38,8 +38,9 @@ from enum import StrEnum
 from typing import Any
 
 import numpy as np
-from ballbar.protocol import INVALID
 from numpy.typing import NDArray
+
+from ballbar.protocol import INVALID
 
 #: One sample as a record, for writers that want rows (MCAP, CSV).
 SAMPLE_DTYPE = np.dtype(

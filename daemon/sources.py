@@ -116,9 +116,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 import serial
+from numpy.typing import NDArray
+
 from ballbar.protocol import AsciiDecoder, AsciiFormat, BinaryDecoder, Readings, Status
 from ballbar.protocol._common import add_counts
-from numpy.typing import NDArray
 
 from .errors import SourceClosed, SourceConfigError, SourceError
 from .samples import EventKind, SampleBatch, SourceEvent, SourceStats

@@ -22,8 +22,9 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from ballbar.protocol import Readings
 from numpy.typing import NDArray
+
+from ballbar.protocol import Readings
 
 
 class ClockMap:

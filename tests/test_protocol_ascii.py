@@ -6,10 +6,11 @@ import math
 
 import numpy as np
 import pytest
-from ballbar.protocol import Status
-from ballbar.protocol.ascii import AsciiDecoder, AsciiFormat, decode, encode
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from ballbar.protocol import Status
+from ballbar.protocol.ascii import AsciiDecoder, AsciiFormat, decode, encode
 
 MM = AsciiFormat()
 TS = AsciiFormat(ts_unit="s")

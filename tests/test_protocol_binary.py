@@ -6,6 +6,9 @@ import struct
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from ballbar.protocol import Status
 from ballbar.protocol.binary import (
     CLOCK_WRAP_S,
@@ -20,8 +23,6 @@ from ballbar.protocol.binary import (
     encode,
     encode_samples,
 )
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 U32 = st.integers(0, 2**32 - 1)
 I32 = st.integers(-(2**31), 2**31 - 1)

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+
 from ballbar.analysis.plan import TestPlan
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.daemon.sources import Source, open_source

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.analysis.plan import TestPlan
 from ballbar.daemon.errors import SourceClosed, SourceConfigError

@@ -10,13 +10,14 @@
    chunks of a 10 kHz stream, as the serial source feeds them.
 2. The pty path: :mod:`ballbar.tools.simdevice` in a child process streams at
    each wall rate for ``--seconds``; a serial source in this process reads it.
-   A rate is sustained when every sample arrives with zero loss and the achieved
-   rate is within 2 % of the nominal one (the device waits for a slow reader
-   instead of losing samples, so a reader that cannot keep up shows as a lower
-   achieved rate).  Reader CPU is this process's CPU time over the run's wall
-   time, in percent of one core; device CPU the simulated device's over the same
-   window (a Python process too: at the highest rates it, not the reader, is
-   the limit); medians of the repeats.
+   A rate is sustained when in every run every sample arrives, in order, with
+   zero loss, and the median run's achieved rate is within 2 % of the nominal
+   one (the device waits for a slow reader instead of losing samples, so a
+   reader that cannot keep up shows as a lower achieved rate).  Reader CPU is
+   this process's CPU time over the run's wall time, in percent of one core;
+   device CPU the simulated device's over the same window (a Python process
+   too: at the highest rates it, not the reader, is the limit); medians of the
+   repeats.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
+
 from ballbar.protocol import ascii as ascii_proto
 from ballbar.protocol import binary as binary_proto
 
@@ -251,9 +253,14 @@ def bench_pty(
                 "device_cpu": statistics.median(r["device_cpu"] for r in runs),
                 "lost": sum(r["lost"] for r in runs),
                 "decode": sum(r["decode"] for r in runs),
-                "ok": all(r["ok"] for r in runs),
-                "why": "; ".join(sorted({r["why"] for r in runs if r["why"]})),
+                "min_achieved": min(r["achieved"] for r in runs),
             }
+            # Sustained: no run lost, reordered or garbled anything, and the median run kept
+            # the pace (one run slowed by another process on a shared machine does not count).
+            why = sorted({w for r in runs for w in r["why"].split(", ") if w and w != "too slow"})
+            if row["achieved"] < 0.98 * rate:
+                why.append("too slow")
+            row["ok"], row["why"] = not why, ", ".join(why)
             yield row
             if not row["ok"]:
                 break  # higher rates will not do better
@@ -299,13 +306,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     print()
     print(f"pty path: simdevice -> serial source, {seconds:g} s per run, median of {pty_reps} (CPU: % of one core)")
     print(
-        f"{'protocol':<10}{'rate Hz':>10}{'achieved Hz':>13}{'reader CPU':>12}{'device CPU':>12}"
+        f"{'protocol':<10}{'rate Hz':>10}{'achieved Hz':>13}{'(lowest)':>10}{'reader CPU':>12}{'device CPU':>12}"
         f"{'lost':>6}{'dropped':>9}  sustained"
     )
     best: dict[str, float] = {}
     for r in bench_pty(("binary", "ascii"), rates, seconds, pty_reps):
         print(
-            f"{r['protocol']:<10}{r['rate']:>10.0f}{r['achieved']:>13.0f}{r['cpu']:>11.1f}%{r['device_cpu']:>11.1f}%"
+            f"{r['protocol']:<10}{r['rate']:>10.0f}{r['achieved']:>13.0f}{r['min_achieved']:>10.0f}"
+            f"{r['cpu']:>11.1f}%{r['device_cpu']:>11.1f}%"
             f"{r['lost']:>6}{r['decode']:>9}  {'yes' if r['ok'] else 'NO: ' + r['why']}",
             flush=True,
         )

@@ -65,10 +65,11 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, TextIO
 
 import numpy as np
+from numpy.typing import NDArray
+
 from ballbar.protocol import Status
 from ballbar.protocol import ascii as ascii_proto
 from ballbar.protocol import binary as binary_proto
-from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
 
