@@ -55,6 +55,7 @@ import os
 import pty
 import select
 import signal
+import stat
 import sys
 import tempfile
 import time
@@ -62,7 +63,7 @@ import tty
 import urllib.parse
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -297,6 +298,7 @@ class DeviceStats:
     last_seq: int = -1  # device counter of the last sample sent intact
     tests: int = 0
     cpu_s: float = 0.0  # the device process's CPU time so far
+    lines_dropped: int = 0  # stdout lines lost because nobody read the pipe
 
 
 @dataclass
@@ -314,7 +316,7 @@ class Settings:
 class SimDevice:
     """The device's loop: pace samples, apply faults, write frames, obey commands."""
 
-    def __init__(self, feed: Feed, port: PtyPort | SerialPort, settings: Settings, out: TextIO) -> None:
+    def __init__(self, feed: Feed, port: PtyPort | SerialPort, settings: Settings, out: int) -> None:
         self.feed = feed
         self.port = port
         self.s = settings
@@ -340,8 +342,11 @@ class SimDevice:
     # -- output -------------------------------------------------------------------
 
     def emit(self, obj: dict[str, Any]) -> None:
-        self.out.write(json.dumps(obj) + "\n")
-        self.out.flush()
+        try:
+            os.write(self.out, (json.dumps(obj) + "\n").encode())
+        except BlockingIOError:
+            # Nobody reads our stdout (a pipe left full): lose the line, never stall the device.
+            self.stats.lines_dropped += 1
 
     # -- commands -----------------------------------------------------------------
 
@@ -829,10 +834,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
 
-    out = sys.stdout
+    out = sys.stdout.fileno()
     dev = SimDevice(feed, port, settings, out)
-    out.write(port.path + "\n")
+    os.write(out, (port.path + "\n").encode())
     dev.emit({"event": "ready", "path": port.path, "url": source_url(port.path, settings)})
+    if stat.S_ISFIFO(os.fstat(out).st_mode):
+        # A pipe that its reader stops reading must not stall the device (a terminal is
+        # left alone: the flag would be shared with the shell).
+        os.set_blocking(out, False)
     dev.started = not args.wait
     stdin_fd: int | None = sys.stdin.fileno() if sys.stdin is not None else None
     inbuf = b""
