@@ -17,16 +17,17 @@ ways:
 What is logged (timelines: ``time``, wall clock of the sample or of the
 message; ``test``, the test's sequence number within this daemon run)::
 
-    polar/reference/{nominal,axes}   static: the nominal circle, the plane's axes
-    polar/reference/{band,scale}     the tolerance band and the +-s scale rings (they
-                                     depend on the scale s; logged when it changes)
+    polar/reference/{nominal,axes,axis_labels}  static: the nominal circle, the plane's axes
+    polar/reference/{band,scale,labels}  the tolerance band, the +-s scale rings and
+                                     their labels (they depend on the scale s; logged
+                                     when it changes)
     polar/{ccw,cw}/measured    LineStrips2D of the magnified radial deviation, updated
                                live during the data arc, redrawn with each result's timing
     polar/{ccw,cw}/model       the fitted model, rebuilt from the result's parameters
     length                     Scalars: the bar length L (mm), decimated to <= length_hz
     findings                   TextDocument (markdown): ranking, parameters, ISO 230-4, advice
-    trends/um/{backlash_x,backlash_y,circularity_G_b}, trends/ms/servo_mismatch,
-    trends/urad/squareness, trends/ppm/scale_mismatch
+    trends/backlash_um/{x,y}, trends/circularity_um/G_b, trends/servo_mismatch_ms,
+    trends/squareness_urad, trends/scale_mismatch_ppm
                                Scalars, one point per test
     events                     TextLog: feed-in/out, rejected tests, source events
 
@@ -91,12 +92,13 @@ from typing import Any, Literal
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+from numpy.typing import NDArray
+
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.patterns import LIBRARY, Geometry, Pattern, design
 from ballbar.analysis.physics import make_offset, takeup_angles
 from ballbar.analysis.plan import MachineConfig, TestPlan
 from ballbar.analysis.program import arc_start_deg, data_start_deg, schedule
-from numpy.typing import NDArray
 
 from .listeners import Listener, Message
 from .samples import EventKind, SampleBatch, SourceEvent
@@ -115,19 +117,19 @@ COLOURS: dict[str, tuple[int, int, int]] = {
     "ccw_model": (10, 30, 110),
     "cw": (235, 85, 40),
     "cw_model": (120, 25, 0),
-    "nominal": (140, 140, 140),
+    "nominal": (175, 175, 175),
     "band": (60, 170, 60),
-    "scale": (210, 210, 210),
-    "axes": (110, 110, 110),
+    "scale": (95, 95, 95),
+    "axes": (95, 95, 95),
 }
 # (entity under trends/, result field or ISO key, label)
 TRENDS: tuple[tuple[str, str, str], ...] = (
-    ("um/backlash_x", "backlash_x_um", "backlash X (um)"),
-    ("um/backlash_y", "backlash_y_um", "backlash Y (um)"),
-    ("um/circularity_G_b", "G_b_um", "circularity G(b) (um)"),
-    ("ms/servo_mismatch", "servo_mismatch_ms", "servo mismatch (ms)"),
-    ("urad/squareness", "squareness_urad", "squareness (urad)"),
-    ("ppm/scale_mismatch", "scale_mismatch_ppm", "scale mismatch (ppm)"),
+    ("backlash_um/x", "backlash_x_um", "X"),
+    ("backlash_um/y", "backlash_y_um", "Y"),
+    ("circularity_um/G_b", "G_b_um", "G(b)"),
+    ("servo_mismatch_ms", "servo_mismatch_ms", "1/KX - 1/KY"),
+    ("squareness_urad", "squareness_urad", "squareness"),
+    ("scale_mismatch_ppm", "scale_mismatch_ppm", "eX - eY"),
 )
 WARN_EVENTS = frozenset(
     {"test_rejected", "test_incomplete", "test_aborted", "unplugged", "lost", "stall", "device_reset", "decode_errors"}
@@ -462,9 +464,13 @@ def setup_deviation_um(result: Mapping[str, Any] | None, u: FloatArray) -> Float
 
 
 def polar_points(u: FloatArray, dr_um: FloatArray, scale_um: float) -> FloatArray:
-    """``(n, 2)`` display points of deviations ``dr_um`` at angles ``u`` (rad), magnified."""
+    """``(n, 2)`` display points of deviations ``dr_um`` at angles ``u`` (rad), magnified.
+
+    Rerun's 2D views put +y down (image convention): the second coordinate is
+    ``-r sin u`` so that the plane's second axis points up and CCW looks CCW.
+    """
     r = np.maximum(R0 + (R0 / (2.0 * scale_um)) * dr_um, 0.0)
-    return np.column_stack([r * np.cos(u), r * np.sin(u)])
+    return np.column_stack([r * np.cos(u), -r * np.sin(u)])
 
 
 def nice_scale_um(max_abs_um: float) -> float:
@@ -584,11 +590,12 @@ def default_blueprint() -> rrb.Blueprint:
     """The layout: polar plot and length on the left; findings, trends and events on the right."""
     bound = 1.75 * R0
     trends = rrb.Grid(
-        rrb.TimeSeriesView(name="backlash, circularity (µm)", origin="trends/um"),
-        rrb.TimeSeriesView(name="servo mismatch (ms)", origin="trends/ms"),
-        rrb.TimeSeriesView(name="squareness (µrad)", origin="trends/urad"),
-        rrb.TimeSeriesView(name="scale mismatch (ppm)", origin="trends/ppm"),
-        grid_columns=2,
+        rrb.TimeSeriesView(name="backlash (µm)", origin="trends/backlash_um"),
+        rrb.TimeSeriesView(name="circularity G(b) (µm)", origin="trends/circularity_um"),
+        rrb.TimeSeriesView(name="servo mismatch (ms)", origin="trends/servo_mismatch_ms"),
+        rrb.TimeSeriesView(name="squareness (µrad)", origin="trends/squareness_urad"),
+        rrb.TimeSeriesView(name="scale mismatch (ppm)", origin="trends/scale_mismatch_ppm"),
+        grid_columns=3,
         name="Trends across tests",
     )
     return rrb.Blueprint(
@@ -618,8 +625,9 @@ def default_blueprint() -> rrb.Blueprint:
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(timeline="time"),
-        collapse_panels=False,
+        rrb.TimePanel(timeline="time", play_state="following"),  # live: always the newest circle
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
 
 
@@ -718,9 +726,9 @@ class RerunViewer(Listener):
         self._live: dict[int, ArcTiming] = {}  # provisional timing per direction
         self._final: dict[int, Mapping[str, Any]] = {}  # direction -> latest result drawn for it
         self._next_polar = 0.0
-        # what a (re)connecting viewer is sent again; curves: path -> (u rad, dR um, colour, label,
+        # what a (re)connecting viewer is sent again; curves: path -> (u rad, dR um, colour,
         # line width, draw order), see "polar plot" below
-        self._curves: dict[str, tuple[FloatArray, FloatArray, str, str, float, float]] = {}
+        self._curves: dict[str, tuple[FloatArray, FloatArray, str, float, float]] = {}
         self._scale_um = self.options.scale_um or AUTO_SCALE_START_UM
         self._setup_result: Mapping[str, Any] | None = None
         self._hints = (1.0, 0.0, 3.0)  # feed ratio, overhead (s), spike width (deg) from the last test
@@ -853,14 +861,11 @@ class RerunViewer(Listener):
     def _log_static(self) -> None:
         rec = self._rec
         assert rec is not None
-        radius = f"{self.plan.radius_mm:g} mm" if self.plan else "R"
         ax1, ax2 = self.plan.axes if self.plan else ("X", "Y")
         radii = rr.Radius.ui_points(0.75)
         rec.log(
             "polar/reference/nominal",
-            rr.LineStrips2D(
-                [_circle(R0)], colors=[COLOURS["nominal"]], radii=radii, labels=[f"nominal {radius}"], draw_order=1.0
-            ),
+            rr.LineStrips2D([_circle(R0)], colors=[COLOURS["nominal"]], radii=radii, draw_order=1.0),
             static=True,
         )
         e = 1.65 * R0
@@ -870,8 +875,18 @@ class RerunViewer(Listener):
                 [[[-e, 0.0], [e, 0.0]], [[0.0, -e], [0.0, e]]],
                 colors=[COLOURS["axes"]],
                 radii=rr.Radius.ui_points(0.5),
-                labels=[f"+{ax1}", f"+{ax2}"],
                 draw_order=0.4,
+            ),
+            static=True,
+        )
+        rec.log(
+            "polar/reference/axis_labels",
+            rr.Points2D(
+                [[e, 0.0], [0.0, -e]],  # +y is down in the view
+                labels=[f"+{ax1}", f"+{ax2}"],
+                colors=[COLOURS["axes"]],
+                radii=rr.Radius.ui_points(2.0),
+                show_labels=True,
             ),
             static=True,
         )
@@ -896,7 +911,6 @@ class RerunViewer(Listener):
                 [_circle(R0 + k * tol), _circle(max(R0 - k * tol, 0.0))],
                 colors=[COLOURS["band"]],
                 radii=rr.Radius.ui_points(0.75),
-                labels=[f"+{tol:g} µm", f"-{tol:g} µm"],
                 draw_order=2.0,
             ),
         )
@@ -906,8 +920,27 @@ class RerunViewer(Listener):
                 [_circle(R0 * 1.5), _circle(R0 * 0.5)],
                 colors=[COLOURS["scale"]],
                 radii=rr.Radius.ui_points(0.5),
-                labels=[f"+{s:g} µm", f"-{s:g} µm"],
                 draw_order=0.5,
+            ),
+        )
+        # Labels on points beside the rings: a strip's own label sits at its centroid, the centre.
+        a = math.radians(75.0)
+        rings = [
+            (R0, f"R {self.plan.radius_mm:g} mm" if self.plan else "nominal", COLOURS["nominal"]),
+            (R0 + k * tol, f"+{tol:g} µm", COLOURS["band"]),
+            (max(R0 - k * tol, 0.0), f"-{tol:g} µm", COLOURS["band"]),
+            (1.5 * R0, f"+{s:g} µm", COLOURS["scale"]),
+            (0.5 * R0, f"-{s:g} µm", COLOURS["scale"]),
+        ]
+        rec.log(
+            "polar/reference/labels",
+            rr.Points2D(
+                [[r * math.cos(a), -r * math.sin(a)] for r, _t, _c in rings],
+                labels=[t for _r, t, _c in rings],
+                colors=[c for _r, _t, c in rings],
+                radii=rr.Radius.ui_points(2.0),
+                show_labels=True,
+                draw_order=3.0,
             ),
         )
 
@@ -1088,6 +1121,8 @@ class RerunViewer(Listener):
         self.plan, self.machine = new, mach
         if changed and self._sink_live:
             self._log_static()
+            self._set_times()
+            self._log_scale()
 
     def _check_clock(self, msg: Message) -> None:
         """Follow the clock the analysis runs on: the message's ``time_axis``, else its times.
@@ -1270,7 +1305,7 @@ class RerunViewer(Listener):
         if not u.size:
             return False
         name = DIRECTIONS[d]
-        self._curves[f"polar/{name}/measured"] = (u, dr, name, name.upper(), 1.5, 10.0)
+        self._curves[f"polar/{name}/measured"] = (u, dr, name, 1.5, 10.0)
         return True
 
     def _update_model(self, d: int, res: Mapping[str, Any]) -> None:
@@ -1281,8 +1316,7 @@ class RerunViewer(Listener):
         if dr is None:
             return
         name = DIRECTIONS[d]
-        label = f"{name.upper()} fit" + (" (provisional)" if res.get("kind") == "circle" else "")
-        self._curves[f"polar/{name}/model"] = (u, dr, f"{name}_model", label, 0.6, 11.0)
+        self._curves[f"polar/{name}/model"] = (u, dr, f"{name}_model", 0.6, 11.0)
 
     def _fit_scale(self, grow_only: bool) -> bool:
         """The automatic scale for the measured curves; True when it changed (everything re-emitted)."""
@@ -1314,13 +1348,11 @@ class RerunViewer(Listener):
         assert rec is not None
         self._set_times()
         for path in paths if paths is not None else list(self._curves):
-            u, dr, colour, label, width, order = self._curves[path]
+            u, dr, colour, width, order = self._curves[path]
             pts = polar_points(u, dr - setup_deviation_um(self._setup_result, u), self._scale_um)
             rec.log(
                 path,
-                rr.LineStrips2D(
-                    [pts], colors=[COLOURS[colour]], radii=rr.Radius.ui_points(width), labels=[label], draw_order=order
-                ),
+                rr.LineStrips2D([pts], colors=[COLOURS[colour]], radii=rr.Radius.ui_points(width), draw_order=order),
             )
             self.counters["polar_draws"] += 1
 

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.plan import MachineConfig, TestPlan
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
@@ -266,7 +267,7 @@ def strip(saved: Saved, entity: str) -> np.ndarray:
 
 
 def scale_of(saved: Saved) -> float:
-    label = last(saved, "/polar/reference/scale", "LineStrips2D:labels")[0]
+    label = last(saved, "/polar/reference/labels", "Points2D:labels")[3]
     m = re.match(r"\+([0-9.]+) µm", label)
     assert m, label
     return float(m.group(1))
@@ -279,6 +280,7 @@ def check_stream(saved: Saved, script: Script, n_tests: int = 2) -> None:
         "/polar/reference/band",
         "/polar/reference/scale",
         "/polar/reference/axes",
+        "/polar/reference/labels",
         "/polar/ccw/measured",
         "/polar/cw/measured",
         "/polar/ccw/model",
@@ -286,12 +288,12 @@ def check_stream(saved: Saved, script: Script, n_tests: int = 2) -> None:
         "/length",
         "/findings",
         "/events",
-        "/trends/um/backlash_x",
-        "/trends/um/backlash_y",
-        "/trends/um/circularity_G_b",
-        "/trends/ms/servo_mismatch",
-        "/trends/urad/squareness",
-        "/trends/ppm/scale_mismatch",
+        "/trends/backlash_um/x",
+        "/trends/backlash_um/y",
+        "/trends/circularity_um/G_b",
+        "/trends/servo_mismatch_ms",
+        "/trends/squareness_urad",
+        "/trends/scale_mismatch_ppm",
     ):
         assert saved.rows.get(ep), f"{ep} missing: {sorted(saved.rows)}"
     assert {"time", "test"} <= saved.timelines["/polar/ccw/measured"]
@@ -325,12 +327,12 @@ def check_stream(saved: Saved, script: Script, n_tests: int = 2) -> None:
     assert np.allclose(np.sort(lengths), np.sort(script.L))
 
     # one trend point per test, near the machine's truth
-    bx = np.concatenate(saved.columns["/trends/um/backlash_x"]["Scalars:scalars"])
-    servo = np.concatenate(saved.columns["/trends/ms/servo_mismatch"]["Scalars:scalars"])
+    bx = np.concatenate(saved.columns["/trends/backlash_um/x"]["Scalars:scalars"])
+    servo = np.concatenate(saved.columns["/trends/servo_mismatch_ms"]["Scalars:scalars"])
     assert bx.size == n_tests and servo.size == n_tests
     assert np.all(np.abs(bx - 4.0) < 0.6)
     assert np.all(np.abs(servo - SERVO_MS) < 0.15)
-    assert {"time", "test"} <= saved.timelines["/trends/um/backlash_x"]
+    assert {"time", "test"} <= saved.timelines["/trends/backlash_um/x"]
 
     events = " ".join(texts(saved, "/events", "TextLog:text"))
     assert "feed_in" in events and "feed_out" in events and "opened" in events
@@ -483,7 +485,7 @@ def check_stream_after_restart(saved: Saved) -> None:
         "/length",
     ):
         assert saved.rows.get(ep), f"{ep} missing: {sorted(saved.rows)}"
-    bx = np.concatenate(saved.columns["/trends/um/backlash_x"]["Scalars:scalars"])
+    bx = np.concatenate(saved.columns["/trends/backlash_um/x"]["Scalars:scalars"])
     assert bx.size == 2  # test 1 re-sent on reconnection, test 2 live
     assert texts(saved, "/findings", "TextDocument:text")[-1].startswith("## Test 2")
 
@@ -515,7 +517,7 @@ def test_absent_viewer_then_present(script: Script, receivers: list[Receiver], t
         assert saved.rows.get(ep), f"{ep} missing: {sorted(saved.rows)}"
     assert len(strip(saved, "/polar/cw/measured")) > 500  # from the cache: its samples were let go
     assert texts(saved, "/findings", "TextDocument:text")[-1].startswith("## Test 1 ")
-    assert np.concatenate(saved.columns["/trends/um/backlash_x"]["Scalars:scalars"]).size == 1
+    assert np.concatenate(saved.columns["/trends/backlash_um/x"]["Scalars:scalars"]).size == 1
 
 
 def test_frozen_viewer_cannot_hold_stop(script: Script, receivers: list[Receiver], tmp_path: Path) -> None:
