@@ -39,9 +39,11 @@ from ballbar.daemon.viewer import (
     RerunViewer,
     ViewerConfigError,
     ViewerOptions,
+    default_blueprint,
     findings_markdown,
     model_deviation_um,
     nice_scale_um,
+    polar_points,
     result_timing,
 )
 from ballbar.tools.simulator import MachineModel, iter_chunks
@@ -609,3 +611,20 @@ def test_from_daemon_config() -> None:
         assert v.connected and listening(port)
     finally:
         v.stop()
+
+
+def test_polar_geometry_and_layout() -> None:
+    # +X to the right, +Y up: the view's y axis points down, so the second coordinate is negated
+    pts = polar_points(np.array([0.0, math.pi / 2]), np.array([0.0, 20.0]), scale_um=20.0)
+    assert np.allclose(pts, [[R0, 0.0], [0.0, -1.5 * R0]])
+    assert np.allclose(polar_points(np.array([0.0]), np.array([-100.0]), 20.0), [[0.0, 0.0]])  # clamped at 0
+    default_blueprint()  # builds against the installed rerun
+
+
+def test_stop_without_any_viewer_is_quick(script: Script) -> None:
+    v = RerunViewer(ViewerOptions(mode="connect", url=f"rerun+http://127.0.0.1:{free_port()}/proxy"), plan=PLAN)
+    costs = feed(v, script.items[:2000])
+    assert not v.connected and max(costs) < 0.05
+    t0 = time.monotonic()
+    v.stop()
+    assert time.monotonic() - t0 < 0.7
