@@ -611,6 +611,8 @@ def analyze_test(
     res["timing"] = _timing_dict(plan, fi, fo, timing, hyper, V)
     res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
     res["timing"]["loop_lag_source"] = tau_source
+    res["timing"]["loop_lag_radial_cos2u"] = cos2
+    res["timing"]["backlash_takeup_deg"] = {"x": math.degrees(takeup[0]), "y": math.degrees(takeup[1])}
     res["iso230_4"] = iso230.figures({c.d: c.measured() for c in joint.circles})
     res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, sample_hz)
     res["noise"] = noise.findings(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -154,3 +155,41 @@ def test_notify_never_blocks_when_nobody_reads(tmp_path: Path) -> None:
         n.close()
     finally:
         sock.close()
+
+
+def test_simulated_device_ends_with_a_killed_daemon(tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--state-dir", str(tmp_path), *QUIET],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    try:
+        kids: set[int] = set()
+        deadline = time.monotonic() + 30
+        while not kids and time.monotonic() < deadline:
+            time.sleep(0.2)
+            for tid in os.listdir(f"/proc/{proc.pid}/task"):
+                with open(f"/proc/{proc.pid}/task/{tid}/children") as fh:
+                    kids.update(int(p) for p in fh.read().split())
+        assert kids, "the simulated device did not start"
+        proc.kill()
+        proc.wait(10)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and any(os.path.exists(f"/proc/{k}") for k in kids):
+            for k in kids:
+                with contextlib.suppress(ChildProcessError, OSError):
+                    os.waitpid(k, os.WNOHANG)
+            time.sleep(0.1)
+        alive = [k for k in kids if os.path.exists(f"/proc/{k}") and _state(k) != "Z"]
+        assert not alive, f"orphaned device processes: {alive}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "gone"

@@ -26,7 +26,8 @@ buffer fills), the device waits rather than losing samples; samples are lost
 only on command.  The simulated interface is powered on its own: across an
 unplug or a stall it keeps sampling, so its counter shows the gap.
 
-Commands on stdin, one per line (EOF on stdin is ignored; SIGTERM ends it):
+Commands on stdin, one per line (EOF on stdin is ignored unless ``--exit-on-eof``,
+which :class:`DeviceProcess` passes so that its device ends with its parent; SIGTERM ends it):
 
 ``start``           begin streaming (with ``--wait``)
 ``garbage N``       send N junk bytes before the next sample (binary: no byte
@@ -614,7 +615,7 @@ class DeviceProcess:
         import subprocess
 
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "ballbar.tools.simdevice", *args],
+            [sys.executable, "-m", "ballbar.tools.simdevice", "--exit-on-eof", *args],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
         )
@@ -736,6 +737,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--range-mm", type=float, default=2.5, help="LVDT linear range, +- mm")
     p.add_argument("--wait", action="store_true", help="stream only after the 'start' command")
     p.add_argument("--exit-when-done", action="store_true", help="exit once every test is sent")
+    p.add_argument("--exit-on-eof", action="store_true", help="exit when stdin closes (a child of a program)")
     g = p.add_argument_group("ASCII format")
     g.add_argument("--unit", choices=["mm", "um", "nm", "in"], default="mm")
     g.add_argument("--timestamp", choices=["none", "s", "ms", "us"], default="none")
@@ -859,6 +861,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             if stdin_fd is not None and stdin_fd in ready:
                 chunk = os.read(stdin_fd, 4096)
                 if not chunk:
+                    if args.exit_on_eof:
+                        break  # the process driving it has gone (a killed daemon's demo device)
                     stdin_fd = None  # EOF: keep running, commands are optional
                 inbuf += chunk
                 while b"\n" in inbuf:
