@@ -117,7 +117,7 @@ import zenoh
 from ballbar import SCHEMA_VERSION
 from ballbar.analysis.errors import BallbarError
 
-from .listeners import Listener, Message
+from .listeners import Listener, Message, to_json
 from .samples import SampleBatch
 
 log = logging.getLogger(__name__)
@@ -288,39 +288,9 @@ def parse_time_us(value: str | float | int) -> int:
     return (t - dt.datetime(1970, 1, 1, tzinfo=dt.UTC)) // dt.timedelta(microseconds=1)
 
 
-def _default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Mapping):
-        return dict(obj)
-    if isinstance(obj, set | frozenset | tuple):
-        return list(obj)
-    return str(obj)
-
-
-def _finite(obj: Any) -> Any:
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, Mapping):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj
-
-
 def dumps(msg: Any) -> bytes:
     """Compact, strict JSON: NaN and infinities become ``null``, numpy values plain numbers."""
-    try:
-        text = json.dumps(msg, separators=(",", ":"), allow_nan=False, default=_default)
-    except ValueError:
-        text = json.dumps(_finite(msg), separators=(",", ":"), allow_nan=False, default=_default)
-    return text.encode()
+    return to_json(msg)
 
 
 def _params(query: zenoh.Query) -> dict[str, str]:
@@ -557,7 +527,7 @@ class ZenohBus(Listener):
             "seq": batch.seq[keep],
             "status": batch.status[keep],
         }
-        self._put("samples", dumps(_finite(body)))
+        self._put("samples", dumps(body))
 
     def _put(self, kind: str, payload: bytes) -> None:
         pub = self._publishers.get(kind)

@@ -26,12 +26,18 @@ Messages are JSON-ready dicts with a ``kind``:
 from __future__ import annotations
 
 import abc
+import json
 import logging
+import math
 import threading
 import time
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
+
+import numpy as np
 
 from .samples import SampleBatch
 
@@ -39,6 +45,47 @@ log = logging.getLogger(__name__)
 
 Message = dict[str, Any]
 DropPolicy = Literal["drop_oldest", "drop_newest"]
+
+
+def _plain(obj: Any) -> Any:
+    """What ``json`` cannot take as it is: numpy values, arrays, paths, sets."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Mapping):
+        return dict(obj)
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    return str(obj)
+
+
+def _finite(obj: Any) -> Any:
+    if isinstance(obj, float | np.floating):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, Mapping):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple | set | frozenset):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _finite(obj.item())
+    return obj
+
+
+def to_json(msg: Any) -> bytes:
+    """A message as compact, strict JSON (UTF-8): NaN and infinities become ``null``.
+
+    One encoding for every output (MCAP records, bus payloads).
+    """
+    try:
+        text = json.dumps(msg, separators=(",", ":"), allow_nan=False, default=_plain)
+    except ValueError:
+        text = json.dumps(_finite(msg), separators=(",", ":"), allow_nan=False, default=_plain)
+    return text.encode("utf-8")
 
 
 class Listener(abc.ABC):

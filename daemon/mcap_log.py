@@ -129,7 +129,7 @@ from ballbar import __version__
 from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID
 
-from .listeners import Listener
+from .listeners import Listener, to_json
 from .listeners import Message as ListenerMessage
 from .samples import SampleBatch, SourceEvent
 
@@ -406,44 +406,6 @@ def decode_samples(msg: Mapping[str, Any]) -> DecodedSamples:
         source=str(msg.get("source", "")),
         preroll=bool(msg.get("preroll", False)),
     )
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.floating):
-        return float(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, set | frozenset | tuple):
-        return list(obj)
-    return str(obj)
-
-
-def _finite_only(obj: Any) -> Any:
-    """NaN and infinities as null (JSON has no such numbers)."""
-    if isinstance(obj, float | np.floating):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, Mapping):
-        return {str(k): _finite_only(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple | set | frozenset):
-        return [_finite_only(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _finite_only(obj.tolist())
-    return obj
-
-
-def to_json(obj: Any) -> bytes:
-    """Compact JSON; non-finite numbers become null."""
-    try:
-        text = json.dumps(obj, separators=(",", ":"), allow_nan=False, default=_json_default)
-    except ValueError:
-        text = json.dumps(_finite_only(obj), separators=(",", ":"), allow_nan=False, default=_json_default)
-    return text.encode("utf-8")
 
 
 # ----------------------------------------------------------------------------- the writer
