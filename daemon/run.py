@@ -57,7 +57,10 @@ def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[
         from .mcap_log import list_recordings, read_log
 
         out: list[dict[str, Any]] = []
-        files = list_recordings(os.path.join(cfg.daemon.state_dir, "recordings"))[-newest_files:]
+        directory = os.path.join(cfg.daemon.state_dir, "recordings")
+        if not os.path.isdir(directory):
+            return out  # a first start: nothing recorded yet
+        files = list_recordings(directory)[-newest_files:]
         for path in files:
             try:
                 out.extend(read_log(path).results)
