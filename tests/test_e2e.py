@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from test_viewer import RERUN, Receiver, last, read_rrd
 
 from ballbar.daemon.cli import main as cli_main
 from ballbar.daemon.mcap_log import list_recordings, read_logs
@@ -40,7 +41,7 @@ def free_port() -> int:
 class Daemon:
     """``ballbar run`` as a child process, with a notify socket to see READY=1."""
 
-    def __init__(self, tmp: Path, url: str, zenoh_port: int, *extra: str) -> None:
+    def __init__(self, tmp: Path, url: str, zenoh_port: int, *extra: str, rerun: str = 'rerun.mode="off"') -> None:
         self.sock_path = str(tmp / f"notify-{time.monotonic_ns()}.sock")
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.bind(self.sock_path)
@@ -51,7 +52,7 @@ class Daemon:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "ballbar.daemon.cli", "run", "--source", url, "--machine-id", "e2e",
              "--state-dir", str(tmp / "state"), "--set", f'zenoh.listen=["tcp/127.0.0.1:{zenoh_port}"]',
-             "--set", 'rerun.mode="off"', "--set", "daemon.status_interval_s=0.5", *extra],
+             "--set", rerun, "--set", "daemon.status_interval_s=0.5", *extra],
             env=env, stdout=self.log, stderr=subprocess.STDOUT,
         )
 
@@ -114,9 +115,12 @@ def device() -> Iterator[DeviceProcess]:
         yield dev
 
 
+@pytest.mark.skipif(RERUN is None, reason="the rerun CLI binary is not installed")
 def test_daemon_end_to_end(device: DeviceProcess, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     port = free_port()
-    daemon = Daemon(tmp_path, device.url, port)
+    viewer = Receiver(tmp_path, "viewer", free_port())  # a headless rerun that saves what it receives
+    daemon = Daemon(tmp_path, device.url, port, "--set", f'rerun.url="rerun+http://127.0.0.1:{viewer.port}/proxy"',
+                    rerun='rerun.mode="connect"')
     sub = None
     try:
         daemon.wait_ready()
@@ -127,11 +131,21 @@ def test_daemon_end_to_end(device: DeviceProcess, tmp_path: Path, capsys: pytest
         device.wait_event("done", timeout=60)
         time.sleep(1.0)  # the last samples reach the log
         code, elapsed = daemon.terminate()
+        viewer.finish()
     finally:
         if sub is not None:
             sub.close()
         daemon.close()
+        viewer.close()
     assert code == 0 and elapsed < 5.0, daemon.output()[-2000:]
+    # The live view reached the viewer: both polar plots, the models, the length, findings, trends.
+    saved = read_rrd(viewer.rrd)
+    for entity in ("/polar/ccw/measured", "/polar/cw/measured", "/polar/ccw/model", "/polar/cw/model", "/length",
+                   "/findings", "/trends/backlash_um/x"):
+        assert saved.rows.get(entity, 0) > 0, (entity, sorted(saved.rows))
+    findings = last(saved, "/findings", "TextDocument:text")
+    text = "".join(findings) if isinstance(findings, list) else str(findings)
+    assert "backlash_x_um" in text
     kinds = [(m["kind"], m.get("direction")) for m in lines]
     assert kinds == [("circle", "ccw"), ("circle", "cw"), ("test", None)], kinds
     test = lines[-1]
