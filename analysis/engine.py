@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,7 +32,7 @@ from .advice import advise
 from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
 from .fit import Factor, FitResult, solve, sse_subset
-from .patterns import LIBRARY, Geometry, Pattern, design, select
+from .patterns import Geometry, Pattern, design, select
 from .physics import Offset, make_offset, takeup_angles
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import Schedule, arc_start_deg, feed_from_span, schedule
@@ -723,10 +723,6 @@ def _result_body(
     }
 
 
-def library_fields() -> list[str]:
-    return [f for p in LIBRARY for f in p.fields]
-
-
 def analyze_recording(
     t: np.ndarray,
     L: np.ndarray,
@@ -747,4 +743,4 @@ def analyze_recording(
     return out
 
 
-__all__ = ["CircleFit", "TestAnalyzer", "TimingHints", "analyze_recording", "analyze_test", "replace"]
+__all__ = ["CircleFit", "TestAnalyzer", "TimingHints", "analyze_recording", "analyze_test"]
