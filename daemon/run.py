@@ -80,7 +80,8 @@ def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
     args = [
         "--rate", f"{p.sample_hz:g}", "--speedup", f"{speedup:g}", "--repeat", "0", "--gap-s", "5",
         "--radius-mm", f"{p.radius_mm:g}", "--feed-mm-min", f"{p.feed_mm_min:g}", "--plane", p.plane,
-        "--overshoot-deg", f"{p.overshoot_deg:g}", "--data-arc-deg", f"{p.data_arc_deg:g}",
+        "--start-deg", f"{p.start_deg:g}", "--overshoot-deg", f"{p.overshoot_deg:g}",
+        "--data-arc-deg", f"{p.data_arc_deg:g}", "--feed-in-mm", f"{p.feed_in_mm:g}",
         "--dwell-s", f"{p.dwell_s:g}", "--directions", p.directions,
     ]
     for item in SIM_MACHINE:

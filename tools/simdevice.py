@@ -135,19 +135,9 @@ class Feed:
 
 
 def simulator_tests(args: argparse.Namespace) -> Iterator[Chunk]:
-    from ballbar.analysis.plan import TestPlan
-    from ballbar.tools.simulator import MachineModel, iter_tests, parse_set
+    from ballbar.tools.simulator import MachineModel, iter_tests, parse_set, plan_from_args
 
-    plan = TestPlan(
-        plane=args.plane,
-        radius_mm=args.radius_mm,
-        feed_mm_min=args.feed_mm_min,
-        overshoot_deg=args.overshoot_deg,
-        data_arc_deg=args.data_arc_deg,
-        dwell_s=args.dwell_s,
-        directions=args.directions,
-        sample_hz=args.rate,
-    )
+    plan = plan_from_args(args, args.rate)
     machine = MachineModel(**parse_set(args.set))
     for res in iter_tests(plan, machine, args.rate, args.seed, None if args.repeat == 0 else args.repeat, args.gap_s):
         yield res.t_s, res.length_mm, np.rint(res.t_s * args.rate).astype(np.int64)
@@ -743,15 +733,9 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--timestamp", choices=["none", "s", "ms", "us"], default="none")
     g.add_argument("--unit-suffix", action="store_true")
     g.add_argument("--request", default="?\r", help="poll request (default '?\\r')")
-    t = p.add_argument_group("test plan and machine (the simulator)")
-    t.add_argument("--radius-mm", type=float, default=100.0)
-    t.add_argument("--feed-mm-min", type=float, default=1000.0)
-    t.add_argument("--plane", choices=["XY", "YZ", "ZX"], default="XY")
-    t.add_argument("--overshoot-deg", type=float, default=180.0)
-    t.add_argument("--data-arc-deg", type=float, default=360.0)
-    t.add_argument("--dwell-s", type=float, default=0.5)
-    t.add_argument("--directions", choices=["both", "ccw", "cw"], default="both")
-    t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="machine model parameter")
+    from ballbar.tools.simulator import add_plan_arguments
+
+    add_plan_arguments(p.add_argument_group("test plan and machine (the simulator)"))
     p.add_argument("-v", "--verbose", action="store_true")
     return p
 

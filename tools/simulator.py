@@ -887,14 +887,9 @@ def write_csv(path: str, t_s: np.ndarray, length_mm: np.ndarray, *, append: bool
             np.savetxt(fh, block, fmt="%.9f", delimiter=",")
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m ballbar.tools.simulator",
-        description="Simulate ball-bar tests on a physical machine model and write t_s,length_mm CSV.",
-    )
+def add_plan_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """The test plan's options (all but the sample rate) and ``--set`` for the machine model."""
     d = TestPlan()
-    p.add_argument("--out", required=True, help="CSV file to write (t_s,length_mm)")
-    p.add_argument("--truth", help="JSON file for the expected results, events and model")
     p.add_argument("--radius-mm", type=float, default=d.radius_mm)
     p.add_argument("--feed-mm-min", type=float, default=d.feed_mm_min)
     p.add_argument("--plane", default=d.plane, choices=["XY", "YZ", "ZX"])
@@ -904,10 +899,6 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--feed-in-mm", type=float, default=d.feed_in_mm)
     p.add_argument("--dwell-s", type=float, default=d.dwell_s)
     p.add_argument("--directions", default=d.directions, choices=["both", "ccw", "cw"])
-    p.add_argument("--sample-hz", type=float, default=d.sample_hz)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--repeat", type=int, default=1, help="tests in a row on one sample clock")
-    p.add_argument("--gap-s", type=float, default=0.0, help="extra wait between repeated tests")
     p.add_argument(
         "--set",
         action="append",
@@ -915,6 +906,36 @@ def _parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="machine model parameter, e.g. backlash_x_um=5 or kv_x_per_s=inf (repeatable)",
     )
+
+
+def plan_from_args(args: argparse.Namespace, sample_hz: float) -> TestPlan:
+    """The plan that :func:`add_plan_arguments`' options describe."""
+    return TestPlan(
+        plane=args.plane,
+        radius_mm=args.radius_mm,
+        feed_mm_min=args.feed_mm_min,
+        start_deg=args.start_deg,
+        overshoot_deg=args.overshoot_deg,
+        data_arc_deg=args.data_arc_deg,
+        feed_in_mm=args.feed_in_mm,
+        dwell_s=args.dwell_s,
+        directions=args.directions,
+        sample_hz=sample_hz,
+    )
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m ballbar.tools.simulator",
+        description="Simulate ball-bar tests on a physical machine model and write t_s,length_mm CSV.",
+    )
+    p.add_argument("--out", required=True, help="CSV file to write (t_s,length_mm)")
+    p.add_argument("--truth", help="JSON file for the expected results, events and model")
+    add_plan_arguments(p)
+    p.add_argument("--sample-hz", type=float, default=TestPlan().sample_hz)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--repeat", type=int, default=1, help="tests in a row on one sample clock")
+    p.add_argument("--gap-s", type=float, default=0.0, help="extra wait between repeated tests")
     p.add_argument("-v", "--verbose", action="store_true")
     return p
 
@@ -927,18 +948,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         stream=sys.stderr,
     )
     try:
-        plan = TestPlan(
-            plane=args.plane,
-            radius_mm=args.radius_mm,
-            feed_mm_min=args.feed_mm_min,
-            start_deg=args.start_deg,
-            overshoot_deg=args.overshoot_deg,
-            data_arc_deg=args.data_arc_deg,
-            feed_in_mm=args.feed_in_mm,
-            dwell_s=args.dwell_s,
-            directions=args.directions,
-            sample_hz=args.sample_hz,
-        )
+        plan = plan_from_args(args, args.sample_hz)
         machine = MachineModel(**parse_set(args.set))
         if args.repeat < 1:
             raise PlanError(f"--repeat must be >= 1, not {args.repeat}")
