@@ -44,6 +44,8 @@ SEARCH_SAMPLES_PER_CIRCLE = 6000
 LAG_PRIOR_S = 0.05
 SSE_FLOOR_UM = 1e-3
 DEFAULT_KV_PER_S = 30.0
+TAIL_SAMPLES = 1.8  # samples per loop time constant the settling fit needs (6 within ~3.4 tau)
+FAST_LOOP_S = 0.02  # a loop lag the settling fit must be able to see before "none seen" means "fast"
 DEFAULT_SPIKE_WIDTH_DEG = 3.0
 
 
@@ -507,19 +509,23 @@ def _embed(f: Factor, sub: Sequence[Pattern], full: Sequence[Pattern]) -> Factor
 
 
 def loop_lag(
-    plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, fi: StepEvent, fo: StepEvent
+    plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, fi: StepEvent, fo: StepEvent, sample_hz: float
 ) -> tuple[float | None, float | None, str]:
     """Position-loop lag for the physical servo model: ``(tau, cos2, source)``.
 
     ``tau`` (s): the mean lag ``(1/KX + 1/KY)/2`` from configured gains (``cos2``
     None), or the lag measured along the feed-in/out's radial direction, which
     is ``tau_bar + (m/2) cos 2u`` at angle ``u``: ``cos2`` is that mean ``cos 2u``.
+    Where no settling was seen although the rate would have shown a loop slower
+    than ``FAST_LOOP_S``, the loops are fast: no correction.  Else the lag is
+    assumed (a common default gain), and the result says so.
     """
     if options.servo_model == "linear":
         return None, None, "linear model chosen"
     if machine.kv_x_per_s and machine.kv_y_per_s:
         return 0.5 * (1.0 / machine.kv_x_per_s + 1.0 / machine.kv_y_per_s), None, "configured gains kv_x, kv_y"
     u_in = math.radians(arc_start_deg(plan, plan.direction_list[0]))
+    resolvable_s = TAIL_SAMPLES / sample_hz if sample_hz > 0 else math.inf
     u_last = math.radians(arc_start_deg(plan, plan.direction_list[-1]))
     u_out = u_last + plan.direction_list[-1] * math.radians(plan.arc_deg)
     found = [(e.tau_s, math.cos(2 * u)) for e, u in ((fi, u_in), (fo, u_out)) if math.isfinite(e.tau_s)]
@@ -528,6 +534,12 @@ def loop_lag(
             float(np.mean([f[0] for f in found])),
             float(np.mean([f[1] for f in found])),
             "approach of the feed-in/feed-out to the circle (first-order loop fit)",
+        )
+    if resolvable_s <= FAST_LOOP_S:
+        # A loop as slow as machines' usually are would have shown its settling at this rate.
+        return None, None, (
+            f"no loop settling after the feed-in: the position loops are faster than {resolvable_s * 1000:.0f} ms "
+            "at this sample rate (no servo dynamics to correct)"
         )
     return (
         1.0 / DEFAULT_KV_PER_S,
@@ -550,7 +562,7 @@ def analyze_test(
     check_plan(plan, fi, fo)
     span = fo.t_s - fi.t_s
     patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
-    tau, cos2, tau_source = loop_lag(plan, machine, options, fi, fo)
+    tau, cos2, tau_source = loop_lag(plan, machine, options, fi, fo, _rate(t))
     # 1. A preliminary fit on a decimated, fixed sample set: the corrections' first values.
     base = make_timing(plan, fi.t_s, feed_from_span(plan, span, 0.0), 0.0)
     margin = options.max_lag_s * 1.5 * base.feed_mm_s / plan.radius_mm  # rad

@@ -235,3 +235,11 @@ def test_recording_that_starts_on_the_feed_in_and_ends_inside_the_feed_out(fs: f
     assert abs(res["timing"]["measured_feed_mm_min"] - 1000.0) < 0.2
     for field in ("backlash_x_um", "squareness_urad", "centre_x_um"):
         assert abs(res["parameters"][field]["value"] - truth[field]) < 2 * tol(field), field
+
+
+def test_ideal_loops_get_no_servo_correction() -> None:
+    """At a rate that would show a real loop's settling, none seen means the loops are fast."""
+    plan = TestPlan(sample_hz=100.0)
+    res, _ = analyse(plan, MachineModel(kv_x_per_s=math.inf, kv_y_per_s=math.inf, radius_um=2.0), 100.0)
+    assert res["fit"]["servo_model"] == "linear", res["timing"]["loop_lag_source"]
+    assert abs(res["parameters"]["radius_um"]["value"] - 2.0) < 0.02
