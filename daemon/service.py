@@ -76,6 +76,10 @@ class AnalysisListener(Listener):
         self._lock = threading.Lock()
 
     def on_batch(self, batch: SampleBatch) -> None:
+        with self._lock:  # stop() may run on another thread at shutdown
+            self._on_batch(batch)
+
+    def _on_batch(self, batch: SampleBatch) -> None:
         if len(batch) == 0:
             return
         valid = batch.valid
@@ -121,7 +125,7 @@ class AnalysisListener(Listener):
         return msg
 
     def stop(self) -> None:
-        with contextlib.suppress(BallbarError):
+        with self._lock, contextlib.suppress(BallbarError):
             for msg in self.analyzer.finish():
                 if msg.get("event") == "test_incomplete":
                     self.emit(self._wrap(msg))
