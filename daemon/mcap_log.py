@@ -131,6 +131,7 @@ from ballbar.protocol import INVALID
 
 from .listeners import Listener, to_json
 from .listeners import Message as ListenerMessage
+from .recordings import open_recording
 from .samples import SampleBatch, SourceEvent
 
 log = logging.getLogger(__name__)
@@ -1135,15 +1136,7 @@ _TOPIC_LISTS = {TOPIC_EVENTS: "events", TOPIC_RESULTS: "results", TOPIC_STATUS: 
 
 def _read_one(path: str) -> McapLog:
     name = path
-    try:
-        fh = open(name, "rb")  # noqa: SIM115 - closed below
-    except FileNotFoundError:
-        raise DataError(f"{name}: no such file") from None
-    except IsADirectoryError:
-        raise DataError(f"{name}: is a directory, not a recording") from None
-    except OSError as err:
-        raise DataError(f"{name}: cannot read: {err.strerror or err}") from err
-    with fh:
+    with open_recording(name) as fh:
         head = fh.read(len(_MAGIC))
         if head != _MAGIC:
             what = "empty file" if not head else "not an MCAP file (no MCAP magic at the start)"

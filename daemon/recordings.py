@@ -17,6 +17,7 @@ import math
 import os
 import warnings
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -27,17 +28,26 @@ log = logging.getLogger(__name__)
 REQUIRED = ("t_s", "length_mm")
 
 
-def read_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Read ``(t_s, length_mm)`` from a CSV recording; sorted by time, all finite."""
-    name = os.fspath(path)
+def open_recording(name: str) -> BinaryIO:
+    """Open a recording for reading; the reasons it cannot be, as one-line DataErrors."""
     try:
-        raw = Path(name).read_bytes()
+        return open(name, "rb")
     except FileNotFoundError:
         raise DataError(f"{name}: no such file") from None
     except IsADirectoryError:
         raise DataError(f"{name}: is a directory, not a recording") from None
     except OSError as err:
         raise DataError(f"{name}: cannot read: {err.strerror or err}") from err
+
+
+def read_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``(t_s, length_mm)`` from a CSV recording; sorted by time, all finite."""
+    name = os.fspath(path)
+    with open_recording(name) as fh:
+        try:
+            raw = fh.read()
+        except OSError as err:
+            raise DataError(f"{name}: cannot read: {err.strerror or err}") from err
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as err:

@@ -41,6 +41,7 @@ from ballbar.daemon.recordings import read_recording
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.daemon.timebase import ClockMap
 from ballbar.protocol import Status
+from ballbar.tools.bench_mcap import feed_paced
 from ballbar.tools.simulator import MachineModel, simulate, write_csv
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
@@ -77,21 +78,6 @@ def sim_batches(t_s: np.ndarray, length: np.ndarray, fs: float, per: int, status
         yield SampleBatch.from_columns(
             cm.offset + cm.ratio * t, t, length[i : i + per], np.rint(t * fs), np.full(t.size, status), (), "serial:x"
         )
-
-
-def feed_paced(lg: McapLogger, batches: Iterator[SampleBatch], fs: float, flush_s: float) -> int:
-    """Feed as fast as possible, closing a chunk every ``flush_s`` of samples: the chunking the
-    flush timer gives at real-time pace (its worst case: it flushes 0.5..0.55 s after the first record)."""
-    n = since = 0
-    per_flush = fs * flush_s
-    for b in batches:
-        lg.on_batch(b)
-        n += len(b)
-        since += len(b)
-        if since >= per_flush:
-            lg.flush()
-            since = 0
-    return n
 
 
 def files(state: Path) -> list[Path]:

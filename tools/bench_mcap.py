@@ -24,7 +24,7 @@ import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -51,12 +51,12 @@ def serial_batches(t_s: np.ndarray, length: np.ndarray, fs: float, batch_s: floa
         )
 
 
-def run_once(batches: list[SampleBatch], fs: float, flush_s: float, where: Path) -> tuple[float, float, float]:
-    """(bytes/sample, write samples/s, read samples/s) of one run into an empty directory."""
-    lg = McapLogger(where, "bench", rotate_per_test=False, flush_s=flush_s, rotate_bytes=1 << 40, quota_bytes=1 << 41)
-    per_flush = fs * flush_s
+def feed_paced(lg: McapLogger, batches: Iterable[SampleBatch], fs: float, flush_s: float) -> int:
+    """Feed as fast as possible, closing a chunk every ``flush_s`` of samples: the chunking the
+    flush timer gives at real-time pace (its worst case: it flushes 0.5..0.55 s after the first
+    record).  Returns the number of samples fed."""
     n = since = 0
-    t0 = time.perf_counter()
+    per_flush = fs * flush_s
     for b in batches:
         lg.on_batch(b)
         n += len(b)
@@ -64,6 +64,14 @@ def run_once(batches: list[SampleBatch], fs: float, flush_s: float, where: Path)
         if since >= per_flush:
             lg.flush()
             since = 0
+    return n
+
+
+def run_once(batches: list[SampleBatch], fs: float, flush_s: float, where: Path) -> tuple[float, float, float]:
+    """(bytes/sample, write samples/s, read samples/s) of one run into an empty directory."""
+    lg = McapLogger(where, "bench", rotate_per_test=False, flush_s=flush_s, rotate_bytes=1 << 40, quota_bytes=1 << 41)
+    t0 = time.perf_counter()
+    n = feed_paced(lg, batches, fs, flush_s)
     lg.stop()
     t_write = time.perf_counter() - t0
     (path,) = list_recordings(where / "recordings")
