@@ -262,13 +262,7 @@ def decode(
         status = np.concatenate(stats)
     else:
         value, stamp, status = np.empty(0), np.empty(0), np.empty(0, np.uint8)
-    readings = Readings(
-        value_mm=value * fmt.mm_per_count,
-        status=status,
-        seq=None,
-        clock_s=stamp * TS_S[fmt.ts_unit] if fmt.ts_unit is not None else None,
-    )
-    return Decoded(consumed, readings, dropped, discarding)
+    return Decoded(consumed, _readings(value, stamp, status, fmt), dropped, discarding)
 
 
 def _decode_small(buffer: bytes, fmt: AsciiFormat, final: bool, skip_first: bool) -> Decoded:
@@ -300,13 +294,17 @@ def _decode_small(buffer: bytes, fmt: AsciiFormat, final: bool, skip_first: bool
             lines.append(buffer[a:b])
     value, stamp, status, d = _parse_lines(lines, fmt)
     add_counts(dropped, d)
-    readings = Readings(
+    return Decoded(consumed, _readings(value, stamp, status, fmt), dropped, discarding)
+
+
+def _readings(value: np.ndarray, stamp: np.ndarray, status: np.ndarray, fmt: AsciiFormat) -> Readings:
+    """Parsed counts as readings in mm, with the device clock in s where the format has one."""
+    return Readings(
         value_mm=value * fmt.mm_per_count,
         status=status,
         seq=None,
         clock_s=stamp * TS_S[fmt.ts_unit] if fmt.ts_unit is not None else None,
     )
-    return Decoded(consumed, readings, dropped, discarding)
 
 
 def _empty(fmt: AsciiFormat) -> Readings:

@@ -12,7 +12,6 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from decimal import ROUND_HALF_EVEN, Decimal
 from pathlib import Path
 from typing import Any
@@ -39,9 +38,8 @@ from ballbar.daemon.mcap_log import (
 )
 from ballbar.daemon.recordings import read_recording
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
-from ballbar.daemon.timebase import ClockMap
 from ballbar.protocol import Status
-from ballbar.tools.bench_mcap import feed_paced
+from ballbar.tools.bench_mcap import feed_paced, serial_batches
 from ballbar.tools.simulator import MachineModel, simulate, write_csv
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
@@ -66,18 +64,6 @@ def make_batch(
     t_host = grid(round(t0 * 1e9) + k * (step_ns + 13))  # a host clock 13 ppm fast
     length = grid(100_000_000_000 + np.rint(3e6 * np.sin(k / 50.0)).astype(np.int64) + (k * 7919) % 211)
     return SampleBatch.from_columns(t_host, t_dev, length, k, np.full(n, status), events, source)
-
-
-def sim_batches(t_s: np.ndarray, length: np.ndarray, fs: float, per: int, status: int = 0) -> Iterator[SampleBatch]:
-    """A simulated test as a serial source delivers it: device clock, host clock from a lower-envelope map."""
-    cm = ClockMap()
-    rng = np.random.default_rng(7)
-    for i in range(0, t_s.size, per):
-        t = t_s[i : i + per]
-        cm.update(float(t[-1]), 5000.0 + float(t[-1]) * (1 + 30e-6) + rng.exponential(0.5e-3))
-        yield SampleBatch.from_columns(
-            cm.offset + cm.ratio * t, t, length[i : i + per], np.rint(t * fs), np.full(t.size, status), (), "serial:x"
-        )
 
 
 def files(state: Path) -> list[Path]:
@@ -200,7 +186,7 @@ def test_under_8_bytes_per_sample_at_1khz(state: Path) -> None:
     plan = TestPlan()
     r = simulate(plan, MachineModel(noise_um=0.1, backlash_x_um=3.0, squareness_urad=15.0), 1000.0)
     lg = McapLogger(state, "m", rotate_per_test=False)
-    n = feed_paced(lg, sim_batches(r.t_s, r.length_mm, 1000.0, 20), 1000.0, lg.flush_s)
+    n = feed_paced(lg, serial_batches(r.t_s, r.length_mm, 1000.0), 1000.0, lg.flush_s)
     lg.stop()
     (path,) = files(state)
     per = path.stat().st_size / n
@@ -668,7 +654,7 @@ def test_analyze_of_the_log_equals_analyze_of_the_csv(
     write_csv(str(csv), r.t_s, r.length_mm)
     lg = McapLogger(state, "m")
     lg.on_message({"kind": "config", "plan": {"feed_mm_min": 2000.0, "sample_hz": 250.0}})
-    feed_paced(lg, sim_batches(r.t_s, r.length_mm, 250.0, 5, status=int(Status.SIMULATED)), 250.0, 0.5)
+    feed_paced(lg, serial_batches(r.t_s, r.length_mm, 250.0, status=int(Status.SIMULATED)), 250.0, 0.5)
     lg.stop()
     (path,) = files(state)
     args = ["--feed-mm-min", "2000", "--sample-hz", "250", "--json"]

@@ -38,7 +38,9 @@ from ballbar.tools.simulator import MachineModel, simulate
 log = logging.getLogger(__name__)
 
 
-def serial_batches(t_s: np.ndarray, length: np.ndarray, fs: float, batch_s: float = 0.02) -> Iterator[SampleBatch]:
+def serial_batches(
+    t_s: np.ndarray, length: np.ndarray, fs: float, batch_s: float = 0.02, status: int = 0
+) -> Iterator[SampleBatch]:
     """The samples as a serial source would deliver them (device clock, mapped host clock)."""
     per = max(1, round(fs * batch_s))
     cm = ClockMap()
@@ -47,7 +49,8 @@ def serial_batches(t_s: np.ndarray, length: np.ndarray, fs: float, batch_s: floa
         t = t_s[i : i + per]
         cm.update(float(t[-1]), 5000.0 + float(t[-1]) * (1 + 30e-6) + rng.exponential(0.5e-3))
         yield SampleBatch.from_columns(
-            cm.offset + cm.ratio * t, t, length[i : i + per], np.rint(t * fs), np.zeros(t.size), (), "serial:bench"
+            cm.offset + cm.ratio * t, t, length[i : i + per], np.rint(t * fs), np.full(t.size, status), (),
+            "serial:bench",
         )
 
 
