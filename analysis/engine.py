@@ -182,8 +182,10 @@ class TestAnalyzer:
         machine: MachineConfig | None = None,
         options: AnalysisOptions | None = None,
         hints: TimingHints | None = None,
+        curves: bool = False,
     ) -> None:
         self.plan = plan
+        self.curves = curves
         self.machine = machine or MachineConfig()
         self.options = options or AnalysisOptions()
         self.hints = hints or TimingHints()
@@ -305,7 +307,7 @@ class TestAnalyzer:
         tb, Lb = self.detector.samples()
         m = (tb >= fi.t_begin_s) & (tb <= fo.t_end_s)
         try:
-            result = analyze_test(self.plan, self.machine, self.options, tb[m], Lb[m], fi, fo)
+            result = analyze_test(self.plan, self.machine, self.options, tb[m], Lb[m], fi, fo, curves=self.curves)
         except DataError as err:
             return [{"kind": "event", "event": "test_rejected", "test_index": self.test_index,
                      "t_s": fo.t_s, "message": str(err)}]
@@ -557,8 +559,16 @@ def analyze_test(
     L: np.ndarray,
     fi: StepEvent,
     fo: StepEvent,
+    curves: bool = False,
 ) -> dict[str, Any]:
-    """The joint fit of one test whose feed-in and feed-out are known."""
+    """The joint fit of one test whose feed-in and feed-out are known.
+
+    ``curves``: also return, under ``"curves"``, each data arc's samples as
+    numpy arrays (not JSON; for plots): ``t_s``, ``u_deg`` (commanded angle at
+    the fitted timing), ``measured_um`` (``L - R``) and ``model_um`` (the
+    fitted model in the same space, physical corrections included, so that
+    ``measured_um - model_um`` is the fit's residual).
+    """
     check_plan(plan, fi, fo)
     span = fo.t_s - fi.t_s
     patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
@@ -631,6 +641,14 @@ def analyze_test(
         [(c.corrected()[1], r, plan.data_arc_deg, sample_hz) for c, r in zip(joint.circles, residuals, strict=True)],
         options.vibration_cutoff_cpr,
     )
+    if curves:
+        res["curves"] = {}
+        for c, r in zip(joint.circles, residuals, strict=True):
+            tc, uc, _, _ = c.corrected()
+            dr = c.measured()[1]
+            res["curves"]["ccw" if c.d > 0 else "cw"] = {
+                "t_s": tc, "u_deg": np.degrees(uc), "measured_um": dr, "model_um": dr - r,
+            }
     all_r = np.concatenate(residuals)
     res["residual_rms_um"] = float(np.sqrt(np.mean(all_r**2)))
     res["samples"] = {
@@ -741,9 +759,13 @@ def analyze_recording(
     plan: TestPlan,
     machine: MachineConfig | None = None,
     options: AnalysisOptions | None = None,
+    curves: bool = False,
 ) -> list[dict[str, Any]]:
-    """Everything :class:`TestAnalyzer` reports on a whole recording, in order."""
-    an = TestAnalyzer(plan, machine, options)
+    """Everything :class:`TestAnalyzer` reports on a whole recording, in order.
+
+    ``curves``: see :func:`analyze_test`.
+    """
+    an = TestAnalyzer(plan, machine, options, curves=curves)
     out = an.feed(t, L)
     out.extend(an.finish())
     if not any(r.get("event") == "feed_in" for r in out):

@@ -17,11 +17,13 @@ import math
 import os
 import warnings
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import numpy as np
 
+from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.errors import DataError
+from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 
 log = logging.getLogger(__name__)
 
@@ -135,3 +137,36 @@ def read_recording(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray
 
         return read_mcap(name)
     return read_csv(name)
+
+
+def pick_test(
+    results: list[dict[str, Any]], test: int, name: str, plan: TestPlan
+) -> dict[str, Any]:
+    """The ``test``-th (from 1) complete test result of an analysed recording, with ``source`` and warnings."""
+    tests = [r for r in results if r["kind"] == "test"]
+    problems = [r for r in results if r.get("event") in ("test_rejected", "test_incomplete")]
+    if len(tests) < test:
+        if problems:
+            raise DataError(f"{name}: {problems[0]['message']}")
+        raise DataError(f"{name}: holds {len(tests)} complete test(s), test {test} asked for")
+    result = tests[test - 1]
+    result["source"] = {"file": os.path.abspath(name), "tests_found": len(tests)}
+    if abs(result["samples"]["sample_hz"] / plan.sample_hz - 1.0) > 0.2:
+        result.setdefault("warnings", []).append(
+            f"the recording samples at {result['samples']['sample_hz']:.3f} Hz, the plan says "
+            f"{plan.sample_hz:g} Hz; the timestamps were used"
+        )
+    return result
+
+
+def analyze_file(
+    path: str,
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    test: int = 1,
+    curves: bool = False,
+) -> dict[str, Any]:
+    """Read a recording (:func:`read_recording`), analyse it and return its ``test``-th test result."""
+    t, L = read_recording(path)
+    return pick_test(analyze_recording(t, L, plan, machine, options, curves=curves), test, path, plan)

@@ -63,7 +63,7 @@ def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[
         files = list_recordings(directory)[-newest_files:]
         for path in files:
             try:
-                out.extend(read_log(path).results)
+                out.extend(read_log(path, samples=False).results)
             except BallbarError as err:
                 log.warning("history: %s", err)
         return out

@@ -17,7 +17,8 @@ matters).  The main loop also sends ``READY=1`` once the source is open,
 ``WATCHDOG=1`` each status interval, and the status message.
 
 Results carry, besides the ``ballbar analyze --json`` object, ``machine_id``,
-``test_id`` (``<machine>-<UTC time of the feed-in>``), ``t_wall`` (ISO time of
+``test_id`` (``<machine>-<UTC time of the feed-in>``, then ``-2``, ``-3`` for
+more tests started within the same second), ``t_wall`` (ISO time of
 publication), ``t_host`` (monotonic) and ``last_sample_t`` (the time axis
 value of the last sample the analysis had seen).
 """
@@ -67,6 +68,7 @@ class AnalysisListener(Listener):
         self.analyzer = TestAnalyzer(cfg.plan, cfg.machine, cfg.analysis)
         self.use_device_time: bool | None = None
         self.test_id: str | None = None
+        self._id_base, self._same_second = "", 0
         self.last_t = math.nan
         self.results = 0
         self.tests = 0
@@ -113,7 +115,11 @@ class AnalysisListener(Listener):
     def _wrap(self, msg: Message) -> Message:
         if msg.get("event") == "feed_in":
             stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-            self.test_id = f"{self.cfg.daemon.machine_id}-{stamp}"
+            base = f"{self.cfg.daemon.machine_id}-{stamp}"
+            # Tests replayed faster than real time can start within one second: keep the ids unique.
+            self._same_second = self._same_second + 1 if base == self._id_base else 1
+            self._id_base = base
+            self.test_id = base if self._same_second == 1 else f"{base}-{self._same_second}"
         msg = dict(msg)
         msg.setdefault("schema_version", SCHEMA_VERSION)
         msg["machine_id"] = self.cfg.daemon.machine_id
