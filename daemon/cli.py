@@ -1,4 +1,5 @@
-"""The ``ballbar`` command: ``analyze`` a recording offline (more subcommands join it).
+"""The ``ballbar`` command: ``run`` the daemon, ``analyze`` a recording, write the NC program (``gcode``)
+and a test ``report``.
 
 Exit codes: 0 success; 1 the input could not be analysed (the one-line message
 says what and where); 2 a usage or configuration error.
@@ -17,13 +18,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.errors import BallbarError, DataError, PlanError
 from ballbar.analysis.patterns import BY_NAME
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.analysis.report import summary
 
-from .recordings import read_recording
+from .recordings import analyze_file
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +77,43 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--test", type=int, default=1, help="which test of the recording (1 = first)")
     an.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
 
+    gc = sub.add_parser("gcode", help="write the NC test program that matches the test plan",
+                        description="Write the ball-bar test program (feed-in, CCW and CW arcs with overshoots, "
+                        "feed-out, dwells) for a controller, with exactly the timing the analyzer assumes. "
+                        "The plan comes from the daemon's configuration (--config, $BALLBAR_CONFIG, "
+                        "/etc/ballbar/ballbar.toml), then --plan FILE, then the flags.")
+    gc.add_argument("--dialect", required=True, choices=("fanuc", "siemens", "heidenhain", "linuxcnc"),
+                    help="controller dialect (fanuc also suits compatible controls)")
+    gc.add_argument("-o", "--output", help="write the program to this file (default: standard output)")
+    gc.add_argument("--config", help="the daemon's TOML configuration, whose [plan] to use")
+    gc.add_argument("--plan", dest="plan_file", help="TOML or JSON file with [plan] (overrides --config)")
+    for flag, dest, typ, help_ in PLAN_FLAGS:
+        gc.add_argument(flag, dest=dest, type=typ, help=help_)
+    gc.add_argument("--decimals", type=int, help="decimals of coordinates (default: 3 for fanuc, else 4)")
+    gc.add_argument("--origin", help="pivot ball centre in work coordinates, X,Y,Z in mm (default 0,0,0)")
+    gc.add_argument("--work-offset", help="work offset to select, e.g. G54 (default: none, the active one)")
+    gc.add_argument("--program-name", help="program number or name (dialect rules apply)")
+    gc.add_argument("--no-stop", action="store_true", help="no program stop to mount the bar at the start")
+    gc.add_argument("--repeat", type=int, default=1, help="run the test this many times (default 1)")
+
+    rp = sub.add_parser("report", help="write a test report (HTML with embedded plots, and PNGs)",
+                        description="Write one self-contained HTML report of a test: polar plot of both "
+                        "directions with the fitted model, ranked findings, ISO 230-4, advice and the "
+                        "machine's trend. From a recording (CSV or MCAP), or from the daemon's records by "
+                        "test id.")
+    rp.add_argument("file", nargs="?", help="recording: CSV or the daemon's MCAP (file or directory)")
+    rp.add_argument("--test-id", help="a test id from the daemon's records, or 'latest'")
+    rp.add_argument("--records", help="directory of the daemon's MCAP records (default: <state_dir>/recordings "
+                    "of the daemon's configuration); with FILE it supplies the trend")
+    rp.add_argument("--config", help="the daemon's TOML configuration (for its state_dir)")
+    rp.add_argument("-o", "--output", help="HTML file to write (default: ballbar-report-<test>.html)")
+    rp.add_argument("--no-png", action="store_true", help="do not write the plots as PNG files beside the HTML")
+    rp.add_argument("--plan", dest="plan_file", help="TOML or JSON file with [plan], [machine], [analysis]")
+    for flags in (PLAN_FLAGS, MACHINE_FLAGS):
+        for flag, dest, typ, help_ in flags:
+            rp.add_argument(flag, dest=dest, type=typ, help=help_)
+    rp.add_argument("--test", type=int, default=1, help="with FILE: which test of the recording (1 = first)")
+
     run = sub.add_parser("run", help="run the daemon (the service's main job)",
                          description="Sample the ball-bar, fit each circle and test, log to MCAP, publish on "
                          "Zenoh, stream to Rerun. Configuration: see daemon/default.toml.")
@@ -127,9 +164,12 @@ def recorded_config(path: str) -> dict[str, Any]:
     return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis") if isinstance(cfg.get(k), dict)}
 
 
-def configs_from_args(args: argparse.Namespace) -> tuple[TestPlan, MachineConfig, AnalysisOptions]:
-    """Recorded configuration (MCAP), then --plan FILE, then the flags."""
-    base: dict[str, Any] = recorded_config(args.file) if getattr(args, "file", None) else {}
+def configs_from_args(
+    args: argparse.Namespace, base: dict[str, Any] | None = None
+) -> tuple[TestPlan, MachineConfig, AnalysisOptions]:
+    """``base`` (default: the recorded configuration of an MCAP file), then --plan FILE, then the flags."""
+    if base is None:
+        base = recorded_config(args.file) if getattr(args, "file", None) else {}
     if args.plan_file:
         for key, value in load_config_file(args.plan_file).items():
             base.setdefault(key, {}).update(value)
@@ -180,23 +220,9 @@ def _options_from_dict(d: dict[str, Any]) -> AnalysisOptions:
 
 def cmd_analyze(args: argparse.Namespace) -> int:
     plan, machine, options = configs_from_args(args)
-    t, L = read_recording(args.file)
-    results = analyze_recording(t, L, plan, machine, options)
-    tests = [r for r in results if r["kind"] == "test"]
-    problems = [r for r in results if r.get("event") in ("test_rejected", "test_incomplete")]
     if args.test < 1:
         raise UsageError("--test counts from 1")
-    if len(tests) < args.test:
-        if problems:
-            raise DataError(f"{args.file}: {problems[0]['message']}")
-        raise DataError(f"{args.file}: holds {len(tests)} complete test(s), --test {args.test} asked for")
-    result = tests[args.test - 1]
-    result["source"] = {"file": os.path.abspath(args.file), "tests_found": len(tests)}
-    if abs(result["samples"]["sample_hz"] / plan.sample_hz - 1.0) > 0.2:
-        result.setdefault("warnings", []).append(
-            f"the recording samples at {result['samples']['sample_hz']:.3f} Hz, the plan says "
-            f"{plan.sample_hz:g} Hz; the timestamps were used"
-        )
+    result = analyze_file(args.file, plan, machine, options, args.test)
     if args.json:
         json.dump(result, sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
@@ -205,6 +231,84 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         for w in result.get("warnings", []):
             print(f"warning: {w}")
     return 0
+
+
+def _origin(text: str | None) -> tuple[float, float, float]:
+    if text is None:
+        return (0.0, 0.0, 0.0)
+    try:
+        xyz = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise UsageError(f"--origin must be X,Y,Z in mm, not {text!r}") from None
+    if len(xyz) != 3 or not all(math.isfinite(v) for v in xyz):
+        raise UsageError(f"--origin must be three finite numbers X,Y,Z in mm, not {text!r}")
+    return (xyz[0], xyz[1], xyz[2])
+
+
+def cmd_gcode(args: argparse.Namespace) -> int:
+    from ballbar.tools.gcode import generate
+    from ballbar.tools.ncinterp import check_against_plan
+
+    from .config import load
+
+    cfg = load(args.config)
+    plan, _machine, _options = configs_from_args(args, base={"plan": cfg.plan.to_dict()})
+    if args.repeat < 1:
+        raise UsageError("--repeat must be at least 1")
+    text = generate(plan, args.dialect, decimals=args.decimals, origin=_origin(args.origin),
+                    work_offset=args.work_offset, program_name=args.program_name, mount_stop=not args.no_stop,
+                    repeat=args.repeat)
+    problems = check_against_plan(text, args.dialect, plan)
+    if problems:  # the generator's own check: never expected, never written
+        raise BallbarError(f"the {args.dialect} program does not run the plan: {problems[0]}")
+    if args.output is None:
+        sys.stdout.write(text)
+        return 0
+    _write_atomic(Path(args.output), text)
+    print(f"wrote {args.output}: {args.dialect} program, plane {plan.plane}, R {plan.radius_mm:g} mm, "
+          f"F {plan.feed_mm_min:g} mm/min", file=sys.stderr)
+    return 0
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise DataError(f"{path}: cannot write: {err.strerror or err}") from err
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from ballbar.tools.report import from_recording, from_records
+
+    from .config import load
+
+    if args.test < 1:
+        raise UsageError("--test counts from 1")
+    if (args.file is None) == (args.test_id is None):
+        raise UsageError("give a recording FILE or --test-id (one of the two)")
+    records = args.records
+    if args.file is not None:
+        plan, machine, options = configs_from_args(args)
+        data = from_recording(args.file, plan, machine, options, args.test, records=records)
+        default_name = Path(args.file.rstrip("/")).stem
+    else:
+        if records is None:
+            records = os.path.join(load(args.config).daemon.state_dir, "recordings")
+        data = from_records(records, args.test_id)
+        default_name = str(data.result.get("test_id", "test"))
+    from ballbar.tools.report_render import render  # matplotlib: only once there is something to draw
+
+    out = Path(args.output or f"ballbar-report-{_safe_name(default_name)}.html")
+    for path in render(data, out, png=not args.no_png):
+        print(path)
+    return 0
+
+
+def _safe_name(text: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)[:100] or "test"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -223,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     from .run import cmd_run
 
-    handlers = {"analyze": cmd_analyze, "run": cmd_run}
+    handlers = {"analyze": cmd_analyze, "gcode": cmd_gcode, "report": cmd_report, "run": cmd_run}
     from .config import ConfigError
 
     try:

@@ -1,0 +1,251 @@
+"""``ballbar report``: a test's result as a report an engineer can file.
+
+This module gathers what a report shows (:class:`ReportData`): the test's
+result, its polar curves (the samples of both data arcs and the fitted model),
+and the machine's earlier results under the same test conditions, from a
+recording (CSV or the daemon's MCAP) or from the daemon's records by test id.
+:mod:`.report_render` turns that into one self-contained HTML file and PNGs.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ballbar.analysis.engine import analyze_recording
+from ballbar.analysis.errors import BallbarError, DataError
+from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.daemon.recordings import analyze_file
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ReportData:
+    """Everything a report shows.
+
+    ``result``: the test result as ``ballbar analyze --json`` prints it (and the
+    daemon publishes it), with ``machine_id``, ``test_id`` and ``t_wall`` where
+    the daemon's records give them.  ``curves``: per direction (``"ccw"``,
+    ``"cw"``) the data arc's samples as arrays ``t_s``, ``u_deg``,
+    ``measured_um`` and ``model_um`` (see
+    :func:`ballbar.analysis.engine.analyze_test`).  ``history``: the same
+    machine's earlier test results under the same conditions (plane, radius,
+    feed, data arc), oldest first, each with ``t_wall`` and ``test_id``; empty
+    when there are none.  ``history_note``: how the history was chosen (for the
+    report's text).  ``source``: what the report was made from.
+    """
+
+    result: dict[str, Any]
+    curves: dict[str, dict[str, np.ndarray]]
+    history: list[dict[str, Any]] = field(default_factory=list)
+    history_note: str = ""
+    source: str = ""
+
+
+# Test conditions that must match for an earlier result to be comparable in the trend.
+COMPARABLE_PLAN_KEYS = ("plane", "radius_mm", "feed_mm_min", "data_arc_deg", "directions")
+MATCH_FEED_IN_S = 1.0  # a re-analysed test is the recorded one when their feed-ins are this close
+
+
+def comparable(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Whether two results were measured under the same test conditions (plan keys above)."""
+    pa, pb = a.get("plan", {}), b.get("plan", {})
+    return all(pa.get(k) == pb.get(k) for k in COMPARABLE_PLAN_KEYS)
+
+
+def select_history(result: dict[str, Any], candidates: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], str]:
+    """The same machine's earlier comparable test results, oldest first, and a sentence saying how they were chosen.
+
+    ``candidates``: published results (any kind, any machine).  A result without
+    ``t_wall`` cannot be placed in time and is left out.
+    """
+    machine = result.get("machine_id")
+    t_wall = result.get("t_wall")
+    tests = [r for r in candidates if r.get("kind") == "test" and r.get("t_wall")
+             and r.get("test_id") != result.get("test_id")]
+    if machine is not None:
+        tests = [r for r in tests if r.get("machine_id") == machine]
+    if t_wall:
+        tests = [r for r in tests if str(r["t_wall"]) < str(t_wall)]
+    same = [r for r in tests if comparable(result, r)]
+    same.sort(key=lambda r: str(r["t_wall"]))
+    what = f"machine {machine}" if machine is not None else "this machine"
+    cond = ", ".join(f"{k} {result.get('plan', {}).get(k)}" for k in COMPARABLE_PLAN_KEYS)
+    if not tests:
+        note = f"no earlier test results of {what} in the records"
+    else:
+        left = len(tests) - len(same)
+        note = (f"{len(same)} earlier test result(s) of {what} under the same conditions ({cond})"
+                + (f"; {left} under other conditions left out" if left else ""))
+    return same, note
+
+
+def _recorded_results(paths: list[Path]) -> list[dict[str, Any]]:
+    from ballbar.daemon.mcap_log import read_log
+
+    out: list[dict[str, Any]] = []
+    for p in paths:
+        try:
+            out.extend(read_log(p, samples=False).results)
+        except BallbarError as err:
+            log.warning("records: %s", err)
+    return out
+
+
+def _mcap_files(path: str) -> list[Path]:
+    from ballbar.daemon.mcap_log import list_recordings
+
+    if os.path.isdir(path):
+        return list_recordings(path) or sorted(Path(path).glob("*.mcap"))
+    return [Path(path)] if path.lower().endswith(".mcap") else []
+
+
+def _same_test(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    fa, fb = a.get("timing", {}).get("feed_in_s"), b.get("timing", {}).get("feed_in_s")
+    return fa is not None and fb is not None and abs(fa - fb) < MATCH_FEED_IN_S
+
+
+def _adopt_identity(result: dict[str, Any], recorded: dict[str, Any]) -> None:
+    for key in ("machine_id", "test_id", "t_wall"):
+        if key in recorded:
+            result[key] = recorded[key]
+
+
+def from_recording(
+    path: str,
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    test: int = 1,
+    records: str | None = None,
+) -> ReportData:
+    """Analyse a recording (CSV, or the daemon's MCAP file or directory) and gather its ``test``-th test.
+
+    A daemon recording names the test (machine, test id, time) through the
+    result it published for the same feed-in.  The trend comes from the results
+    in the recording itself and, with ``records``, in that directory of the
+    daemon's records.
+    """
+    result = analyze_file(path, plan, machine, options, test, curves=True)
+    curves = result.pop("curves")
+    candidates = _recorded_results(_mcap_files(path))
+    recorded = [r for r in candidates if r.get("kind") == "test" and _same_test(result, r)]
+    if recorded:
+        _adopt_identity(result, recorded[-1])
+    if records is not None:
+        candidates += _recorded_results(_records_files(records))
+    history, note = select_history(result, _unique(candidates))
+    return ReportData(result, curves, history, note, source=os.path.abspath(path))
+
+
+def _records_files(records: str) -> list[Path]:
+    from ballbar.daemon.mcap_log import list_recordings
+
+    if not os.path.isdir(records):
+        raise DataError(f"{records}: no such directory of daemon records")
+    files = list_recordings(records)
+    if not files:
+        raise DataError(f"{records}: holds no ballbar recordings (<machine>_<UTC time>_<n>.mcap)")
+    return files
+
+
+def _unique(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    seen: set[tuple[Any, Any, Any]] = set()
+    out = []
+    for r in results:
+        key = (r.get("test_id"), r.get("kind"), r.get("direction"))
+        if key[0] is not None and key in seen:
+            continue
+        seen.add(key)
+        out.append(r)
+    return out
+
+
+def from_records(records: str, test_id: str, options: AnalysisOptions | None = None) -> ReportData:
+    """Gather the test ``test_id`` (or ``"latest"``) from a directory of the daemon's records.
+
+    The result is analysed again from the recorded samples with the recorded
+    plan and machine (the same code path as live, so it equals the published
+    result) to draw the curves; ``options`` replaces the recorded analysis
+    options when given.
+    """
+    from ballbar.daemon.cli import recorded_config
+    from ballbar.daemon.mcap_log import read_logs, valid_samples
+
+    files = _records_files(records)
+    per_file = [(p, _recorded_results([p])) for p in files]
+    tests = [(i, r) for i, (_p, rs) in enumerate(per_file) for r in rs if r.get("kind") == "test"]
+    if not tests:
+        raise DataError(f"{records}: the records hold no test result yet")
+    if test_id == "latest":
+        i, target = max(tests, key=lambda ir: str(ir[1].get("t_wall", "")))
+    else:
+        found = [(i, r) for i, r in tests if r.get("test_id") == test_id]
+        if not found:
+            known = ", ".join(str(r.get("test_id")) for _i, r in tests[-5:])
+            raise DataError(f"{records}: no test {test_id!r} in the records (the newest: {known})")
+        i, target = found[-1]
+    # The test's own file, and the one before it for samples a short preroll left there.
+    result: dict[str, Any] | None = None
+    for chosen in ([files[i - 1], files[i]] if i > 0 else [], [files[i]]):
+        if not chosen:
+            continue
+        name = os.fspath(chosen[-1])
+        cfg = recorded_config(name)
+        plan = TestPlan.from_dict(cfg.get("plan", {}))
+        machine = MachineConfig.from_dict(cfg.get("machine", {}))
+        opts = options or AnalysisOptions(**_tupled(cfg.get("analysis", {})))
+        t, L = valid_samples(read_logs(chosen), name)
+        analysed = analyze_recording(t, L, plan, machine, opts, curves=True)
+        match = [r for r in analysed if r["kind"] == "test" and _same_test(r, target)]
+        if match:
+            result = match[-1]
+            break
+    if result is None:
+        raise DataError(
+            f"{files[i]}: the samples of test {target.get('test_id')} do not hold a complete test "
+            "(feed-in to feed-out) any more"
+        )
+    curves = result.pop("curves")
+    _adopt_identity(result, target)
+    result["source"] = {"records": os.path.abspath(records), "file": os.path.abspath(files[i]),
+                        "reanalysed": "from the recorded samples with the recorded configuration"}
+    drift = published_difference(result, target)
+    if drift is not None:
+        result.setdefault("warnings", []).append(drift)
+    history, note = select_history(result, _unique([r for _p, rs in per_file for r in rs]))
+    return ReportData(result, curves, history, note, source=f"{os.path.abspath(records)} test {result['test_id']}")
+
+
+def published_difference(result: dict[str, Any], published: dict[str, Any], rel: float = 1e-6) -> str | None:
+    """Why the re-analysed ``result`` differs from the one the daemon published, or None if it does not.
+
+    They differ when the options were overridden, or when this version of the
+    analysis differs from the daemon's that recorded the test.
+    """
+    worst: tuple[float, str, float, float] | None = None
+    for key, p in result.get("parameters", {}).items():
+        a, b = p.get("value"), published.get("parameters", {}).get(key, {}).get("value")
+        if (a is None) != (b is None):
+            return f"{key} was {'not ' if b is None else ''}fitted when published, is {'not ' if a is None else ''}now"
+        if a is None or b is None:
+            continue
+        # Immaterial: a part in 10^6, a hundredth of the standard error, or 1e-4 of the unit (um, ms, urad, ppm).
+        allowed = max(rel * abs(b), 0.01 * (p.get("stderr") or 0.0), 1e-4)
+        d = abs(a - b) / allowed
+        if d > 1 and (worst is None or d > worst[0]):
+            worst = (d, key, a, b)
+    if worst is None:
+        return None
+    _, key, a, b = worst
+    return f"re-analysed {key} = {a:.4g} differs from the published {b:.4g}: the analysis or its options changed"
+
+
+def _tupled(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
