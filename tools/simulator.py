@@ -391,12 +391,12 @@ class _Segment:
         return self.t_start + self.duration
 
 
-def _timeline(plan: TestPlan, m: MachineModel) -> list[_Segment]:
+def _timeline(plan: TestPlan, m: MachineModel, program: Sequence[Move] | None = None) -> list[_Segment]:
     V = plan.feed_mm_s * m.feed_override
     smooth = m.accel_mm_s2 / m.jerk_mm_s3 if math.isfinite(m.accel_mm_s2) else 0.0
     out: list[_Segment] = []
     t = m.lead_s
-    for mv in moves(plan):
+    for mv in moves(plan) if program is None else program:
         if mv.kind == "dwell":
             out.append(_Segment(mv, t, mv.duration_s, None))
         else:
@@ -680,10 +680,11 @@ def _run(
     k0: int,
     extra_tail_s: float,
     step_s: float,
+    program: Sequence[Move] | None = None,
 ) -> SimResult:
     if not step_s > 0:
         raise PlanError(f"step_s must be > 0, not {step_s!r}")
-    segs = _timeline(plan, m)
+    segs = _timeline(plan, m, program)
     span = segs[-1].t_end + m.tail_s + extra_tail_s
     n = math.ceil(span * fs) + 1  # nominal sample instants k0 .. k0 + n - 1
     sub = max(1, math.ceil(1.0 / (fs * step_s)))  # grid points per sample period
@@ -793,14 +794,18 @@ def simulate(
     seed: int = 0,
     *,
     step_s: float = 1.0e-4,
+    program: Sequence[Move] | None = None,
 ) -> SimResult:
     """Simulate one test of ``plan`` on ``machine``, sampled at ``sample_hz`` (default: the plan's).
 
     ``step_s`` is the longest internal integration step (the grid is aligned to the
-    sample instants).  The same ``seed`` gives the same samples.
+    sample instants).  The same ``seed`` gives the same samples.  ``program``: the
+    moves to run instead of ``moves(plan)`` (e.g. an NC program read back by
+    :func:`ballbar.tools.ncinterp.test_moves`), in the plan's frame and angles, run
+    at the plan's feed; the truth and the data-arc events still come from the plan.
     """
     fs = _check_rate(plan, sample_hz)
-    return _run(plan, machine, fs, seed, 0, 0, 0.0, step_s)
+    return _run(plan, machine, fs, seed, 0, 0, 0.0, step_s, program)
 
 
 def iter_tests(
