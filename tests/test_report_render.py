@@ -1,0 +1,419 @@
+"""The ``ballbar report`` renderer: a self-contained HTML report, its PNGs, and the page in a real browser.
+
+The data is a real analysis: the physical simulator's test (servo mismatch,
+centre offset, backlash, squareness, reversal spikes) at 250 Hz on a small
+plan, analysed by the engine with its curves.  Earlier tests for the trend
+are copies of that result with other ids, dates and values.
+
+The browser test drives Debian's headless Chromium over the DevTools protocol
+on a pipe (``tests/browser.py``, standard library only): it loads the report
+from ``file://``, asks the page itself (title, SVG sizes, trace ids and
+colours, the first findings row, the ISO table), records every network request
+and console error, and takes a screenshot.  A control page with a request and
+a console error proves those recorders really see them.  It is skipped when no
+Chromium is installed, unless ``BALLBAR_REQUIRE_BROWSER=1`` (CI) makes that a
+failure.
+"""
+
+from __future__ import annotations
+
+import copy
+import http.server
+import io
+import math
+import os
+import pickle
+import re
+import struct
+import subprocess
+import sys
+import threading
+import time
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from browser import Chromium, find_chromium
+
+from ballbar.analysis.engine import analyze_recording
+from ballbar.analysis.plan import TestPlan
+from ballbar.tools.report import ReportData
+from ballbar.tools.report_render import envelope_indices, polar_scale_um, render
+from ballbar.tools.simulator import MachineModel, simulate
+
+PLAN = TestPlan(radius_mm=50.0, feed_mm_min=2000.0, overshoot_deg=20.0, dwell_s=0.2, sample_hz=250.0)
+MACHINE = MachineModel(
+    kv_x_per_s=30.0, kv_y_per_s=31.0, backlash_x_um=4.0, backlash_y_um=2.5, squareness_urad=20.0,
+    centre_x_um=8.0, centre_y_um=-5.0, spike_x_um=2.0, noise_um=0.1,
+)
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+BROWSER_TIMEOUT_S = 30.0
+
+
+def _analyse(plan: TestPlan, machine: MachineModel = MACHINE) -> tuple[dict[str, Any], dict[str, Any]]:
+    sim = simulate(plan, machine)
+    out = analyze_recording(sim.t_s, sim.length_mm, plan, curves=True)
+    tests = [r for r in out if r.get("kind") == "test"]
+    assert len(tests) == 1, out
+    result = tests[0]
+    curves = result.pop("curves")
+    result.update(machine_id="mill-3", test_id="mill-3-20260301T081500Z", t_wall="2026-03-01T08:15:00Z")
+    return result, curves
+
+
+def _history(result: dict[str, Any], n: int = 2) -> list[dict[str, Any]]:
+    """Earlier tests: the same result re-dated and shifted a little, oldest first."""
+    out = []
+    for i in range(n):
+        h = copy.deepcopy(result)
+        h["test_id"] = f"mill-3-2026020{i + 1}T080000Z"
+        h["t_wall"] = f"2026-02-0{i + 1}T08:00:00Z"
+        for p in h["parameters"].values():
+            if p.get("value") is not None:
+                p["value"] *= 0.8 + 0.1 * i
+        h["iso230_4"]["G_b_um"] *= 0.9 + 0.05 * i
+        out.append(h)
+    return out
+
+
+@pytest.fixture(scope="module")
+def analysed() -> tuple[dict[str, Any], dict[str, Any]]:
+    return _analyse(PLAN)
+
+
+@pytest.fixture
+def data(analysed: tuple[dict[str, Any], dict[str, Any]]) -> ReportData:
+    result, curves = analysed
+    result = copy.deepcopy(result)
+    return ReportData(result=result, curves=curves, history=_history(result),
+                      history_note="earlier tests of mill-3 with the same plan", source="simulated test")
+
+
+def _png_size(blob: bytes) -> tuple[int, int]:
+    """Width and height from a PNG's IHDR, after checking the signature and the chunk's CRC."""
+    assert blob[:8] == PNG_SIGNATURE
+    length, kind = struct.unpack(">I4s", blob[8:16])
+    assert kind == b"IHDR" and length == 13
+    body = blob[16:29]
+    (crc,) = struct.unpack(">I", blob[29:33])
+    assert zlib.crc32(kind + body) == crc, "IHDR CRC mismatch"
+    w, h = struct.unpack(">II", body[:8])
+    return w, h
+
+
+def _pixels(blob: bytes) -> np.ndarray:
+    from PIL import Image  # matplotlib's own dependency
+
+    with Image.open(io.BytesIO(blob)) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+# --------------------------------------------------------------------------- files, without a browser
+
+
+def test_html_is_self_contained_and_pngs_are_valid(data: ReportData, tmp_path: Path) -> None:
+    paths = render(data, tmp_path / "r.html")
+    assert paths == [tmp_path / n for n in ("r.html", "r-polar.png", "r-deviation.png", "r-trend.png")]
+    # the returned paths are all that was written: no temporary file left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in paths)
+    text = paths[0].read_text(encoding="utf-8")
+    assert text.startswith("<!DOCTYPE html>")
+    refs = re.findall(r"""\b(?:src|href)\s*=\s*["']([^"']*)""", text, flags=re.I)
+    assert all(r.startswith("#") for r in refs), refs  # only links inside the document
+    assert not re.search(r"url\(\s*['\"]?(?!#)", text), "a CSS/SVG url() that is not a fragment"
+    assert not re.search(r"<(script|link|img|iframe|object|embed)\b", text, flags=re.I)
+    assert "@import" not in text
+    assert text.count("<svg") == 3
+    ids = re.findall(r'\bid="([^"]+)"', text)
+    assert len(ids) == len(set(ids)), "duplicate ids across the inline SVGs"
+    for p in paths[1:]:
+        blob = p.read_bytes()
+        w, h = _png_size(blob)
+        assert w >= 600 and h >= 300, (p.name, w, h)
+        px = _pixels(blob)  # the whole image decodes
+        assert px.shape[:2] == (h, w)
+        assert len(np.unique(px.reshape(-1, 3), axis=0)) > 20, f"{p.name} is nearly blank"
+
+
+def test_content_in_reading_order(data: ReportData, tmp_path: Path) -> None:
+    text = render(data, tmp_path / "r.html", png=False)[0].read_text(encoding="utf-8")
+    res = data.result
+    order = ["sec-conditions", "sec-verdict", "sec-polar", "sec-deviation", "sec-findings", "sec-iso230",
+             "sec-advice", "sec-noise", "sec-diagnostics", "sec-trend"]
+    pos = [text.index(f'id="{s}"') for s in order]
+    assert pos == sorted(pos)
+    assert text.index("<footer") > pos[-1]
+    assert "<title>Ball-bar test report — mill-3 — mill-3-20260301T081500Z</title>" in text
+    assert "2026-03-01 08:15:00 UTC" in text
+    # the verdict: G(b) to one decimal, the top machine finding in words
+    g_b = res["iso230_4"]["G_b_um"]
+    assert f'id="verdict-g">{g_b:.1f} <small>µm' in text
+    assert "servo mismatch: X lags Y by" in text  # KX < KY: X lags
+    # polar plot scale stated in the caption, in µm per division
+    assert re.search(r"<b>\d+(\.\d+)? µm per division</b>", text)
+    # the findings table: ranking order, and every not-fitted parameter with its reason, greyed, at the end
+    rows = re.findall(r'<tr class="(sig|nsig)" data-pattern="([^"]+)"', text)
+    assert [name for _, name in rows[: len(res["ranking"])]] == [r["pattern"] for r in res["ranking"]]
+    assert [cls == "sig" for cls, _ in rows[: len(res["ranking"])]] == [r["significant"] for r in res["ranking"]]
+    absent = text[text.index('<tbody class="absent">'):]
+    assert "no X screw pitch configured" in absent and "Cyclic error X" in absent
+    # ISO figures with their conditions; advice; diagnostics
+    assert f'<td id="iso-G_ccw_um">{res["iso230_4"]["G_ccw_um"]:.2f}</td>' in text
+    assert "ISO 230-4:2022" in text
+    for a in res["advice"]:
+        assert re.sub(r"\bum\b", "µm", a["action"])[:30] in text
+    assert f'{res["timing"]["measured_feed_mm_min"]:.2f} mm/min' in text
+    assert "ballbar " in text and "Source: simulated test" in text
+
+
+def test_units_are_displayed_with_micro_signs(data: ReportData, tmp_path: Path) -> None:
+    text = render(data, tmp_path / "r.html", png=False)[0].read_text(encoding="utf-8")
+    visible = re.sub(r"<svg.*?</svg>|<style>.*?</style>|<[^>]+>", " ", text, flags=re.S)
+    assert "µm" in visible and "µrad" in visible
+    assert not re.search(r"\d\s*um\b", visible), re.findall(r".{20}\d\s*um\b.{10}", visible)
+
+
+def test_one_direction_renders(tmp_path: Path) -> None:
+    plan = PLAN.with_(directions="ccw")
+    result, curves = _analyse(plan)
+    assert set(curves) == {"ccw"} and result["iso230_4"]["G_b_um"] is None
+    paths = render(ReportData(result=result, curves=curves), tmp_path / "one.html")
+    text = paths[0].read_text(encoding="utf-8")
+    assert 'id="polar-ccw"' in text and 'id="polar-cw"' not in text
+    assert "Circularity G CCW" in text
+    assert '<td id="iso-G_b_um" class=gb>–</td>' in text
+    assert "this direction is not in the test" in text  # the CW spikes, greyed with their reason
+    assert [p.name for p in paths] == ["one.html", "one-polar.png", "one-deviation.png"]
+
+
+def test_vertical_plane_partial_arc_is_labelled_with_its_axes(tmp_path: Path) -> None:
+    plan = PLAN.with_(plane="ZX", data_arc_deg=220.0, start_deg=-20.0)
+    result, curves = _analyse(plan)
+    text = render(ReportData(result=result, curves=curves), tmp_path / "zx.html", png=False)[0].read_text(
+        encoding="utf-8")
+    labels = {}
+    for ang in (0, 90, 180, 270):
+        g = text[text.index(f'<g id="polar-axis-{ang}">'):]
+        labels[ang] = re.findall(r"<text[^>]*>([^<]*)</text>", g[: g.index("</g>")])
+    assert labels == {0: ["+Z", "0°"], 90: ["+X", "90°"], 180: ["−Z", "180°"], 270: ["−X", "270°"]}
+    assert "ZX (Z, X)" in text and "220.0°" in text
+
+
+def test_trend_with_history_and_without(data: ReportData, tmp_path: Path) -> None:
+    text = render(data, tmp_path / "h.html", png=False)[0].read_text(encoding="utf-8")
+    assert 'id="trend-svg"' in text
+    table = text[text.index('id="trend-table"'):]
+    table = table[: table.index("</table>")]
+    assert table.count("<tr") == 1 + len(data.history) + 1  # header, history, this test
+    assert all(h["test_id"] in table for h in data.history)
+    assert "Backlash X (µm)" in table and "Servo mismatch (ms)" in table and "Circularity G(b) (µm)" in table
+    assert "earlier tests of mill-3 with the same plan" in text
+    data.history = []
+    paths = render(data, tmp_path / "n.html")
+    text = paths[0].read_text(encoding="utf-8")
+    assert 'id="trend-none"' in text and "no trend yet" in text and "trend-svg" not in text
+    assert not (tmp_path / "n-trend.png").exists() and len(paths) == 3
+
+
+def test_text_is_escaped(data: ReportData, tmp_path: Path) -> None:
+    data.result["machine_id"] = '<script>alert("x")</script>'
+    data.result["test_id"] = "a&b<i>"
+    data.source = "<img src=x onerror=alert(1)>"
+    text = render(data, tmp_path / "e.html", png=False)[0].read_text(encoding="utf-8")
+    assert "<script" not in text and "<img" not in text and "<i>" not in text
+    assert "&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt;" in text
+    assert "a&amp;b&lt;i&gt;" in text and "&lt;img src=x onerror=alert(1)&gt;" in text
+
+
+def test_missing_pieces(analysed: tuple[dict[str, Any], dict[str, Any]], tmp_path: Path) -> None:
+    result = copy.deepcopy(analysed[0])
+    del result["iso230_4"], result["noise"], result["timing"], result["t_wall"], result["machine_id"]
+    result["parameters"]["backlash_x_um"].update(value=float("nan"), stderr=None)
+    result["ranking"][0]["F"] = None
+    text = render(ReportData(result=result, curves={}), tmp_path / "m.html", png=False)[0].read_text(
+        encoding="utf-8")
+    assert "No ISO 230-4 figures in this result" in text and "No noise findings" in text
+    assert "No curves in the data: plots omitted" in text and "<svg" not in text
+    assert not re.search(r"\bnan\b", text, flags=re.I)
+    row = text[text.index('data-pattern="backlash_x"'):]
+    assert row[: row.index("</tr>")].count("–") >= 1
+    assert "<title>Ball-bar test report — mill-3-20260301T081500Z</title>" in text
+
+
+def test_large_1khz_test_stays_small(tmp_path: Path) -> None:
+    plan = TestPlan(overshoot_deg=20.0, dwell_s=0.2, sample_hz=1000.0)  # R 100 mm, F 1000: ~37 700 samples a circle
+    result, curves = _analyse(plan, MACHINE.with_(spike_y_um=3.0))
+    assert curves["ccw"]["u_deg"].size > 30000
+    path = render(ReportData(result=result, curves=curves), tmp_path / "big.html", png=False)[0]
+    size = path.stat().st_size
+    assert size < 2_000_000, size
+    text = path.read_text(encoding="utf-8")
+    g = text[text.index('<g id="polar-ccw">'):]
+    path_d = g[: g.index("</g>")]
+    vertices = path_d.count(" L ") + path_d.count("\nL ") + 1
+    assert 500 < vertices <= 2000, vertices
+
+
+def test_envelope_keeps_a_one_sample_spike() -> None:
+    n = 40_000
+    y = np.sin(np.linspace(0, 6 * math.pi, n))
+    y[12_345] = 30.0
+    y[33_333] = -25.0
+    idx = envelope_indices(y, 2000)
+    assert idx.size <= 2000 and np.all(np.diff(idx) > 0)
+    assert 12_345 in idx and 33_333 in idx
+    assert y[idx].max() == 30.0 and y[idx].min() == -25.0
+    assert np.array_equal(envelope_indices(y[:100], 2000), np.arange(100))
+
+
+@pytest.mark.parametrize(
+    "max_abs, div", [(0.0, 1.0), (2.9, 1.0), (3.1, 2.0), (27.0, 10.0), (31.0, 20.0), (140.0, 50.0)]
+)
+def test_polar_scale_is_round_and_fits(max_abs: float, div: float) -> None:
+    assert polar_scale_um(max_abs) == pytest.approx(div)
+
+
+@pytest.mark.usefixtures("no_leaks")
+def test_import_and_render_leave_matplotlib_global_state_alone(tmp_path: Path) -> None:
+    code = (
+        "import sys, pickle\n"
+        "import ballbar.tools.report_render as rr\n"
+        "assert 'matplotlib' not in sys.modules, 'import pulled matplotlib in'\n"
+        "from ballbar.tools.report import ReportData\n"
+        "d = pickle.load(open(sys.argv[1], 'rb'))\n"
+        "rr.render(ReportData(**d), __import__('pathlib').Path(sys.argv[2]))\n"
+        "assert 'matplotlib.pyplot' not in sys.modules, 'render used pyplot'\n"
+        "import matplotlib\n"
+        "print(matplotlib.rcParams['svg.fonttype'], matplotlib.rcParams['font.size'])\n"
+    )
+    result, curves = _analyse(PLAN.with_(directions="cw"))
+    blob = tmp_path / "d.pkl"
+    blob.write_bytes(pickle.dumps({"result": result, "curves": curves}))
+    env = dict(os.environ)
+    env.pop("MPLBACKEND", None)
+    out = subprocess.run([sys.executable, "-c", code, str(blob), str(tmp_path / "x.html")],
+                         capture_output=True, text=True, timeout=60, env=env, check=False)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["path", "10.0"]  # matplotlib's defaults, untouched by the renderer
+    assert (tmp_path / "x-polar.png").exists()
+
+
+# --------------------------------------------------------------------------- in a real browser
+
+
+def _chromium_or_skip() -> str:
+    exe = find_chromium()
+    if exe is None:
+        msg = "Chromium not found ($BALLBAR_CHROMIUM, chromium on PATH or /usr/bin/chromium)"
+        if os.environ.get("BALLBAR_REQUIRE_BROWSER") == "1":
+            pytest.fail(f"{msg}, and BALLBAR_REQUIRE_BROWSER=1 requires it")
+        pytest.skip(f"{msg}; set BALLBAR_REQUIRE_BROWSER=1 to make this a failure")
+    return exe
+
+
+@pytest.fixture
+def pixel_server() -> Iterator[str]:
+    """A loopback HTTP server for the control page's external request; shut down after the test."""
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args: Any) -> None:
+            pass
+
+        def do_GET(self) -> None:
+            self.send_response(404)
+            self.end_headers()
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Quiet)
+    srv.daemon_threads = True
+    th = threading.Thread(target=srv.serve_forever, name="pixel-server", daemon=True)
+    th.start()
+    try:
+        yield f"http://127.0.0.1:{srv.server_address[1]}"
+    finally:
+        srv.shutdown()
+        srv.server_close()
+        th.join(5)
+
+
+PAGE_FACTS = """(() => {
+  const box = e => { const r = e.getBoundingClientRect(); return [r.width, r.height]; };
+  const trace = id => {
+    const g = document.getElementById(id);
+    if (!g) return null;
+    const b = g.getBBox(), p = g.querySelector('path');
+    return {w: b.width, h: b.height, stroke: p ? getComputedStyle(p).stroke : null,
+            inSvg: g.closest('svg') ? g.closest('svg').id : null};
+  };
+  const first = document.querySelector('#findings tbody tr');
+  return {
+    title: document.title,
+    svgs: [...document.querySelectorAll('svg')].map(s => ({id: s.id, box: box(s)})),
+    ccw: trace('polar-ccw'), cw: trace('polar-cw'),
+    ccwModel: trace('polar-ccw-model'), cwModel: trace('polar-cw-model'),
+    firstPattern: first ? first.dataset.pattern : null,
+    firstText: first ? first.cells[1].textContent : null,
+    gb: (document.getElementById('iso-G_b_um') || {}).textContent,
+    resources: performance.getEntriesByType('resource').map(e => e.name),
+    scripts: document.scripts.length,
+    height: document.documentElement.scrollHeight,
+  };
+})()"""
+
+
+@pytest.fixture
+def report_html(data: ReportData, tmp_path: Path) -> Path:
+    """The report, rendered before ``no_leaks`` starts watching: matplotlib keeps its font files open for
+    the life of the process, a cache and not a leak of the browser test."""
+    return render(data, tmp_path / "report.html", png=False)[0]
+
+
+def test_report_in_headless_chromium(
+    data: ReportData, report_html: Path, no_leaks: None, pixel_server: str, tmp_path: Path
+) -> None:
+    exe = _chromium_or_skip()
+    html_path = report_html
+    res = data.result
+    t0 = time.monotonic()
+    with Chromium(exe, BROWSER_TIMEOUT_S) as browser:
+        session = browser.open_page()
+        browser.load(session, html_path.as_uri())
+        facts = browser.evaluate(session, PAGE_FACTS)
+        requests = browser.requests(session)
+        errors = browser.errors(session)
+        shot = browser.screenshot(session)
+
+        assert facts["title"] == "Ball-bar test report — mill-3 — mill-3-20260301T081500Z"
+        assert [s["id"] for s in facts["svgs"]] == ["polar-svg", "deviation-svg", "trend-svg"]
+        for s in facts["svgs"]:
+            assert s["box"][0] > 300 and s["box"][1] > 200, s
+        for key in ("ccw", "cw", "ccwModel", "cwModel"):
+            tr = facts[key]
+            assert tr is not None and tr["inSvg"] == "polar-svg", (key, tr)
+            assert tr["w"] > 100 and tr["h"] > 100, (key, tr)  # a whole circle, not a dot
+        assert facts["ccw"]["stroke"] != facts["cw"]["stroke"]
+        assert facts["firstPattern"] == res["ranking"][0]["pattern"] == "servo_mismatch"
+        assert facts["firstText"].strip() == "Servo mismatch"
+        assert facts["gb"] == f"{res['iso230_4']['G_b_um']:.2f}"
+        assert facts["scripts"] == 0
+        assert facts["resources"] == []
+        assert requests == [html_path.as_uri()], requests  # nothing but the document itself
+        assert errors == []
+        w, h = _png_size(shot)
+        assert (w, h) == (1200, 900)
+        px = _pixels(shot)
+        assert len(np.unique(px.reshape(-1, 3), axis=0)) > 50
+        assert (px.min(axis=2) < 200).mean() > 0.01  # text, rules and curves, not a white page
+
+        # Control: the same recorders do see a request that leaves the page and a console error.
+        control = tmp_path / "control.html"
+        control.write_text(f'<!DOCTYPE html><title>c</title><img src="{pixel_server}/pixel.png">'
+                           '<script>console.error("control error")</script>', encoding="utf-8")
+        browser.load(session, control.as_uri())
+        seen = browser.evaluate(session, "performance.getEntriesByType('resource').map(e => e.name)")
+        assert seen == [f"{pixel_server}/pixel.png"]
+        assert f"{pixel_server}/pixel.png" in browser.requests(session)
+        assert any("control error" in e for e in browser.errors(session))
+    assert time.monotonic() - t0 < BROWSER_TIMEOUT_S
