@@ -14,6 +14,8 @@ import re
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.plan import TestPlan
@@ -27,7 +29,7 @@ from ballbar.tools.gcode import (
     lowest_point_mm,
     pieces_deg,
 )
-from ballbar.tools.ncinterp import NcError, check_against_plan, interpret, test_moves
+from ballbar.tools.ncinterp import NcError, check_against_plan, interpret, model_limits, test_moves
 from ballbar.tools.simulator import MachineModel, simulate
 
 PLANS = {
@@ -118,6 +120,48 @@ def test_repeat_origin_and_decimals(dialect: str) -> None:
     assert any("arc centre" in p for p in problems)
     with pytest.raises(NcError, match="3 test"):
         test_moves(prog, "YZ", origin=origin, index=3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    dialect=st.sampled_from(sorted(DIALECTS)),
+    plane=st.sampled_from(PLANES),
+    radius=st.sampled_from([10.0, 50.0, 100.0, 150.0, 1234.567]),
+    feed=st.sampled_from([100.0, 1000.0, 1234.5, 2000.0, 5000.0]),
+    start=st.integers(-400_000, 400_000).map(lambda k: k / 1000.0),
+    overshoot=st.sampled_from([0.5, 5.0, 90.0, 180.0, 359.9, 360.0]),
+    data=st.sampled_from([30.0, 45.5, 179.99, 180.0, 220.0, 360.0]),
+    feed_in=st.sampled_from([0.5, 1.5, 3.0]),
+    dwell=st.sampled_from([0.0, 0.25, 1.001]),
+    directions=st.sampled_from(["both", "ccw", "cw"]),
+    decimals=st.sampled_from([None, 3, 4, 6]),
+    origin=st.sampled_from([(0.0, 0.0, 0.0), (12.3456, -7.5, 100.0)]),
+)
+def test_any_plan_runs_exactly_unless_the_plan_breaks_the_model(
+    dialect: str, plane: str, radius: float, feed: float, start: float, overshoot: float, data: float,
+    feed_in: float, dwell: float, directions: str, decimals: int | None, origin: tuple[float, float, float],
+) -> None:
+    plan = TestPlan.from_dict(dict(plane=plane, radius_mm=radius, feed_mm_min=feed, start_deg=start,
+                                   overshoot_deg=overshoot, data_arc_deg=data, feed_in_mm=feed_in, dwell_s=dwell,
+                                   directions=directions))
+    problems = check_against_plan(generate(plan, dialect, decimals=decimals, origin=origin), dialect, plan,
+                                  origin=origin)
+    limits = model_limits(plan)
+    assert (problems == []) == (limits == []), (problems, limits)
+    assert all(f"timing: {x}" in problems for x in limits)
+
+
+def test_model_limits() -> None:
+    assert model_limits(TestPlan()) == []
+    fast = TestPlan(feed_mm_min=5000.0)  # V^2/A = 3.47 mm > the 1.5 mm feed-in
+    assert model_limits(fast) == [
+        "the feed-in (1.5 mm) is too short to reach the feed at 2000 mm/s^2 (it needs 3.472 mm)"
+    ]
+    assert model_limits(fast, accel_mm_s2=5000.0) == []
+    short = TestPlan(overshoot_deg=0.0)
+    assert model_limits(short)[0].startswith("the overshoot (0 mm) is shorter than the acceleration distance")
+    assert any(p.startswith("timing: on the ccw data arc") for p in check_against_plan(generate(short, "fanuc"),
+                                                                                         "fanuc", short))
 
 
 def test_pieces_keep_the_radius() -> None:

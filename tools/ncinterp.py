@@ -21,6 +21,9 @@ approaches in exact-stop mode anyway).
 
 :func:`check_against_plan` compares a program with the plan and with the
 timing the analyzer assumes (:func:`ballbar.analysis.program.schedule`).
+:func:`model_limits` says where the plan itself breaks that timing model at a
+given acceleration (a feed-in or overshoot too short to reach the feed): then
+no program can pass the check, and the plan, not the program, needs changing.
 """
 
 from __future__ import annotations
@@ -845,19 +848,7 @@ def _timing(test: list[_Seg], plan: TestPlan, want: list[Move], matched: list[bo
         return ["timing: not comparable (the test holds a program stop)"]
     out: list[str] = []
     V = plan.feed_mm_s
-    # Where the plan itself breaks the analyzer's constant-speed model, say so first.
-    for mv, prof in zip(mvs, profiles, strict=True):
-        if prof is not None and prof.peak < prof.feed:
-            out.append(
-                f"timing: {mv.name} ({mv.length_mm:.4g} mm) is too short to reach the feed at {accel:g} mm/s^2 "
-                f"(it needs {prof.feed**2 / accel:.4g} mm)"
-            )
-    ramp = V**2 / (2.0 * accel)
-    if plan.radius_mm * math.radians(plan.overshoot_deg) < ramp:
-        out.append(
-            f"timing: the overshoot ({plan.radius_mm * math.radians(plan.overshoot_deg):.4g} mm) is shorter than "
-            f"the acceleration distance V^2/2A ({ramp:.4g} mm): the data arcs begin before the feed is reached"
-        )
+    out += [f"timing: {x}" for x in model_limits(plan, accel)]  # the plan's own breaks of the model first
     sch = schedule(plan, V, V / accel)
     fi = profiles[0]
     assert fi is not None
@@ -883,6 +874,33 @@ def _timing(test: list[_Seg], plan: TestPlan, want: list[Move], matched: list[bo
                 f"timing: the feed-out centroid comes {t_fo:.6f} s after the feed-in's, "
                 f"the schedule {sch.feed_out_centroid_s:.6f} s"
             )
+    return out
+
+
+def model_limits(plan: TestPlan, accel_mm_s2: float = 2000.0) -> list[str]:
+    """Where ``plan`` itself breaks the analyzer's timing model at path acceleration ``accel_mm_s2``.
+
+    :func:`~ballbar.analysis.program.schedule` assumes every move reaches the
+    feed ``V`` (a move of length ``s`` lasts ``s / V + V / A``) and the data arcs
+    run at constant speed.  A feed-in shorter than ``V^2 / A`` never reaches
+    ``V``; an overshoot shorter than ``V^2 / 2A`` lets the data arc begin while
+    the machine still accelerates.  Then no program can run the plan's timing,
+    and :func:`check_against_plan` reports the resulting timing errors too.
+    """
+    V = plan.feed_mm_s
+    out: list[str] = []
+    need = V**2 / accel_mm_s2
+    if plan.feed_in_mm < need:
+        out.append(
+            f"the feed-in ({plan.feed_in_mm:g} mm) is too short to reach the feed at {accel_mm_s2:g} mm/s^2 "
+            f"(it needs {need:.4g} mm)"
+        )
+    over = plan.radius_mm * math.radians(plan.overshoot_deg)
+    if over < need / 2.0:
+        out.append(
+            f"the overshoot ({over:.4g} mm) is shorter than the acceleration distance V^2/2A ({need / 2.0:.4g} mm): "
+            "the data arcs begin before the feed is reached"
+        )
     return out
 
 
@@ -994,4 +1012,4 @@ def _comparable(test: list[_Seg]) -> bool:
     )
 
 
-__all__ = ["Block", "NcError", "Program", "check_against_plan", "interpret", "test_moves"]
+__all__ = ["Block", "NcError", "Program", "check_against_plan", "interpret", "model_limits", "test_moves"]
