@@ -321,8 +321,9 @@ def _header_lines(
         lines.append(f"Lowest point of the path: Z {low:+.3f} mm relative to the pivot")
         if low < -1e-9:
             lines.append(
-                f"WARNING: the path goes {-low:.3f} mm below the pivot: the spindle could hit the table; "
-                "check the clearance or choose start and overshoot (e.g. a 220 deg data arc) to stay above it"
+                f"WARNING: the path goes {-low:.3f} mm below the pivot: check that the spindle and the bar clear "
+                "the table and the pivot's mount there (a 220 deg arc, YZ from -20 deg or ZX from -110 deg, "
+                "dips 20 deg below the pivot by design)"
             )
     return lines
 
