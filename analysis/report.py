@@ -148,8 +148,11 @@ def summary(result: dict[str, Any]) -> str:
             lines.append(f"  {k:<10} {_fmt(iso.get(k))}")
     nz = result.get("noise")
     if nz:
+        verdict = "significant" if nz.get("vibration_significant") else "not significant"
         lines += ["", f"Vibration: {_fmt(nz.get('vibration_um'))} um above {nz.get('vibration_cutoff_cpr')} "
-                  f"cpr; stick-slip X {_fmt(nz.get('stick_slip_x_um'))} um, Y {_fmt(nz.get('stick_slip_y_um'))} um"]
+                  f"cpr (strongest line {_fmt(nz.get('vibration_peak_um'))} um at "
+                  f"{_fmt(nz.get('vibration_peak_hz'), 1)} Hz, {verdict}); "
+                  f"stick-slip X {_fmt(nz.get('stick_slip_x_um'))} um, Y {_fmt(nz.get('stick_slip_y_um'))} um"]
     lines += ["", "Advice:"]
     if not result.get("advice"):
         lines.append("  nothing significant to adjust")

@@ -204,11 +204,27 @@ def test_vibration_and_stick_slip_from_the_residual() -> None:
     # RMS above 30 cycles/rev: the 40 Hz sine (0.5/sqrt 2) and the white noise (0.1 um rms)
     assert abs(nz["vibration_um"] - math.hypot(0.5 / math.sqrt(2), 0.1)) < 0.02
     assert abs(nz["vibration_peak_hz"] - 40.0) < 0.5 and nz["vibration_significant"]
+    assert abs(nz["vibration_peak_um"] - 0.5 / math.sqrt(2)) < 0.02  # the line's own RMS, without the noise
     assert not nz["stick_slip_x_significant"]
     res, _ = analyse(plan, MachineModel(stick_slip_um=0.5, stick_slip_speed_mm_s=0.5, noise_um=0.05), 1000.0)
     nz = res["noise"]
     assert nz["stick_slip_x_significant"] and nz["stick_slip_y_significant"]
     assert not nz["vibration_significant"]
+
+
+@pytest.mark.parametrize("noise_um", [0.15, 0.4])
+def test_white_sensor_noise_is_not_vibration(noise_um: float) -> None:
+    plan = TestPlan(sample_hz=1000.0)
+    res, _ = analyse(plan, MachineModel(noise_um=noise_um), 1000.0)
+    nz = res["noise"]
+    assert abs(nz["vibration_um"] - noise_um) < 0.1 * noise_um  # broadband RMS above the cut-off: the noise
+    assert nz["vibration_peak_um"] < 0.1 * noise_um
+    assert not nz["vibration_significant"]
+    # A weak line in that noise still stands out when its RMS reaches the threshold.
+    res, _ = analyse(plan, MachineModel(noise_um=noise_um, vibration_um=0.2, vibration_hz=55.0), 1000.0)
+    nz = res["noise"]
+    assert nz["vibration_significant"] and abs(nz["vibration_peak_hz"] - 55.0) < 0.5
+    assert abs(nz["vibration_peak_um"] - 0.2 / math.sqrt(2)) < 0.02
 
 
 def test_iso_230_4_circularity_of_a_known_ellipse() -> None:

@@ -998,8 +998,9 @@ def _noise(result: Mapping[str, Any]) -> str:
 
     peak = ""
     if _num(nz.get("vibration_peak_hz")) is not None:
-        peak = (f"peak at {_fmt(nz.get('vibration_peak_cpr'), 0)} cycles/rev "
-                f"({_fmt(nz.get('vibration_peak_hz'), 1)} Hz)")
+        line = _num(nz.get("vibration_peak_um"))
+        peak = (f"strongest line {_fmt(line, 3)} µm rms " if line is not None else "") + (
+            f"at {_fmt(nz.get('vibration_peak_cpr'), 0)} cycles/rev ({_fmt(nz.get('vibration_peak_hz'), 1)} Hz)")
     axes = _axes(result.get("plan") or {})
     rows = [
         f"<tr><td>Vibration (residual above {_e(_fmt(nz.get('vibration_cutoff_cpr'), 0))} cycles/rev)</td>"
