@@ -1241,6 +1241,21 @@ def read_log(path: str | os.PathLike[str], samples: bool = True) -> McapLog:
     return out
 
 
+def read_results(paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]]:
+    """The results recorded in these files, in order, without reading their samples.
+
+    A file that cannot be read is skipped with a warning: one bad file does not
+    hide the others' history.
+    """
+    out: list[dict[str, Any]] = []
+    for path in paths:
+        try:
+            out.extend(read_log(path, samples=False).results)
+        except BallbarError as err:
+            log.warning("results: %s", err)
+    return out
+
+
 def read_logs(paths: Iterable[str | os.PathLike[str]]) -> McapLog:
     """Several files in the given order, joined; preroll samples already in the file before are dropped."""
     parts = [read_log(p) for p in paths]
@@ -1337,6 +1352,7 @@ __all__ = [
     "read_log",
     "read_logs",
     "read_mcap",
+    "read_results",
     "scaled_ints",
     "to_json",
     "valid_samples",

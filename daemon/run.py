@@ -13,8 +13,6 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from ballbar.analysis.errors import BallbarError
-
 from .config import Config, ConfigError, load
 from .errors import SourceConfigError
 from .listeners import Listener
@@ -54,19 +52,12 @@ def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[
     """Results the daemon logged before this start (its MCAP records), for the bus's history."""
 
     def load() -> list[dict[str, Any]]:
-        from .mcap_log import list_recordings, read_log
+        from .mcap_log import list_recordings, read_results
 
-        out: list[dict[str, Any]] = []
         directory = os.path.join(cfg.daemon.state_dir, "recordings")
         if not os.path.isdir(directory):
-            return out  # a first start: nothing recorded yet
-        files = list_recordings(directory)[-newest_files:]
-        for path in files:
-            try:
-                out.extend(read_log(path, samples=False).results)
-            except BallbarError as err:
-                log.warning("history: %s", err)
-        return out
+            return []  # a first start: nothing recorded yet
+        return read_results(list_recordings(directory)[-newest_files:])
 
     return load
 

@@ -18,8 +18,9 @@ from typing import Any
 import numpy as np
 
 from ballbar.analysis.engine import analyze_recording
-from ballbar.analysis.errors import BallbarError, DataError
+from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.daemon.mcap_log import read_results
 from ballbar.daemon.recordings import analyze_file
 
 log = logging.getLogger(__name__)
@@ -86,18 +87,6 @@ def select_history(result: dict[str, Any], candidates: list[dict[str, Any]]) -> 
     return same, note
 
 
-def _recorded_results(paths: list[Path]) -> list[dict[str, Any]]:
-    from ballbar.daemon.mcap_log import read_log
-
-    out: list[dict[str, Any]] = []
-    for p in paths:
-        try:
-            out.extend(read_log(p, samples=False).results)
-        except BallbarError as err:
-            log.warning("records: %s", err)
-    return out
-
-
 def _mcap_files(path: str) -> list[Path]:
     from ballbar.daemon.mcap_log import list_recordings
 
@@ -134,12 +123,12 @@ def from_recording(
     """
     result = analyze_file(path, plan, machine, options, test, curves=True)
     curves = result.pop("curves")
-    candidates = _recorded_results(_mcap_files(path))
+    candidates = read_results(_mcap_files(path))
     recorded = [r for r in candidates if r.get("kind") == "test" and _same_test(result, r)]
     if recorded:
         _adopt_identity(result, recorded[-1])
     if records is not None:
-        candidates += _recorded_results(_records_files(records))
+        candidates += read_results(_records_files(records))
     history, note = select_history(result, _unique(candidates))
     return ReportData(result, curves, history, note, source=os.path.abspath(path))
 
@@ -179,7 +168,7 @@ def from_records(records: str, test_id: str, options: AnalysisOptions | None = N
     from ballbar.daemon.mcap_log import read_logs, valid_samples
 
     files = _records_files(records)
-    per_file = [(p, _recorded_results([p])) for p in files]
+    per_file = [(p, read_results([p])) for p in files]
     tests = [(i, r) for i, (_p, rs) in enumerate(per_file) for r in rs if r.get("kind") == "test"]
     if not tests:
         raise DataError(f"{records}: the records hold no test result yet")
