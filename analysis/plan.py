@@ -170,6 +170,14 @@ class AnalysisOptions:
         if not 0 < self.spike_width_min_deg < self.spike_width_max_deg:
             raise PlanError("spike widths must satisfy 0 < min < max")
 
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> AnalysisOptions:
+        """From a configuration table (``patterns`` may be a list, as TOML and JSON give it)."""
+        data = dict(data)
+        if isinstance(data.get("patterns"), list):
+            data["patterns"] = tuple(data["patterns"])
+        return _from_dict(cls, data, "analysis")
+
 
 def _pos(v: Any) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0

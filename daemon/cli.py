@@ -23,7 +23,7 @@ from ballbar.analysis.patterns import BY_NAME
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.analysis.report import summary
 
-from .recordings import analyze_file
+from .recordings import analyze_file, recorded_config
 
 log = logging.getLogger(__name__)
 
@@ -148,22 +148,6 @@ def load_config_file(path: str) -> dict[str, Any]:
     return data
 
 
-def recorded_config(path: str) -> dict[str, Any]:
-    """The plan, machine and analysis a daemon recording was made with (empty for CSV)."""
-    if not (path.lower().endswith(".mcap") or os.path.isdir(path)):
-        return {}
-    from .mcap_log import list_recordings, read_log, read_logs
-
-    try:
-        configs = (read_logs(list_recordings(path)) if os.path.isdir(path) else read_log(path)).config
-    except BallbarError:
-        return {}  # read_recording reports what is wrong with the file
-    if not configs:
-        return {}
-    cfg = configs[-1].get("config", {})
-    return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis") if isinstance(cfg.get(k), dict)}
-
-
 def configs_from_args(
     args: argparse.Namespace, base: dict[str, Any] | None = None
 ) -> tuple[TestPlan, MachineConfig, AnalysisOptions]:
@@ -200,22 +184,10 @@ def configs_from_args(
     try:
         plan = TestPlan.from_dict(plan_d)
         machine = MachineConfig.from_dict(machine_d)
-        if "patterns" in analysis_d and isinstance(analysis_d["patterns"], list):
-            analysis_d["patterns"] = tuple(analysis_d["patterns"])
-        options = _options_from_dict(analysis_d)
+        options = AnalysisOptions.from_dict(analysis_d)
     except PlanError as err:
         raise UsageError(str(err)) from err
     return plan, machine, options
-
-
-def _options_from_dict(d: dict[str, Any]) -> AnalysisOptions:
-    from dataclasses import fields
-
-    known = {f.name for f in fields(AnalysisOptions)}
-    unknown = sorted(set(d) - known)
-    if unknown:
-        raise PlanError(f"unknown analysis key {unknown[0]!r} (known: {', '.join(sorted(known))})")
-    return AnalysisOptions(**d)
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:

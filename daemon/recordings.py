@@ -22,7 +22,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from ballbar.analysis.engine import analyze_recording
-from ballbar.analysis.errors import DataError
+from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 
 log = logging.getLogger(__name__)
@@ -137,6 +137,27 @@ def read_recording(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray
 
         return read_mcap(name)
     return read_csv(name)
+
+
+def recorded_config(path: str) -> dict[str, Any]:
+    """The plan, machine and analysis a daemon recording was made with (empty for CSV).
+
+    A directory: the newest file's configuration that has one.
+    """
+    if not (path.lower().endswith(".mcap") or os.path.isdir(path)):
+        return {}
+    from .mcap_log import list_recordings, read_log  # here: reading CSV needs no MCAP machinery
+
+    files = list_recordings(path) if os.path.isdir(path) else [Path(path)]
+    for f in reversed(files):
+        try:
+            configs = read_log(f, samples=False).config
+        except BallbarError:
+            continue  # read_recording reports what is wrong with the file
+        if configs:
+            cfg = configs[-1].get("config", {})
+            return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis") if isinstance(cfg.get(k), dict)}
+    return {}
 
 
 def pick_test(

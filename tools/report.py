@@ -21,7 +21,7 @@ from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.daemon.mcap_log import read_results
-from ballbar.daemon.recordings import analyze_file
+from ballbar.daemon.recordings import analyze_file, recorded_config
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ class ReportData:
     ``measured_um`` and ``model_um`` (see
     :func:`ballbar.analysis.engine.analyze_test`).  ``history``: the same
     machine's earlier test results under the same conditions (plane, radius,
-    feed, data arc), oldest first, each with ``t_wall`` and ``test_id``; empty
+    feed, data arc, directions), oldest first, each with ``t_wall`` and ``test_id``; empty
     when there are none.  ``history_note``: how the history was chosen (for the
     report's text).  ``source``: what the report was made from.
     """
@@ -164,7 +164,6 @@ def from_records(records: str, test_id: str, options: AnalysisOptions | None = N
     result) to draw the curves; ``options`` replaces the recorded analysis
     options when given.
     """
-    from ballbar.daemon.cli import recorded_config
     from ballbar.daemon.mcap_log import read_logs, valid_samples
 
     files = _records_files(records)
@@ -189,7 +188,7 @@ def from_records(records: str, test_id: str, options: AnalysisOptions | None = N
         cfg = recorded_config(name)
         plan = TestPlan.from_dict(cfg.get("plan", {}))
         machine = MachineConfig.from_dict(cfg.get("machine", {}))
-        opts = options or AnalysisOptions(**_tupled(cfg.get("analysis", {})))
+        opts = options or AnalysisOptions.from_dict(cfg.get("analysis", {}))
         t, L = valid_samples(read_logs(chosen), name)
         analysed = analyze_recording(t, L, plan, machine, opts, curves=True)
         match = [r for r in analysed if r["kind"] == "test" and _same_test(r, target)]
@@ -234,7 +233,3 @@ def published_difference(result: dict[str, Any], published: dict[str, Any], rel:
         return None
     _, key, a, b = worst
     return f"re-analysed {key} = {a:.4g} differs from the published {b:.4g}: the analysis or its options changed"
-
-
-def _tupled(d: dict[str, Any]) -> dict[str, Any]:
-    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
