@@ -165,3 +165,32 @@ def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0) -> fl
     if moving <= 0:
         return float("nan")
     return path / moving
+
+
+def model_limits(plan: TestPlan, accel_mm_s2: float = 2000.0) -> list[str]:
+    """Where ``plan`` itself breaks the analyzer's timing model at path acceleration ``accel_mm_s2``.
+
+    :func:`~ballbar.analysis.program.schedule` assumes every move reaches the
+    feed ``V`` (a move of length ``s`` lasts ``s / V + V / A``) and the data arcs
+    run at constant speed.  A feed-in shorter than ``V^2 / A`` never reaches
+    ``V``; an overshoot shorter than ``V^2 / 2A`` lets the data arc begin while
+    the machine still accelerates.  Then no program can run the plan's timing,
+    and :func:`ballbar.tools.ncinterp.check_against_plan` reports the resulting
+    timing errors too.  The analyzer measures ``V / A`` as the arc-start lag and
+    warns through this function as well.
+    """
+    V = plan.feed_mm_s
+    out: list[str] = []
+    need = V**2 / accel_mm_s2
+    if plan.feed_in_mm < need:
+        out.append(
+            f"the feed-in ({plan.feed_in_mm:g} mm) is too short to reach the feed at {accel_mm_s2:g} mm/s^2 "
+            f"(it needs {need:.4g} mm)"
+        )
+    over = plan.radius_mm * math.radians(plan.overshoot_deg)
+    if over < need / 2.0:
+        out.append(
+            f"the overshoot ({over:.4g} mm) is shorter than the acceleration distance V^2/2A ({need / 2.0:.4g} mm): "
+            "the data arcs begin before the feed is reached"
+        )
+    return out

@@ -259,3 +259,16 @@ def test_ideal_loops_get_no_servo_correction() -> None:
     res, _ = analyse(plan, MachineModel(kv_x_per_s=math.inf, kv_y_per_s=math.inf, radius_um=2.0), 100.0)
     assert res["fit"]["servo_model"] == "linear", res["timing"]["loop_lag_source"]
     assert abs(res["parameters"]["radius_um"]["value"] - 2.0) < 0.02
+
+
+def test_a_feed_in_too_short_to_reach_the_feed_is_warned_about() -> None:
+    # At 6000 mm/min and 2000 mm/s^2 a move needs V^2/A = 5 mm to reach the feed; the default feed-in is 1.5 mm.
+    machine = MachineModel(backlash_x_um=3.0)
+    short = TestPlan(feed_mm_min=6000.0, overshoot_deg=20.0, sample_hz=250.0)
+    res, _ = analyse(short, machine, 250.0)
+    assert any("feed-in (1.5 mm) is too short" in w for w in res.get("warnings", [])), res.get("warnings")
+    long = short.with_(feed_in_mm=6.0)
+    res, _ = analyse(long, machine, 250.0)
+    assert "warnings" not in res
+    assert abs(res["timing"]["measured_feed_mm_min"] / 6000.0 - 1.0) < 2e-5
+    assert abs(res["timing"]["lag_s"] - 100.0 / 2000.0) < 2e-3  # the trapezoid's V / A

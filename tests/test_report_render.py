@@ -228,6 +228,15 @@ def test_text_is_escaped(data: ReportData, tmp_path: Path) -> None:
     assert "a&amp;b&lt;i&gt;" in text and "&lt;img src=x onerror=alert(1)&gt;" in text
 
 
+def test_the_results_warnings_are_in_the_verdict(data: ReportData, tmp_path: Path) -> None:
+    text = render(data, tmp_path / "w.html", png=False)[0].read_text(encoding="utf-8")
+    assert "Warning:" not in text
+    data.result["warnings"] = ["timing model: the feed-in (1.5 mm) is too short <to reach> the feed"]
+    text = render(data, tmp_path / "w.html", png=False)[0].read_text(encoding="utf-8")
+    verdict = text[text.index('id="sec-verdict"'):text.index('id="sec-polar"')]
+    assert "<b>Warning:</b> timing model: the feed-in (1.5 mm) is too short &lt;to reach&gt; the feed" in verdict
+
+
 def test_missing_pieces(analysed: tuple[dict[str, Any], dict[str, Any]], tmp_path: Path) -> None:
     result = copy.deepcopy(analysed[0])
     del result["iso230_4"], result["noise"], result["timing"], result["t_wall"], result["machine_id"]

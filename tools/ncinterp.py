@@ -39,7 +39,7 @@ import numpy as np
 
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.plan import TestPlan
-from ballbar.analysis.program import Move, arc_start_deg, moves, schedule
+from ballbar.analysis.program import Move, arc_start_deg, model_limits, moves, schedule
 from ballbar.tools.gcode import DIALECTS, PLANE_INDEX, WORK_OFFSETS
 from ballbar.tools.simulator import _Profile
 
@@ -874,33 +874,6 @@ def _timing(test: list[_Seg], plan: TestPlan, want: list[Move], matched: list[bo
                 f"timing: the feed-out centroid comes {t_fo:.6f} s after the feed-in's, "
                 f"the schedule {sch.feed_out_centroid_s:.6f} s"
             )
-    return out
-
-
-def model_limits(plan: TestPlan, accel_mm_s2: float = 2000.0) -> list[str]:
-    """Where ``plan`` itself breaks the analyzer's timing model at path acceleration ``accel_mm_s2``.
-
-    :func:`~ballbar.analysis.program.schedule` assumes every move reaches the
-    feed ``V`` (a move of length ``s`` lasts ``s / V + V / A``) and the data arcs
-    run at constant speed.  A feed-in shorter than ``V^2 / A`` never reaches
-    ``V``; an overshoot shorter than ``V^2 / 2A`` lets the data arc begin while
-    the machine still accelerates.  Then no program can run the plan's timing,
-    and :func:`check_against_plan` reports the resulting timing errors too.
-    """
-    V = plan.feed_mm_s
-    out: list[str] = []
-    need = V**2 / accel_mm_s2
-    if plan.feed_in_mm < need:
-        out.append(
-            f"the feed-in ({plan.feed_in_mm:g} mm) is too short to reach the feed at {accel_mm_s2:g} mm/s^2 "
-            f"(it needs {need:.4g} mm)"
-        )
-    over = plan.radius_mm * math.radians(plan.overshoot_deg)
-    if over < need / 2.0:
-        out.append(
-            f"the overshoot ({over:.4g} mm) is shorter than the acceleration distance V^2/2A ({need / 2.0:.4g} mm): "
-            "the data arcs begin before the feed is reached"
-        )
     return out
 
 

@@ -706,6 +706,7 @@ h2 .n { color: var(--accent); margin-right: 8px; }
 h3 { font-size: 13px; margin: 14px 0 6px; color: var(--muted); text-transform: uppercase; letter-spacing: .5px; }
 p { margin: 6px 0; }
 .note, .caption { color: var(--muted); font-size: 12.5px; }
+.note.warning { color: #8a4b00; }
 .caption { margin-top: 4px; }
 dl.kv { display: grid; grid-template-columns: repeat(3, max-content minmax(0, 1fr)); gap: 3px 12px; margin: 0;
   font-size: 13px; }
@@ -857,12 +858,14 @@ def _verdict(result: Mapping[str, Any], curves: Sequence[_Curve]) -> str:
     prov = ('<p class="note"><b>Provisional timing:</b> the feed was not measured; angles assume the '
             "programmed feed.</p>") if provisional else ""
     no_curves = "" if curves else '<p class="note">No curves in the data: plots omitted.</p>'
+    warn = "".join(f'<p class="note warning"><b>Warning:</b> {_e(w)}</p>'
+                   for w in result.get("warnings") or [] if isinstance(w, str))
     return (
         '<div class="verdict"><div>'
         f'<div class="lbl">Circularity {_e(gname)}</div>'
         f'<div class="big" id="verdict-g">{_e(_fmt(g, 1))} <small>µm</small></div>'
         f'<div class="fig2">{_e(" · ".join(others))}</div></div>'
-        f'<div><div class="lbl">Main findings</div>{found}{setup_txt}{prov}{no_curves}</div></div>'
+        f'<div><div class="lbl">Main findings</div>{found}{setup_txt}{prov}{no_curves}{warn}</div></div>'
     )
 
 
