@@ -573,9 +573,13 @@ def findings_markdown(result: Mapping[str, Any]) -> str:
     if nz:
         lines += [
             "",
-            f"Vibration {_fmt(nz.get('vibration_um'))} µm above {nz.get('vibration_cutoff_cpr')} cycles/rev; "
+            f"Vibration {_fmt(nz.get('vibration_um'))} µm above {nz.get('vibration_cutoff_cpr')} cycles/rev "
+            f"(strongest line {_fmt(nz.get('vibration_peak_um'))} µm, "
+            f"{'significant' if nz.get('vibration_significant') else 'not significant'}); "
             f"stick-slip X {_fmt(nz.get('stick_slip_x_um'))} µm, Y {_fmt(nz.get('stick_slip_y_um'))} µm",
         ]
+    for w in result.get("warnings") or []:
+        lines += ["", f"**Warning:** {w}"]
     lines += ["", "### Advice", ""]
     advice = list(result.get("advice") or [])
     if not advice:

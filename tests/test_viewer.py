@@ -564,6 +564,9 @@ def test_findings_markdown(script: Script) -> None:
     md = findings_markdown(script.results[2])
     assert md.startswith("## Test 1 · `m1-1`")
     assert "| 1 | servo_mismatch |" in md and "### Advice" in md and "backlash" in md
+    assert "Warning" not in md
+    md = findings_markdown({**script.results[2], "warnings": ["timing model: the feed-in is too short"]})
+    assert "**Warning:** timing model: the feed-in is too short" in md
 
 
 def test_options() -> None:
