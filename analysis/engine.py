@@ -635,14 +635,14 @@ def analyze_test(
     res["timing"]["loop_lag_source"] = tau_source
     res["timing"]["loop_lag_radial_cos2u"] = cos2
     res["timing"]["backlash_takeup_deg"] = {"x": math.degrees(takeup[0]), "y": math.degrees(takeup[1])}
-    # The arc-start lag of a trapezoid profile is V / A: a plan whose moves cannot reach the feed at that
-    # acceleration leaves the timing model, and the measured feed and angles with it.
+    # The arc-start lag of a trapezoid profile is V / A: a plan whose data arcs begin before the feed is
+    # reached at that acceleration leaves the timing model, and the measured feed and angles with it.
     if hyper.overhead_s > 0 and math.isfinite(hyper.overhead_s):
         limits = model_limits(plan.with_(feed_mm_min=V * 60.0), V / hyper.overhead_s)
         if limits:
             res["warnings"] = [
                 f"timing model: {why} (acceleration from the measured arc-start lag); the measured feed and the "
-                "angles are biased: lengthen feed_in_mm or overshoot_deg" for why in limits
+                "angles are biased: lengthen overshoot_deg" for why in limits
             ]
     res["iso230_4"] = iso230.figures({c.d: c.measured() for c in joint.circles})
     res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, sample_hz)

@@ -7,7 +7,11 @@ Timing model.  Every move starts and ends at rest.  For any acceleration profile
 that is symmetric (acceleration mirrored by deceleration) and reaches the path
 feed ``V``, a move of length ``s`` lasts ``s / V + c``; ``c`` is the move's
 overhead (``V / A`` for a trapezoid of acceleration ``A``), and in the constant
-speed part the path position is ``V * (t - t_start - c / 2)``.  The analyzer
+speed part the path position is ``V * (t - t_start - c / 2)``.  A move shorter
+than ``V c`` (``V^2 / A``: at high feeds, the 1.5 mm feed-in) never reaches
+``V``; taken as a trapezoid's triangle it lasts ``2 sqrt(s c / V)``
+(:func:`move_duration`).  The data arcs must run at ``V``: an overshoot
+shorter than ``V c / 2`` breaks the model (:func:`model_limits`).  The analyzer
 estimates ``V`` and ``c`` (:mod:`ballbar.analysis.timing`); the simulator runs a
 real profile.  The schedule below is that model's prediction.
 """
@@ -129,14 +133,23 @@ class Schedule:
         return u_ds + direction * np.degrees(self.feed_mm_s * tau / plan.radius_mm)
 
 
+def move_duration(length_mm: float, feed_mm_s: float, overhead_s: float) -> float:
+    """Rest-to-rest duration of a move: ``s / V + c`` when it reaches the feed (``s >= V c``), else the
+    triangle ``2 sqrt(s c / V)`` of a trapezoid with ``A = V / c`` (the two agree at ``s = V c``)."""
+    if overhead_s <= 0.0 or length_mm >= feed_mm_s * overhead_s:
+        return length_mm / feed_mm_s + overhead_s
+    return 2.0 * math.sqrt(length_mm * overhead_s / feed_mm_s)
+
+
 def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0) -> Schedule:
     """Predicted timing of ``plan`` at path feed ``feed_mm_s`` and per-move overhead ``overhead_s``."""
     V, c = feed_mm_s, overhead_s
     R, f, D = plan.radius_mm, plan.feed_in_mm, plan.dwell_s
     o, a = math.radians(plan.overshoot_deg), math.radians(plan.data_arc_deg)
     arc_len = R * (a + 2 * o)
-    # The feed-in lasts f/V + c; its centroid sits at its middle.
-    t = f / (2 * V) + c / 2  # end of feed-in, relative to its centroid
+    # The feed-in's centroid sits at its middle, whether or not it reaches the feed.
+    half_feed_in = move_duration(f, V, c) / 2
+    t = half_feed_in  # end of feed-in, relative to its centroid
     ds: dict[int, float] = {}
     de: dict[int, float] = {}
     arc_start: dict[int, float] = {}
@@ -147,7 +160,7 @@ def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0) -> Sched
         de[d] = ds[d] + R * a / V
         t += arc_len / V + c
     t += D
-    feed_out_centroid = t + f / (2 * V) + c / 2
+    feed_out_centroid = t + half_feed_in
     return Schedule(V, c, ds, de, arc_start, feed_out_centroid)
 
 
@@ -157,40 +170,49 @@ def centroid_span_s(plan: TestPlan, feed_mm_s: float, overhead_s: float) -> floa
 
 
 def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0) -> float:
-    """Invert :func:`centroid_span_s` for the feed (mm/s): the span is linear in 1/V."""
-    n_moves = len(plan.direction_list) + 1  # arcs plus half the feed-in and half the feed-out
-    n_dwells = len(plan.direction_list) + 1
-    path = plan.feed_in_mm + len(plan.direction_list) * plan.radius_mm * math.radians(plan.arc_deg)
-    moving = span_s - n_dwells * plan.dwell_s - n_moves * overhead_s
-    if moving <= 0:
+    """Invert :func:`centroid_span_s` for the feed (mm/s).
+
+    Where the feed-in reaches the feed the span is linear in ``1/V``; where it
+    does not (its two halves last ``2 sqrt(f c / V)``) it is quadratic in
+    ``1/sqrt(V)``.  Both branches are solved in closed form and the one whose
+    feed is consistent with it is taken (the span falls monotonically with
+    ``V``, so exactly one is).
+    """
+    n_dirs = len(plan.direction_list)
+    n_dwells = n_dirs + 1
+    f, c = plan.feed_in_mm, overhead_s
+    arcs = n_dirs * plan.radius_mm * math.radians(plan.arc_deg)
+    # Reaching the feed: span = dwells + n_dirs c + c (two half feed moves) + (f + arcs) / V.
+    moving = span_s - n_dwells * plan.dwell_s - (n_dirs + 1) * c
+    V = (f + arcs) / moving if moving > 0 else float("nan")
+    if c <= 0.0 or not math.isfinite(V) or f >= V * c:
+        return V
+    # A triangle feed-in: span = dwells + n_dirs c + arcs x^2 + 2 sqrt(f c) x with x = 1/sqrt(V).
+    m = span_s - n_dwells * plan.dwell_s - n_dirs * c
+    b = 2.0 * math.sqrt(f * c)
+    if m <= 0:
         return float("nan")
-    return path / moving
+    x = (-b + math.sqrt(b * b + 4.0 * arcs * m)) / (2.0 * arcs)
+    return 1.0 / (x * x)
 
 
 def model_limits(plan: TestPlan, accel_mm_s2: float = 2000.0) -> list[str]:
     """Where ``plan`` itself breaks the analyzer's timing model at path acceleration ``accel_mm_s2``.
 
-    :func:`~ballbar.analysis.program.schedule` assumes every move reaches the
-    feed ``V`` (a move of length ``s`` lasts ``s / V + V / A``) and the data arcs
-    run at constant speed.  A feed-in shorter than ``V^2 / A`` never reaches
-    ``V``; an overshoot shorter than ``V^2 / 2A`` lets the data arc begin while
-    the machine still accelerates.  Then no program can run the plan's timing,
-    and :func:`ballbar.tools.ncinterp.check_against_plan` reports the resulting
-    timing errors too.  The analyzer measures ``V / A`` as the arc-start lag and
-    warns through this function as well.
+    :func:`schedule` takes a move too short to reach the feed ``V`` as a
+    trapezoid's triangle, but the data arcs must run at ``V``: an overshoot
+    shorter than the acceleration distance ``V^2 / 2A`` lets a data arc begin
+    while the machine still accelerates.  Then no program can run the plan's
+    timing, and :func:`ballbar.tools.ncinterp.check_against_plan` reports the
+    resulting timing errors too.  The analyzer measures ``V / A`` as the
+    arc-start lag and warns through this function as well.
     """
     V = plan.feed_mm_s
-    out: list[str] = []
-    need = V**2 / accel_mm_s2
-    if plan.feed_in_mm < need:
-        out.append(
-            f"the feed-in ({plan.feed_in_mm:g} mm) is too short to reach the feed at {accel_mm_s2:g} mm/s^2 "
-            f"(it needs {need:.4g} mm)"
-        )
+    need = V**2 / (2.0 * accel_mm_s2)
     over = plan.radius_mm * math.radians(plan.overshoot_deg)
-    if over < need / 2.0:
-        out.append(
-            f"the overshoot ({over:.4g} mm) is shorter than the acceleration distance V^2/2A ({need / 2.0:.4g} mm): "
-            "the data arcs begin before the feed is reached"
-        )
-    return out
+    if over < need:
+        return [
+            f"the overshoot ({over:.4g} mm) is shorter than the acceleration distance V^2/2A ({need:.4g} mm at "
+            f"{accel_mm_s2:g} mm/s^2): the data arcs begin before the feed is reached"
+        ]
+    return []

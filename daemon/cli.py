@@ -230,7 +230,7 @@ def cmd_gcode(args: argparse.Namespace) -> int:
     origin = _origin(args.origin)
     text = generate(plan, args.dialect, decimals=args.decimals, origin=origin, work_offset=args.work_offset,
                     program_name=args.program_name, mount_stop=not args.no_stop, repeat=args.repeat)
-    # Where the plan itself leaves the analyzer's timing model (a move too short to reach the feed), no
+    # Where the plan itself leaves the analyzer's timing model (an overshoot too short to reach the feed), no
     # program can match it: say so and write the program; otherwise a mismatch is the generator's bug.
     limits = model_limits(plan)
     for why in limits:

@@ -153,11 +153,17 @@ def test_any_plan_runs_exactly_unless_the_plan_breaks_the_model(
 
 def test_model_limits() -> None:
     assert model_limits(TestPlan()) == []
-    fast = TestPlan(feed_mm_min=5000.0)  # V^2/A = 3.47 mm > the 1.5 mm feed-in
-    assert model_limits(fast) == [
-        "the feed-in (1.5 mm) is too short to reach the feed at 2000 mm/s^2 (it needs 3.472 mm)"
+    # V^2/A = 3.47 mm > the 1.5 mm feed-in: the feed-in is a triangle, which the timing model includes.
+    fast = TestPlan(feed_mm_min=5000.0)
+    assert model_limits(fast) == []
+    assert check_against_plan(generate(fast, "fanuc"), "fanuc", fast) == []
+    # V^2/2A = 1.74 mm > one degree at R 100 (1.745 mm) only below about 2000 mm/s^2.
+    edge = TestPlan(feed_mm_min=5000.0, overshoot_deg=1.0)
+    assert model_limits(edge, accel_mm_s2=1900.0) == [
+        "the overshoot (1.745 mm) is shorter than the acceleration distance V^2/2A (1.827 mm at 1900 mm/s^2): "
+        "the data arcs begin before the feed is reached"
     ]
-    assert model_limits(fast, accel_mm_s2=5000.0) == []
+    assert model_limits(edge, accel_mm_s2=2100.0) == []
     short = TestPlan(overshoot_deg=0.0)
     assert model_limits(short)[0].startswith("the overshoot (0 mm) is shorter than the acceleration distance")
     assert any(p.startswith("timing: on the ccw data arc") for p in check_against_plan(generate(short, "fanuc"),

@@ -261,14 +261,22 @@ def test_ideal_loops_get_no_servo_correction() -> None:
     assert abs(res["parameters"]["radius_um"]["value"] - 2.0) < 0.02
 
 
-def test_a_feed_in_too_short_to_reach_the_feed_is_warned_about() -> None:
+def test_a_feed_in_too_short_to_reach_the_feed_is_timed_as_a_triangle() -> None:
     # At 6000 mm/min and 2000 mm/s^2 a move needs V^2/A = 5 mm to reach the feed; the default feed-in is 1.5 mm.
-    machine = MachineModel(backlash_x_um=3.0)
-    short = TestPlan(feed_mm_min=6000.0, overshoot_deg=20.0, sample_hz=250.0)
-    res, _ = analyse(short, machine, 250.0)
-    assert any("feed-in (1.5 mm) is too short" in w for w in res.get("warnings", [])), res.get("warnings")
-    long = short.with_(feed_in_mm=6.0)
-    res, _ = analyse(long, machine, 250.0)
-    assert "warnings" not in res
-    assert abs(res["timing"]["measured_feed_mm_min"] / 6000.0 - 1.0) < 2e-5
-    assert abs(res["timing"]["lag_s"] - 100.0 / 2000.0) < 2e-3  # the trapezoid's V / A
+    machine = MachineModel(backlash_x_um=3.0, squareness_urad=10.0)
+    for feed_in in (1.5, 6.0):
+        plan = TestPlan(feed_mm_min=6000.0, overshoot_deg=20.0, sample_hz=1000.0, feed_in_mm=feed_in)
+        res, _ = analyse(plan, machine, 1000.0)
+        assert "warnings" not in res
+        assert abs(res["timing"]["measured_feed_mm_min"] / 6000.0 - 1.0) < 2e-5, feed_in
+        assert abs(res["timing"]["lag_s"] - 100.0 / 2000.0) < 2e-3, feed_in  # the trapezoid's V / A
+        assert abs(res["parameters"]["backlash_x_um"]["value"] - 3.0) < 0.05
+        assert abs(res["parameters"]["squareness_urad"]["value"] - 10.0) < 0.2
+
+
+def test_an_overshoot_too_short_to_reach_the_feed_is_warned_about() -> None:
+    # V^2/2A = 2.5 mm at 6000 mm/min and 2000 mm/s^2; one degree at R 100 is 1.75 mm.
+    plan = TestPlan(feed_mm_min=6000.0, overshoot_deg=1.0, sample_hz=250.0, feed_in_mm=6.0)
+    res, _ = analyse(plan, MachineModel(backlash_x_um=3.0), 250.0)
+    assert any("the overshoot (1.745 mm) is shorter than the acceleration distance" in w
+               for w in res.get("warnings", [])), res.get("warnings")

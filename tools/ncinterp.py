@@ -22,7 +22,7 @@ approaches in exact-stop mode anyway).
 :func:`check_against_plan` compares a program with the plan and with the
 timing the analyzer assumes (:func:`ballbar.analysis.program.schedule`).
 :func:`model_limits` says where the plan itself breaks that timing model at a
-given acceleration (a feed-in or overshoot too short to reach the feed): then
+given acceleration (an overshoot too short to reach the feed): then
 no program can pass the check, and the plan, not the program, needs changing.
 """
 
