@@ -367,7 +367,8 @@ class _IsoWriter(_Writer):
     spindle_stop = "M05"
 
     def prologue(self, name: str | None) -> None:
-        pass
+        if name:  # no program-number word in these dialects: the name is a comment
+            self.comment(f"Program {name}")
 
     def modal(self) -> str:
         return f"{self.units_g} G90 G{PLANE_G[self.plan.plane]} G94 G40"
@@ -481,10 +482,6 @@ class _Siemens(_IsoWriter):
     def comment(self, text: str) -> None:
         self.emit(f"; {_ascii(text)}")
 
-    def prologue(self, name: str | None) -> None:
-        if name:
-            self.comment(f"Program {name}")
-
     def dwell(self, seconds: float) -> str:
         return f"G4 F{exact_number(seconds, 'dwell')}"
 
@@ -503,10 +500,6 @@ class _LinuxCnc(_IsoWriter):
 
     def comment(self, text: str) -> None:
         self.emit(f"({_ascii(text).replace('(', '[').replace(')', ']')})")
-
-    def prologue(self, name: str | None) -> None:
-        if name:
-            self.comment(f"Program {name}")
 
     def modal(self) -> str:
         return super().modal() + " G80 G91.1"
