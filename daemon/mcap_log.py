@@ -1088,6 +1088,12 @@ def list_recordings(directory: str | os.PathLike[str]) -> list[Path]:
     return [p for *_k, p in sorted(found)]
 
 
+def mcap_files(directory: str | os.PathLike[str]) -> list[Path]:
+    """The MCAP files of a directory to read as one recording: the logger's, oldest first, else any ``*.mcap``
+    in name order (files renamed or copied by hand)."""
+    return list_recordings(directory) or sorted(Path(directory).glob("*.mcap"))
+
+
 # ----------------------------------------------------------------------------- reading
 
 
@@ -1297,7 +1303,7 @@ def read_mcap(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArra
     """
     name = os.fspath(path)
     if os.path.isdir(name):
-        files = list_recordings(name) or sorted(Path(name).glob("*.mcap"))
+        files = mcap_files(name)
         if not files:
             raise DataError(f"{name}: a directory without .mcap files")
         lg = read_logs(files)
@@ -1349,6 +1355,7 @@ __all__ = [
     "decode_samples",
     "encode_samples",
     "list_recordings",
+    "mcap_files",
     "read_log",
     "read_logs",
     "read_mcap",

@@ -146,18 +146,23 @@ def recorded_config(path: str) -> dict[str, Any]:
     """
     if not (path.lower().endswith(".mcap") or os.path.isdir(path)):
         return {}
-    from .mcap_log import list_recordings, read_log  # here: reading CSV needs no MCAP machinery
+    from .mcap_log import mcap_files, read_log  # here: reading CSV needs no MCAP machinery
 
-    files = list_recordings(path) if os.path.isdir(path) else [Path(path)]
+    files = mcap_files(path) if os.path.isdir(path) else [Path(path)]
     for f in reversed(files):
         try:
             configs = read_log(f, samples=False).config
         except BallbarError:
             continue  # read_recording reports what is wrong with the file
         if configs:
-            cfg = configs[-1].get("config", {})
-            return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis") if isinstance(cfg.get(k), dict)}
+            return config_sections(configs)
     return {}
+
+
+def config_sections(configs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The ``plan``, ``machine`` and ``analysis`` tables of the newest of a log's config records."""
+    cfg = configs[-1].get("config", {}) if configs else {}
+    return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis") if isinstance(cfg.get(k), dict)}
 
 
 def pick_test(

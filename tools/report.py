@@ -20,8 +20,8 @@ import numpy as np
 from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
-from ballbar.daemon.mcap_log import read_results
-from ballbar.daemon.recordings import analyze_file, recorded_config
+from ballbar.daemon.mcap_log import mcap_files, read_results
+from ballbar.daemon.recordings import analyze_file, config_sections
 
 log = logging.getLogger(__name__)
 
@@ -88,10 +88,8 @@ def select_history(result: dict[str, Any], candidates: list[dict[str, Any]]) -> 
 
 
 def _mcap_files(path: str) -> list[Path]:
-    from ballbar.daemon.mcap_log import list_recordings
-
     if os.path.isdir(path):
-        return list_recordings(path) or sorted(Path(path).glob("*.mcap"))
+        return mcap_files(path)
     return [Path(path)] if path.lower().endswith(".mcap") else []
 
 
@@ -185,11 +183,12 @@ def from_records(records: str, test_id: str, options: AnalysisOptions | None = N
         if not chosen:
             continue
         name = os.fspath(chosen[-1])
-        cfg = recorded_config(name)
+        lg = read_logs(chosen)
+        cfg = config_sections(lg.config)  # the newest: the test's own file's, where it has one
         plan = TestPlan.from_dict(cfg.get("plan", {}))
         machine = MachineConfig.from_dict(cfg.get("machine", {}))
         opts = options or AnalysisOptions.from_dict(cfg.get("analysis", {}))
-        t, L = valid_samples(read_logs(chosen), name)
+        t, L = valid_samples(lg, name)
         analysed = analyze_recording(t, L, plan, machine, opts, curves=True)
         match = [r for r in analysed if r["kind"] == "test" and _same_test(r, target)]
         if match:
