@@ -18,11 +18,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ballbar.analysis.errors import BallbarError, DataError, PlanError
+from ballbar.analysis.errors import BallbarError, PlanError
 from ballbar.analysis.patterns import BY_NAME
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.analysis.report import summary
 
+from .output import write_atomic
 from .recordings import analyze_file, recorded_config
 
 log = logging.getLogger(__name__)
@@ -241,20 +242,10 @@ def cmd_gcode(args: argparse.Namespace) -> int:
     if args.output is None:
         sys.stdout.write(text)
         return 0
-    _write_atomic(Path(args.output), text)
+    write_atomic(args.output, text.encode("utf-8"))
     print(f"wrote {args.output}: {args.dialect} program, plane {plan.plane}, R {plan.radius_mm:g} mm, "
           f"F {plan.feed_mm_min:g} mm/min", file=sys.stderr)
     return 0
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise DataError(f"{path}: cannot write: {err.strerror or err}") from err
 
 
 def cmd_report(args: argparse.Namespace) -> int:

@@ -83,3 +83,22 @@ def test_report_from_a_csv_recording(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert all(Path(p).stat().st_size > 0 for p in written)
     html = out.read_text(encoding="utf-8")
     assert "Backlash X" in html and "run 1" in html
+
+
+def test_an_output_that_cannot_be_written_is_one_line_and_exit_1(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    assert main(["gcode", "--dialect", "fanuc", "-o", str(blocker / "bb.nc")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {blocker / 'bb.nc'}: cannot write:") and err.count("\n") == 1
+    plan = TestPlan(overshoot_deg=20.0, sample_hz=250.0)
+    sim = simulate(plan, MachineModel(backlash_x_um=4.0))
+    rec = tmp_path / "rec.csv"
+    write_csv(str(rec), sim.t_s, sim.length_mm)
+    args = ["report", str(rec), "--overshoot-deg", "20", "--sample-hz", "250", "-o", str(blocker / "r.html")]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "cannot write" in err and err.count("\n") == 1 and "Traceback" not in err
+    assert sorted(tmp_path.iterdir()) == sorted([blocker, rec])  # no temporary file left behind

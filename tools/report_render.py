@@ -37,9 +37,7 @@ import html
 import io
 import logging
 import math
-import os
 import re
-import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
@@ -50,6 +48,7 @@ import numpy as np
 
 from ballbar.analysis.patterns import LIBRARY, Pattern
 from ballbar.analysis.plan import PLANE_AXES
+from ballbar.daemon.output import write_atomic
 
 from .report import ReportData
 
@@ -664,23 +663,6 @@ def _png(fig: Figure) -> bytes:
     return buf.getvalue()
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename: a reader sees the old file or the
-    whole new one, never a half-written report."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
 # --------------------------------------------------------------------------- HTML sections
 
 
@@ -1111,7 +1093,6 @@ def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]
     always whole.
     """
     html_path = Path(html_path)
-    html_path.parent.mkdir(parents=True, exist_ok=True)
     result: Mapping[str, Any] = data.result or {}
     plan = result.get("plan") or {}
     axes = _axes(plan)
@@ -1202,8 +1183,8 @@ def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]
     )
     written = []
     for path, blob in pngs:
-        _write_atomic(path, blob)
+        write_atomic(path, blob)
         written.append(path)
-    _write_atomic(html_path, page.encode("utf-8"))
+    write_atomic(html_path, page.encode("utf-8"))
     log.info("report written to %s (%d bytes, %d PNGs)", html_path, len(page.encode("utf-8")), len(written))
     return [html_path, *written]
