@@ -653,10 +653,10 @@ def analyze_test(
     if curves:
         res["curves"] = {}
         for c, r in zip(joint.circles, residuals, strict=True):
-            tc, uc, _, _ = c.corrected()
-            dr = c.measured()[1]
+            uc, dr = c.measured()  # not corrected(): that would rebuild the correction and the design
             res["curves"]["ccw" if c.d > 0 else "cw"] = {
-                "t_s": tc, "u_deg": np.degrees(uc), "measured_um": dr, "model_um": dr - r,
+                "t_s": np.concatenate([k[0] for k in c.kept]), "u_deg": np.degrees(uc), "measured_um": dr,
+                "model_um": dr - r,
             }
     all_r = np.concatenate(residuals)
     res["residual_rms_um"] = float(np.sqrt(np.mean(all_r**2)))
