@@ -1,4 +1,4 @@
-"""Parameter adjustment advice (DOMAIN.md section 6).
+"""Parameter adjustment advice (analysis/README.md, "Advice").
 
 For each significant pattern: what to change, by how much, with sign and unit,
 and the parameter's name on common controllers where it is well known.  The

@@ -1,4 +1,4 @@
-"""The fit of DOMAIN.md section 4: weighted residual method, extra sum of squares.
+"""The fit of analysis/README.md ("The fit"): weighted residual method, extra sum of squares.
 
 The weighted residual (Galerkin) equations of Suh & Lee (eq. 11-13) with the
 masks as weights are the normal equations of least squares.  They are solved

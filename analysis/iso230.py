@@ -1,4 +1,4 @@
-"""ISO 230-4 circular test figures (DOMAIN.md section 5).
+"""ISO 230-4 circular test figures (analysis/README.md, "ISO 230-4 figures").
 
 - ``G`` circular deviation per direction: range of the radial deviation about
   that direction's least-squares circle (centre and radius fitted).

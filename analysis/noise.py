@@ -1,4 +1,4 @@
-"""Noise-type findings computed from the fit's residual (DOMAIN.md section 3).
+"""Noise-type findings computed from the fit's residual (analysis/README.md, "Noise findings").
 
 - Vibration: RMS of the residual above a cut-off in cycles per revolution
   (cpr), with the dominant frequency in Hz and cpr.  The residual of each data

@@ -1,8 +1,8 @@
-"""The pattern library of DOMAIN.md section 3: one mask per physical error.
+"""The pattern library of analysis/README.md: one mask per physical error.
 
 Every mask is the radial deviation ``dR(u, d)`` (micrometres) that a physical
 error model ``D = (DX, DY)`` produces through ``dR = DX cos u + DY sin u``
-(DOMAIN.md section 2; Suh & Lee eq. 2).  ``u`` is the commanded angle in
+(analysis/README.md; Suh & Lee eq. 2).  ``u`` is the commanded angle in
 radians, counter-clockwise from the plane's first axis, ``d`` the direction
 (+1 CCW, -1 CW), ``V`` the path feed in mm/s, ``R`` the radius in mm and ``t``
 the time in minutes from the test's feed-in.
@@ -14,7 +14,7 @@ tested as one term; each axis' backlash is its own term.  The order of
 data: the later one is left out.
 
 The seed's three patterns (backlash eq. 3-4, master-slave changeover eq. 5-6,
-servo mismatch eq. 7-8) are the DOMAIN.md forms of those equations.
+servo mismatch eq. 7-8) are the analysis/README.md forms of those equations.
 """
 
 from __future__ import annotations

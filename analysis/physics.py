@@ -1,6 +1,6 @@
 """Physical models beyond the linear masks, applied as corrections to the data.
 
-Two effects that the masks of DOMAIN.md describe only to first order leave a
+Two effects that the masks of analysis/README.md describe only to first order leave a
 bias a good analyzer removes.  Each is the difference between the physical
 model and its mask, evaluated at the current estimates and subtracted from the
 measured deviation before the masks are fitted again (a fixed-point iteration:
@@ -20,7 +20,7 @@ dynamic shrinkage of the radius (``-R Omega^2 tau^2 / 2``, which otherwise
 lands in ``radius_um``) and ``-(R Omega^2 / 4)(1/KX^2 - 1/KY^2) cos 2u``, which
 a linear fit reads as a spurious ``scale_mismatch_ppm`` (-2.7 ppm for KX = 30,
 KY = 33 /s at R = 100 mm, F = 1000 mm/min; -8 ppm in the commanded frame that
-DOMAIN.md quotes).  ``tau_bar`` comes from the configured gains or from the
+analysis/README.md mentions).  ``tau_bar`` comes from the configured gains or from the
 exponential approach that ends the feed-in and feed-out (:mod:`.detect`).
 
 Lost motion.  Backlash is a dead band between motor and table: after a

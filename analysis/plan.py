@@ -1,6 +1,6 @@
 """The test plan, the machine's configuration and the analysis options.
 
-Names, units and defaults follow ``shared/DOMAIN.md`` section 1 and 7.  The plan
+Names, units and defaults: analysis/README.md, "The test program".  The plan
 is configuration: the analyzer assumes the timing of the program that
 :mod:`ballbar.analysis.program` generates from it.
 """

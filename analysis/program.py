@@ -1,4 +1,4 @@
-"""The test program of DOMAIN.md section 1 as a list of moves, and its timing.
+"""The test program of analysis/README.md as a list of moves, and its timing.
 
 Coordinates are in the plane's frame (first axis, second axis), in millimetres,
 relative to the pivot.  Angles are radians internally.
@@ -79,7 +79,7 @@ def arc_start_deg(plan: TestPlan, direction: int) -> float:
 
 
 def data_start_deg(plan: TestPlan, direction: int) -> float:
-    """First angle of the data arc in the direction of travel (DOMAIN.md section 1)."""
+    """First angle of the data arc in the direction of travel (analysis/README.md, "The angle of each sample")."""
     if direction > 0:
         return plan.start_deg + plan.overshoot_deg
     return plan.start_deg + plan.overshoot_deg + plan.data_arc_deg

@@ -1,6 +1,6 @@
 """Result dictionaries and the human-readable summary.
 
-``parameters`` is keyed by every field of the library (DOMAIN.md section 3),
+``parameters`` is keyed by every field of the library (analysis/README.md, "The pattern library"),
 whether fitted or not: a parameter that was not fitted has ``value`` None,
 ``identifiable`` False and a ``reason``.  Cyclic errors are fitted as a sine and
 cosine pair and reported as amplitude (``cyclic_x_um``) and phase

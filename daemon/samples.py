@@ -16,7 +16,7 @@ Columns
                when the protocol has no device clock.  Evenly spaced at the
                device's rate: the analysis should prefer it to ``t_host``.
 ``length_mm``  float64, absolute bar length ``L = cal_mm + displacement``
-               (``shared/DOMAIN.md`` section 1).  Not a measurement where
+               (``analysis/README.md``, "The instrument").  Not a measurement where
                ``status`` has OVER_RANGE or SENSOR_FAULT (use :attr:`SampleBatch.valid`).
 ``seq``        int64, unwrapped sample number, strictly increasing within a
                source's life; a step larger than 1 is a lost sample, already

@@ -42,7 +42,7 @@ older circle is always seen against its own scale.  With
 ``remove_setup`` the set-up terms of the latest result (pivot offset
 ``centre_*_um`` and ``radius_um``) are subtracted from the measured and the
 model curves alike, as commercial ball-bar software draws them.  A sample's
-angle comes from the test program's timing (DOMAIN.md section 1): live, from
+angle comes from the test program's timing (analysis/README.md): live, from
 the feed-in event and the feed ratio and overhead learnt on the previous test
 (exactly the engine's provisional timing); after each circle and test result,
 from that result's ``timing``.
@@ -307,7 +307,7 @@ class ArcTiming:
     """The timing of one direction's data arc, on the analysis clock.
 
     A sample at ``t`` in ``[start_s, end_s]`` is at angle
-    ``u = u_ds + d V (t - start_s) / R`` (DOMAIN.md section 1).
+    ``u = u_ds + d V (t - start_s) / R`` (analysis/README.md, "The angle of each sample").
     """
 
     direction: int

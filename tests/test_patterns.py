@@ -1,4 +1,4 @@
-"""Every mask is its physical model projected on the bar (DOMAIN.md sections 2-3)."""
+"""Every mask is its physical model projected on the bar (analysis/README.md)."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def test_master_slave_is_a_flipping_constant_vector() -> None:
 
 
 def test_seed_equations() -> None:
-    """Suh & Lee eq. 4, 6 and 8 in DOMAIN.md's reading."""
+    """Suh & Lee eq. 4, 6 and 8 in analysis/README.md's reading."""
     a, b = 3.0, -2.0
     # eq. 6: steps a at 45/225 deg and b at 135/315 deg
     ms = col("master_slave") @ np.array([a, b])
@@ -85,7 +85,7 @@ def test_seed_equations() -> None:
 
 
 def test_domain_magnitude_anchors() -> None:
-    """DOMAIN.md: at R = 100 mm, F = 1000 mm/min, 1 ms of mismatch is 8.3 um on sin 2u; 10 urad is 0.5 um."""
+    """analysis/README.md: at R = 100 mm, F = 1000 mm/min, 1 ms of mismatch is 8.3 um on sin 2u; 10 urad is 0.5 um."""
     assert abs(np.max(np.abs(col("servo_mismatch"))) - 8.333) < 0.01
     assert abs(np.max(np.abs(col("squareness") * 10)) - 0.5) < 0.001
 

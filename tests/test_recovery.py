@@ -2,7 +2,7 @@
 
 ``ballbar.tools.simulator`` runs the test program through position loops, a
 dead band, friction and geometry and computes the bar's exact length; the
-analyzer must recover the machine's parameters from that (DOMAIN.md anchors).
+analyzer must recover the machine's parameters from that (analysis/README.md).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ RATES = [15.625, 100.0, 1000.0]
 R, F = 100.0, 1000.0
 V = F / 60.0
 
-# 0.02 um of peak radial deviation, in each parameter's unit (DOMAIN.md section 3)
+# 0.02 um of peak radial deviation, in each parameter's unit (analysis/README.md, "Mask units")
 UNIT_TOL = {
     "servo_mismatch_ms": 0.02 / (V / 2),
     "squareness_urad": 0.02 / (R * 1e-3 / 2),
@@ -69,7 +69,7 @@ def test_each_pattern_alone_noise_free(case: str, fs: float) -> None:
     assert lag_assumed == (fs < 50), res["timing"]["loop_lag_source"]  # the feed-in settles within ~3 samples
     for field, p in res["parameters"].items():
         if p["value"] is None or (field == "radius_um" and case == "scale"):
-            continue  # the mean of two scales is a radius change (DOMAIN.md): not separable
+            continue  # the mean of two scales is a radius change (analysis/README.md): not separable
         if field == "radius_um" and lag_assumed and case == "servo_mismatch":
             # an assumed loop lag (30/s against the true 30 and 33/s) misjudges the dynamic shrinkage
             assert abs(p["value"]) < 0.2

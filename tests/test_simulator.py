@@ -1,4 +1,4 @@
-"""The simulator against DOMAIN.md's physics, computed here independently of analysis/."""
+"""The simulator against analysis/README.md's physics, computed here independently of analysis/."""
 
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ DFunc = Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray]]
 def compare_first_order(
     res: SimResult, D: DFunc, tol_um: float, skip: tuple[float, ...] = (), margin_deg: float = 0.0
 ) -> None:
-    """Measured dR vs DOMAIN section 2: dR = DX cos u + DY sin u, at the commanded angles."""
+    """Measured dR vs analysis/README.md: dR = DX cos u + DY sin u, at the commanded angles."""
     for d in res.plan.direction_list:
         m = data_arc(res, d)
         u = np.radians(res.angle_deg[m])
@@ -137,7 +137,7 @@ def test_velocity_feed_forward_reduces_the_lag() -> None:
 def test_servo_mismatch_mask_sign_and_size() -> None:
     kx, ky = 30.0, 33.0
     res = run(MachineModel(kv_x_per_s=kx, kv_y_per_s=ky))
-    m_ms = 1000.0 * (1 / kx - 1 / ky)  # DOMAIN: m = 1/KX - 1/KY in ms
+    m_ms = 1000.0 * (1 / kx - 1 / ky)  # analysis/README.md: m = 1/KX - 1/KY in ms
     assert res.truth["servo_mismatch_ms"] == pytest.approx(m_ms)
     for d in (1, -1):
         sel = data_arc(res, d)
@@ -150,7 +150,7 @@ def test_servo_mismatch_mask_sign_and_size() -> None:
         c0, c2, s2 = np.linalg.lstsq(A, dr, rcond=None)[0]
         assert s2 == pytest.approx(d * V / 2 * m_ms, rel=0.01)
         # The second-order terms: a mean shrink and the spurious scale mismatch
-        # DOMAIN.md quotes (about -8 ppm for 30/33 at R = 100, F = 1000).
+        # analysis/README.md quotes (about -8 ppm for 30/33 at R = 100, F = 1000, commanded angles).
         assert c0 == pytest.approx(res.truth["servo_radius_um"], abs=0.02)
         apparent_ppm = 2 * c2 * 1e-3 / R * 1e6
         assert apparent_ppm == pytest.approx(res.truth["servo_scale_ppm"], abs=0.3)
@@ -272,7 +272,7 @@ def test_master_slave_steps_at_the_changeover() -> None:
         return sigma / 2 * (a_um + b_um) / s2, sigma / 2 * (a_um - b_um) / s2
 
     compare_first_order(res, D, tol_um=0.01, skip=(45, 135, 225, 315), margin_deg=0.2)
-    # DOMAIN's mask: a step of a at 45 deg.
+    # The library's mask: a step of a at 45 deg.
     for d in (1, -1):
         sel = data_arc(res, d)
         u = res.angle_deg[sel] % 360.0

@@ -42,7 +42,7 @@ of the axis normal to the plane toward the negative (ISO 6983, DIN 66025):
 seen from +Z in G17, from +Y in G18, from +X in G19.  In a right-handed frame
 the rotation seen counter-clockwise from +Z carries X toward Y, from +X carries
 Y toward Z, and from +Y carries Z toward X (``Z x X = Y``).  So G03/DR+ is
-counter-clockwise in the plane's (first, second) frame of DOMAIN.md in all
+counter-clockwise in the plane's (first, second) frame of analysis/README.md in all
 three planes, ZX included: in G18 the first axis is Z and G03 turns from Z
 toward X, the direction in which the plan's angles grow.
 

@@ -98,7 +98,7 @@ def _fmt(v: Any, nd: int = 2, *, signed: bool = False) -> str:
 
 
 def _unit(u: Any) -> str:
-    """A result unit for display: ``um`` is µm, ``urad`` µrad (DOMAIN.md's ASCII units)."""
+    """A result unit for display: ``um`` is µm, ``urad`` µrad (the result's ASCII units)."""
     return re.sub(r"\burad\b", "µrad", re.sub(r"\bum\b", "µm", str(u or "")))
 
 

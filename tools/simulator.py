@@ -4,7 +4,7 @@ The simulator runs the test program of :func:`ballbar.analysis.program.moves`
 through a model of the controller, the position loops, the drive train, the
 machine's geometry, the bar and the sampling electronics, and reports the bar
 length ``|P + D - pivot|`` computed exactly from the simulated positions.  It
-never evaluates a mask of ``shared/DOMAIN.md``: a fit that recovers the
+never evaluates a mask of ``analysis/README.md``: a fit that recovers the
 parameters from this data has recovered physics, not its own formulas.
 
 Frames and units
@@ -53,7 +53,7 @@ that every nominal sample instant is a grid point)
    straightness ``DY = sX (X/R)^2``, ``DX = sY (Y/R)^2`` (um, ``R`` the plan's
    radius), cyclic screw error ``DX = cX sin(2 pi X / pX + phiX)`` (and Y).
 8. The bar: ``L = |P + D + (x0, y0)|`` (the pivot sits at ``-(x0, y0)`` from the
-   programmed centre, so ``centre_*_um`` is DOMAIN.md's ``D = (x0, y0)``),
+   programmed centre, so ``centre_*_um`` is the library's ``D = (x0, y0)``),
    plus ``radius_um`` (calibration) plus ``drift_um_per_min`` times the minutes
    since the feed-in started, plus a radial vibration
    ``vibration_um sin(2 pi f t + phi)``.
@@ -69,7 +69,7 @@ that every nominal sample instant is a grid point)
 Everything is zero or ideal by default except the loop gains (30/s), the
 acceleration (2000 mm/s^2) and ``lead_s``/``tail_s`` (1 s).
 
-What the physics adds to DOMAIN.md's first-order masks (a fit meets these):
+What the physics adds to the library's first-order masks (a fit meets these):
 the loops shrink the circle by ``R x^2 / 2`` (``x = V/(R Kv)``, 1.5 um at 30/s)
 and unequal gains add an apparent ``scale_mismatch_ppm`` (-8 ppm for 30/33/s),
 both in :func:`truth_of`; a reversal is seen ``x`` rad after the commanded one;
@@ -274,7 +274,7 @@ class SimResult:
     :func:`iter_tests`).  ``length_mm``: reported absolute bar length.
     ``angle_deg``: the commanded angle (unwrapped, degrees) at the instant each
     sample was taken, for tests and plots; the analyzer must not use it.
-    ``truth``: the DOMAIN.md result fields this machine should produce, plus
+    ``truth``: the result fields this machine should produce, plus
     extras (documented in :func:`truth_of`).  ``events``: commanded times (same
     clock as ``t_s``) of the program's moves and data arcs.
     """
@@ -564,7 +564,7 @@ def _master_sigma(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
 
 
 def truth_of(plan: TestPlan, m: MachineModel) -> dict[str, float]:
-    """What a fit of a test of ``plan`` on ``m`` should report (DOMAIN.md field names).
+    """What a fit of a test of ``plan`` on ``m`` should report (analysis/README.md field names).
 
     Extras: ``feed_mm_min`` (actual), ``overhead_s`` (per-move ``c``), ``lag_*_ms``
     (steady following-error time ``(1 - ff)/Kv``), ``servo_radius_um`` and
