@@ -26,6 +26,12 @@ that every nominal sample instant is a grid point)
    ``s / V + c`` with ``c = V / A + A / J``, as :mod:`~ballbar.analysis.program`
    assumes.  ``lead_s`` of standing at ``R + f`` before, ``tail_s`` after.
    ``ipo_s > 0`` holds the command constant over each interpolation cycle.
+   ``in_position_um > 0``: after each move that ends in a dwell the control
+   waits until both axes' following errors are within that band before the
+   dwell begins (an in-position check; 0: none).  With loops of equal shape
+   the wait adds the same time to each such move, i.e. to the per-move
+   overhead ``c``: ``truth_of`` cannot know it, ``SimResult.events`` holds
+   each wait (``inpos_<move>``).
 2. Master-slave changeover (a controller quirk, added to the command):
    ``D = sigma/2 (a e1 + b e2)``, ``e1 = (1, 1)/sqrt2``, ``e2 = (1, -1)/sqrt2``,
    ``sigma = +1`` while the commanded ``|vX| >= |vY|`` (X is the master), else
@@ -33,12 +39,17 @@ that every nominal sample instant is a grid point)
 3. Position loop per axis (semi-closed, on the motor): ``dp/dt = Kv (c - p) +
    ff dc/dt``, solved exactly for a command linear between grid points.  The
    steady following error on a ramp is ``(1 - ff) v / Kv`` against the motion.
-4. Lost motion between motor and table, ``backlash_*_um = b``: a deadband
-   (play operator) of half-width ``b/2`` centred at the start, so a moving table
-   lags its motor by ``b/2`` (``DX = -(b/2) sgn(vX)``) and stands still after a
-   reversal until the motor has crossed the gap.  ``b < 0`` models an
-   over-compensated controller: the table leads by ``|b|/2``, flipping as soon
-   as the motor reverses.
+4. Lost motion, ``backlash_*_um = b``.  ``b > 0``: a dead band between motor
+   and table (play operator) of half-width ``b/2`` centred at the start, so a
+   moving table lags its motor by ``b/2`` (``DX = -(b/2) sgn(vX)``) and stands
+   still after a reversal until the motor has crossed the gap.  ``b < 0``:
+   backlash compensation set too high, on an axis without play.  At each
+   commanded reversal the control steps the axis' command by ``|b|`` (it holds
+   ``+(|b|/2) sgn(v_command)``) and the position loop follows that step
+   (step 3): the table leads by ``|b|/2``, and the flip at a reversal is a
+   first-order approach with the loop's time constant.
+   ``backlash_comp_*_um = c`` adds such a compensation to a dead band
+   (``b >= 0`` the gap): the net lost motion is ``b - c``.
 5. Friction at reversals (table, after the lost motion): when the table
    reverses, it lags extra against its new direction of travel,
    ``DX = -h sgn(vX_new) exp(-(t - t_rev)/tau)`` (``spike_*_um = h``,
@@ -127,6 +138,7 @@ class MachineModel:
     accel_mm_s2: float = 2000.0  # path acceleration of the trapezoid
     jerk_mm_s3: float = math.inf  # path jerk (S-curve) when finite
     ipo_s: float = 0.0  # interpolation cycle: command held per cycle (0 = continuous)
+    in_position_um: float = 0.0  # in-position band checked before each dwell (0: no check)
     lead_s: float = 1.0  # standing at R + f before the feed-in
     tail_s: float = 1.0  # standing at R + f after the feed-out
     # Position loops
@@ -136,6 +148,8 @@ class MachineModel:
     # Lost motion, friction
     backlash_x_um: float = 0.0
     backlash_y_um: float = 0.0
+    backlash_comp_x_um: float = 0.0  # compensation the control adds at commanded reversals (net = b - comp)
+    backlash_comp_y_um: float = 0.0
     lateral_play_x_um: float = 0.0  # Y shift when X reverses
     lateral_play_y_um: float = 0.0  # X shift when Y reverses
     lateral_takeup_um: float = 0.0  # travel over which the lateral shift completes (0: at once)
@@ -207,6 +221,9 @@ class MachineModel:
                 raise PlanError(f"machine key {name!r} must be > 0, not {getattr(self, name)!r}")
         non_negative = (
             "ipo_s",
+            "in_position_um",
+            "backlash_comp_x_um",
+            "backlash_comp_y_um",
             "lead_s",
             "tail_s",
             "lateral_takeup_um",
@@ -391,13 +408,21 @@ class _Segment:
         return self.t_start + self.duration
 
 
-def _timeline(plan: TestPlan, m: MachineModel, program: Sequence[Move] | None = None) -> list[_Segment]:
+def _timeline(
+    plan: TestPlan, m: MachineModel, program: Sequence[Move] | None = None, h: float = 1.0e-4
+) -> list[_Segment]:
+    """The program's segments in time; ``h``: the grid step the in-position check runs the loops on."""
     V = plan.feed_mm_s * m.feed_override
     smooth = m.accel_mm_s2 / m.jerk_mm_s3 if math.isfinite(m.accel_mm_s2) else 0.0
     out: list[_Segment] = []
     t = m.lead_s
     for mv in moves(plan) if program is None else program:
         if mv.kind == "dwell":
+            wait = _in_position_wait(out, m, h) if out and out[-1].profile is not None else 0.0
+            if wait > 0:
+                out.append(_Segment(Move("dwell", f"inpos_{out[-1].move.name}", mv.start, mv.start,
+                                         duration_s=wait), t, wait, None))
+                t = out[-1].t_end
             out.append(_Segment(mv, t, mv.duration_s, None))
         else:
             prof = _Profile(mv.length_mm, V, m.accel_mm_s2, smooth)
@@ -406,12 +431,64 @@ def _timeline(plan: TestPlan, m: MachineModel, program: Sequence[Move] | None = 
     return out
 
 
+def _in_position_wait(segs: list[_Segment], m: MachineModel, h: float) -> float:
+    """Seconds after the last segment's end until both following errors are within ``in_position_um``.
+
+    Once the command stands, a first-order loop closes its error as ``exp(-Kv t)``.
+    """
+    tol = m.in_position_um * UM
+    if tol <= 0:
+        return 0.0
+    grid = np.arange(math.ceil(segs[-1].t_end / h) + 1) * h
+    cx, cy, _ = _axis_commands(segs, grid, m)
+    wait = 0.0
+    for c, motor, kv in zip((cx, cy), _motors(cx, cy, m, h), (m.kv_x_per_s, m.kv_y_per_s), strict=True):
+        # the grid may end up to one step past the move: extrapolate the error back to its end
+        err = abs(float(c[-1] - motor[-1])) * (math.exp(kv * (grid[-1] - segs[-1].t_end)) if math.isfinite(kv) else 1)
+        if err > tol:
+            wait = max(wait, math.log(err / tol) / kv)
+    return wait
+
+
+def _axis_commands(segs: list[_Segment], grid: np.ndarray, m: MachineModel) -> tuple[np.ndarray, ...]:
+    """Per axis, what the control commands the position loop (mm), and the program's angle (rad).
+
+    The interpolated path (held per interpolation cycle), the backlash compensation
+    (``+(comp/2) sgn(v)`` of the path's command, stepping at each commanded
+    reversal) and the master-slave changeover.
+    """
+    cx, cy, cu = _command(segs, grid)
+    if m.ipo_s > 0:
+        # The interpolator updates the command once per cycle; the angle reported
+        # for the samples stays the continuous program's.
+        cx, cy, _ = _command(segs, np.floor(grid / m.ipo_s + 1e-9) * m.ipo_s)
+    # Both quirks follow the path's command, not each other's steps.
+    px, py = cx, cy
+    comp_x = m.backlash_comp_x_um + max(-m.backlash_x_um, 0.0)
+    comp_y = m.backlash_comp_y_um + max(-m.backlash_y_um, 0.0)
+    if comp_x:
+        cx = cx + 0.5 * comp_x * UM * _direction(px)
+    if comp_y:
+        cy = cy + 0.5 * comp_y * UM * _direction(py)
+    if m.master_slave_a_um or m.master_slave_b_um:
+        sig = 0.5 * _master_sigma(px, py) * UM / math.sqrt(2.0)
+        a, b = m.master_slave_a_um, m.master_slave_b_um
+        cx = cx + sig * (a + b)
+        cy = cy + sig * (a - b)
+    return cx, cy, cu
+
+
+def _motors(cx: np.ndarray, cy: np.ndarray, m: MachineModel, h: float) -> list[np.ndarray]:
+    return [_servo(cx, m.kv_x_per_s, m.velocity_ff, h), _servo(cy, m.kv_y_per_s, m.velocity_ff, h)]
+
+
 def _command(segs: list[_Segment], times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Commanded X, Y (mm) and angle (rad, unwrapped as the program's arcs) at ``times``."""
     first, last = segs[0].move.start, segs[-1].move.end
     x = np.full(times.size, first[0])
     y = np.full(times.size, first[1])
-    u = np.full(times.size, next(s.move.u_start for s in segs if s.move.kind == "arc"))
+    u0 = next((s.move.u_start for s in segs if s.move.kind == "arc"), math.atan2(first[1], first[0]))
+    u = np.full(times.size, u0)
     for seg in segs:
         i0, i1 = np.searchsorted(times, [seg.t_start, seg.t_end], side="left")
         mv = seg.move
@@ -532,13 +609,6 @@ def _spike(grid: np.ndarray, state: np.ndarray, height_mm: float, tau: float) ->
     return out
 
 
-def _lost_motion(motor: np.ndarray, b_um: float) -> np.ndarray:
-    if b_um >= 0:
-        return _play(motor, 0.5 * b_um * UM)
-    # Over-compensation: the table leads its motor by |b|/2 in the motor's direction.
-    return motor + 0.5 * abs(b_um) * UM * _direction(motor)
-
-
 def _lateral_factor(x_table: np.ndarray, takeup_um: float, state: np.ndarray) -> np.ndarray:
     """-sgn(v) of an axis, switching at its reversals (over ``takeup_um`` of travel if > 0)."""
     if takeup_um <= 0:
@@ -596,8 +666,8 @@ def truth_of(plan: TestPlan, m: MachineModel) -> dict[str, float]:
         "centre_x_um": m.centre_x_um,
         "centre_y_um": m.centre_y_um,
         "radius_um": m.radius_um,
-        "backlash_x_um": m.backlash_x_um,
-        "backlash_y_um": m.backlash_y_um,
+        "backlash_x_um": m.backlash_x_um - m.backlash_comp_x_um,
+        "backlash_y_um": m.backlash_y_um - m.backlash_comp_y_um,
         "servo_mismatch_ms": 1000.0 * (lag_x - lag_y),
         "master_slave_a_um": m.master_slave_a_um,
         "master_slave_b_um": m.master_slave_b_um,
@@ -684,29 +754,17 @@ def _run(
 ) -> SimResult:
     if not step_s > 0:
         raise PlanError(f"step_s must be > 0, not {step_s!r}")
-    segs = _timeline(plan, m, program)
-    span = segs[-1].t_end + m.tail_s + extra_tail_s
-    n = math.ceil(span * fs) + 1  # nominal sample instants k0 .. k0 + n - 1
     sub = max(1, math.ceil(1.0 / (fs * step_s)))  # grid points per sample period
     h = 1.0 / (fs * sub)
+    segs = _timeline(plan, m, program, h)
+    span = segs[-1].t_end + m.tail_s + extra_tail_s
+    n = math.ceil(span * fs) + 1  # nominal sample instants k0 .. k0 + n - 1
     grid = np.arange((n - 1) * sub + 1) * h  # local time, s
     R = plan.radius_mm
 
-    cx, cy, cu = _command(segs, grid)
-    if m.ipo_s > 0:
-        # The interpolator updates the command once per cycle; the angle reported
-        # for the samples stays the continuous program's.
-        cx, cy, _ = _command(segs, np.floor(grid / m.ipo_s + 1e-9) * m.ipo_s)
-    if m.master_slave_a_um or m.master_slave_b_um:
-        sig = 0.5 * _master_sigma(cx, cy) * UM / math.sqrt(2.0)
-        a, b = m.master_slave_a_um, m.master_slave_b_um
-        cx = cx + sig * (a + b)
-        cy = cy + sig * (a - b)
-
-    axes = []
-    for c, kv, b_um in ((cx, m.kv_x_per_s, m.backlash_x_um), (cy, m.kv_y_per_s, m.backlash_y_um)):
-        motor = _servo(c, kv, m.velocity_ff, h)
-        axes.append(_lost_motion(motor, b_um))
+    cx, cy, cu = _axis_commands(segs, grid, m)
+    axes = [_play(motor, 0.5 * max(b_um, 0.0) * UM) for motor, b_um in
+            zip(_motors(cx, cy, m, h), (m.backlash_x_um, m.backlash_y_um), strict=True)]
     del cx, cy
     tx, ty = axes
     sx, sy = _direction(tx), _direction(ty)
