@@ -50,6 +50,7 @@ class StepEvent:
     samples_in_step: int
     method: str  # "centroid" or "ramp"
     tau_s: float = float("nan")  # time constant of the approach to the new level (position loop), if resolved
+    move_var_s2: float = float("nan")  # variance in time of the commanded move's velocity profile, if resolved
 
     @property
     def height_mm(self) -> float:
@@ -290,13 +291,27 @@ class TestDetector:
                 x = (0.5 - f0) / (f1 - f0) if f1 != f0 else 0.5
                 tc = float(t[a + j - 1] + x * (t[a + j] - t[a + j - 1]))
             method = "ramp"
+        tau = self._tail_tau(t, L, a, b, tc, after)
+        total = float(L[b] - L[a])
+        move_var = float("nan")
+        if method == "centroid" and math.isfinite(tau) and total != 0:
+            # The step is summed up to the first sample within tolerance of the new level; the loop's
+            # exponential approach goes on (2 um of a 1.5 mm step, over ~1/Kv), and leaving it out would
+            # time the step early by about rest/height x (t_b + tau - tc): 0.24 ms at 30/s.
+            rest = after - float(L[b])
+            tc = (tc * total + rest * (float(t[b]) + tau)) / (total + rest)
+            # Its spread in time, the same way: the loop's lag adds tau^2 to the commanded move's, whose
+            # shape tells how much of the per-move overhead is acceleration (program.accel_from_spread).
+            dL = np.diff(L[a : b + 1])
+            tm = 0.5 * (t[a:b] + t[a + 1 : b + 1])
+            tail = rest * ((float(t[b]) + tau - tc) ** 2 + tau * tau)
+            move_var = (float(np.dot((tm - tc) ** 2, dL)) + tail) / (total + rest) - tau * tau
         if kind == "feed_in":
             # the step's shape, progress 0..1 against time from its centroid: a feed-out cut short by
             # the end of a recording is timed against it (the same move, mirrored)
             self._in_shape = (t[a : b + 1] - tc, (L[a : b + 1] - before) / height)
-        tau = self._tail_tau(t, L, a, b, tc, after)
         log.debug("%s at %.4f s (%s, %d samples, tau %.4f s)", kind, tc, method, inner, tau)
-        return StepEvent(kind, tc, float(t[a]), float(t[b]), before, after, inner, method, tau)
+        return StepEvent(kind, tc, float(t[a]), float(t[b]), before, after, inner, method, tau, move_var)
 
     def _tail_tau(self, t: np.ndarray, L: np.ndarray, a: int, b: int, tc: float, after: float) -> float:
         """Time constant of the exponential approach to the new level, where resolved.

@@ -141,14 +141,46 @@ def move_duration(length_mm: float, feed_mm_s: float, overhead_s: float) -> floa
     return 2.0 * math.sqrt(length_mm * overhead_s / feed_mm_s)
 
 
-def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0) -> Schedule:
-    """Predicted timing of ``plan`` at path feed ``feed_mm_s`` and per-move overhead ``overhead_s``."""
+def feed_in_half(f: float, V: float, c: float, accel_s: float | None) -> float:
+    """From the feed-in's centroid (its middle) to the end of its share of the per-move overhead ``c``.
+
+    ``accel_s``: the part of ``c`` that is acceleration (the rest, e.g. an
+    in-position wait, does not shape the move); None: all of it.  Only a move
+    shorter than ``V accel_s`` is the trapezoid's triangle.
+    """
+    a = c if accel_s is None else min(max(accel_s, 0.0), c) if c > 0 else 0.0
+    return move_duration(f, V, a) / 2 + (c - a) / 2
+
+
+def accel_from_spread(f: float, V: float, var_s2: float) -> float:
+    """The acceleration overhead of a rest-to-rest move of length ``f`` at feed ``V`` whose velocity profile has
+    variance ``var_s2`` (s^2) in time.
+
+    Reaching the feed, the profile is a rectangle ``f/V`` long convolved with
+    the acceleration's kernel (a box ``c`` long for a trapezoid):
+    ``12 var = (f/V)^2 + c^2``; a triangle of base ``2 sqrt(f c / V)`` has
+    ``var = f c / (6 V)``.  The two meet at ``c = f/V``.  A jerk-limited
+    profile's kernel is two boxes: this gives ``sqrt(ta^2 + tj^2)``, less than
+    their sum.
+    """
+    T = f / V
+    s2 = 12.0 * var_s2
+    if s2 <= 2.0 * T * T:
+        return math.sqrt(max(s2 - T * T, 0.0))
+    return 6.0 * V * var_s2 / f
+
+
+def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0, accel_s: float | None = None) -> Schedule:
+    """Predicted timing of ``plan`` at path feed ``feed_mm_s`` and per-move overhead ``overhead_s``.
+
+    ``accel_s``: the acceleration part of the overhead, where known (:func:`feed_in_half`).
+    """
     V, c = feed_mm_s, overhead_s
     R, f, D = plan.radius_mm, plan.feed_in_mm, plan.dwell_s
     o, a = math.radians(plan.overshoot_deg), math.radians(plan.data_arc_deg)
     arc_len = R * (a + 2 * o)
     # The feed-in's centroid sits at its middle, whether or not it reaches the feed.
-    half_feed_in = move_duration(f, V, c) / 2
+    half_feed_in = feed_in_half(f, V, c, accel_s)
     t = half_feed_in  # end of feed-in, relative to its centroid
     ds: dict[int, float] = {}
     de: dict[int, float] = {}
@@ -164,12 +196,12 @@ def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0) -> Sched
     return Schedule(V, c, ds, de, arc_start, feed_out_centroid)
 
 
-def centroid_span_s(plan: TestPlan, feed_mm_s: float, overhead_s: float) -> float:
+def centroid_span_s(plan: TestPlan, feed_mm_s: float, overhead_s: float, accel_s: float | None = None) -> float:
     """Time from the feed-in's centroid to the feed-out's."""
-    return schedule(plan, feed_mm_s, overhead_s).feed_out_centroid_s
+    return schedule(plan, feed_mm_s, overhead_s, accel_s).feed_out_centroid_s
 
 
-def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0) -> float:
+def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0, accel_s: float | None = None) -> float:
     """Invert :func:`centroid_span_s` for the feed (mm/s).
 
     Where the feed-in reaches the feed the span is linear in ``1/V``; where it
@@ -181,15 +213,16 @@ def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0) -> fl
     n_dirs = len(plan.direction_list)
     n_dwells = n_dirs + 1
     f, c = plan.feed_in_mm, overhead_s
+    acc = c if accel_s is None else min(max(accel_s, 0.0), c) if c > 0 else 0.0
     arcs = n_dirs * plan.radius_mm * math.radians(plan.arc_deg)
     # Reaching the feed: span = dwells + n_dirs c + c (two half feed moves) + (f + arcs) / V.
     moving = span_s - n_dwells * plan.dwell_s - (n_dirs + 1) * c
     V = (f + arcs) / moving if moving > 0 else float("nan")
-    if c <= 0.0 or not math.isfinite(V) or f >= V * c:
+    if acc <= 0.0 or not math.isfinite(V) or f >= V * acc:
         return V
-    # A triangle feed-in: span = dwells + n_dirs c + arcs x^2 + 2 sqrt(f c) x with x = 1/sqrt(V).
-    m = span_s - n_dwells * plan.dwell_s - n_dirs * c
-    b = 2.0 * math.sqrt(f * c)
+    # A triangle feed-in: span = dwells + n_dirs c + (c - acc) + arcs x^2 + 2 sqrt(f acc) x with x = 1/sqrt(V).
+    m = span_s - n_dwells * plan.dwell_s - n_dirs * c - (c - acc)
+    b = 2.0 * math.sqrt(f * acc)
     if m <= 0:
         return float("nan")
     x = (-b + math.sqrt(b * b + 4.0 * arcs * m)) / (2.0 * arcs)
