@@ -101,7 +101,8 @@ class ParameterResult:
     share_pct: float | None = None
     significant: bool = False
     identifiable: bool = True
-    reason: str = ""
+    reason: str = ""  # why it was not fitted
+    significance_reason: str = ""  # why it is not significant although its F-test passed the level
 
     def to_dict(self) -> dict[str, object]:
         d: dict[str, object] = {
@@ -115,6 +116,8 @@ class ParameterResult:
         }
         if self.reason:
             d["reason"] = self.reason
+        if self.significance_reason:
+            d["significance_reason"] = self.significance_reason
         return d
 
 
@@ -135,6 +138,7 @@ class TermResult:
     share_pct: float
     significant: bool
     effect_um: float  # largest |contribution| over the data
+    reason: str = ""  # why a pattern whose F-test passed the level is still not significant
 
 
 @dataclass
@@ -179,6 +183,7 @@ def solve(
     min_effect_um: float = 0.05,
     effect_scale: np.ndarray | None = None,
     exclude: dict[str, str] | None = None,
+    family_dof: dict[str, int] | None = None,
 ) -> FitResult:
     """Fit ``patterns`` from ``factor``; rank them; say which cannot be identified.
 
@@ -187,6 +192,8 @@ def solve(
     ``effect_scale``: per column, the largest |column value| over the data, to
     turn a parameter into its largest radial contribution (for ``min_effect_um``).
     ``exclude``: patterns left out beforehand, with the reason.
+    ``family_dof``: per family (:func:`family`), parameters its shape was
+    searched for (the reversal spikes' width), counted in its joint test.
     """
     patterns = list(patterns)
     R = factor.rows
@@ -268,10 +275,77 @@ def solve(
         scale = effect_scale[sl] if effect_scale is not None else np.ones(pat.q)
         effect = float(np.sum(np.abs(x[sl]) * scale))
         share = 100.0 * ssr[pat.name] / total if total > 0 else 0.0
-        result.terms[pat.name] = TermResult(
-            pat.name, ssr[pat.name], F, pv, share, bool(pv < significance and effect >= min_effect_um), effect
-        )
+        result.terms[pat.name] = TermResult(pat.name, ssr[pat.name], F, pv, share, False, effect)
+    # Each family of several patterns is also tested as a whole, with the dof its shape's search cost.
+    members: dict[str, list[int]] = {}
+    for i, pat in enumerate(patterns):
+        if used[i]:
+            members.setdefault(family(pat.name), []).append(i)
+    gates: dict[str, tuple[float, int]] = {}
+    for fam, idx in members.items():
+        if len(idx) < 2:
+            continue
+        own = {c for i in idx for c in range(slices[i].start, slices[i].stop)}
+        q = len(own) + (family_dof or {}).get(fam, 0)
+        fam_ssr = max(sse_subset(R, [c for c in cols if c not in own]) - sse_full, 0.0)
+        F = (fam_ssr / q) / mse if mse > 0 else math.inf
+        gates[fam] = (float(stats.f.sf(F, q, dof)) if math.isfinite(F) else 0.0, q)
+    _judge(result.terms, significance, min_effect_um, gates)
     return result
+
+
+def family(name: str) -> str:
+    """The family a pattern is tested in: all reversal spikes; the X and Y of one kind; else itself."""
+    if name.startswith("reversal_spike_"):
+        return "reversal_spike"
+    if name.endswith(("_x", "_y")):
+        return name[:-2]
+    return name
+
+
+def significance_rule(level: float, min_effect_um: float) -> str:
+    """The rule :func:`solve` applies, in words (it goes into every result)."""
+    return (
+        f"a pattern is significant when its extra-sum-of-squares F-test gives p < {level:g}, where it belongs to "
+        "a family (the reversal spikes; the X and Y patterns of one kind) the family's joint F-test does too "
+        "(counting the spikes' fitted width as a parameter) and its own p passes Holm's step-down correction "
+        f"within the family, and its largest radial effect over the data is at least {min_effect_um:g} um"
+    )
+
+
+def _judge(
+    terms: dict[str, TermResult], level: float, min_effect_um: float, gates: dict[str, tuple[float, int]]
+) -> None:
+    """Apply :func:`significance_rule`; a term that passes the F-test but fails a further rule says which."""
+    groups: dict[str, list[TermResult]] = {}
+    for t in terms.values():
+        groups.setdefault(family(t.pattern), []).append(t)
+    for fam, members in groups.items():
+        m = len(members)
+        words = fam.replace("_", " ")
+        gate_p, gate_q = gates.get(fam, (0.0, 0))
+        failed = False
+        for k, t in enumerate(sorted(members, key=lambda t: t.p_value)):
+            threshold = level / (m - k)
+            passes = not failed and t.p_value < threshold and gate_p < level
+            failed = failed or not passes
+            if passes and t.effect_um >= min_effect_um:
+                t.significant = True
+            elif passes:
+                t.reason = (
+                    f"statistically significant (p = {t.p_value:.2g}) but its largest radial effect, "
+                    f"{t.effect_um:.3g} um, is below the minimum effect of {min_effect_um:g} um"
+                )
+            elif t.p_value < level and gate_p >= level:
+                t.reason = (
+                    f"p = {t.p_value:.2g} is below {level:g}, but the {m} {words} patterns together are not "
+                    f"significant (joint F-test over {gate_q} parameters, p = {gate_p:.2g})"
+                )
+            elif t.p_value < level:
+                t.reason = (
+                    f"p = {t.p_value:.2g} is below {level:g} but not below {threshold:.2g}, Holm's threshold for it "
+                    f"among the {m} {words} patterns tested together"
+                )
 
 
 def _cols(slices: Sequence[slice], used: Sequence[bool]) -> list[int]:
@@ -305,7 +379,7 @@ def _no_support_reason(pat: Pattern) -> str:
     if pat.reversal is not None:
         axis, at, d = pat.reversal
         return (
-            f"no samples after the {axis.upper()} reversal at {at:g} deg "
-            f"in the {'CCW' if d > 0 else 'CW'} data arc"
+            f"the {'CCW' if d > 0 else 'CW'} data arc holds less than two samples' worth of the spike after the "
+            f"{axis.upper()} reversal at {at:g} deg: too few to size it"
         )
     return "the data holds no samples where this pattern acts"

@@ -140,9 +140,15 @@ class AnalysisOptions:
     ``servo_model``: ``linear`` is the seed's mask; ``physical`` fits a first-order
     loop per axis (needs the mean loop lag, from ``kv_*`` or measured from the
     feed-in); ``auto`` uses ``physical`` when that lag is known.
-    ``lost_motion``: ``deadband`` models the table standing still after a
-    reversal until the motor has crossed the backlash gap; ``step`` is the
-    seed's mask alone.
+    ``lost_motion``: ``physical`` lets the data choose each axis' model by the
+    sign of its backlash: a dead band (the table stands still after a reversal
+    until the motor has crossed the gap) or, for negative backlash, the
+    control's compensation step followed through the position loop
+    (:mod:`.physics`); ``step`` is the seed's mask alone.  ``deadband`` is the
+    earlier name of ``physical``.
+    ``min_effect_um``: besides ``p < significance``, a pattern is significant
+    only if its largest radial effect over the data reaches this (um); a
+    pattern that passes the F-test but not this says so in its result.
     ``vif_limit``: a parameter whose variance inflation exceeds this cannot be
     separated from the others in this data and is left out with the reason.
     ``vibration_cutoff_cpr``: residual content above this many cycles per
@@ -151,10 +157,11 @@ class AnalysisOptions:
 
     significance: float = 0.05
     servo_model: Literal["auto", "linear", "physical"] = "auto"
-    lost_motion: Literal["deadband", "step"] = "deadband"
+    min_effect_um: float = 0.05
+    lost_motion: Literal["physical", "deadband", "step"] = "physical"
     vif_limit: float = 1.0e4
     vibration_cutoff_cpr: float = 30.0
-    spike_width_min_deg: float = 0.3
+    spike_width_min_deg: float = 0.05
     spike_width_max_deg: float = 10.0
     estimate_lag: bool = True
     max_lag_s: float = 0.5
@@ -163,8 +170,10 @@ class AnalysisOptions:
     def __post_init__(self) -> None:
         if not 0 < self.significance < 1:
             raise PlanError(f"significance must be within (0, 1), not {self.significance!r}")
-        if self.lost_motion not in ("deadband", "step"):
-            raise PlanError(f"lost_motion must be deadband or step, not {self.lost_motion!r}")
+        if self.lost_motion not in ("physical", "deadband", "step"):
+            raise PlanError(f"lost_motion must be physical or step, not {self.lost_motion!r}")
+        if not (math.isfinite(self.min_effect_um) and self.min_effect_um >= 0):
+            raise PlanError(f"min_effect_um must be >= 0, not {self.min_effect_um!r}")
         if self.servo_model not in ("auto", "linear", "physical"):
             raise PlanError(f"servo_model must be auto, linear or physical, not {self.servo_model!r}")
         if not 0 < self.spike_width_min_deg < self.spike_width_max_deg:

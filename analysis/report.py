@@ -56,6 +56,8 @@ def parameters_dict(fit: FitResult, patterns: Sequence[Pattern], machine: Machin
                     ParameterResult(f, u, float(x[k]), math.sqrt(max(cov[k, k], 0.0)), pv, share, sig)
                     for k, (f, u) in enumerate(zip(pat.fields, pat.units, strict=True))
                 ]
+            for r in results:
+                r.significance_reason = term.reason if term else ""
         for r in results:
             out[r.field] = r.to_dict()
     return out
@@ -97,6 +99,7 @@ def ranking_list(fit: FitResult) -> list[dict[str, Any]]:
             "p_value": t.p_value,
             "significant": t.significant,
             "effect_um": t.effect_um,
+            **({"significance_reason": t.reason} if t.reason else {}),
         }
         for t in terms
     ]
@@ -130,7 +133,11 @@ def summary(result: dict[str, Any]) -> str:
     for r in result["ranking"]:
         lines.append(
             f"  {r['pattern']:<28} {r['share_pct']:8.2f} {r['p_value']:10.2e}  {'yes' if r['significant'] else 'no'}"
+            + (f" ({r['significance_reason']})" if r.get("significance_reason") else "")
         )
+    rule = result.get("fit", {}).get("significance_rule")
+    if rule:
+        lines.append(f"  Significant: {rule}.")
     lines += ["", "Parameters:", f"  {'field':<34} {'value':>12} {'+-':>10}  unit"]
     for key, p in result["parameters"].items():
         if p["value"] is None:

@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
             an.add_argument(flag, dest=dest, type=typ, help=help_)
     an.add_argument("--significance", type=float, help="F-test level (default 0.05)")
     an.add_argument("--servo-model", choices=("auto", "linear", "physical"), help="servo mismatch model")
-    an.add_argument("--lost-motion", choices=("deadband", "step"),
+    an.add_argument("--lost-motion", choices=("physical", "deadband", "step"),
                     help="backlash as a dead band with take-up (default) or the seed's step")
     an.add_argument("--patterns", help="comma-separated pattern names to fit (default: all that apply)")
     an.add_argument("--test", type=int, default=1, help="which test of the recording (1 = first)")

@@ -819,7 +819,7 @@ def _verdict(result: Mapping[str, Any], curves: Sequence[_Curve]) -> str:
         if more > 0:
             found += f'<p class="note">{more} more significant pattern{"s" if more > 1 else ""} in the findings.</p>'
     else:
-        found = f"<p>No machine error pattern is significant at the {alpha * 100:g} % level.</p>"
+        found = f"<p>No machine error pattern is significant ({_e(_rule_words(result, alpha))}).</p>"
     setup = []
     cx, cy = _pvalue(result, "centre_x_um"), _pvalue(result, "centre_y_um")
     if cx is not None or cy is not None:
@@ -873,13 +873,15 @@ def _findings(result: Mapping[str, Any]) -> str:
         sig = bool(r.get("significant"))
         kind = _KIND.get(name, "machine")
         tag = ' <span class="pill setup">set-up</span>' if kind == "setup" else ""
+        why = r.get("significance_reason")
+        verdict = ("yes" if sig else "no") + (f'<br><span class="note">{_e(_prose(str(why)))}</span>' if why else "")
         rows.append(
             f'<tr class="{"sig" if sig else "nsig"}" data-pattern="{_e(name)}">'
             f'<td class="rank">{i}</td><td class="pat">{_e(pattern_label(name, axes))}{tag}</td>'
             f'<td class="num">{"<br>".join(vals) or _MISSING}</td><td>{"<br>".join(units)}</td>'
             f'<td class="num">{_e(_share_text(r.get("share_pct")))}</td><td class="num">{_e(_f_text(r.get("F")))}</td>'
             f'<td class="num">{_e(_p_text(r.get("p_value")))}</td>'
-            f'<td><span class="pill {"yes" if sig else "no"}">{"yes" if sig else "no"}</span></td></tr>'
+            f'<td><span class="pill {"yes" if sig else "no"}">{verdict}</span></td></tr>'
         )
     absent: dict[str, list[str]] = {}
     for k, p in params.items():
@@ -917,9 +919,15 @@ def _findings(result: Mapping[str, Any]) -> str:
         body += f'<tbody class="absent">{"".join(absent_rows)}</tbody>'
     method = (result.get("fit") or {}).get("uncertainty_method")
     note = (f'<p class="caption">Ranked by the extra sum of squares (share of the explained error); F and p of each '
-            f"pattern's F-test, significant at p &lt; {alpha:g}. SE: standard error"
+            f"pattern's F-test. Significant: {_e(_rule_words(result, alpha))}. SE: standard error"
             + (f" ({_e(_prose(method))})" if method else "") + ".</p>")
     return head + body + "</table>" + note
+
+
+def _rule_words(result: Mapping[str, Any], alpha: float) -> str:
+    """The result's significance rule as it states it (older results: the level alone)."""
+    rule = (result.get("fit") or {}).get("significance_rule")
+    return str(rule) if rule else f"p < {alpha:g}"
 
 
 def _iso(result: Mapping[str, Any]) -> str:
@@ -1004,6 +1012,19 @@ def _noise(result: Mapping[str, Any]) -> str:
             + (f'<p class="caption">Method: {_e(_prose(method))}.</p>' if method else ""))
 
 
+def _lost_motion_words(fit: Mapping[str, Any], axes: Sequence[str]) -> str:
+    """Each axis' lost-motion model and where its table reverses, in words."""
+    lm = fit.get("lost_motion")
+    if not isinstance(lm, Mapping):
+        return str(fit.get("lost_motion_model") or _MISSING)
+    parts = []
+    for key, name in zip(("x", "y"), axes, strict=False):
+        d = lm.get(key) or {}
+        parts.append(f"{name}: {d.get('description') or d.get('model') or _MISSING}; friction from "
+                     f"{_fmt(d.get('onset_deg'), 3)}° after the reversal point")
+    return " — ".join(parts)
+
+
 def _diagnostics(result: Mapping[str, Any]) -> str:
     tm = result.get("timing") or {}
     fit = result.get("fit") or {}
@@ -1017,9 +1038,12 @@ def _diagnostics(result: Mapping[str, Any]) -> str:
         ("Arc-start lag", lag),
         ("Loop lag", f"{_fmt(tm.get('loop_lag_ms'), 2)} ms"),
         ("Loop-lag source", _prose(tm.get("loop_lag_source") or _MISSING)),
-        ("Spike width", f"{_fmt(tm.get('spike_width_deg'), 2)}°"),
+        ("Spike width", f"{_fmt(tm.get('spike_width_deg'), 2)}°" + (
+            f" ± {_fmt(tm.get('spike_width_stderr_deg'), 2)}°" if tm.get("spike_width_stderr_deg") else "")),
         ("Backlash take-up", f"{axes[0]} {_fmt(take.get('x'), 2)}°, {axes[1]} {_fmt(take.get('y'), 2)}°"
          if take else _MISSING),
+        ("Data arcs' shift", ", ".join(f"{k.upper()} {_fmt((v.get('shift_s') or 0.0) * 1000, 2)} ms"
+                                       for k, v in (tm.get("data_arcs") or {}).items()) or _MISSING),
         ("Feed-in / out", f"{tm.get('feed_in_method', _MISSING)} at {_fmt(tm.get('feed_in_s'), 3)} s / "
          f"{_fmt(tm.get('feed_out_s'), 3)} s"),
         ("Timing method", _prose(tm.get("method") or _MISSING)),
@@ -1032,10 +1056,10 @@ def _diagnostics(result: Mapping[str, Any]) -> str:
         ("Condition number", _fmt(fit.get("condition_number"), 1)),
         ("Samples / parameters", f"{fit.get('n_samples', _MISSING)} / {fit.get('n_parameters', _MISSING)} "
          f"(dof {fit.get('dof', _MISSING)})"),
-        ("Significance level", _fmt(fit.get("significance"), 3)),
+        ("Significance", _prose(str(fit.get("significance_rule") or f"p < {_fmt(fit.get('significance'), 3)}"))),
         ("Servo model", f"{fit.get('servo_model', _MISSING)}"
          + (f" — {fit['servo_model_note']}" if fit.get("servo_model_note") else "")),
-        ("Lost-motion model", str(fit.get("lost_motion_model") or _MISSING)),
+        ("Lost-motion model", _lost_motion_words(fit, axes)),
     ]
 
     def table(rows: Sequence[tuple[str, str]], tid: str) -> str:
