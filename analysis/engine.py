@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -31,22 +31,53 @@ from . import iso230, noise
 from .advice import advise
 from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
-from .fit import Factor, FitResult, solve, sse_subset
-from .patterns import Geometry, Pattern, design, select
-from .physics import Offset, make_offset, takeup_angles
+from .fit import Factor, FitResult, significance_rule, solve
+from .patterns import Geometry, Pattern, design, select, spike_travel
+from .physics import MODEL_WORDS, LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
 from .plan import AnalysisOptions, MachineConfig, TestPlan
-from .program import Schedule, arc_start_deg, feed_from_span, model_limits, schedule
+from .program import (
+    Schedule,
+    accel_from_spread,
+    arc_start_deg,
+    data_start_deg,
+    feed_from_span,
+    model_limits,
+    schedule,
+)
 
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
-SEARCH_SAMPLES_PER_CIRCLE = 6000
+SEARCH_SAMPLES_PER_CIRCLE = 1000  # thinned samples per circle away from the sharp features
+# Near each 45 deg point (before, after it; deg) the search keeps samples up to one per spacing (deg): over the
+# whole lag range (which moves the points by up to ~3 deg) coarsely, then where they are finely (at 10 kHz 1 in 4).
+COARSE_NEAR_DEG, COARSE_SPACING_DEG = (1.0, 4.5), 0.03
+FINE_NEAR_DEG, FINE_SPACING_DEG = (0.7, 2.5), 0.004
+FINE_TRIM_S = 0.03  # the fine set's data arcs, trimmed for lags within this of the coarse one
+LAG_SEARCH_BELOW_S = 0.1  # a negative per-move overhead is unphysical: search only this far below 0
+LAG_GRID_S = (0.015, 0.0015, 0.0005)  # the lag's grids: whole range, around the best, the stair (at most)
+STAIR_REACH_S = 0.001  # the stair grid's reach either side (at least)
+STAIR_BISECT = 4  # bisections of each stair edge between the stair grid's points
+STAIR_NATS = 0.01  # likelihood levels this close are one stair of the lag's staircase
+LAG_CI_NATS = 2.0  # lags whose full-model likelihood is this close to the best are not told apart by it
+HOLD_REACH_S = (0.01, 0.003)  # the lag's reach (s) either side while holding one arc's start, twice
+COMPASS_S = (0.001, 0.00002)  # the joint refinement of lag and wait: first step, last step at most (s)
+COMPASS_EVALS, COMPASS_GAIN_NATS = 120, 0.5  # at most this many objectives; a step must gain this much
+SMOOTH_MAX_SAMPLE_DEG = 0.025  # samples further apart (deg) are searched as points: no smoothing
+WAIT_MAX_S = 0.1  # no extra wait beyond this (s), either sign
+WAIT_PRIOR_S = 0.005  # prior on it: where the data cannot see it (low rates), it stays near 0
 LAG_PRIOR_S = 0.05
 SSE_FLOOR_UM = 1e-3
 DEFAULT_KV_PER_S = 30.0
 TAIL_SAMPLES = 1.8  # samples per loop time constant the settling fit needs (6 within ~3.4 tau)
 FAST_LOOP_S = 0.02  # a loop lag the settling fit must be able to see before "none seen" means "fast"
-DEFAULT_SPIKE_WIDTH_DEG = 3.0
+DEFAULT_SPIKE_WIDTH_DEG = 0.5
+RESOLVE_SAMPLES = 2.0  # samples per spike width below which a spike cannot be sized
+WIDTH_AT_BOUND = 1.03  # a fitted width within 3 % of a bound of its search has run onto it
+WIDTH_STEP_LN = 0.05  # the step in ln w of the width's error estimate
+SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full) standard errors
+SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
+ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
 
 
 @dataclass
@@ -70,9 +101,27 @@ class Timing:
         return self.t_ref + self.sched.data_start_s[d], self.t_ref + self.sched.data_end_s[d]
 
 
-def make_timing(plan: TestPlan, t_ref: float, feed_mm_s: float, overhead_s: float) -> Timing:
+def make_timing(
+    plan: TestPlan,
+    t_ref: float,
+    feed_mm_s: float,
+    overhead_s: float,
+    shift_s: dict[int, float] | None = None,
+    accel_s: float | None = None,
+) -> Timing:
+    """The timing at feed ``V`` and per-move overhead ``c``; ``shift_s``: per direction, how much later its data
+    arc runs than equal overheads put it (a wait before that arc longer than the others', e.g. in-position);
+    ``accel_s``: the part of ``c`` that is acceleration (:func:`.program.feed_in_half`), None: all of it."""
+    sched = schedule(plan, feed_mm_s, overhead_s, accel_s)
+    if shift_s:
+        sched = replace(
+            sched,
+            data_start_s={d: v + shift_s.get(d, 0.0) for d, v in sched.data_start_s.items()},
+            data_end_s={d: v + shift_s.get(d, 0.0) for d, v in sched.data_end_s.items()},
+            arc_start_s={d: v + shift_s.get(d, 0.0) for d, v in sched.arc_start_s.items()},
+        )
     # The drift term's origin is the feed-in: radius_um is then the radius when the test began.
-    return Timing(feed_mm_s, overhead_s, schedule(plan, feed_mm_s, overhead_s), t_ref, t_ref)
+    return Timing(feed_mm_s, overhead_s, sched, t_ref, t_ref)
 
 
 class CircleFit:
@@ -93,11 +142,15 @@ class CircleFit:
         keep_design: bool = False,
         offset: Offset | None = None,
         loop_lag_s: float | None = None,
-        takeup_rad: tuple[float, float] = (0.0, 0.0),
+        lost: LostMotion | None = None,
+        aperture_rad: float = 0.0,
+        skip_rad: float = 0.0,
     ) -> None:
         self.plan, self.machine, self.patterns = plan, machine, list(patterns)
         self.loop_lag_s = loop_lag_s
-        self.takeup_rad = takeup_rad
+        self.lost = lost or LostMotion()
+        self.aperture_rad = aperture_rad
+        self.skip_rad = skip_rad  # samples this far past a table's reversal are left out (unsized spikes)
         self.d = direction
         self.timing = timing
         self.w = math.radians(spike_width_deg)
@@ -121,7 +174,8 @@ class CircleFit:
             pitch_y_mm=self.machine.pitch_y_mm,
             travel=self.d * (u - math.radians(arc_start_deg(self.plan, self.d))),
             loop_lag_s=self.loop_lag_s,
-            takeup_rad=self.takeup_rad,
+            aperture_rad=self.aperture_rad,
+            **self.lost.geometry(self.loop_lag_s),
         )
 
     def add(self, t: np.ndarray, L: np.ndarray) -> None:
@@ -131,6 +185,11 @@ class CircleFit:
             return
         t, L = t[m], L[m]
         g = self.geometry(t)
+        if self.skip_rad > 0:
+            keep = ~_after_onsets(g, self.skip_rad)
+            if not keep.all():
+                t, L = t[keep], L[keep]
+                g = self.geometry(t)
         A = design(self.patterns, g, self.w)
         dr = (L - self.plan.radius_mm) * 1000.0
         self.factor.add(A, dr - self.offset(g) if self.offset is not None else dr)
@@ -158,6 +217,16 @@ class CircleFit:
     def measured(self) -> tuple[np.ndarray, np.ndarray]:
         """Kept ``(u, dR)`` as measured, for the ISO figures."""
         return (np.concatenate([k[1].u for k in self.kept]), np.concatenate([k[2] for k in self.kept]))
+
+
+def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
+    """Samples within ``reach_rad`` past a table's reversal (where friction sets in), any axis."""
+    out = np.zeros(len(g), dtype=bool)
+    for axis, points in ((0, (0.0, math.pi)), (1, (0.5 * math.pi, 1.5 * math.pi))):
+        for at in points:
+            du = spike_travel(g.u, g.d, at + g.d * g.onset_rad[axis])
+            out |= du < reach_rad
+    return out
 
 
 def _lag1(residuals: Sequence[np.ndarray]) -> float:
@@ -249,7 +318,7 @@ class TestAnalyzer:
         self.test_index += 1
         self._fi = fi
         V = self.plan.feed_mm_s * self.hints.feed_ratio
-        timing = make_timing(self.plan, fi.t_s, V, self.hints.overhead_s)
+        timing = make_timing(self.plan, fi.t_s, V, self.hints.overhead_s, accel_s=feed_accel(self.plan, [fi], V))
         self._circles = [
             CircleFit(self.plan, self.machine, _for_direction(self.patterns, d), d, timing, self.hints.spike_width_deg)
             for d in self.plan.direction_list
@@ -275,7 +344,8 @@ class TestAnalyzer:
                 continue
             try:
                 fit = solve(c.factor, c.patterns, significance=self.options.significance,
-                            vif_limit=self.options.vif_limit, effect_scale=c.colmax)
+                            min_effect_um=self.options.min_effect_um, vif_limit=self.options.vif_limit,
+                            effect_scale=c.colmax)
             except (np.linalg.LinAlgError, ValueError) as err:  # pragma: no cover - defensive
                 log.warning("circle fit failed: %s", err)
                 continue
@@ -339,6 +409,20 @@ def _for_direction(patterns: Sequence[Pattern], d: int) -> list[Pattern]:
 # --------------------------------------------------------------------------- whole test
 
 
+def feed_accel(plan: TestPlan, steps: Sequence[StepEvent], feed_mm_s: float) -> float | None:
+    """The acceleration part of the per-move overhead, from the feed-in's (and feed-out's) spread in time.
+
+    The rest of the overhead (an in-position wait after each move, a
+    control's block change) does not shape a move: only this decides whether
+    the short feed-in reaches the feed (:func:`.program.feed_in_half`).  None
+    where the steps' spread was not resolved (then all the overhead is taken
+    as acceleration, as before).
+    """
+    found = [accel_from_spread(plan.feed_in_mm, feed_mm_s, e.move_var_s2) for e in steps
+             if math.isfinite(e.move_var_s2) and e.move_var_s2 > 0]
+    return float(np.mean(found)) if found else None
+
+
 def check_plan(plan: TestPlan, fi: StepEvent, fo: StepEvent) -> float:
     """Raise DataError where the recording does not match the plan; return the feed (mm/s) at c = 0."""
     f = plan.feed_in_mm
@@ -364,6 +448,8 @@ class _Hyper:
     overhead_s: float = 0.0
     spike_width_deg: float = DEFAULT_SPIKE_WIDTH_DEG
     lag_stderr_s: float = float("nan")
+    wait_s: float = 0.0  # how much more the feed-in's move costs than each arc's (in-position waits)
+    shift_s: dict[int, float] = field(default_factory=dict)  # per direction: its data arc's delay from that
 
 
 def _has_spikes(patterns: Sequence[Pattern]) -> bool:
@@ -386,14 +472,16 @@ class _Joint:
         keep: bool,
         windows: dict[int, tuple[float, float]] | None = None,
         loop_lag_s: float | None = None,
-        takeup_rad: tuple[float, float] = (0.0, 0.0),
+        lost: LostMotion | None = None,
+        aperture_rad: float = 0.0,
+        skip_rad: float = 0.0,
     ) -> None:
         self.patterns = list(patterns)
         self.circles: list[CircleFit] = []
         for d in plan.direction_list:
             cf = CircleFit(
-                plan, machine, _for_direction(patterns, d), d, timing, spike_width_deg, keep, offset, loop_lag_s,
-                takeup_rad,
+                plan, machine, _for_direction(patterns, d), d, timing, spike_width_deg, keep, offset, loop_lag_s, lost,
+                aperture_rad, skip_rad,
             )
             if windows is not None:
                 cf.t_start, cf.t_end = windows[d]  # the same samples whatever the timing
@@ -421,9 +509,95 @@ class _Joint:
             out.append(dr - A @ _take(x, c.patterns, self.patterns))
         return out
 
-    def solve(self, options: AnalysisOptions, rho: float = 0.0) -> FitResult:
+    def solve(
+        self, options: AnalysisOptions, rho: float = 0.0, exclude: dict[str, str] | None = None,
+        family_dof: dict[str, int] | None = None,
+    ) -> FitResult:
         return solve(self.factor(), self.patterns, rho=rho, significance=options.significance,
-                     vif_limit=options.vif_limit, effect_scale=self.colmax())
+                     min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=self.colmax(),
+                     exclude=exclude, family_dof=family_dof)
+
+
+def _spike_timing_error(res: dict[str, Any], hyper: _Hyper, omega_rad_s: float) -> None:
+    """Add the onset's timing uncertainty to each spike's standard error.
+
+    A spike is sized at its onset, which the timing places: an onset off by
+    ``du`` scales the height by ``exp(du / w)``.  With the lag known to
+    ``s_c``, ``du`` is known to about ``Omega s_c``; that relative error of
+    the height is added in quadrature.
+    """
+    s_c = hyper.lag_stderr_s
+    if not (math.isfinite(s_c) and s_c > 0):
+        return
+    rel = omega_rad_s * s_c / math.radians(hyper.spike_width_deg)
+    for key, p in res["parameters"].items():
+        if key.startswith("reversal_spike_") and p["value"] is not None and p["stderr"] is not None:
+            p["stderr"] = math.hypot(p["stderr"], abs(p["value"]) * rel)
+    res["fit"]["uncertainty_method"] += (
+        f"; each reversal spike's also holds its onset's timing: the lag's {1000 * s_c:.2g} ms place the onset "
+        f"to {math.degrees(omega_rad_s * s_c):.2g} deg, {100 * rel:.2g} % of the height at this width"
+    )
+
+
+def _spike_width_error(res: dict[str, Any], sigma_ln_w: float, slope: dict[str, float]) -> None:
+    """Add the fitted width's uncertainty to each spike's standard error (:meth:`_LagSearch.width_error`)."""
+    res["timing"]["spike_width_stderr_deg"] = (
+        res["timing"]["spike_width_deg"] * sigma_ln_w if math.isfinite(sigma_ln_w) else None
+    )
+    for key, ds in slope.items():
+        p = res["parameters"].get(key)
+        if p and p["value"] is not None and p["stderr"] is not None:
+            extra = abs(ds) * sigma_ln_w
+            p["stderr"] = math.hypot(p["stderr"], extra) if math.isfinite(extra) else None
+    res["fit"]["uncertainty_method"] += (
+        "; and its width's: the heights' change with the width, times the width's standard error from the "
+        "likelihood's curvature"
+    )
+
+
+def _spike_significance(res: dict[str, Any]) -> None:
+    """A spike is significant only at least ``SPIKE_Z`` standard errors from zero, its timing and width counted.
+
+    Its F-test holds the timing and the width as known; the standard error
+    does not (:func:`_spike_timing_error`, :func:`_spike_width_error`).  A
+    height the timing or the width could take away is no finding.
+    """
+    res["fit"]["significance_rule"] += (
+        f"; a reversal spike also must be at least {SPIKE_Z:g} of its standard errors from zero, which count its "
+        "onset's timing and its width"
+    )
+    ranking = {r["pattern"]: r for r in res["ranking"]}
+    for key, p in res["parameters"].items():
+        if not (key.startswith("reversal_spike_") and p["significant"] and p["stderr"] is not None):
+            continue
+        if abs(p["value"]) < SPIKE_Z * p["stderr"]:
+            why = (f"its height, {p['value']:.3g} um, is within {SPIKE_Z:g} standard errors ({p['stderr']:.2g} um) "
+                   "of zero once its onset's timing and its width are counted")
+            p["significant"] = False
+            p["significance_reason"] = why
+            r = ranking.get(key[: -len("_um")])
+            if r is not None:
+                r["significant"], r["significance_reason"] = False, why
+
+
+def _credible_backlash(fit: FitResult, kappa: float, min_um: float) -> dict[str, float]:
+    """The fit's values with a backlash that is no finding set to 0.
+
+    What decides an axis' lost-motion model and where its table reverses: a
+    take-up angle grows as the root of the backlash (0.04 deg for 0.03 um at
+    R 100 mm), so a backlash of nothing, from noise or from a spike's misfit
+    leaking into the step, would move the spikes' onset by several samples and
+    feed on itself.  A backlash counts when it exceeds three standard errors
+    (inflated by ``kappa`` for correlated residuals) and the minimum effect.
+    """
+    out = _values(fit)
+    slices = fit.column_slices()
+    for key, name in (("backlash_x_um", "backlash_x"), ("backlash_y_um", "backlash_y")):
+        if key in out:
+            se = math.sqrt(max(float(fit.cov[slices[name].start, slices[name].start]) * kappa, 0.0))
+            if abs(out[key]) <= max(3.0 * se, min_um):
+                out[key] = 0.0
+    return out
 
 
 def _values(fit: FitResult) -> dict[str, float]:
@@ -437,59 +611,489 @@ def _values(fit: FitResult) -> dict[str, float]:
     return out
 
 
-def _search(
+def search_samples(
     plan: TestPlan,
-    machine: MachineConfig,
-    options: AnalysisOptions,
-    patterns: Sequence[Pattern],
-    ts: np.ndarray,
-    Ls: np.ndarray,
-    fi: StepEvent,
-    span: float,
-    base: Timing,
+    timing: Timing,
+    t: np.ndarray,
     windows: dict[int, tuple[float, float]],
-    offset: Offset | None,
-    n_eff: float,
-    tau: float | None,
-    takeup: tuple[float, float],
-) -> _Hyper:
+    sample_hz: float,
+    near_deg: tuple[float, float],
+    near_spacing_deg: float,
+) -> np.ndarray:
+    """Indices of the samples a timing search works on.
+
+    The arc-start lag and the spikes' width show where the model has sharp
+    features: at the axis reversals (steps, take-up, spikes) and the
+    master-slave changeovers, every 45 deg.  Within ``near_deg`` (before,
+    after in the direction of travel) of each point at ``timing``, samples are
+    kept up to one per ``near_spacing_deg``; elsewhere a thinned, even set of
+    about ``SEARCH_SAMPLES_PER_CIRCLE`` per circle.
+    """
+    spacing = math.degrees(timing.feed_mm_s / plan.radius_mm / sample_hz) if sample_hz > 0 else 0.0
+    near_step = max(1, int(near_spacing_deg / spacing)) if spacing > 0 else 1
+    keep = []
+    for d in plan.direction_list:
+        a, b = windows[d]
+        idx = np.flatnonzero((t >= a) & (t <= b))
+        if idx.size == 0:
+            continue
+        u = timing.sched.angle_deg(plan, d, t[idx] - timing.t_ref)
+        pos = np.mod(d * u, 45.0)  # travel past the last 45 deg point
+        near = (pos <= near_deg[1]) | (pos >= 45.0 - near_deg[0])
+        sel = np.zeros(idx.size, dtype=bool)
+        sel[:: max(1, idx.size // SEARCH_SAMPLES_PER_CIRCLE)] = True
+        sel[np.flatnonzero(near)[::near_step]] = True
+        keep.append(idx[sel])
+    return np.concatenate(keep) if keep else np.empty(0, dtype=np.int64)
+
+
+def spike_width_bounds(
+    plan: TestPlan, options: AnalysisOptions, feed_mm_s: float, sample_hz: float
+) -> tuple[tuple[float, float], str]:
+    """The spike width's search range (deg) at this sample rate, and why spikes cannot be sized at all ("").
+
+    A spike is sized from the samples on its decay: it needs ``RESOLVE_SAMPLES``
+    of them per width, so the range starts there (or at the configured minimum).
+    """
+    spacing = math.degrees(feed_mm_s / plan.radius_mm / sample_hz) if sample_hz > 0 else math.inf
+    lo = max(options.spike_width_min_deg, RESOLVE_SAMPLES * spacing)
+    hi = options.spike_width_max_deg
+    if not lo * 1.5 < hi:
+        return (min(lo, hi), hi), (
+            f"below the resolution at {sample_hz:.6g} Hz: the samples are {spacing:.2f} deg apart and the widest "
+            f"spike searched for decays within {hi:g} deg (spike_width_max_deg)"
+        )
+    return (lo, hi), ""
+
+
+@dataclass
+class _SampleSet:
+    idx: np.ndarray  # into the test's samples
+    windows: dict[int, tuple[float, float]]  # per direction: the data arc's samples, whatever the lag tried
+
+
+class _LagSearch:
     """Estimate the per-move overhead (the arc start's lag) and the spike width.
 
     The objective is the profile negative log-likelihood of the full model on a
-    decimated, fixed set of samples, ``(n_eff / 2) ln SSE``, plus ``c^2 / (2 s^2)``
-    with ``s`` = 50 ms: where the data cannot see the lag, it stays near zero.
+    fixed set of samples (:func:`search_samples`), ``(n_eff / 2) ln SSE``, plus
+    ``c^2 / (2 s^2)`` with ``s`` = 50 ms: where the data cannot see the lag, it
+    stays near zero.
+
+    On point samples the likelihood is a staircase in ``c``: a sharp onset (a
+    spike's, a step's) moves between two samples without changing the fit, and
+    an exponential spike trades a shift for its height exactly.  A bracketing
+    optimiser stops on whichever stair it meets, so ``c`` is found on grids
+    instead (``LAG_GRID_S``): over the whole range on a coarse set of samples,
+    around the best on a fine one that keeps every sample near the sharp
+    features, and the middle of the lowest stair is taken (every ``c`` on it
+    fits the samples equally; its middle is the least biased).  The width is
+    found by a bounded scalar search between them: the objective is smooth in
+    ``w``.
     """
-    hyper = _Hyper()
 
-    def sse(c: float, w_deg: float) -> float:
-        timing = make_timing(plan, fi.t_s, feed_from_span(plan, span, c), c)
-        timing.t_mid = base.t_mid
-        f = _Joint(plan, machine, patterns, timing, w_deg, ts, Ls, offset, False, windows, tau, takeup).factor()
-        return sse_subset(f.rows, range(f.p))
+    def __init__(
+        self,
+        plan: TestPlan,
+        machine: MachineConfig,
+        options: AnalysisOptions,
+        patterns: Sequence[Pattern],
+        t: np.ndarray,
+        L: np.ndarray,
+        fi: StepEvent,
+        span: float,
+        base: Timing,
+        windows: dict[int, tuple[float, float]],
+        tau: float | None,
+        width_bounds: tuple[float, float],
+        accel_s: float | None = None,
+    ) -> None:
+        self.plan, self.machine, self.options, self.patterns = plan, machine, options, patterns
+        self.accel_s = accel_s
+        self.t, self.L, self.fi, self.span, self.base, self.windows = t, L, fi, span, base, windows
+        self.tau, self.width_bounds = tau, width_bounds
+        self.sample_hz = _rate(t)
+        # the angle one sample covers: the search's smoothing of the sharp features is at least that wide
+        self.sample_rad = base.feed_mm_s / plan.radius_mm / self.sample_hz if self.sample_hz > 0 else 0.0
+        self.aperture_rad = 0.0
+        self.kappa = 1.0
+        start = {}
+        self.p = 0
+        for pat in patterns:
+            start[pat.name] = self.p
+            self.p += pat.q
+        self.spike_cols = np.array([p.reversal is not None for p in patterns for _ in range(p.q)], dtype=bool)
+        self.last_x = np.zeros(0)  # the full model's coefficients of the last sse()
+        self.by_direction = {}  # per direction: its patterns and their columns among all
+        for d in plan.direction_list:
+            mine = _for_direction(patterns, d)
+            self.by_direction[d] = (mine, np.array([start[p.name] + k for p in mine for k in range(p.q)], dtype=int))
+        self.coarse = self.samples(base, windows, COARSE_NEAR_DEG, COARSE_SPACING_DEG)
+        self.fine = self.coarse
 
-    # A residual below 1 nm rms is numerical, not signal: there the prior decides.
-    floor = ts.size * SSE_FLOOR_UM**2
-    spikes = _has_spikes(patterns)
-    lo_w, hi_w = math.log(options.spike_width_min_deg), math.log(options.spike_width_max_deg)
-    c, w = 0.0, hyper.spike_width_deg
-    for _round in range(2):
+    def samples(
+        self, timing: Timing, windows: dict[int, tuple[float, float]], near: tuple[float, float], spacing: float
+    ) -> _SampleSet:
+        idx = search_samples(self.plan, timing, self.t, windows, self.sample_hz, near, spacing)
+        return _SampleSet(idx, windows)
+
+    def fine_samples(self, c: float) -> _SampleSet:
+        """Every sample near the features where they are at lag ``c``, in the data arcs at ``c`` but for
+        what the lags still to be tried could move in or out (the features at the arcs' ends included)."""
+        timing = self.timing(c)
+        windows = {}
+        for d in self.plan.direction_list:
+            a, b = timing.window(d)
+            windows[d] = (a + FINE_TRIM_S, b - FINE_TRIM_S) if b - a > 4 * FINE_TRIM_S else (a, b)
+        return self.samples(timing, windows, FINE_NEAR_DEG, FINE_SPACING_DEG)
+
+    def timing(self, c: float, shift_s: dict[int, float] | None = None) -> Timing:
+        V = feed_from_span(self.plan, self.span, c, self.accel_s)
+        timing = make_timing(self.plan, self.fi.t_s, V, c, shift_s, self.accel_s)
+        timing.t_mid = self.base.t_mid
+        return timing
+
+    def joint(
+        self, at: _SampleSet, hyper: _Hyper, offset: Offset | None, lost: LostMotion, keep: bool = False
+    ) -> _Joint:
+        return _Joint(self.plan, self.machine, self.patterns, self.timing(hyper.overhead_s, hyper.shift_s),
+                      hyper.spike_width_deg, self.t[at.idx], self.L[at.idx], offset, keep, at.windows, self.tau, lost)
+
+    def sse(
+        self,
+        at: _SampleSet,
+        c: float,
+        w_deg: float,
+        offset: Offset | None,
+        lost: LostMotion,
+        shift_s: dict[int, float] | None = None,
+    ) -> tuple[float, float]:
+        """The residual sums of squares on ``at`` at lag ``c`` and spike width ``w_deg``: of the full model, and
+        of the model without the reversal spikes.
+
+        By the normal equations of the column-scaled design, then the residual
+        itself (its sum of squares is then accurate to second order in the
+        solution's rounding): several times cheaper than folding a QR factor,
+        and this runs a hundred times a test.
+        """
+        timing = self.timing(c, shift_s)
+        G = np.zeros((self.p, self.p))
+        b = np.zeros(self.p)
+        blocks = []
+        t, L = self.t[at.idx], self.L[at.idx]
+        for d, (patterns, cols) in self.by_direction.items():
+            cf = CircleFit(self.plan, self.machine, patterns, d, timing, w_deg, False, offset, self.tau, lost,
+                           self.aperture_rad)
+            lo, hi = at.windows[d]
+            m = (t >= lo) & (t <= hi)
+            if not m.any():
+                continue
+            g = cf.geometry(t[m])
+            A = design(cf.patterns, g, cf.w)
+            y = (L[m] - self.plan.radius_mm) * 1000.0
+            if offset is not None:
+                y = y - offset(g)
+            G[np.ix_(cols, cols)] += A.T @ A
+            b[cols] += A.T @ y
+            blocks.append((A, y, cols))
+        out = []
+        for use in (np.ones(self.p, dtype=bool), ~self.spike_cols):
+            x = np.zeros(self.p)
+            x[use] = _normal_solve(G[np.ix_(use, use)], b[use])
+            if not out:
+                self.last_x = x
+            out.append(float(sum(float(np.sum((y - A @ x[cols]) ** 2)) for A, y, cols in blocks)))
+            if not self.spike_cols.any():
+                out.append(out[0])
+                break
+        return out[0], out[1]
+
+    def width_error(self, hyper: _Hyper, offset: Offset | None, lost: LostMotion) -> tuple[float, dict[str, float]]:
+        """The spike width's standard error in ``ln w`` and each spike height's change per unit ``ln w``.
+
+        From the full model's likelihood on the fine set at ``w`` and ``w e^(+-d)``: its curvature, and the
+        heights' central difference.  A spike height and its width trade off (a wider decay with a lower
+        start fits much the same samples); the width is fitted, so that is part of the height's error.
+        """
+        n = self.fine.idx.size
+        d = WIDTH_STEP_LN
+        vals, xs = [], []
+        for k in (-1, 0, 1):
+            full, _ = self.sse(self.fine, hyper.overhead_s, hyper.spike_width_deg * math.exp(k * d), offset, lost,
+                               hyper.shift_s)
+            vals.append(0.5 * n / self.kappa * math.log(full + n * SSE_FLOOR_UM**2))
+            xs.append(self.last_x)
+        curv = (vals[0] - 2 * vals[1] + vals[2]) / d**2
+        sigma = 1.0 / math.sqrt(curv) if curv > 0 else math.inf
+        names = [p.name for p in self.patterns for _ in range(p.q)]
+        slope = {f"{nm}_um": float((xs[2][j] - xs[0][j]) / (2 * d)) for j, nm in enumerate(names) if self.spike_cols[j]}
+        return sigma, slope
+
+    def run(self, offset: Offset | None, lost: LostMotion, start: _Hyper | None = None) -> _Hyper:
+        """``start``: refine from there on the fine set (no search over the whole range).
+
+        Spikes and timing trade off: where a reversal carries a step (backlash,
+        above all a compensation step filtered by the loop), a lag that puts
+        the step a sample off leaves a residual the shape of a spike, and the
+        free spike heights take it up, so the full model's likelihood can be
+        flat over several milliseconds.  Of the lags the full model cannot tell
+        apart (``LAG_CI_NATS``, a 95 % profile interval), the one the model
+        without spikes fits best is taken: spikes do not buy a timing the
+        steps refute, and where spikes are real and sharp their onsets narrow
+        that interval themselves.
+
+        The feed-in may also cost more or less than the arcs (``wait_s``): a
+        control that waits for in-position after each move waits longer after
+        a move whose axes end with more following error (the feed-in ends
+        radially, the arcs tangentially; with unequal gains on other axes).
+        With equal overheads for the rest, the ``k``-th of ``n`` data arcs then
+        runs ``(n + 1 - k) / (n + 1)`` of that difference later (the feed
+        itself, from the span, is unchanged).  It is found on grids too, with a
+        weak prior (``WAIT_PRIOR_S``) where the data cannot see it.
+        """
+        options = self.options
+        hyper = _Hyper() if start is None else replace(start)
+        idx = self.coarse if start is None else self.fine
+        spikes = _has_spikes(self.patterns)
+        lo_w, hi_w = (math.log(v) for v in self.width_bounds)
+        if start is None:
+            hyper.spike_width_deg = min(max(DEFAULT_SPIKE_WIDTH_DEG, self.width_bounds[0]), self.width_bounds[1])
+
+        def nll(value: float) -> float:
+            # a residual below 1 nm rms is numerical, not signal: there the prior decides
+            n = idx.idx.size
+            return 0.5 * n / self.kappa * math.log(value + n * SSE_FLOOR_UM**2)
+
+        def objs(c: float, wait: float) -> tuple[float, float, float]:
+            full, bare = self.sse(idx, c, hyper.spike_width_deg, offset, lost, self.shifts(wait))
+            prior = c * c / (2 * LAG_PRIOR_S**2) + wait * wait / (2 * WAIT_PRIOR_S**2)
+            return nll(full) + prior, nll(bare) + prior, prior
+
+        def start_of(d: int, c: float, wait: float) -> float:
+            return float(self.timing(c).sched.data_start_s[d]) + self.shifts(wait).get(d, 0.0)
+
+        def grid(
+            lo: float, hi: float, step: float, wait: bool = False, hold: int | None = None
+        ) -> tuple[np.ndarray, ...]:
+            """The objectives over the lag or (``wait``) the feed-in's extra wait, ``lo..hi`` about its value.
+
+            ``hold``: along the lag with that direction's data arc held where it starts (the wait follows):
+            only the other arc's start and the feed move, so that the two arcs' starts are searched nearly
+            independently (as the lag and the wait are not: both move both).
+            """
+            now, (b0, b1) = (hyper.wait_s, (-WAIT_MAX_S, WAIT_MAX_S)) if wait else (hyper.overhead_s, (lo_c, hi_c))
+            g = np.arange(max(now + lo, b0), min(now + hi, b1) + 0.5 * step, step)
+            at = line(wait, hold)
+            points = [at(float(x)) for x in g]
+            v = np.array([objs(c, w) for c, w in points])
+            return g, v[:, 0], v[:, 1], v[:, 2], np.array(points)
+
+        def line(wait: bool, hold: int | None) -> Callable[[float], tuple[float, float]]:
+            """The (lag, wait) at a coordinate of :func:`grid`'s line through the current timing."""
+            if hold is not None:
+                target = start_of(hold, hyper.overhead_s, hyper.wait_s)
+                coef = self.shifts(1.0)[hold]
+                return lambda x: (x, (target - start_of(hold, x, 0.0)) / coef)
+            c0, w0 = hyper.overhead_s, hyper.wait_s
+            return (lambda x: (c0, x)) if wait else (lambda x: (x, w0))
+
+        omega = self.base.feed_mm_s / self.plan.radius_mm
+
+        def smooth(step: float | None) -> None:
+            """Average the sharp features over the angle a grid step moves them (at least a sample's): the
+            objective is then smooth at the grid's scale, and its stairs and narrow wells are not missed.
+            None: point samples, as the data are and the final fit takes them."""
+            aperture = 0.0 if step is None else max(self.sample_rad, omega * step)
+            if self.sample_rad > math.radians(SMOOTH_MAX_SAMPLE_DEG):
+                aperture = 0.0  # samples this far apart: no smoothing (a box a sample wide misfits point samples)
+            if aperture != self.aperture_rad:
+                self.aperture_rad = aperture
+                best[0] = math.inf  # another objective
+
+        def pick(lo: float, hi: float, step: float, wait: bool = False, hold: int | None = None) -> np.ndarray:
+            smooth(step)
+            _, full, bare, _, points = grid(lo, hi, step, wait, hold)
+            hyper.overhead_s, hyper.wait_s = (float(v) for v in points[choose(full, bare)])
+            return np.asarray(full)
+
+        best = [math.inf]  # the lowest full objective seen on the current sample set
+
+        def choose(full: np.ndarray, bare: np.ndarray) -> int:
+            best[0] = min(best[0], float(full.min()))
+            return _pick(full, bare, best[0])
+
+        def width() -> None:
+            r = optimize.minimize_scalar(
+                lambda lw: self.sse(idx, hyper.overhead_s, math.exp(lw), offset, lost, self.shifts(hyper.wait_s))[0],
+                bounds=(lo_w, hi_w), method="bounded", options={"xatol": 0.015})
+            hyper.spike_width_deg = float(math.exp(r.x))
+
+        def stair(wait: bool = False, hold: int | None = None) -> float:
+            """Resolve the stair along a coordinate of :func:`grid` and take its middle; return a uniform spread
+            over it (the stairs are about a sample period over the sharp features' count wide)."""
+            reach = max(STAIR_REACH_S, 0.5 / self.sample_hz)
+            step = max(min(LAG_GRID_S[2], 0.1 / self.sample_hz), reach / 20)
+            smooth(None)
+            at = line(wait, hold)
+            g, full, bare, pr, _ = grid(-reach, reach, step, wait, hold)
+            k = choose(full, bare)
+            like = bare - pr  # the stair is a level of the likelihood, not of the prior
+            ok = full <= best[0] + LAG_CI_NATS
+            level = like[k] + STAIR_NATS
+
+            def on(x: float) -> bool:
+                c, w = at(x)
+                f, b, p = objs(c, w)
+                return f <= best[0] + LAG_CI_NATS and b - p <= level
+
+            lo, hi = k, k
+            while lo > 0 and ok[lo - 1] and like[lo - 1] <= level:
+                lo -= 1
+            while hi < g.size - 1 and ok[hi + 1] and like[hi + 1] <= level:
+                hi += 1
+            # the stair's edges between the grid's points, by bisection
+            edges = []
+            for inside, outside in ((g[lo], g[lo - 1] if lo > 0 else None), (g[hi], g[hi + 1] if hi < g.size - 1
+                                                                             else None)):
+                a, b = float(inside), outside
+                for _ in range(STAIR_BISECT if b is not None else 0):
+                    mid = 0.5 * (a + float(b))
+                    a, b = (mid, b) if on(mid) else (a, mid)
+                edges.append(a if b is None else 0.5 * (a + float(b)))
+            hyper.overhead_s, hyper.wait_s = at(0.5 * (edges[0] + edges[1]))
+            return float(abs(edges[1] - edges[0]) / math.sqrt(12.0))
+
+        lo_c, hi_c = -min(options.max_lag_s, LAG_SEARCH_BELOW_S), options.max_lag_s
+        if options.estimate_lag and start is None:
+            pick(lo_c - hyper.overhead_s, hi_c - hyper.overhead_s, LAG_GRID_S[0])
+            # from here on every sample near the features, where they are at this lag
+            self.fine = idx = self.fine_samples(hyper.overhead_s)
+            best[0] = math.inf
+            smooth(LAG_GRID_S[1])
         if spikes:
-            r = optimize.minimize_scalar(lambda lw, c=c: sse(c, math.exp(lw)), bounds=(lo_w, hi_w),
-                                         method="bounded", options={"xatol": 0.01})
-            w = float(math.exp(r.x))
+            width()
         if options.estimate_lag:
-            def obj(cc: float, w: float = w) -> float:
-                return 0.5 * n_eff * math.log(sse(cc, w) + floor) + cc * cc / (2 * LAG_PRIOR_S**2)
-            r = optimize.minimize_scalar(obj, bounds=(-options.max_lag_s, options.max_lag_s),
-                                         method="bounded", options={"xatol": 1e-5})
-            c = float(r.x)
-            h = 1e-3
-            curv = (obj(c + h) - 2 * obj(c) + obj(c - h)) / h**2
-            hyper.lag_stderr_s = 1.0 / math.sqrt(curv) if curv > 0 else float("inf")
-        if not spikes:
-            break
-    hyper.overhead_s, hyper.spike_width_deg = c, w
-    return hyper
+            reach = LAG_GRID_S[0] if start is None else LAG_GRID_S[0] / 2
+            full = pick(-reach, reach, LAG_GRID_S[1])
+            if full.size >= 5:  # the lag's uncertainty: the full objective's curvature over that grid
+                g = np.arange(full.size) * LAG_GRID_S[1]
+                a2 = np.polyfit(g - g[int(np.argmin(full))], full, 2)[0]
+                hyper.lag_stderr_s = 1.0 / math.sqrt(2 * a2) if a2 > 0 else float("inf")
+            # each arc's start in turn, the other's held (one direction: its start, then the feed)
+            dirs = self.plan.direction_list
+            for reach in HOLD_REACH_S:
+                if len(dirs) == 1:
+                    pick(-reach * 2, reach * 2, reach / 5, wait=True)
+                    pick(-reach, reach, reach / 10, hold=dirs[0])
+                else:
+                    for d in dirs:
+                        pick(-reach, reach, reach / 10, hold=-d)
+            # Then both together, on the full model: the lines above cross the valley the two trade along at a
+            # slant (each moves the feed too), and on point samples no gradient leads along it.  A compass
+            # search takes the steps (the axes and the diagonals) that gain more than COMPASS_GAIN_NATS,
+            # halving them down to a fraction of a sample period: it crosses stairs, and it does not wander
+            # where the full model cannot tell timings apart (there the spike-free model chose above).
+            smooth(None)
+            here = objs(hyper.overhead_s, hyper.wait_s)[0]
+            best[0] = min(best[0], here)
+            step_c = COMPASS_S[0]
+            evals = 0
+            while step_c >= min(COMPASS_S[1], 0.02 / self.sample_hz) and evals < COMPASS_EVALS:
+                moved = False
+                for dc, dw in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
+                    c, w = hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c
+                    if not (lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S):
+                        continue
+                    f = objs(c, w)[0]
+                    evals += 1
+                    if f < here - COMPASS_GAIN_NATS:
+                        hyper.overhead_s, hyper.wait_s, here, moved = c, w, f, True
+                        best[0] = min(best[0], f)
+                        break
+                if not moved:
+                    step_c /= 2
+            if spikes:
+                width()
+            spread = stair(wait=True) if len(dirs) == 1 else 0.0
+            for d in dirs:
+                spread = max(spread, stair(hold=-d if len(dirs) > 1 else d))
+            hyper.lag_stderr_s = max(hyper.lag_stderr_s, spread)
+        elif spikes and start is None:
+            self.fine = idx = self.fine_samples(hyper.overhead_s)
+            width()
+        hyper.shift_s = self.shifts(hyper.wait_s)
+        self.aperture_rad = 0.0
+        return hyper
+
+    def shifts(self, wait_s: float) -> dict[int, float]:
+        """Per direction, how much later its data arc runs when the feed-in costs ``wait_s`` more than each arc."""
+        dirs = self.plan.direction_list
+        n = len(dirs)
+        return {d: (n - k) / (n + 1) * wait_s for k, d in enumerate(dirs)} if wait_s else {}
+
+
+def _unreached_spikes(plan: TestPlan, patterns: Sequence[Pattern]) -> dict[str, str]:
+    """The spikes whose reversal point a (partial) data arc never passes, with that reason."""
+    out = {}
+    for p in patterns:
+        if p.reversal is None:
+            continue
+        axis, at, d = p.reversal
+        start = data_start_deg(plan, d)
+        if math.fmod(d * (at - start), 360.0) % 360.0 >= plan.data_arc_deg:
+            end = start + d * plan.data_arc_deg
+            out[p.name] = (
+                f"the {'CCW' if d > 0 else 'CW'} data arc ({start:g}..{end:g} deg) does not pass the "
+                f"{axis.upper()} reversal at {at:g} deg"
+            )
+    return out
+
+
+def _width_verdict(w: float, bounds: tuple[float, float], options: AnalysisOptions, sample_hz: float) -> str:
+    """Why spikes of the fitted width ``w`` (deg) are not sized, or "" when they are.
+
+    A width on a bound of its search is no estimate: at the lower one where
+    that is the sample spacing's, the spikes are below the resolution; at the
+    configured lower one, the reversals show nothing as gradual as friction
+    (a bump of one or two samples is noise); at the upper one, what follows
+    the reversals is a smooth change of the path, not a friction spike.
+    """
+    lo, hi = bounds
+    if w <= lo * WIDTH_AT_BOUND and lo > options.spike_width_min_deg:
+        return (
+            f"below the resolution at {sample_hz:.6g} Hz: the spikes decay within {w:.2f} deg or less, about "
+            f"{lo / RESOLVE_SAMPLES:.2f} deg between samples; at least {RESOLVE_SAMPLES:g} samples per width are "
+            "needed to size them"
+        )
+    if w <= lo * WIDTH_AT_BOUND:
+        return (
+            f"no reversal spike: the fitted width runs onto its lower bound, {lo:g} deg (spike_width_min_deg); "
+            "nothing after the reversals decays as gradually as friction does"
+        )
+    if w >= hi / WIDTH_AT_BOUND:
+        return (
+            f"no reversal spike: the fitted width runs onto its upper bound, {hi:g} deg (spike_width_max_deg); what "
+            "follows the reversals changes too slowly for friction"
+        )
+    return ""
+
+
+def _pick(full: np.ndarray, bare: np.ndarray, best: float) -> int:
+    """Of the grid's timings the full model cannot tell from its ``best``, the index of the one the spike-free
+    model fits best (the grid's own best where none is that close)."""
+    ok = np.flatnonzero(full <= best + LAG_CI_NATS)
+    if ok.size == 0:
+        return int(np.argmin(full))
+    return int(ok[np.argmin(bare[ok])])
+
+
+def _normal_solve(G: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares solution from the normal equations, column-scaled, rank-deficient columns left at 0."""
+    scale = np.sqrt(np.diag(G))
+    scale[scale == 0] = 1.0
+    vals, vecs = np.linalg.eigh(G / np.outer(scale, scale))
+    keep = vals > vals[-1] * 1e-12
+    return np.asarray((vecs[:, keep] @ ((vecs[:, keep].T @ (b / scale)) / vals[keep])) / scale)
 
 
 def _embed(f: Factor, sub: Sequence[Pattern], full: Sequence[Pattern]) -> Factor:
@@ -573,7 +1177,8 @@ def analyze_test(
     span = fo.t_s - fi.t_s
     patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
     tau, cos2, tau_source = loop_lag(plan, machine, options, fi, fo, _rate(t))
-    # 1. A preliminary fit on a decimated, fixed sample set: the corrections' first values.
+    # 1. A preliminary fit on the search's coarse set of samples: the corrections' first values.
+    sample_hz = _rate(t)
     base = make_timing(plan, fi.t_s, feed_from_span(plan, span, 0.0), 0.0)
     margin = options.max_lag_s * 1.5 * base.feed_mm_s / plan.radius_mm  # rad
     windows = {}
@@ -581,60 +1186,111 @@ def analyze_test(
         a, b = base.window(d)
         trim = margin * plan.radius_mm / base.feed_mm_s
         windows[d] = (a + trim, b - trim) if b - a > 4 * trim else (a, b)
-    sel = np.zeros(t.size, dtype=bool)
-    for a, b in windows.values():
-        sel |= (t >= a) & (t <= b)
-    idx = np.flatnonzero(sel)
-    step = max(1, idx.size // (SEARCH_SAMPLES_PER_CIRCLE * len(plan.direction_list)))
-    ts, Ls = t[idx[::step]], L[idx[::step]]
-    hyper = _Hyper()
+    widths, unresolved = spike_width_bounds(plan, options, base.feed_mm_s, sample_hz)
+    accel = feed_accel(plan, [fi, fo], base.feed_mm_s)
+    search = _LagSearch(plan, machine, options, patterns, t, L, fi, span, base, windows, tau, widths, accel)
+    hyper = _Hyper(spike_width_deg=min(max(DEFAULT_SPIKE_WIDTH_DEG, widths[0]), widths[1]))
     offset = None
-    takeup = (0.0, 0.0)
-    if ts.size > 50:
-        pre = _Joint(plan, machine, patterns, base, hyper.spike_width_deg, ts, Ls, None, True, windows, tau)
+    lost = LostMotion()
+    spacing_rad = base.feed_mm_s / plan.radius_mm / sample_hz if sample_hz > 0 else 0.0
+    u_in = arc_start_deg(plan, plan.direction_list[0])
+
+    def choose(fit: FitResult) -> LostMotion:
+        values = _credible_backlash(fit, search.kappa if fit.kappa == 1.0 else 1.0, options.min_effect_um)
+        m, omega = values.get("servo_mismatch_ms", 0.0), base.feed_mm_s / plan.radius_mm
+        loops = loop_angles(mean_lag(tau, cos2, m), m, omega, u_in)
+        # each axis' own lag moves where it reverses: physics of the loops, not of the seed's linear masks
+        axes = axis_reversals(m, omega, u_in) if tau is not None else (0.0, 0.0)
+        return LostMotion.choose(values, options.lost_motion, plan.radius_mm, loops, axes)
+
+    if search.coarse.idx.size > 50:
+        pre = search.joint(search.coarse, hyper, None, lost, keep=True)
         pre_fit = pre.solve(options)
         rho = _lag1(pre.residuals(pre_fit.x))
-        kappa = min(max((1 + rho) / (1 - rho), 1.0), 400.0) if rho < 1 else 400.0
-        offset = make_offset(_values(pre_fit), tau, options.lost_motion, cos2)
-        if options.lost_motion == "deadband":
-            takeup = takeup_angles(_values(pre_fit), plan.radius_mm)
-        # 2. Lag and spike width on that set, with the corrections applied.
-        hyper = _search(
-            plan, machine, options, patterns, ts, Ls, fi, span, base, windows, offset, ts.size / kappa, tau, takeup
-        )
+        search.kappa = min(max((1 + rho) / (1 - rho), 1.0), 400.0) if rho < 1 else 400.0
+        lost = choose(pre_fit)
+        offset = make_offset(_values(pre_fit), tau, lost, cos2)
+        # 2. Lag and spike width with the corrections applied; then, where the fit at that timing changes a
+        # lost-motion model or moves a table's reversal by a tenth of a sample (a sample at the onset decides a
+        # spike's height), again from there.
+        start = None
+        for _pass in range(3):
+            hyper = search.run(offset, lost, start)
+            fit_s = search.joint(search.fine, hyper, offset, lost).solve(options)
+            chosen = choose(fit_s)
+            offset = make_offset(_values(fit_s), tau, chosen, cos2)
+            moved = max(abs(a - b) for a, b in zip(chosen.onset_rad, lost.onset_rad, strict=True))
+            same = chosen.models == lost.models and moved <= ONSET_MOVE_SAMPLES * spacing_rad
+            lost, start = chosen, hyper
+            if same:
+                break
+    # Spikes the data arcs do not reach, or whose width the data do not fix, are left out, with the reason.
+    exclude = _unreached_spikes(plan, patterns)
+    resolution_limited = bool(unresolved) or (
+        widths[0] > options.spike_width_min_deg and hyper.spike_width_deg <= widths[0] * WIDTH_AT_BOUND)
+    if _has_spikes(patterns):
+        why = unresolved or _width_verdict(hyper.spike_width_deg, widths, options, sample_hz)
+        if why:
+            exclude = {p.name: exclude.get(p.name, why) for p in patterns if p.reversal is not None}
     # 3. The full fit at those values, then the corrections to a fixed point.
-    V = feed_from_span(plan, span, hyper.overhead_s)
-    timing = make_timing(plan, fi.t_s, V, hyper.overhead_s)
-    joint = _Joint(plan, machine, patterns, timing, hyper.spike_width_deg, t, L, offset, True, None, tau, takeup)
+    V = feed_from_span(plan, span, hyper.overhead_s, accel)
+    timing = make_timing(plan, fi.t_s, V, hyper.overhead_s, hyper.shift_s, accel)
+
+    # Spikes too narrow to size still touch the first samples after each table reversal: those are left out,
+    # so that no other pattern (a backlash step, above all) takes them up.
+    skip = SKIP_SAMPLES * search.sample_rad if resolution_limited else 0.0
+
+    def full(lost: LostMotion, offset: Offset | None) -> _Joint:
+        return _Joint(plan, machine, patterns, timing, hyper.spike_width_deg, t, L, offset, True, None, tau, lost,
+                      0.0, skip)
+
+    joint = full(lost, offset)
     for c in joint.circles:
         if c.factor.n < 8:
             raise DataError(
                 f"the {'CCW' if c.d > 0 else 'CW'} data arc ({c.t_start:.2f}..{c.t_end:.2f} s) holds "
                 f"{c.factor.n} samples: too few to fit"
             )
-    fit = joint.solve(options)
+    fit = joint.solve(options, exclude=exclude)
     for _ in range(2):
-        offset = make_offset(_values(fit), tau, options.lost_motion, cos2)
+        chosen = choose(fit)
+        if chosen.models != lost.models:  # the final fit turned a backlash's sign: the other model
+            lost = chosen
+            offset = make_offset(_values(fit), tau, lost, cos2)
+            joint = full(lost, offset)
+            fit = joint.solve(options, exclude=exclude)
+            continue
+        offset = make_offset(_values(fit), tau, lost, cos2)
         if offset is None and all(c.offset is None for c in joint.circles):
             break
         for c in joint.circles:
             c.refit(offset)
-        fit = joint.solve(options)
+        fit = joint.solve(options, exclude=exclude)
     residuals = joint.residuals(fit.x)
-    fit = joint.solve(options, rho=_lag1(residuals))
+    # the spikes' width was fitted to these samples: their joint test counts it
+    fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1})
     res = _result_body(plan, machine, options, fit, patterns)
+    _spike_timing_error(res, hyper, V / plan.radius_mm)
     res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
     res["fit"]["servo_model_note"] = tau_source
-    res["fit"]["lost_motion_model"] = (
-        "dead band: take-up after reversals (backlash > 0)" if options.lost_motion == "deadband" else "step"
+    res["fit"]["lost_motion"] = lost.to_dict()
+    res["fit"]["lost_motion_model"] = "; ".join(
+        f"{axis.upper()}: {MODEL_WORDS[m]}" for axis, m in zip("xy", lost.models, strict=True)
     )
-    sample_hz = _rate(t)
     res["kind"] = "test"
     res["timing"] = _timing_dict(plan, fi, fo, timing, hyper, V)
+    if _has_spikes(patterns) and not exclude and search.fine.idx.size > 50:
+        _spike_width_error(res, *search.width_error(hyper, offset, lost))
+    _spike_significance(res)
+    res["advice"] = advise(res["parameters"], plan, machine)  # on the final verdicts
     res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
     res["timing"]["loop_lag_source"] = tau_source
     res["timing"]["loop_lag_radial_cos2u"] = cos2
-    res["timing"]["backlash_takeup_deg"] = {"x": math.degrees(takeup[0]), "y": math.degrees(takeup[1])}
+    res["timing"]["backlash_takeup_deg"] = {
+        axis: math.degrees(o) if m == "deadband" else 0.0
+        for axis, m, o in zip("xy", lost.models, lost.onset_rad, strict=True)
+    }
+    res["timing"]["reversal_onset_deg"] = {axis: math.degrees(o) for axis, o in zip("xy", lost.onset_rad, strict=True)}
     # The arc-start lag of a trapezoid profile is V / A: a plan whose data arcs begin before the feed is
     # reached at that acceleration leaves the timing model, and the measured feed and angles with it.
     if hyper.overhead_s > 0 and math.isfinite(hyper.overhead_s):
@@ -716,12 +1372,15 @@ def _timing_dict(
         "feed_in_height_mm": fi.height_mm,
         "feed_out_height_mm": fo.height_mm,
         "data_arcs": {
-            ("ccw" if d > 0 else "cw"): {"start_s": timing.window(d)[0], "end_s": timing.window(d)[1]}
+            ("ccw" if d > 0 else "cw"): {
+                "start_s": timing.window(d)[0], "end_s": timing.window(d)[1], "shift_s": hyper.shift_s.get(d, 0.0)
+            }
             for d in plan.direction_list
         },
         "method": (
-            "feed from the feed-in to feed-out centroid span; arc-start lag (per-move overhead) "
-            "and spike width by profile likelihood of the full model"
+            "feed from the feed-in to feed-out centroid span; arc-start lag (per-move overhead), each data arc's "
+            "shift against it (unequal waits before the arcs) and spike width by profile likelihood of the full "
+            "model, the lag among those the full model cannot tell apart where the model without spikes fits best"
         ),
     }
     return out
@@ -752,6 +1411,8 @@ def _result_body(
             "variance_inflation": fit.kappa,
             "condition_number": fit.condition if math.isfinite(fit.condition) else None,
             "significance": options.significance,
+            "min_effect_um": options.min_effect_um,
+            "significance_rule": significance_rule(options.significance, options.min_effect_um),
             "servo_model": "linear",
             "uncertainty_method": (
                 "least squares covariance sigma^2 (A^T A)^-1 with sigma^2 = SSE/(n-p), inflated by "

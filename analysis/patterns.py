@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -37,7 +38,13 @@ class Geometry:
     ``pitch``: ball-screw pitch per axis (mm) or None; ``travel``: angle (rad)
     travelled since the arc began, so that a reversal the arc never passed has
     no spike; ``loop_lag_s``: the position loops' mean lag, where known, through
-    which a step made in the command (master-slave changeover) reaches the axes.
+    which a step made in the command (master-slave changeover, backlash
+    compensation) reaches the axes.  ``onset_rad``: per axis, the angle from a
+    reversal point to where the table itself reverses and friction acts
+    (positive after a dead band's take-up, negative where an over-compensated
+    command step pulls the table round early).  ``comp_x``/``comp_y``: that
+    axis' lost motion is the control's compensation step passed through the
+    loop (backlash < 0), not a step at the reversal.
     """
 
     u: np.ndarray
@@ -49,10 +56,43 @@ class Geometry:
     pitch_y_mm: float | None = None
     travel: np.ndarray | None = None  # angle travelled since the arc began (rad); None: long enough
     loop_lag_s: float | None = None  # mean position-loop lag, where known: smooths command-side steps
-    takeup_rad: tuple[float, float] = (0.0, 0.0)  # X, Y: angle after a reversal until the table moves
+    onset_rad: tuple[float, float] = (0.0, 0.0)  # X, Y: from a reversal point to the table's own reversal
+    reversal_rad: tuple[float, float] = (0.0, 0.0)  # X, Y: from a reversal point to the axis' (motor's) reversal
+    comp_x: bool = False  # X's lost motion is a compensation step through the loop
+    comp_y: bool = False
+    deadband: tuple[bool, bool] = (False, False)  # X, Y: a dead band, whose step sits at the take-up's end
+    loop_rad: tuple[float, float, float] | None = None  # the command's lead, X's and Y's loop lag, as angles
+    aperture_rad: float = 0.0  # angle a sample averages over (0: an instant); see _switch
+
+    def loop_angles(self, axis: int | None) -> tuple[float, float]:
+        """The command's lead over the frame and an axis' loop time constant (None: the mean), as angles."""
+        if self.loop_rad is not None:
+            lead, lx, ly = self.loop_rad
+            lag = 0.5 * (lx + ly) if axis is None else (lx, ly)[axis]
+            return lead, max(lag, 1e-12)
+        assert self.loop_lag_s is not None
+        lag = self.V / self.R * self.loop_lag_s
+        return lag, lag
 
     def __len__(self) -> int:
         return int(self.u.size)
+
+    # The masks share a few functions of the angle: each is computed once per geometry.
+    @cached_property
+    def cos_u(self) -> np.ndarray:
+        return np.cos(self.u)
+
+    @cached_property
+    def sin_u(self) -> np.ndarray:
+        return np.sin(self.u)
+
+    @cached_property
+    def sin_2u(self) -> np.ndarray:
+        return 2.0 * self.sin_u * self.cos_u
+
+    @cached_property
+    def cos_2u(self) -> np.ndarray:
+        return (self.cos_u - self.sin_u) * (self.cos_u + self.sin_u)
 
 
 ColumnFn = Callable[[Geometry, float], np.ndarray]
@@ -86,13 +126,29 @@ class Pattern:
         return cols.reshape(len(g), self.q)
 
 
+def _switch(g: Geometry, value: np.ndarray, from_first: np.ndarray, period: float) -> np.ndarray:
+    """``sign(value)``, a sign that switches every ``period`` (``from_first``: the angle past a switching
+    point), averaged over the sample's aperture: a ramp across each switch ``aperture_rad`` wide.
+
+    A sample is an average over its acquisition, and an instant step placed
+    between two samples would make the fit's timing a staircase.
+    """
+    s = np.sign(value)
+    h = 0.5 * g.aperture_rad
+    if h <= 0:
+        return s
+    half = 0.5 * period
+    dist = np.abs(np.mod(from_first + half, period) - half)  # to the nearest switching point
+    return s * np.minimum(dist / h, 1.0)
+
+
 def _sigma(u: np.ndarray) -> np.ndarray:
-    """+1 where X is the faster (master) axis, |sin u| >= |cos u|; -1 elsewhere."""
-    return np.where(np.abs(np.sin(u)) >= np.abs(np.cos(u)), 1.0, -1.0)
+    """+1 where X is the faster (master) axis, |sin u| >= |cos u|, i.e. cos 2u <= 0; -1 elsewhere."""
+    return np.where(np.cos(2.0 * u) <= 0.0, 1.0, -1.0)
 
 
 def _centre(g: Geometry, _w: float) -> np.ndarray:
-    return np.column_stack([np.cos(g.u), np.sin(g.u)])
+    return np.column_stack([g.cos_u, g.sin_u])
 
 
 def _radius(g: Geometry, _w: float) -> np.ndarray:
@@ -101,91 +157,135 @@ def _radius(g: Geometry, _w: float) -> np.ndarray:
 
 def _backlash_x(g: Geometry, _w: float) -> np.ndarray:
     # DX = -(bX/2) sgn(vX), vX = -d V sin u
-    return 0.5 * g.d * np.sign(np.sin(g.u)) * np.cos(g.u)
+    if g.comp_x and g.loop_lag_s:
+        return 0.5 * through_loop(g, lambda uc: g.d * np.sign(np.sin(uc)), 0.0, math.pi, 0) * g.cos_u
+    s = _step_at(g, 0)
+    if s == 0.0:
+        return 0.5 * g.d * _switch(g, g.sin_u, g.u, math.pi) * g.cos_u
+    us = g.u - g.d * s
+    return 0.5 * g.d * _switch(g, np.sin(us), us, math.pi) * g.cos_u
 
 
 def _backlash_y(g: Geometry, _w: float) -> np.ndarray:
     # DY = -(bY/2) sgn(vY), vY = d V cos u
-    return -0.5 * g.d * np.sign(np.cos(g.u)) * np.sin(g.u)
+    if g.comp_y and g.loop_lag_s:
+        return 0.5 * through_loop(g, lambda uc: -g.d * np.sign(np.cos(uc)), 0.5 * math.pi, math.pi, 1) * g.sin_u
+    s = _step_at(g, 1)
+    if s == 0.0:
+        return -0.5 * g.d * _switch(g, g.cos_u, g.u - 0.5 * math.pi, math.pi) * g.sin_u
+    us = g.u - g.d * s
+    return -0.5 * g.d * _switch(g, np.cos(us), us - 0.5 * math.pi, math.pi) * g.sin_u
+
+
+def _step_at(g: Geometry, axis: int) -> float:
+    """Where after a reversal point an axis' lost motion steps (rad): where its table moves again after a
+    dead band's take-up (its remainder, :func:`.physics.lost_motion_remainder`, is the bump before), else where
+    the axis itself reverses."""
+    return g.onset_rad[axis] if g.deadband[axis] else g.reversal_rad[axis]
 
 
 def _servo(g: Geometry, _w: float) -> np.ndarray:
     # DX = -vX/KX, DY = -vY/KY; m = 1/KX - 1/KY in ms; V [mm/s] * m [ms] = um
-    return 0.5 * g.d * g.V * np.sin(2.0 * g.u)
+    return 0.5 * g.V * g.d * g.sin_2u
 
 
-def _sigma_through_loop(g: Geometry) -> np.ndarray:
-    """sigma as the axes see it: a command-side switch through a first-order loop.
+def through_loop(
+    g: Geometry, sign: Callable[[np.ndarray], np.ndarray], first_rad: float, period_rad: float, axis: int | None
+) -> np.ndarray:
+    """A sign the control switches in the command, as an axis sees it through its first-order loop.
 
-    In the frame of the actual position (the analyzer's), the command is
-    ``Omega tau`` ahead; after it crosses a 45 deg line, sigma approaches its new
-    value as ``1 - 2 exp(-delta / (Omega tau))`` with ``delta`` the command's
-    angle travelled since the crossing.
+    ``sign(uc)`` is the command-side value (+-1) at the commanded angle ``uc``;
+    it switches at ``first_rad + k period_rad``.  In the frame of the actual
+    position (the analyzer's) the command is ``lead`` ahead; after it crosses a
+    switching angle the axis approaches the new value as
+    ``1 - 2 exp(-delta / lag)``, ``delta`` the command's angle travelled since
+    the crossing and ``lag`` the axis' time constant as an angle (``axis``
+    None: the mean).  A switch the command has not passed since the arc began
+    (``travel``) is taken as long settled.
     """
-    assert g.loop_lag_s is not None
-    lag = g.V / g.R * g.loop_lag_s  # rad
-    uc = g.u + g.d * lag
-    q = math.pi / 2
-    since = np.where(g.d > 0, np.mod(uc - math.pi / 4, q), np.mod(math.pi / 4 - uc, q))
+    lead, lag = g.loop_angles(axis)
+    uc = g.u + g.d * lead
+    since = np.mod(g.d * (uc - first_rad), period_rad)
     settle = np.exp(-since / lag)
     if g.travel is not None:
-        settle[since > g.travel + lag] = 0.0
-    return _sigma(uc) * (1.0 - 2.0 * settle)
+        settle[since > g.travel + lead] = 0.0
+    return sign(uc) * (1.0 - 2.0 * settle)
 
 
 def _master_slave(g: Geometry, _w: float) -> np.ndarray:
-    sig = _sigma(g.u) if not g.loop_lag_s else _sigma_through_loop(g)
-    s = 0.5 * sig
-    return np.column_stack([s * np.sin(g.u + math.pi / 4), s * np.cos(g.u + math.pi / 4)])
+    # a command-side switch at each 45 deg line (where X and Y trade the master's role), which each axis'
+    # loop follows: DX = sigma_X (a + b) / (2 sqrt 2), DY = sigma_Y (a - b) / (2 sqrt 2)
+    if not g.loop_lag_s:
+        sx = sy = _switch(g, -g.cos_2u, g.u - 0.25 * math.pi, 0.5 * math.pi)
+    else:
+        sx = through_loop(g, _sigma, math.pi / 4, math.pi / 2, 0)
+        sy = through_loop(g, _sigma, math.pi / 4, math.pi / 2, 1)
+    k = 0.5 / math.sqrt(2.0)
+    xs, ys = k * sx * g.cos_u, k * sy * g.sin_u
+    return np.column_stack([xs + ys, xs - ys])  # sigma (sin, cos) of u + 45 deg for equal loops
 
 
 def _squareness(g: Geometry, _w: float) -> np.ndarray:
     # DX = S Y; S in urad, R in mm: S R sin u cos u * 1e-3 um
-    return g.R * 1e-3 * np.sin(g.u) * np.cos(g.u)
+    return g.R * 0.5e-3 * g.sin_2u
 
 
 def _scale(g: Geometry, _w: float) -> np.ndarray:
     # DX = eX X, DY = eY Y; only eX - eY separates from the radius (ppm * mm = 1e-3 um)
-    return 0.5 * g.R * 1e-3 * np.cos(2.0 * g.u)
+    return 0.5e-3 * g.R * g.cos_2u
 
 
 def _lateral_x(g: Geometry, _w: float) -> np.ndarray:
     # DY = -(lX/2) sgn(vX)
-    return 0.5 * g.d * np.abs(np.sin(g.u))
+    return 0.5 * g.d * np.abs(g.sin_u)
 
 
 def _lateral_y(g: Geometry, _w: float) -> np.ndarray:
     # DX = -(lY/2) sgn(vY)
-    return -0.5 * g.d * np.abs(np.cos(g.u))
+    return -0.5 * g.d * np.abs(g.cos_u)
 
 
 def _straight_x(g: Geometry, _w: float) -> np.ndarray:
     # DY = sX (X/R)^2
-    return np.cos(g.u) ** 2 * np.sin(g.u)
+    return g.cos_u * g.cos_u * g.sin_u
 
 
 def _straight_y(g: Geometry, _w: float) -> np.ndarray:
     # DX = sY (Y/R)^2
-    return np.sin(g.u) ** 2 * np.cos(g.u)
+    return g.sin_u * g.sin_u * g.cos_u
 
 
 def _cyclic_x(g: Geometry, _w: float) -> np.ndarray:
     # DX = c sin(2 pi X/p + phi) = c cos(phi) sin(.) + c sin(phi) cos(.)
     assert g.pitch_x_mm is not None
-    arg = 2.0 * math.pi * g.R * np.cos(g.u) / g.pitch_x_mm
-    c = np.cos(g.u)
+    c = g.cos_u
+    arg = 2.0 * math.pi * g.R / g.pitch_x_mm * c
     return np.column_stack([np.sin(arg) * c, np.cos(arg) * c])
 
 
 def _cyclic_y(g: Geometry, _w: float) -> np.ndarray:
     assert g.pitch_y_mm is not None
-    arg = 2.0 * math.pi * g.R * np.sin(g.u) / g.pitch_y_mm
-    s = np.sin(g.u)
+    s = g.sin_u
+    arg = 2.0 * math.pi * g.R / g.pitch_y_mm * s
     return np.column_stack([np.sin(arg) * s, np.cos(arg) * s])
 
 
 def _drift(g: Geometry, _w: float) -> np.ndarray:
     return g.t_min.astype(float, copy=True)
+
+
+def _decay(g: Geometry, du: np.ndarray, w: float, travel: np.ndarray | None) -> np.ndarray:
+    """``exp(-du / w)`` from ``du = 0`` on, averaged over the sample's aperture where there is one."""
+    h = 0.5 * g.aperture_rad
+    if h <= 0:
+        out = np.exp(-du / w)
+    else:
+        x = np.where(du > math.pi, du - 2.0 * math.pi, du)  # just before the onset: negative
+        lo, hi = np.maximum(x - h, 0.0), np.maximum(x + h, 0.0)
+        out = (w / (2.0 * h)) * (np.exp(-lo / w) - np.exp(-hi / w))
+    if travel is not None:
+        out[du > travel] = 0.0
+    return out
 
 
 def spike_travel(u: np.ndarray, d: np.ndarray, at_rad: float) -> np.ndarray:
@@ -199,15 +299,15 @@ def _spike(at_deg: float, direction: int) -> ColumnFn:
     axis = 0 if at_deg in (0.0, 180.0) else 1
 
     def fn(g: Geometry, w: float) -> np.ndarray:
-        out = np.zeros(len(g))
+        # friction acts where the table reverses: the onset moves it off the reversal point
+        onset = at + direction * g.onset_rad[axis]
         mine = g.d == direction
+        if mine.all():  # one circle's samples: no selection to copy
+            return _decay(g, spike_travel(g.u, g.d, onset), w, g.travel)
+        out = np.zeros(len(g))
         if mine.any():
-            du = spike_travel(g.u[mine], g.d[mine], at)
-            late = du - g.takeup_rad[axis]  # the table reverses once the dead band is taken up
-            spike = np.where(late >= 0, np.exp(-np.maximum(late, 0.0) / w), 0.0)
-            if g.travel is not None:
-                spike[du > g.travel[mine]] = 0.0
-            out[mine] = spike
+            out[mine] = _decay(g, spike_travel(g.u[mine], g.d[mine], onset), w,
+                               g.travel[mine] if g.travel is not None else None)
         return out
 
     return fn

@@ -23,27 +23,43 @@ KY = 33 /s at R = 100 mm, F = 1000 mm/min; -8 ppm in the commanded frame that
 analysis/README.md mentions).  ``tau_bar`` comes from the configured gains or from the
 exponential approach that ends the feed-in and feed-out (:mod:`.detect`).
 
-Lost motion.  Backlash is a dead band between motor and table: after a
-reversal the table stands still until the motor has crossed the gap ``b``, so
-the radial error does not step from ``-b/2`` to ``+b/2`` but follows
-``R (1 - cos du) - b/2`` over ``du < acos(1 - b/R)`` (0.57 deg for 5 um at
-100 mm).  Left to the step mask, that transition is read as negative reversal
-spikes.  Over-compensated backlash (``b < 0``) flips at once: no transition.
+Lost motion, per axis one of two physical models; which one is the data's
+choice, through the sign of the fitted backlash:
+
+- ``deadband`` (``b > 0``): a dead band between motor and table.  After a
+  reversal the table stands still until the motor has crossed the gap ``b``,
+  so the radial error does not step from ``-b/2`` to ``+b/2`` but follows
+  ``R (1 - cos du) - b/2`` over ``du < acos(1 - b/R)`` (0.57 deg for 5 um at
+  100 mm), and the table reverses (friction acts) only then.  Left to the step
+  mask, that transition is read as negative reversal spikes.  The take-up is
+  this correction; the spikes' onset moves to its end.
+- ``compensation`` (``b < 0``): backlash compensation set too high.  At each
+  commanded reversal the control adds a step of ``|b|`` to the axis' command
+  and the position loop follows it with its time constant, exactly as the
+  master-slave step does (:func:`.patterns.through_loop`): the backlash mask
+  itself is the filtered step, which starts ``Omega tau`` before the actual
+  reversal (the command leads).  Left to the instant step mask, the filtered
+  flank is read as a reversal spike of about ``|b|/2 .. |b|/3``.  The table is
+  pulled round early, so friction acts from the commanded reversal on, or from
+  where the compensation's pull overcomes the path's own motion
+  (:func:`onset_angles`).
+
+``step`` is the seed's instant step for either sign (no correction).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from .patterns import Geometry, spike_travel
+from .patterns import Geometry
 
 Offset = Callable[[Geometry], np.ndarray]
 
-X_REVERSALS = (0.0, math.pi)
-Y_REVERSALS = (0.5 * math.pi, 1.5 * math.pi)
 
 
 def servo_remainder(g: Geometry, m_ms: float, tau_s: float) -> np.ndarray:
@@ -58,51 +74,243 @@ def servo_remainder(g: Geometry, m_ms: float, tau_s: float) -> np.ndarray:
     eps = 0.5 * (math.atan(omega * inv_kx) - math.atan(omega * inv_ky))
     L_over_R = np.sqrt(gx2 * np.cos(g.u - g.d * eps) ** 2 + gy2 * np.sin(g.u + g.d * eps) ** 2)
     physical = g.R * 1000.0 * (L_over_R - 1.0)
-    mask = 0.5 * g.d * g.V * m_ms * np.sin(2.0 * g.u)
+    mask = 0.5 * g.d * g.V * m_ms * g.sin_2u
     return np.asarray(physical - mask)
 
 
-def lost_motion_remainder(g: Geometry, bx_um: float, by_um: float) -> np.ndarray:
-    """Dead-band take-up after each reversal minus the step mask (um)."""
+AXIS_FIELDS = ("backlash_x_um", "backlash_y_um")
+MODELS = ("deadband", "compensation", "step")
+MODEL_WORDS = {
+    "deadband": "dead band: the table waits after a reversal until the motor has crossed the gap (backlash > 0)",
+    "compensation": "backlash compensation set too high: a command step at each commanded reversal, followed "
+    "through the position loop (backlash < 0)",
+    "step": "instant step at the reversal (the seed's mask)",
+}
+
+
+@dataclass(frozen=True)
+class LostMotion:
+    """Per axis (X, Y): the lost-motion model and the angle from each reversal point to the table's reversal."""
+
+    models: tuple[str, str] = ("step", "step")
+    onset_rad: tuple[float, float] = (0.0, 0.0)  # where friction acts: the table's own reversal
+    reversal_rad: tuple[float, float] = (0.0, 0.0)  # where the axis reverses (its loop's lag against the frame)
+    loop_rad: tuple[float, float, float] | None = None  # the command's lead, X's and Y's loop lag (:func:`loop_angles`)
+
+    @classmethod
+    def choose(
+        cls,
+        values: Mapping[str, float | None],
+        mode: str,
+        radius_mm: float,
+        loop_rad: tuple[float, float, float] | None = None,
+        reversal_rad: tuple[float, float] = (0.0, 0.0),
+    ) -> LostMotion:
+        """The models the data chose (``mode`` ``physical``: by the sign of each backlash) and onsets.
+
+        ``reversal_rad``: per axis, how far past each reversal point the axis
+        itself reverses (:func:`axis_reversals`).
+        """
+        if mode == "step":
+            return cls(onset_rad=reversal_rad, reversal_rad=reversal_rad, loop_rad=loop_rad)
+        models = ("compensation" if (values.get(k) or 0.0) < 0 else "deadband" for k in AXIS_FIELDS)
+        mx, my = models
+        extra = onset_angles(values, radius_mm, (mx, my), loop_rad)
+        onset = (reversal_rad[0] + extra[0], reversal_rad[1] + extra[1])
+        return cls((mx, my), onset, reversal_rad, loop_rad)
+
+    def geometry(self, loop_lag_s: float | None) -> dict[str, Any]:
+        """The :class:`~.patterns.Geometry` fields that carry this model."""
+        return {
+            "onset_rad": self.onset_rad,
+            "reversal_rad": self.reversal_rad,
+            "deadband": (self.models[0] == "deadband", self.models[1] == "deadband"),
+            "comp_x": self.models[0] == "compensation" and bool(loop_lag_s),
+            "comp_y": self.models[1] == "compensation" and bool(loop_lag_s),
+            "loop_rad": self.loop_rad if loop_lag_s else None,
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            axis: {"model": m, "onset_deg": math.degrees(o), "reversal_deg": math.degrees(r),
+                   "description": MODEL_WORDS[m]}
+            for axis, m, o, r in zip(("x", "y"), self.models, self.onset_rad, self.reversal_rad, strict=True)
+        }
+        if self.loop_rad is not None:
+            out["loop_deg"] = {k: math.degrees(v) for k, v in zip(("lead", "x", "y"), self.loop_rad, strict=True)}
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None) -> LostMotion:
+        """From :meth:`to_dict` (a result's ``fit.lost_motion``); the instant step where absent."""
+        if not isinstance(data, Mapping):
+            return cls()
+        models, onsets, revs = [], [], []
+        for axis in ("x", "y"):
+            d = data.get(axis) or {}
+            m = d.get("model")
+            models.append(m if m in MODELS else "step")
+            onsets.append(math.radians(float(d.get("onset_deg") or 0.0)))
+            revs.append(math.radians(float(d.get("reversal_deg") or 0.0)))
+        loop = data.get("loop_deg")
+        loop_rad = None
+        if isinstance(loop, Mapping):
+            lead, lx, ly = (math.radians(float(loop.get(k) or 0.0)) for k in ("lead", "x", "y"))
+            loop_rad = (lead, lx, ly)
+        return cls((models[0], models[1]), (onsets[0], onsets[1]), (revs[0], revs[1]), loop_rad)
+
+
+def mean_lag(tau_s: float | None, radial_cos2: float | None, mismatch_ms: float) -> float | None:
+    """The loops' mean lag ``tau_bar`` from a lag measured along a radius (``tau_bar + (m/2) cos 2u``, where
+    ``radial_cos2`` is that mean ``cos 2u``; None: ``tau_s`` is the mean already)."""
+    if tau_s is None or radial_cos2 is None or not math.isfinite(mismatch_ms):
+        return tau_s
+    return tau_s - 0.5 * mismatch_ms / 1000.0 * radial_cos2
+
+
+def loop_angles(
+    tau_s: float | None, mismatch_ms: float, omega_rad_s: float, feed_in_deg: float
+) -> tuple[float, float, float] | None:
+    """The command's lead over the analyzer's frame and each axis' loop time constant, as angles (rad).
+
+    The frame carries the feed-in's delay ``tau_ref = tau_bar + (m/2) cos 2u_in``
+    (:func:`axis_reversals`); each axis follows with ``tau_bar +- m/2``.  None
+    where the mean lag ``tau_bar`` is not known.
+    """
+    if not tau_s:
+        return None
+    m = mismatch_ms / 1000.0 if math.isfinite(mismatch_ms) else 0.0
+    c2 = math.cos(2.0 * math.radians(feed_in_deg))
+    return (
+        omega_rad_s * (tau_s + 0.5 * m * c2),
+        omega_rad_s * max(tau_s + 0.5 * m, 0.0),
+        omega_rad_s * max(tau_s - 0.5 * m, 0.0),
+    )
+
+
+def axis_reversals(mismatch_ms: float, omega_rad_s: float, feed_in_deg: float) -> tuple[float, float]:
+    """Per axis, the angle (rad) from a reversal point to where that axis actually reverses.
+
+    The analyzer's angles are timed from the feed-in's centroid, which carries
+    the delay of the loops along the feed-in's direction ``u_in``:
+    ``tau_ref = tauX cos^2 u_in + tauY sin^2 u_in``.  Each axis reverses
+    ``tau_axis - tau_ref`` later: ``Omega (m/2)(1 - cos 2u_in)`` for X and
+    ``-Omega (m/2)(1 + cos 2u_in)`` for Y, ``m = 1/KX - 1/KY`` the servo
+    mismatch.  Equal gains: no shift.  A few samples at 1 kHz for 30/33 1/s,
+    which moves a sharp spike's onset and so its height.
+    """
+    m = mismatch_ms / 1000.0 if math.isfinite(mismatch_ms) else 0.0
+    c2 = math.cos(2.0 * math.radians(feed_in_deg))
+    return omega_rad_s * 0.5 * m * (1.0 - c2), -omega_rad_s * 0.5 * m * (1.0 + c2)
+
+
+def onset_angles(
+    values: Mapping[str, float | None],
+    radius_mm: float,
+    models: tuple[str, str],
+    loop_rad: tuple[float, float, float] | None,
+) -> tuple[float, float]:
+    """Per axis, the angle (rad) from where the axis reverses to where its table does (friction's onset).
+
+    Dead band: ``acos(1 - b/R)`` after it, once the motor has crossed the gap.
+    Compensation: the command steps by ``|b|`` at the commanded reversal, the
+    command's ``lead`` before the reversal point, and the axis follows with its
+    loop lag ``lag``; near it the table's position along the axis is
+    ``R cos du + (|b|/2)(2 exp(-(du + lead)/lag) - 1)``, which turns where its
+    slope first vanishes: at once where the step's pull ``|b|/lag`` beats the
+    path's ``R sin(lead)``, else between ``-lead`` and 0.
+    """
+    R_um = radius_mm * 1000.0
+    out = []
+    for axis, (key, model) in enumerate(zip(AXIS_FIELDS, models, strict=True)):
+        b = values.get(key) or 0.0
+        if model == "deadband" and 0 < b < R_um:
+            out.append(math.acos(1.0 - b / R_um))
+        elif model == "compensation" and b < 0 and loop_rad is not None and loop_rad[1 + axis] > 0:
+            out.append(_compensation_onset(-b, R_um, loop_rad[0], loop_rad[1 + axis]))
+        else:
+            out.append(0.0)
+    return out[0], out[1]
+
+
+def _compensation_onset(comp_um: float, R_um: float, lead: float, lag: float) -> float:
+    def slope(du: float) -> float:
+        return -R_um * math.sin(du) - comp_um / lag * math.exp(-(du + lead) / lag)
+
+    lo, hi = -lead, 0.0
+    if slope(lo) <= 0:
+        return lo
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if slope(mid) > 0:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def lost_motion_remainder(g: Geometry) -> np.ndarray:
+    """The dead band's take-up bump after each reversal (um), for the axes whose model is ``deadband``.
+
+    Per unit backlash the dead band's mask holds ``-1/2`` until the table moves
+    again, ``acos(1 - b/R)`` after the axis reversed, then ``+1/2``
+    (:mod:`.patterns`: the step sits at ``onset_rad``); in between the table
+    stands while the path turns away from it, ``R (1 - cos e)`` radially at
+    ``e`` past the axis' reversal.  That bump is this correction: with the
+    take-up's width fixed it does not depend on ``b``, so the fit of ``b``
+    stays linear and a stale estimate cannot leave a misfit along the take-up.
+    """
     out = np.zeros(len(g))
     R_um = g.R * 1000.0
-    for b, points in ((bx_um, X_REVERSALS), (by_um, Y_REVERSALS)):
-        if not b > 0 or b >= R_um:
+    h = 0.5 * g.aperture_rad
+    for axis in (0, 1):
+        if not g.deadband[axis]:
             continue
-        width = math.acos(1.0 - b / R_um)
-        for at in points:
-            du = spike_travel(g.u, g.d, at)
-            m = du < width
-            if g.travel is not None:
-                m &= du <= g.travel
-            if m.any():
-                out[m] += (R_um * (1.0 - np.cos(du[m])) - b) * np.cos(du[m])
+        shift = g.reversal_rad[axis]
+        width = g.onset_rad[axis] - shift
+        if width <= 0:
+            continue
+        # signed travel from the nearest of the axis' two reversal points (X: 0, 180 deg; Y: 90, 270 deg)
+        du = np.mod(g.d * (g.u - 0.5 * math.pi * axis) + 0.5 * math.pi, math.pi) - 0.5 * math.pi
+        e = du - shift  # travel since the axis reversed
+        near = np.flatnonzero((e > -h) & (e < width + h))
+        if g.travel is not None:
+            near = near[du[near] <= g.travel[near]]
+        if near.size == 0:
+            continue
+        en = e[near]
+        bump = R_um * (1.0 - np.cos(np.clip(en, 0.0, width)))
+        if h > 0:  # the bump ends where the mask steps: averaged over the same aperture (patterns._switch)
+            bump *= np.clip((width - en + h) / (2.0 * h), 0.0, 1.0)
+        else:
+            bump[(en < 0) | (en >= width)] = 0.0
+        out[near] += bump * np.cos(du[near])
     return out
 
 
 def make_offset(
     values: Mapping[str, float | None],
     tau_s: float | None,
-    lost_motion: str = "deadband",
+    lost_motion: LostMotion | None = None,
     radial_cos2: float | None = None,
 ) -> Offset | None:
     """The correction for the current estimates, or None when there is nothing to correct.
 
-    ``tau_s`` None: no servo correction; ``lost_motion = "step"``: none for backlash.
+    ``tau_s`` None: no servo correction.  ``lost_motion``: the dead-band take-up
+    of the axes whose model is ``deadband`` (its width travels in the
+    geometry; the compensation step is in the mask itself); None: none.
     ``radial_cos2``: ``tau_s`` was measured along a radius at angles whose mean
     ``cos 2u`` this is, where the lag is ``tau_bar + (m/2) cos 2u``.
     """
     m = values.get("servo_mismatch_ms") or 0.0
-    if tau_s is not None and radial_cos2 is not None:
-        tau_s = tau_s - 0.5 * m / 1000.0 * radial_cos2
-    bx = (values.get("backlash_x_um") or 0.0) if lost_motion == "deadband" else 0.0
-    by = (values.get("backlash_y_um") or 0.0) if lost_motion == "deadband" else 0.0
+    tau_s = mean_lag(tau_s, radial_cos2, m)
+    models = lost_motion.models if lost_motion is not None else ("step", "step")
     use_servo = tau_s is not None and math.isfinite(tau_s) and tau_s > 0 and math.isfinite(m)
-    if not use_servo and bx <= 0 and by <= 0:
+    if not use_servo and "deadband" not in models:
         return None
 
     def offset(g: Geometry) -> np.ndarray:
-        out = lost_motion_remainder(g, bx, by)
+        out = lost_motion_remainder(g)
         if use_servo:
             assert tau_s is not None
             out += servo_remainder(g, m, tau_s)
@@ -110,12 +318,3 @@ def make_offset(
 
     return offset
 
-
-def takeup_angles(values: Mapping[str, float | None], radius_mm: float) -> tuple[float, float]:
-    """Per axis, the angle (rad) after a reversal before the table follows its motor."""
-    R_um = radius_mm * 1000.0
-    out = []
-    for key in ("backlash_x_um", "backlash_y_um"):
-        b = values.get(key) or 0.0
-        out.append(math.acos(1.0 - b / R_um) if 0 < b < R_um else 0.0)
-    return out[0], out[1]

@@ -28,6 +28,8 @@ from .plan import TestPlan
 
 MoveKind = Literal["line", "arc", "dwell"]
 
+ACCEL_SHARE = 0.8  # a move's shape showing less than this share of the overhead as acceleration: the rest waits
+
 
 @dataclass(frozen=True)
 class Move:
@@ -148,8 +150,19 @@ def feed_in_half(f: float, V: float, c: float, accel_s: float | None) -> float:
     in-position wait, does not shape the move); None: all of it.  Only a move
     shorter than ``V accel_s`` is the trapezoid's triangle.
     """
-    a = c if accel_s is None else min(max(accel_s, 0.0), c) if c > 0 else 0.0
+    a = accel_part(c, accel_s)
     return move_duration(f, V, a) / 2 + (c - a) / 2
+
+
+def accel_part(c: float, accel_s: float | None) -> float:
+    """The acceleration part of a per-move overhead ``c``: ``accel_s`` where the move's shape shows clearly less
+    than ``c`` (an in-position wait makes up the rest), else all of ``c`` (the shape's estimate is a few per cent
+    rough, the overhead's is not)."""
+    if c <= 0:
+        return c
+    if accel_s is None or accel_s >= ACCEL_SHARE * c:
+        return c
+    return max(accel_s, 0.0)
 
 
 def accel_from_spread(f: float, V: float, var_s2: float) -> float:
@@ -213,7 +226,7 @@ def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0, accel
     n_dirs = len(plan.direction_list)
     n_dwells = n_dirs + 1
     f, c = plan.feed_in_mm, overhead_s
-    acc = c if accel_s is None else min(max(accel_s, 0.0), c) if c > 0 else 0.0
+    acc = accel_part(c, accel_s)
     arcs = n_dirs * plan.radius_mm * math.radians(plan.arc_deg)
     # Reaching the feed: span = dwells + n_dirs c + c (two half feed moves) + (f + arcs) / V.
     moving = span_s - n_dwells * plan.dwell_s - (n_dirs + 1) * c

@@ -96,7 +96,7 @@ from numpy.typing import NDArray
 
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.patterns import LIBRARY, Geometry, Pattern, design
-from ballbar.analysis.physics import make_offset, takeup_angles
+from ballbar.analysis.physics import LostMotion, make_offset
 from ballbar.analysis.plan import MachineConfig, TestPlan
 from ballbar.analysis.program import arc_start_deg, data_start_deg, schedule
 
@@ -409,15 +409,11 @@ def model_deviation_um(result: Mapping[str, Any], direction: int, u: FloatArray)
 
     Rebuilt from the result's parameters with the pattern library, the
     result's timing (feed, spike width, loop lag) and, for a test result, the
-    physical corrections the fit applied (servo remainder, dead-band backlash
-    and the spikes' start after its take-up, :mod:`ballbar.analysis.physics`).
+    physical corrections the fit applied (servo remainder, each axis'
+    lost-motion model with its reversal and friction onsets, and the loops'
+    angles, all from ``fit.lost_motion``, :mod:`ballbar.analysis.physics`).
     ``u`` must lie within the data arc (``data_start_deg`` onwards in the
     direction of travel).  None when the result lacks what is needed.
-
-    Not exact where the result does not carry what the fit used: the take-up
-    angles come from the final backlash here but from a preliminary fit in
-    the engine, and the lag's ``cos 2u`` assumes both feed-in and feed-out
-    resolved it; both differences are far below a micrometre.
     """
     timing = result_timing(result, direction)
     if timing is None or "plan" not in result:
@@ -429,8 +425,7 @@ def model_deviation_um(result: Mapping[str, Any], direction: int, u: FloatArray)
     d = float(direction)
     u_ds = math.radians(data_start_deg(plan, direction))
     test = result.get("kind") == "test"
-    fit = result.get("fit") or {}
-    deadband = test and str(fit.get("lost_motion_model", "")).startswith("dead band")
+    lost = LostMotion.from_dict((result.get("fit") or {}).get("lost_motion")) if test else LostMotion()
     values = {f: _param(result, f) for f in ("servo_mismatch_ms", "backlash_x_um", "backlash_y_um")}
     t_rel = (timing.start_s - timing.feed_in_s) + d * (u - u_ds) * plan.radius_mm / timing.feed_mm_s
     g = Geometry(
@@ -443,13 +438,14 @@ def model_deviation_um(result: Mapping[str, Any], direction: int, u: FloatArray)
         pitch_y_mm=machine.pitch_y_mm,
         travel=d * (u - math.radians(arc_start_deg(plan, direction))),
         loop_lag_s=timing.loop_lag_s,
-        takeup_rad=takeup_angles(values, plan.radius_mm) if deadband else (0.0, 0.0),
+        **lost.geometry(timing.loop_lag_s),
     )
     dr = design(patterns, g, math.radians(timing.spike_width_deg)) @ _coefficients(result, patterns)
     if test:
-        lost_motion = "deadband" if deadband else "step"
-        cos2 = _radial_cos2(plan, machine, str((result.get("timing") or {}).get("loop_lag_source", "")))
-        offset = make_offset(values, timing.loop_lag_s, lost_motion, cos2)
+        tm = result.get("timing") or {}
+        cos2 = _num(tm["loop_lag_radial_cos2u"]) if "loop_lag_radial_cos2u" in tm else _radial_cos2(
+            plan, machine, str(tm.get("loop_lag_source", "")))
+        offset = make_offset(values, timing.loop_lag_s, lost, cos2)
         if offset is not None:
             dr = dr + offset(g)
     return np.asarray(dr, dtype=float)
