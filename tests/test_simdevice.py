@@ -231,6 +231,31 @@ def test_device_reset_is_reported() -> None:
     assert st.resets == 1 and "device_reset" in col.kinds()
     assert got.seq.shape[0] == done["generated"] and np.all(np.diff(got.seq) == 1)
     assert np.all(np.diff(got.t_device) > 0)
+    # The event names the first sample after the restart: where the device's own clock reads about 0 again.
+    reset = next(e for e in col.events if e.kind == EventKind.DEVICE_RESET)
+    k = int(np.searchsorted(got.seq, reset.seq))
+    assert got.seq[k] == reset.seq and 0 < got.t_device[k] - got.t_device[k - 1] < 0.0015
+
+
+def test_clock_jump_is_reported_and_costs_no_sample() -> None:
+    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=10", *PLAN_ARGS)
+    try:
+        col.until(lambda: col.n > 500, 10.0, "500 samples")
+        assert dev.send("jump 10")["seconds"] == 10.0
+        done = run_to_done(dev, col)
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    got = col.merged()
+    assert done["clock_jumps"] == 1 and st.clock_jumps == 1 and st.lost == 0 and st.resets == 0
+    assert got.seq.tolist() == list(range(done["generated"]))
+    jump = next(e for e in col.events if e.kind == EventKind.CLOCK_JUMP)
+    assert jump.gap_s == pytest.approx(10.0, abs=1e-6)
+    steps = np.diff(got.t_device)
+    k = int(np.argmax(steps))
+    assert got.seq[k + 1] == jump.seq and steps[k] == pytest.approx(10.001, abs=1e-6)
+    assert np.all(np.delete(steps, k) == pytest.approx(0.001, abs=1e-6))
+    assert np.all(np.diff(got.t_host) >= 0)
 
 
 # ----------------------------------------------------------------------------- polled

@@ -19,6 +19,9 @@ from ballbar.analysis import TestPlan
 from ballbar.analysis.engine import TestAnalyzer, TimingHints, analyze_recording
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.timeaxis import GAP_PERIODS, TimeAxis, TimeAxisError
+from ballbar.daemon import config as cfgmod
+from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
+from ballbar.daemon.service import AnalysisListener
 from ballbar.tools.simulator import MachineModel, simulate
 
 # A short test: R 50 mm at 3000 mm/min, 10 deg overshoots, about 14 s.
@@ -187,3 +190,57 @@ def test_gap_threshold_is_relative_to_the_median_period() -> None:
         breaks = TimeAxis().check(t)
         assert [b.index for b in breaks] == [150], fs
         assert breaks[0].missing_s == pytest.approx(GAP_PERIODS / fs)
+
+
+# ----------------------------------------------------------------------------- the daemon's listener
+
+
+def _listener() -> tuple[AnalysisListener, list[dict[str, Any]]]:
+    cfg = cfgmod.load(None, ["plan.radius_mm=50", "plan.feed_mm_min=3000", "plan.overshoot_deg=10",
+                             "plan.dwell_s=0.2", "plan.sample_hz=500"], env={})
+    got: list[dict[str, Any]] = []
+    return AnalysisListener(cfg, got.append), got
+
+
+def _batches(t: np.ndarray, L: np.ndarray, seq: np.ndarray, n: int = 100) -> list[SampleBatch]:
+    return [SampleBatch.from_columns(t[i : i + n] + 1000.0, t[i : i + n], L[i : i + n], seq[i : i + n],
+                                     np.zeros(min(n, t.size - i))) for i in range(0, t.size, n)]
+
+
+def test_the_listener_places_a_device_reset_on_its_sample_and_rejects_the_test() -> None:
+    t, L, starts = stream(MACHINE, MACHINE.with_(tail_s=2.0))  # the stream ends once the feed-out has settled
+    seq = np.arange(t.size)
+    at = int(np.searchsorted(t, starts[0] + 6.0)) + 37  # inside a batch, not at its start
+    batches = _batches(t, L, seq)
+    k = at // 100
+    reset = SourceEvent(EventKind.DEVICE_RESET, 0.0, "serial:x", seq=int(seq[at]), detail="went backwards")
+    b = batches[k]
+    batches[k] = SampleBatch(b.t_host, b.t_device, b.length_mm, b.seq, b.status, (reset,), b.source)
+    an, got = _listener()
+    for b in batches:
+        an.on_batch(b)
+    an.stop()
+    rejected = [m for m in got if m.get("event") == "test_rejected"]
+    assert len(rejected) == 1 and rejected[0]["message"].startswith(f"device reset (its sample counter or clock "
+                                                                    f"restarted; how long it was down is unknown) "
+                                                                    f"at t={t[at]:.3f} s")
+    assert rejected[0]["test_id"] == next(m["test_id"] for m in got if m.get("event") == "feed_in")
+    assert [m["kind"] for m in got if m["kind"] == "test"] == ["test"]  # the second test passed
+
+
+def test_the_listener_rejects_the_test_in_progress_when_the_clock_runs_back() -> None:
+    t, L, starts = stream(MACHINE, MACHINE.with_(tail_s=2.0))
+    back = int(np.searchsorted(t, starts[0] + 6.0)) + 37
+    t2 = t.copy()
+    t2[back:] -= 100.0  # a clock that restarted, not re-based
+    an, got = _listener()
+    for b in _batches(t2, L, np.arange(t.size)):
+        an.on_batch(b)
+    an.stop()
+    events = [m["event"] for m in got if m["kind"] == "event"]
+    assert events[:3] == ["feed_in", "test_rejected", "analysis_reset"], events
+    rejected = next(m for m in got if m.get("event") == "test_rejected")
+    assert "the time runs backwards by 99.998 s" in rejected["message"]
+    # the new analysis takes the stream on from the offending sample and finds the second test
+    assert [m["kind"] for m in got if m["kind"] == "test"] == ["test"]
+    assert an.errors == 1
