@@ -3,7 +3,10 @@
 CSV format: a header line naming at least the columns ``t_s`` (seconds, any
 origin, increasing) and ``length_mm`` (absolute bar length in millimetres), then
 one sample per line, comma separated.  Other columns are ignored; lines that
-start with ``#`` are comments.
+start with ``#`` are comments.  Rows out of time order by no more than timestamp
+jitter (:data:`~ballbar.analysis.timeaxis.JITTER_PERIODS` median sample periods)
+are sorted, with a warning; a time that runs back further, or never advances,
+is an error.
 
 Every problem is raised as :class:`~ballbar.analysis.errors.DataError` with a
 one-line message that names the file and the line.
@@ -24,6 +27,7 @@ import numpy as np
 from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.timeaxis import JITTER_PERIODS, backward_steps
 
 log = logging.getLogger(__name__)
 
@@ -86,9 +90,22 @@ def read_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
         line = _data_line_number(lines, header_at, k)
         what = "t_s" if not math.isfinite(t[k]) else "length_mm"
         raise DataError(f"{name}:{line}: {what} is not a finite number ({lines[line - 1].strip()[:60]!r})")
-    if np.any(np.diff(t) < 0):
+    if t.size >= 2 and not np.any(np.diff(t) > 0):
+        what = f"is {t[0]:g} s in every one of the {t.size} samples" if np.all(t == t[0]) else "never increases"
+        raise DataError(f"{name}: t_s {what}: no time axis to analyse")
+    behind, jitter = backward_steps(t)
+    if np.any(behind > jitter):
+        k = int(np.argmax(behind > jitter))
+        line = _data_line_number(lines, header_at, k)
+        raise DataError(
+            f"{name}:{line}: t_s runs backwards by {behind[k]:.6g} s (to {t[k]:.6f} s), more than timestamp "
+            f"jitter ({JITTER_PERIODS:g} sample periods, {jitter:.3g} s): a clock that restarted or jumped back, "
+            "or rows out of order"
+        )
+    if np.any(behind > 0):
         order = np.argsort(t, kind="stable")
-        log.warning("%s: %d samples out of time order; sorted", name, int(np.sum(np.diff(t) < 0)))
+        log.warning("%s: %d samples out of time order by at most %.3g s (timestamp jitter); sorted",
+                    name, int(np.count_nonzero(behind)), float(behind.max()))
         t, length = t[order], length[order]
     return np.ascontiguousarray(t), np.ascontiguousarray(length)
 
