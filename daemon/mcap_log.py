@@ -59,7 +59,7 @@ double), the same number the CSV would give.
 ``/ballbar/events`` (``ballbar.Event``): ``{"event": NAME, "t_host": s, ...}``;
 a source's events (``opened``, ``unplugged``, ``replugged``, ``lost`` with
 ``count`` and ``seq``, ``decode_errors`` with ``counts``, ``stall``,
-``resumed``, ``device_reset``, ``end``; the fields of
+``resumed``, ``device_reset`` and ``clock_jump`` with ``seq``, ``end``; the fields of
 :meth:`~ballbar.daemon.samples.SourceEvent.to_dict`) and the pipeline's
 (``feed_in``, ``feed_out``, ``circle_done``, ``test_rejected``,
 ``test_incomplete``, ...), plus the logger's own ``log_gap``: ``count`` samples
@@ -131,8 +131,8 @@ from ballbar.protocol import INVALID
 
 from .listeners import Listener, to_json
 from .listeners import Message as ListenerMessage
-from .recordings import open_recording
-from .samples import SampleBatch, SourceEvent
+from .recordings import Recording, open_recording
+from .samples import SampleBatch, SourceEvent, break_reason, break_seq
 
 log = logging.getLogger(__name__)
 
@@ -1106,7 +1106,9 @@ class McapLog:
     ``host_clock_offset_ns``).  ``t_wall_ns``: the same instants on the wall
     clock.  ``preroll``: samples repeated at the head of a per-test file.
     ``complete``: every file ended with its footer; ``problem``: why reading
-    stopped early ("" if it did not).
+    stopped early ("" if it did not).  ``file_starts``: where each file's
+    samples begin in ``samples``, and ``file_events``: which file each event
+    came from (index into ``paths``).
     """
 
     paths: list[str]
@@ -1121,6 +1123,8 @@ class McapLog:
     metadata: dict[str, str] = field(default_factory=dict)
     complete: bool = True
     problem: str = ""
+    file_starts: list[int] = field(default_factory=lambda: [0])
+    file_events: list[int] = field(default_factory=list)
 
     def time_axis(self) -> tuple[NDArray[np.float64], str]:
         """The analysis time axis of the valid samples: ``(t_s, "device" | "host")``.
@@ -1204,6 +1208,7 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
     log_.problem = problem
     for k, v in lists.items():
         setattr(log_, k, v)
+    log_.file_events = [0] * len(log_.events)
     return log_
 
 
@@ -1270,8 +1275,10 @@ def read_logs(paths: Iterable[str | os.PathLike[str]]) -> McapLog:
     keep_batches: list[SampleBatch] = []
     walls: list[NDArray[np.int64]] = []
     pres: list[NDArray[np.bool_]] = []
+    starts: list[int] = []
     last_wall: int | None = None
     for p in parts:
+        starts.append(sum(len(b) for b in keep_batches))
         s, wall, pre = p.samples, p.t_wall_ns, p.preroll
         if last_wall is not None and pre.any():
             keep = ~(pre & (wall <= last_wall))
@@ -1289,6 +1296,8 @@ def read_logs(paths: Iterable[str | os.PathLike[str]]) -> McapLog:
         complete=all(p.complete for p in parts),
         problem="; ".join(f"{p.paths[0]}: {p.problem}" for p in parts if p.problem),
         metadata=parts[0].metadata,
+        file_starts=starts,
+        file_events=[i for i, p in enumerate(parts) for _e in p.events],
     )
     for k in _TOPIC_LISTS.values():
         setattr(out, k, [x for p in parts for x in getattr(p, k)])
@@ -1314,6 +1323,19 @@ def read_mcap(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArra
 
 def valid_samples(lg: McapLog, name: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``(t_s, length_mm)`` of the valid samples of ``lg`` (see :func:`read_mcap`); ``name`` for messages."""
+    rec = recording(lg, name)
+    return rec.t, rec.L
+
+
+def recording(lg: McapLog, name: str) -> Recording:
+    """The analysis's input from a log: the valid samples on :meth:`McapLog.time_axis`, and the breaks.
+
+    Breaks (:func:`~ballbar.daemon.samples.break_reason`): a ``device_reset``
+    or ``clock_jump`` before the sample it names (files written before events
+    named one: the first sample stamped after the event), ``GAP_PERIODS`` or
+    more samples ``lost``, and a ``log_gap`` (samples the logger could not
+    write) before the first sample of the file it heads.
+    """
     n = len(lg.samples)
     if n == 0:
         why = f" ({lg.problem})" if lg.problem else ""
@@ -1324,19 +1346,34 @@ def valid_samples(lg: McapLog, name: str) -> tuple[NDArray[np.float64], NDArray[
         raise DataError(f"{name}: all {n} samples are flagged over range or sensor fault")
     t, axis = lg.time_axis()
     L = lg.samples.length_mm[valid]
+    index = np.flatnonzero(valid)
     bad = ~np.isfinite(L)
     if bad.any():  # a NaN without a fault flag: not a measurement either
         log.warning("%s: %d samples without a length (and no fault flag) left out", name, int(bad.sum()))
-        t, L = t[~bad], L[~bad]
+        t, L, index = t[~bad], L[~bad], index[~bad]
         if not L.size:
             raise DataError(f"{name}: no sample has a length")
-    if np.any(np.diff(t) < 0):
-        order = np.argsort(t, kind="stable")
-        log.warning("%s: %d samples out of time order (%s clock); sorted", name, int(np.sum(np.diff(t) < 0)), axis)
-        t, L = t[order], L[order]
     if nv < n:
         log.info("%s: %d of %d samples flagged invalid (%s) and left out", name, n - nv, n, INVALID)
-    return np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(L, dtype=np.float64)
+    seq, t_host = lg.samples.seq[index], lg.samples.t_host[index]
+    breaks: list[tuple[int, str]] = []
+    for ev, f in zip(lg.events, lg.file_events or [0] * len(lg.events), strict=False):
+        reason = break_reason(ev)
+        if reason is None:
+            continue
+        if ev.get("event") == "log_gap":
+            start = lg.file_starts[f] if f < len(lg.file_starts) else 0
+            own = np.flatnonzero(~lg.preroll[start:]) + start  # the file's own samples, after its preroll
+            at = int(np.searchsorted(index, own[0])) if own.size else len(index)
+        elif (s := break_seq(ev)) is not None:
+            at = int(np.searchsorted(seq, s))
+        elif isinstance(ev.get("t_host"), int | float):
+            at = int(np.searchsorted(t_host, float(ev["t_host"]), side="right"))
+        else:
+            continue
+        breaks.append((at, reason))
+    return Recording(np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(L, dtype=np.float64),
+                     sorted(breaks), axis, name)
 
 
 __all__ = [
@@ -1360,6 +1397,7 @@ __all__ = [
     "read_logs",
     "read_mcap",
     "read_results",
+    "recording",
     "scaled_ints",
     "to_json",
     "valid_samples",

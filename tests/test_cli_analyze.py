@@ -192,3 +192,19 @@ def test_rows_out_of_order_within_jitter_are_sorted_with_a_warning(
     code, plain, _ = run(["analyze", str(good_csv), "--sample-hz", "100", "--json"], capsys)
     a, b = json.loads(out)["timing"], json.loads(plain)["timing"]
     assert a["measured_feed_mm_min"] == pytest.approx(b["measured_feed_mm_min"], abs=1e-3)
+
+
+def test_list_of_a_csv_and_usage_errors(good_csv: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(["analyze", str(good_csv), "--sample-hz", "100", "--list", "--json"], capsys)
+    assert code == 0, err
+    (row,) = json.loads(out)
+    assert row["status"] == "complete" and row["number"] == 1
+    assert row["headline"]["findings"][0]["parameter"] and row["headline"]["G_b_um"] > 0
+    code, out, _ = run(["analyze", str(good_csv), "--sample-hz", "100", "--list"], capsys)
+    assert code == 0 and out.startswith("  1  feed-in at t=") and "complete  G(b) " in out
+    code, _, err = run(["analyze", str(good_csv), "--test-id", "latest"], capsys)
+    assert code == 2 and "--test-id picks a test from the daemon's MCAP records" in err
+    code, _, err = run(["analyze", str(good_csv), "--test", "1", "--test-id", "x"], capsys)
+    assert code == 2 and "not both" in err
+    code, _, err = run(["analyze", str(good_csv), "--test", "2"], capsys)
+    assert code == 1 and "holds 1 test(s), test 2 asked for" in err
