@@ -17,8 +17,9 @@ Messages are JSON-ready dicts with a ``kind``:
 ``circle`` / ``test``   an analysis result (the ``ballbar analyze --json`` object
                         plus ``machine_id``, ``test_id``, ``t_host``, ``last_sample_t``)
 ``event``               ``event``: feed_in, feed_out, circle_done, test_rejected,
-                        test_incomplete, or a source event (unplugged, replugged,
-                        lost, decode_errors, stall, resumed, device_reset, end)
+                        test_incomplete, analysis_reset, or a source event (unplugged,
+                        replugged, lost, decode_errors, stall, resumed, device_reset,
+                        clock_jump, end)
 ``status``              rates, losses, queue depths, source state, fit latency
 ``config``              the daemon's effective configuration, once at start
 """
