@@ -120,6 +120,7 @@ from typing import IO, Any
 import numpy as np
 import zstandard
 from mcap.exceptions import McapError
+from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -1152,7 +1153,45 @@ def _read_one(path: str, samples: bool = True) -> McapLog:
             what = "empty file" if not head else "not an MCAP file (no MCAP magic at the start)"
             raise DataError(f"{name}: {what}")
         fh.seek(0)
+        if not samples and (indexed := _records_indexed(name, fh)) is not None:
+            return indexed
+        fh.seek(0)
         return _parse(name, fh, samples)
+
+
+def _records_indexed(name: str, fh: IO[bytes]) -> McapLog | None:
+    """The events, results and configuration of a finished file, from the chunks its summary says hold them.
+
+    A file flushes a chunk every half second, and only a few hold anything but
+    samples and status: this skips the rest (about 3.5 times faster than
+    reading every chunk).  None when the file has no usable summary (a killed
+    writer's): then it is read through.
+    """
+    wanted = {TOPIC_EVENTS: "events", TOPIC_RESULTS: "results", TOPIC_CONFIG: "config", TOPIC_OTHER: "other"}
+    try:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        if summary is None or not summary.chunk_indexes:
+            return None
+        lists: dict[str, list[dict[str, Any]]] = {k: [] for k in wanted.values()}
+        for _schema, channel, msg in reader.iter_messages(topics=list(wanted), log_time_order=False):
+            try:
+                obj = json.loads(msg.data)
+            except ValueError:
+                continue
+            if isinstance(obj, dict):
+                lists[wanted[channel.topic]].append(obj)
+        meta = next((dict(m.metadata) for m in reader.iter_metadata() if m.name == METADATA_NAME), {})
+    except (McapError, struct.error, ValueError, EOFError, KeyError, MemoryError, zstandard.ZstdError) as err:
+        log.debug("%s: no usable summary (%s); reading it through", name, err)
+        return None
+    if meta and not meta.get("format", "").startswith("ballbar-mcap/1"):
+        raise DataError(f"{name}: format {meta.get('format')!r} is not one this version reads (ballbar-mcap/1)")
+    out = McapLog([name], SampleBatch.empty(), np.empty(0, np.int64), np.empty(0, bool), metadata=meta)
+    for k, v in lists.items():
+        setattr(out, k, v)
+    out.file_events = [0] * len(out.events)
+    return out
 
 
 def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
@@ -1240,8 +1279,10 @@ def _assemble(paths: list[str], decoded: list[DecodedSamples], offset_ns: int) -
 def read_log(path: str | os.PathLike[str], samples: bool = True) -> McapLog:
     """Everything in one log file; a truncated file (killed writer) is read up to its last whole chunk.
 
-    ``samples=False`` leaves the samples out (an empty batch): reading only the
-    events, results and configuration is then several times faster.
+    ``samples=False`` leaves the samples and the status messages out (an empty
+    batch, no status): reading only the events, results and configuration is
+    then many times faster, the more so for a finished file, whose summary
+    says which chunks hold them.
 
     Raises :class:`DataError` (one line, naming the file) when the file is
     missing, not MCAP, or holds a malformed samples record.
