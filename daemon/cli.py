@@ -118,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     for flags in (PLAN_FLAGS, MACHINE_FLAGS):
         for flag, dest, typ, help_ in flags:
             rp.add_argument(flag, dest=dest, type=typ, help=help_)
-    rp.add_argument("--test", type=int, default=1, help="with FILE: which test of the recording (1 = first)")
+    rp.add_argument("--test", type=int, help="with FILE: which test of the recording (1 = first; for a directory of "
+                    "the daemon's records the N-th that analyze --list shows, default its newest complete test)")
 
     run = sub.add_parser("run", help="run the daemon (the service's main job)",
                          description="Sample the ball-bar, fit each circle and test, log to MCAP, publish on "
@@ -329,14 +330,27 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     from .config import load
 
-    if args.test < 1:
+    if args.test is not None and args.test < 1:
         raise UsageError("--test counts from 1")
     if (args.file is None) == (args.test_id is None):
         raise UsageError("give a recording FILE or --test-id (one of the two)")
     records = args.records
-    if args.file is not None:
+    index = None
+    if args.file is not None and os.path.isdir(args.file):
+        from .testindex import index_recordings
+
+        index = index_recordings(args.file)
+    if index is not None and index.tests:
+        # a directory of the daemon's records: its newest complete test (or the N-th listed), as analyze DIR
+        from ballbar.tools.report import from_recorded_test
+
+        test = index.select(None, args.test)
+        plan, machine, options = configs_from_args(args, base=index.config_for(test))
+        data = from_recorded_test(index, test, plan, machine, options, records=records)
+        default_name = test.test_id
+    elif args.file is not None:
         plan, machine, options = configs_from_args(args)
-        data = from_recording(args.file, plan, machine, options, args.test, records=records)
+        data = from_recording(args.file, plan, machine, options, args.test or 1, records=records)
         default_name = Path(args.file.rstrip("/")).stem
     else:
         if records is None:

@@ -179,3 +179,10 @@ def test_records_without_samples_come_from_the_summary_or_from_a_killed_file_rea
     torn, torn_light = read_log(cut), read_log(cut, samples=False)
     assert not torn_light.complete and torn_light.events == torn.events and torn_light.results == torn.results
     assert torn_light.config == full.config
+
+
+def test_a_report_of_the_directory_is_its_newest_complete_test(records: Path, tmp_path: Path) -> None:
+    out = tmp_path / "r.html"
+    assert main(["report", str(records), "-o", str(out), "--no-png"]) == 0
+    newest = published(records)[-1]["test_id"]
+    assert newest in out.read_text()

@@ -21,6 +21,7 @@ from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.daemon.mcap_log import mcap_files, read_results
 from ballbar.daemon.recordings import analyze_file
+from ballbar.daemon.testindex import RecordedTest, TestIndex
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +163,7 @@ def from_records(records: str, test_id: str, options: AnalysisOptions | None = N
     path as live, so it equals the published result) to draw the curves;
     ``options`` replaces the recorded analysis options when given.
     """
-    from ballbar.daemon.testindex import analyze_recorded, index_recordings
+    from ballbar.daemon.testindex import index_recordings
 
     _records_files(records)
     index = index_recordings(records)
@@ -173,20 +174,42 @@ def from_records(records: str, test_id: str, options: AnalysisOptions | None = N
     plan = TestPlan.from_dict(cfg.get("plan", {}))
     machine = MachineConfig.from_dict(cfg.get("machine", {}))
     opts = options or AnalysisOptions.from_dict(cfg.get("analysis", {}))
-    result = analyze_recorded(index, test, plan, machine, opts, curves=True)
+    return from_recorded_test(index, test, plan, machine, opts)
+
+
+def from_recorded_test(
+    index: TestIndex,
+    test: RecordedTest,
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    records: str | None = None,
+) -> ReportData:
+    """Gather one test of an index of the daemon's records (:func:`~ballbar.daemon.testindex.analyze_recorded`).
+
+    It takes the published result's identity, says where the re-analysis
+    differs from it, and draws the trend from the index's results (and those in
+    ``records``, a further directory of records, when given).
+    """
+    from ballbar.daemon.testindex import analyze_recorded
+
+    result = analyze_recorded(index, test, plan, machine, options, curves=True)
     curves = result.pop("curves")
     published = test.result or {}
     _adopt_identity(result, published)
     result.setdefault("test_id", test.test_id)
     if test.machine_id is not None:
         result.setdefault("machine_id", test.machine_id)
-    result["source"] = {"records": os.path.abspath(records), "file": result["source"]["file"],
+    result["source"] = {"records": os.path.abspath(index.path), "file": result["source"]["file"],
                         "reanalysed": "from the recorded samples with the recorded configuration"}
     drift = published_difference(result, published) if published else None
     if drift is not None:
         result.setdefault("warnings", []).append(drift)
-    history, note = select_history(result, _unique(index.results()))
-    return ReportData(result, curves, history, note, source=f"{os.path.abspath(records)} test {result['test_id']}")
+    candidates = index.results()
+    if records is not None and os.path.abspath(records) != os.path.abspath(index.path):
+        candidates += read_results(_records_files(records))
+    history, note = select_history(result, _unique(candidates))
+    return ReportData(result, curves, history, note, source=f"{os.path.abspath(index.path)} test {result['test_id']}")
 
 
 def published_difference(result: dict[str, Any], published: dict[str, Any], rel: float = 1e-6) -> str | None:
