@@ -315,6 +315,7 @@ class Daemon:
                         self.source_state = "connected"
                 elif self.source.finished:
                     log.info("the source has ended")
+                    self._finish_analysis(stop, max_tests)
                     break
                 now = time.monotonic()
                 if now >= next_status:
@@ -333,6 +334,22 @@ class Daemon:
         finally:
             self.shutdown()
         return code
+
+    def _finish_analysis(self, stop: threading.Event, max_tests: int | None, limit_s: float = 120.0) -> None:
+        """A finite source (a replay, a simulation) has ended: the analysis takes all it was given first.
+
+        Faster than real time the source ends well before the analysis, whose
+        queue the shutdown gives only a moment; a replay is meant to be analysed
+        whole.  A stop signal, ``max_tests`` or ``limit_s`` end the wait; the
+        watchdog is kept fed meanwhile.
+        """
+        deadline = time.monotonic() + limit_s
+        while not stop.is_set() and time.monotonic() < deadline:
+            if max_tests is not None and self.tests_seen >= max_tests:
+                return
+            if self.analysis_queue.wait_idle(min(1.0, deadline - time.monotonic())):
+                return
+            self.notifier.watchdog()
 
     def shutdown(self, budget_s: float = 4.0) -> None:
         """Stop within ``budget_s``: the source, then the analysis, then the outputs in parallel."""
