@@ -14,6 +14,14 @@ overhead ``c`` (the arc start's lag) and the reversal spikes' width ``w`` by
 maximising the profile likelihood of the full model (with a weak prior on ``c``
 so that it stays near zero where the data cannot tell), and refits both circles
 at those values: one pass over that test's own samples, none over older ones.
+
+Breaks.  Every angle hangs on the time axis, so :class:`TestAnalyzer` watches
+it (:mod:`.timeaxis`): a step backwards beyond jitter is a :class:`DataError`;
+a gap longer than a few sample periods, and any break the caller tells it of
+(:meth:`TestAnalyzer.mark_break`: a device reset, lost samples), rejects the
+test it falls in (``test_rejected``, with the break's time and size), from the
+feed-in step's first sample to the feed-out step's last.  Only a test that
+passed, with a plausible feed, teaches the next one its timing hints.
 """
 
 from __future__ import annotations
@@ -44,6 +52,7 @@ from .program import (
     model_limits,
     schedule,
 )
+from .timeaxis import Break, TimeAxis
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +87,9 @@ WIDTH_STEP_LN = 0.05  # the step in ln w of the width's error estimate
 SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full) standard errors
 SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
 ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
+# A measured feed this far from the programmed one is not the machine's habit (controls hold the feed to well
+# under 1 % at 100 % override): something else went wrong, and the next test must not assume it.
+HINT_MAX_FEED_DEVIATION = 0.1
 
 
 @dataclass
@@ -87,6 +99,26 @@ class TimingHints:
     feed_ratio: float = 1.0
     overhead_s: float = 0.0
     spike_width_deg: float = DEFAULT_SPIKE_WIDTH_DEG
+
+    @classmethod
+    def learnt(cls, timing: dict[str, Any], before: TimingHints | None = None) -> TimingHints | None:
+        """The hints a test result's ``timing`` teaches, or None where they are implausible.
+
+        Implausible: a feed ratio more than ``HINT_MAX_FEED_DEVIATION`` from 1, or
+        a value that is not a finite number.  ``before`` supplies the spike width
+        where the test had none.
+        """
+        try:
+            ratio = float(timing["feed_ratio"])
+            overhead = float(timing["overhead_s"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        width = timing.get("spike_width_deg")
+        if not (math.isfinite(ratio) and math.isfinite(overhead) and abs(ratio - 1.0) <= HINT_MAX_FEED_DEVIATION):
+            return None
+        if not (isinstance(width, int | float) and math.isfinite(width) and width > 0):
+            width = (before or cls()).spike_width_deg
+        return cls(ratio, overhead, float(width))
 
 
 @dataclass
@@ -240,7 +272,10 @@ class TestAnalyzer:
 
     :meth:`feed` returns result dictionaries as they complete: ``kind`` is
     ``"circle"`` (one direction, provisional timing) or ``"test"``; and event
-    dictionaries (``kind = "event"``: ``feed_in``, ``feed_out``, ``test_aborted``).
+    dictionaries (``kind = "event"``: ``feed_in``, ``feed_out``,
+    ``test_rejected``, ``test_incomplete``).  A test is rejected as soon as a
+    break in its time axis is seen (live: at once, not at its feed-out); its
+    feed-out is still reported, and no result follows.
     """
 
     __test__ = False
@@ -259,32 +294,58 @@ class TestAnalyzer:
         self.options = options or AnalysisOptions()
         self.hints = hints or TimingHints()
         self.detector = TestDetector(plan)
+        self.axis = TimeAxis()
         self.patterns = select(
             self.options.patterns, plan.direction_list, self.machine.pitch_x_mm, self.machine.pitch_y_mm
         )
         self.test_index = 0
         self._fi: StepEvent | None = None
+        self._rejected = False  # the test in progress has been rejected
         self._circles: list[CircleFit] = []
         self._emitted: set[int] = set()
         self._added = 0
+        self._breaks: list[Break] = []
         self.last_t = float("nan")
 
     def feed(self, t: np.ndarray, L: np.ndarray) -> list[dict[str, Any]]:
+        """Take the next samples (times in seconds, any origin; lengths in mm).
+
+        Raises :class:`DataError` for a non-finite value and
+        :class:`~.timeaxis.TimeAxisError` for a time that runs backwards beyond
+        jitter; nothing of the chunk is taken then.
+        """
         t = np.asarray(t, dtype=float)
         L = np.asarray(L, dtype=float)
         if t.size and not (np.isfinite(t).all() and np.isfinite(L).all()):
             k = int(np.argmax(~(np.isfinite(t) & np.isfinite(L))))
             raise DataError(f"sample {self.detector.n_seen + k}: time or length is not a finite number")
+        self._breaks.extend(self.axis.check(t))
         if t.size:
             self.last_t = float(t[-1])
         self.detector.feed(t, L)
         return self._drain()
 
+    def mark_break(self, reason: str) -> None:
+        """A discontinuity between the samples fed so far and the next ones, which the times may not show.
+
+        ``reason`` names it in the rejection's message (``"device reset"``,
+        ``"1200 samples lost (outage)"``).  A test it falls in is rejected.
+        """
+        self.axis.mark(reason)
+
+    def abort(self, reason: str) -> list[dict[str, Any]]:
+        """The stream cannot go on as it is (the caller starts afresh): reject the test in progress, if any."""
+        if self._fi is None or self._rejected:
+            return []
+        fi = self._fi
+        return [self._reject(self.last_t, None, f"{reason}, {self.last_t - fi.t_s:.1f} s after the feed-in at "
+                             f"t={fi.t_s:.3f} s: the test in progress is abandoned")]
+
     def finish(self) -> list[dict[str, Any]]:
         """End of the stream: settle the last step; report a test left unfinished."""
         self.detector.finish()
         out = self._drain()
-        if self._fi is not None:
+        if self._fi is not None and not self._rejected:
             out.append(
                 {
                     "kind": "event",
@@ -303,20 +364,66 @@ class TestAnalyzer:
             ev = self.detector.poll()
             if ev is None:
                 break
+            if self.axis.forward_steps == 0:
+                raise DataError(
+                    f"the time does not advance: all {self.axis.n} samples so far have t={self.axis.first_t:g} s"
+                )
             if ev.kind == "feed_in":
                 self._start(ev)
                 out.append(_event(ev, self.test_index))
-            else:
-                out.extend(self._advance(final=True))
+                continue
+            assert self._fi is not None
+            if not self._rejected and (brk := self._break_in(self._fi.t_begin_s, ev.t_end_s)) is not None:
+                out.append(self._break_rejection(brk))
+            if self._rejected:
                 out.append(_event(ev, self.test_index))
-                out.extend(self._finish_test(ev))
-        if self._fi is not None:
-            out.extend(self._advance(final=False))
+                self._fi, self._rejected = None, False
+                continue
+            out.extend(self._advance(final=True))
+            out.append(_event(ev, self.test_index))
+            out.extend(self._finish_test(ev))
+        if self._fi is not None and not self._rejected:
+            brk = self._break_in(self._fi.t_begin_s, math.inf)
+            if brk is not None:
+                out.append(self._break_rejection(brk))
+            else:
+                out.extend(self._advance(final=False))
+        if self._fi is None and self._breaks:
+            # a later test begins after the first sample the detector still holds
+            tb, _ = self.detector.samples()
+            first = float(tb.min()) if tb.size else self.last_t
+            self._breaks = [b for b in self._breaks if b.t_after >= first]
         return out
+
+    def _break_in(self, t0: float, t1: float) -> Break | None:
+        """The first break between the samples at ``t0`` and ``t1`` (a test's first and last step sample)."""
+        return next((b for b in self._breaks if b.t_after > t0 and b.t_before < t1), None)
+
+    def _break_rejection(self, brk: Break) -> dict[str, Any]:
+        assert self._fi is not None
+        fi = self._fi
+        where = ("during the feed-in" if brk.t_after <= fi.t_end_s
+                 else f"{brk.t_after - fi.t_s:.1f} s after the feed-in at t={fi.t_s:.3f} s")
+        return self._reject(
+            brk.t_after, brk.missing_s if brk.visible else None,
+            f"{brk.describe()}, {where}: the test spans a break in its time axis, so its feed and angles "
+            "cannot be trusted; run it again",
+        )
+
+    def _reject(self, t_s: float, gap_s: float | None, message: str) -> dict[str, Any]:
+        self._rejected = True
+        self._circles = []
+        log.info("test %d rejected: %s", self.test_index, message)
+        ev: dict[str, Any] = {"kind": "event", "event": "test_rejected", "test_index": self.test_index,
+                              "t_s": t_s, "message": message}
+        if gap_s is not None:
+            ev["gap_s"] = gap_s
+        return ev
 
     def _start(self, fi: StepEvent) -> None:
         self.test_index += 1
         self._fi = fi
+        self._rejected = False
         V = self.plan.feed_mm_s * self.hints.feed_ratio
         timing = make_timing(self.plan, fi.t_s, V, self.hints.overhead_s, accel_s=feed_accel(self.plan, [fi], V))
         self._circles = [
@@ -382,12 +489,13 @@ class TestAnalyzer:
             return [{"kind": "event", "event": "test_rejected", "test_index": self.test_index,
                      "t_s": fo.t_s, "message": str(err)}]
         result["test_index"] = self.test_index
-        tm = result["timing"]
-        self.hints = TimingHints(
-            feed_ratio=tm["measured_feed_mm_min"] / self.plan.feed_mm_min,
-            overhead_s=tm["overhead_s"],
-            spike_width_deg=tm["spike_width_deg"] or self.hints.spike_width_deg,
-        )
+        hints = TimingHints.learnt(result["timing"], self.hints)
+        if hints is None:
+            log.warning("test %d: a measured feed of %.1f mm/min (programmed %g) is no timing hint for the next "
+                        "test's provisional circles", self.test_index, result["timing"]["measured_feed_mm_min"],
+                        self.plan.feed_mm_min)
+        else:
+            self.hints = hints
         return [result]
 
 
@@ -1430,13 +1538,28 @@ def analyze_recording(
     machine: MachineConfig | None = None,
     options: AnalysisOptions | None = None,
     curves: bool = False,
+    breaks: Sequence[tuple[int, str]] = (),
 ) -> list[dict[str, Any]]:
     """Everything :class:`TestAnalyzer` reports on a whole recording, in order.
 
-    ``curves``: see :func:`analyze_test`.
+    ``curves``: see :func:`analyze_test`.  ``breaks``: ``(index, reason)``, a
+    discontinuity the times may not show (a device reset) just before sample
+    ``index`` (:meth:`TestAnalyzer.mark_break`).
     """
+    t = np.asarray(t, dtype=float)
+    L = np.asarray(L, dtype=float)
+    if t.size >= 2 and np.all(np.isfinite(t)) and not np.any(np.diff(t) > 0):
+        what = f"all {t.size} samples have t={t[0]:g} s" if np.all(t == t[0]) else "it never increases"
+        raise DataError(f"the time axis does not advance ({what}): no test can be timed")
     an = TestAnalyzer(plan, machine, options, curves=curves)
-    out = an.feed(t, L)
+    out: list[dict[str, Any]] = []
+    i = 0
+    for j, reason in sorted(breaks, key=lambda b: b[0]):
+        j = min(max(int(j), i), t.size)
+        out.extend(an.feed(t[i:j], L[i:j]))
+        an.mark_break(reason)
+        i = j
+    out.extend(an.feed(t[i:], L[i:]))
     out.extend(an.finish())
     if not any(r.get("event") == "feed_in" for r in out):
         lo, hi = an.detector.seen_range()
@@ -1447,4 +1570,4 @@ def analyze_recording(
     return out
 
 
-__all__ = ["CircleFit", "TestAnalyzer", "TimingHints", "analyze_recording", "analyze_test"]
+__all__ = ["HINT_MAX_FEED_DEVIATION", "CircleFit", "TestAnalyzer", "TimingHints", "analyze_recording", "analyze_test"]

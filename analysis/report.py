@@ -167,3 +167,42 @@ def summary(result: dict[str, Any]) -> str:
         cp = f"  [{a['controller_parameter']}]" if a.get("controller_parameter") else ""
         lines.append(f"  - {a['action']}{cp}")
     return "\n".join(lines)
+
+
+SETUP_PATTERNS = ("centre", "radius")  # set-up terms, not machine findings
+
+
+def headline(result: dict[str, Any], findings: int = 3) -> dict[str, Any]:
+    """A test result's headline: ``G_b_um``, ``measured_feed_mm_min`` and its strongest significant findings.
+
+    ``findings``: up to that many ``{"parameter", "value", "unit"}`` of the
+    significant machine patterns (set-up terms left out), in ranking order.
+    """
+    params = result.get("parameters", {})
+    found: list[dict[str, Any]] = []
+    for r in result.get("ranking", []):
+        if len(found) >= findings:
+            break
+        if not r.get("significant") or r.get("pattern") in SETUP_PATTERNS:
+            continue
+        for key, p in params.items():
+            if key.startswith(f"{r['pattern']}_") and p.get("value") is not None and not key.endswith("_phase_deg"):
+                found.append({"parameter": key, "value": p["value"], "unit": p.get("unit", "")})
+                break
+    return {
+        "G_b_um": result.get("iso230_4", {}).get("G_b_um"),
+        "measured_feed_mm_min": result.get("timing", {}).get("measured_feed_mm_min"),
+        "findings": found,
+    }
+
+
+def headline_text(h: dict[str, Any]) -> str:
+    """:func:`headline` in one short line: ``G(b) 5.21 um, feed 999.8 mm/min; backlash_x_um 4.02, ...``."""
+    parts = []
+    if h.get("G_b_um") is not None:
+        parts.append(f"G(b) {h['G_b_um']:.2f} um")
+    if h.get("measured_feed_mm_min") is not None:
+        parts.append(f"feed {h['measured_feed_mm_min']:.1f} mm/min")
+    text = ", ".join(parts)
+    found = ", ".join(f"{f['parameter']} {f['value']:.3g}" for f in h.get("findings", []))
+    return f"{text}; {found}" if found else text

@@ -20,7 +20,8 @@ key                               how         what
                                               ``ballbar analyze --json`` object plus ``test_id``
 ``ballbar/<m>/event``             put         ``kind: "event"``; ``event`` says which: feed_in,
                                               feed_out, test_rejected, test_incomplete, unplugged,
-                                              replugged, lost, stall, resumed, device_reset, ...
+                                              replugged, lost, stall, resumed, device_reset,
+                                              clock_jump, ...
 ``ballbar/<m>/status``            put         ``kind: "status"`` every status interval: rates,
                                               losses, queue depths, source state, fit latency,
                                               and ``zenoh``: this publisher's own counters

@@ -24,7 +24,7 @@ from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.analysis.report import summary
 
 from .output import write_atomic
-from .recordings import analyze_file, recorded_config
+from .recordings import analyze_file, config_sections, recorded_config
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     an = sub.add_parser("analyze", help="analyse a recording (CSV t_s,length_mm)",
                         description="Analyse a ball-bar recording: ranked findings, ISO 230-4, advice.")
     an.add_argument("file", help="recording: CSV with header t_s,length_mm, or the daemon's MCAP "
-                    "(a file or a directory; its recorded plan is the default)")
+                    "(a file, or a directory of them: its newest complete test; its recorded plan is the default)")
     an.add_argument("--plan", dest="plan_file", help="TOML or JSON file with [plan], [machine], [analysis]")
     for flags in (PLAN_FLAGS, MACHINE_FLAGS):
         for flag, dest, typ, help_ in flags:
@@ -75,7 +75,12 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--lost-motion", choices=("physical", "deadband", "step"),
                     help="backlash as a dead band with take-up (default) or the seed's step")
     an.add_argument("--patterns", help="comma-separated pattern names to fit (default: all that apply)")
-    an.add_argument("--test", type=int, default=1, help="which test of the recording (1 = first)")
+    an.add_argument("--test", type=int, help="which test: the N-th in a file (default 1), the N-th that "
+                    "--list shows for a directory")
+    an.add_argument("--test-id", help="a test id from the daemon's records (MCAP file or directory), or 'latest' "
+                    "(the newest complete test: a directory's default)")
+    an.add_argument("--list", action="store_true", help="list the tests (number, id, start, status, file, "
+                    "headline) instead of analysing one; with --json a JSON list")
     an.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
 
     gc = sub.add_parser("gcode", help="write the NC test program that matches the test plan",
@@ -113,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     for flags in (PLAN_FLAGS, MACHINE_FLAGS):
         for flag, dest, typ, help_ in flags:
             rp.add_argument(flag, dest=dest, type=typ, help=help_)
-    rp.add_argument("--test", type=int, default=1, help="with FILE: which test of the recording (1 = first)")
+    rp.add_argument("--test", type=int, help="with FILE: which test of the recording (1 = first; for a directory of "
+                    "the daemon's records the N-th that analyze --list shows, default its newest complete test)")
 
     run = sub.add_parser("run", help="run the daemon (the service's main job)",
                          description="Sample the ball-bar, fit each circle and test, log to MCAP, publish on "
@@ -192,17 +198,88 @@ def configs_from_args(
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    plan, machine, options = configs_from_args(args)
-    if args.test < 1:
+    from .recordings import is_mcap
+
+    if args.test is not None and args.test < 1:
         raise UsageError("--test counts from 1")
-    result = analyze_file(args.file, plan, machine, options, args.test)
+    if args.test is not None and args.test_id is not None:
+        raise UsageError("give --test N or --test-id ID, not both")
+    mcap = is_mcap(args.file)
+    if args.test_id is not None and not mcap:
+        raise UsageError(f"--test-id picks a test from the daemon's MCAP records; {args.file} is not one")
+    if args.list:
+        return _list_tests(args, mcap)
+    if mcap and (os.path.isdir(args.file) or args.test_id is not None):
+        result = _analyze_records(args)
+    else:
+        plan, machine, options = configs_from_args(args)
+        result = analyze_file(args.file, plan, machine, options, args.test or 1)
     if args.json:
         json.dump(result, sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
     else:
+        src = result.get("source", {})
+        if src.get("test_id"):
+            print(f"Test {src['test_id']} ({Path(src['file']).name})")
         print(summary(result))
         for w in result.get("warnings", []):
             print(f"warning: {w}")
+    return 0
+
+
+def _analyze_records(args: argparse.Namespace) -> dict[str, Any]:
+    """A test from the daemon's records: a directory's newest complete one, or the one asked for."""
+    from .mcap_log import read_logs, recording
+    from .recordings import analyze, pick_test
+    from .testindex import analyze_recorded, index_recordings
+
+    index = index_recordings(args.file)
+    if index.tests or args.test_id is not None:
+        test = index.select(args.test_id, args.test)
+        plan, machine, options = configs_from_args(args, base=index.config_for(test))
+        return analyze_recorded(index, test, plan, machine, options)
+    # Files without test records (the daemon's analysis off, or not the daemon's): the newest run's samples.
+    run = index.runs()[-1]
+    log.info("%s: no test recorded; analysing the samples of its newest daemon run (%d file(s))", args.file, len(run))
+    files = [index.files[i] for i in run]
+    plan, machine, options = configs_from_args(args, base=next(
+        (config_sections(f.config) for f in reversed(files) if f.config), {}))
+    rec = recording(read_logs([f.path for f in files]), args.file)
+    return pick_test(analyze(rec, plan, machine, options), args.test or 1, args.file, plan)
+
+
+def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
+    """``--list``: the recorded tests of the daemon's MCAP records, or the tests an analysis finds in a CSV."""
+    from ballbar.analysis.report import headline, headline_text
+
+    from .recordings import analyze, load_recording, outcomes
+
+    rows: list[dict[str, Any]]
+    if mcap:
+        from .testindex import index_recordings
+
+        index = index_recordings(args.file)
+        rows = [index.describe(t) for t in index.tests]
+    else:
+        plan, machine, options = configs_from_args(args)
+        rows = [
+            {"number": e["number"], "feed_in_s": e["feed_in_s"], "status": e["status"], "message": e["message"],
+             "headline": headline(e["result"]) if e["result"] is not None else None}
+            for e in outcomes(analyze(load_recording(args.file), plan, machine, options))
+        ]
+    if args.json:
+        json.dump(rows, sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+        return 0
+    if not rows:
+        print(f"{args.file}: no test recorded")
+    for r in rows:
+        what = headline_text(r["headline"]) if r["headline"] else r["message"]
+        if mcap:
+            files = r["files"][0] + (f" +{len(r['files']) - 1}" if len(r["files"]) > 1 else "")
+            print(f"{r['number']:>3}  {r['test_id']}  {r['start'] or '-'}  {files}  {r['status']}  {what}")
+        else:
+            print(f"{r['number']:>3}  feed-in at t={r['feed_in_s']:.3f} s  {r['status']}  {what}")
     return 0
 
 
@@ -253,14 +330,27 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     from .config import load
 
-    if args.test < 1:
+    if args.test is not None and args.test < 1:
         raise UsageError("--test counts from 1")
     if (args.file is None) == (args.test_id is None):
         raise UsageError("give a recording FILE or --test-id (one of the two)")
     records = args.records
-    if args.file is not None:
+    index = None
+    if args.file is not None and os.path.isdir(args.file):
+        from .testindex import index_recordings
+
+        index = index_recordings(args.file)
+    if index is not None and index.tests:
+        # a directory of the daemon's records: its newest complete test (or the N-th listed), as analyze DIR
+        from ballbar.tools.report import from_recorded_test
+
+        test = index.select(None, args.test)
+        plan, machine, options = configs_from_args(args, base=index.config_for(test))
+        data = from_recorded_test(index, test, plan, machine, options, records=records)
+        default_name = test.test_id
+    elif args.file is not None:
         plan, machine, options = configs_from_args(args)
-        data = from_recording(args.file, plan, machine, options, args.test, records=records)
+        data = from_recording(args.file, plan, machine, options, args.test or 1, records=records)
         default_name = Path(args.file.rstrip("/")).stem
     else:
         if records is None:

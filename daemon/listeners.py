@@ -17,8 +17,9 @@ Messages are JSON-ready dicts with a ``kind``:
 ``circle`` / ``test``   an analysis result (the ``ballbar analyze --json`` object
                         plus ``machine_id``, ``test_id``, ``t_host``, ``last_sample_t``)
 ``event``               ``event``: feed_in, feed_out, circle_done, test_rejected,
-                        test_incomplete, or a source event (unplugged, replugged,
-                        lost, decode_errors, stall, resumed, device_reset, end)
+                        test_incomplete, analysis_reset, or a source event (unplugged,
+                        replugged, lost, decode_errors, stall, resumed, device_reset,
+                        clock_jump, end)
 ``status``              rates, losses, queue depths, source state, fit latency
 ``config``              the daemon's effective configuration, once at start
 """
@@ -135,6 +136,7 @@ class ListenerQueue:
         self._items: deque[tuple[str, Any]] = deque()
         self._cv = threading.Condition()
         self._closing = False
+        self._busy = False  # an item taken from the queue is being delivered
         self.stats = QueueStats(capacity=capacity, policy=policy)
         self._thread = threading.Thread(target=self._run, name=f"listener-{listener.name}", daemon=True)
         self._thread.start()
@@ -171,6 +173,7 @@ class ListenerQueue:
                 else:
                     item = self._items.popleft()
                     self.stats.depth = len(self._items)
+                    self._busy = True
             try:
                 if item is None:
                     self.listener.on_idle()
@@ -183,6 +186,22 @@ class ListenerQueue:
             except Exception:  # a listener's failure must not stop the pipeline
                 self.stats.errors += 1
                 log.exception("listener %s failed", self.listener.name)
+            finally:
+                with self._cv:
+                    self._busy = False
+                    if not self._items:
+                        self._cv.notify_all()
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until everything queued has been delivered (at most ``timeout`` s); whether it has."""
+        deadline = time.monotonic() + timeout
+        with self._cv:
+            while self._items or self._busy:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._thread.is_alive():
+                    return False
+                self._cv.wait(min(left, 0.5))
+        return True
 
     def close(self, timeout: float = 5.0) -> None:
         """Deliver what is queued (within ``timeout``), then stop the listener."""

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ballbar.analysis.timeaxis import GAP_PERIODS
 from ballbar.protocol import INVALID
 
 #: One sample as a record, for writers that want rows (MCAP, CSV).
@@ -65,7 +66,11 @@ class EventKind(StrEnum):
     ``stall``        no bytes for ``gap_s`` seconds while connected
     ``resumed``      bytes again after a stall; ``gap_s``: the silence
     ``device_reset`` the device's counter or clock went backwards (it restarted);
-                     how many samples were lost cannot be known
+                     how many samples were lost cannot be known; ``seq``: the
+                     first sample after the restart
+    ``clock_jump``   the device's clock stepped by more than its sample counter
+                     says (``gap_s``: the excess, s; negative: back); ``seq``: the
+                     first sample after the step
     ``end``          a finite source (a replay, a simulator with a repeat count)
                      has nothing more; ``read`` returns ``None`` from then on
     """
@@ -78,6 +83,7 @@ class EventKind(StrEnum):
     STALL = "stall"
     RESUMED = "resumed"
     DEVICE_RESET = "device_reset"
+    CLOCK_JUMP = "clock_jump"
     END = "end"
 
 
@@ -198,6 +204,53 @@ class SampleBatch:
         )
 
 
+def break_reason(event: Mapping[str, Any]) -> str | None:
+    """Why a source or logger event (``event`` or ``kind`` naming it) breaks the analysis's time axis, or None.
+
+    A device reset (the daemon re-bases the restarted clock, so the times do not
+    show the outage), a device clock jump, and ``GAP_PERIODS`` or more samples
+    lost or not logged in a row (which the times do show; named here).
+    """
+    kind = str(event.get("event") or event.get("kind") or "")
+    count = int(event.get("count") or 0)
+    detail = str(event.get("detail") or "")
+    if kind == EventKind.DEVICE_RESET:
+        return "device reset (its sample counter or clock restarted; how long it was down is unknown)"
+    if kind == EventKind.CLOCK_JUMP:
+        return f"device clock jump of {float(event.get('gap_s') or 0.0):+.3f} s (its sample counter ran on)"
+    if kind == EventKind.LOST and count >= GAP_PERIODS:
+        return f"{count} samples lost ({detail or 'gap'})"
+    if kind == "log_gap" and count:
+        return f"{count} samples not logged ({detail or 'write error'})"
+    return None
+
+
+def break_seq(event: Mapping[str, Any]) -> int | None:
+    """The sample number of the first sample after an event's break (None where the event does not say)."""
+    seq = event.get("seq")
+    if not isinstance(seq, int) or isinstance(seq, bool):
+        return None
+    kind = str(event.get("event") or event.get("kind") or "")
+    return seq + int(event.get("count") or 0) if kind == EventKind.LOST else seq
+
+
+def breaks_in(events: Sequence[SourceEvent], seq: NDArray[np.int64]) -> list[tuple[int, str]]:
+    """``(index, reason)`` of the breaks these events report among samples numbered ``seq`` (increasing).
+
+    ``index``: the first sample after the break (``len(seq)``: after them all).
+    An event without a sample number falls before the samples.
+    """
+    out = []
+    for ev in events:
+        d = ev.to_dict()
+        reason = break_reason(d)
+        if reason is None:
+            continue
+        at = break_seq(d)
+        out.append((int(np.searchsorted(seq, at)) if at is not None else 0, reason))
+    return out
+
+
 @dataclass
 class SourceStats:
     """Running totals of a source (a copy: :meth:`Source.stats` returns a snapshot).
@@ -216,6 +269,7 @@ class SourceStats:
     replugs: int = 0
     stalls: int = 0
     resets: int = 0
+    clock_jumps: int = 0
     connected: bool = False
     decode: dict[str, int] = field(default_factory=dict)
     lost_by_cause: dict[str, int] = field(default_factory=dict)
@@ -237,4 +291,5 @@ class SourceStats:
         return out
 
 
-__all__ = ["SAMPLE_DTYPE", "EventKind", "SampleBatch", "SourceEvent", "SourceStats"]
+__all__ = ["SAMPLE_DTYPE", "EventKind", "SampleBatch", "SourceEvent", "SourceStats", "break_reason", "break_seq",
+           "breaks_in"]

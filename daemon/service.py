@@ -42,7 +42,7 @@ from ballbar.analysis.errors import BallbarError
 
 from .config import Config
 from .listeners import Listener, ListenerQueue, Message
-from .samples import SampleBatch
+from .samples import SampleBatch, breaks_in
 from .sources import Source
 from .systemd import Notifier
 
@@ -58,6 +58,12 @@ class AnalysisListener(Listener):
 
     The time axis is the device clock where the source has one (evenly spaced,
     and with a simulated device sped up, the simulated time), else host time.
+    A device reset, a device clock jump and a long loss that a batch's events
+    report become a break (:meth:`TestAnalyzer.mark_break`) just before the
+    sample they name: the test in progress is rejected.  A time axis the
+    analysis refuses (a clock that ran back) rejects the test in progress and
+    starts the analysis afresh from the offending sample; the timing hints are
+    kept (they only ever come from tests that passed).
     """
 
     name = "analysis"
@@ -82,28 +88,26 @@ class AnalysisListener(Listener):
             self._on_batch(batch)
 
     def _on_batch(self, batch: SampleBatch) -> None:
-        if len(batch) == 0:
-            return
         valid = batch.valid
         self.invalid += int((~valid).sum())
-        if self.use_device_time is None:
+        if self.use_device_time is None and len(batch):
             self.use_device_time = bool(np.isfinite(batch.t_device).all())
         t = batch.t_device if self.use_device_time else batch.t_host
         good = valid & np.isfinite(t)
-        if not good.any():
+        t, L, seq = t[good], batch.length_mm[good], batch.seq[good]
+        # A device reset, clock jump or long loss the batch reports: a break before its first sample after it.
+        cuts = breaks_in(batch.events, seq)
+        if not t.size and not cuts:
             return
-        t, L = t[good], batch.length_mm[good]
-        self.last_t = float(t[-1])
+        self.last_t = float(t[-1]) if t.size else self.last_t
         t0 = time.perf_counter()
-        try:
-            out = self.analyzer.feed(t, L)
-        except BallbarError as err:
-            # a batch the analysis cannot take (time going backwards after a device reset): start over
-            self.errors += 1
-            log.warning("analysis: %s; restarting test detection", err)
-            self.analyzer = TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, self.analyzer.hints)
-            self.emit(self._wrap({"kind": "event", "event": "analysis_reset", "message": str(err)}))
-            return
+        out: list[Message] = []
+        i = 0
+        for j, reason in cuts:
+            self._feed(t[i:j], L[i:j], out)
+            self.analyzer.mark_break(reason)
+            i = j
+        self._feed(t[i:], L[i:], out)
         elapsed_ms = 1000.0 * (time.perf_counter() - t0)
         for msg in out:
             if msg["kind"] in ("circle", "test"):
@@ -111,6 +115,24 @@ class AnalysisListener(Listener):
                 self.results += 1
                 self.tests += msg["kind"] == "test"
             self.emit(self._wrap(msg))
+
+    def _feed(self, t: np.ndarray, L: np.ndarray, out: list[Message]) -> None:
+        """Feed a piece; on an error, reject the test in progress and start afresh from the offending sample."""
+        try:
+            out.extend(self.analyzer.feed(t, L))
+            return
+        except BallbarError as err:
+            index = getattr(err, "index", None)
+            start = min(max(index - self.analyzer.axis.n, 0), t.size) if isinstance(index, int) else t.size
+            # A time axis the analysis cannot take (a clock that ran back): the test in progress is lost.
+            # Its hints are not: TestAnalyzer only learns them from tests that passed.
+            self.errors += 1
+            log.warning("analysis: %s; restarting test detection", err)
+            out.extend(self.analyzer.abort(f"the analysis restarted: {err}"))
+            out.append({"kind": "event", "event": "analysis_reset", "message": str(err)})
+            self.analyzer = TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, self.analyzer.hints)
+        if start < t.size:
+            self._feed(t[start:], L[start:], out)
 
     def _wrap(self, msg: Message) -> Message:
         if msg.get("event") == "feed_in":
@@ -133,7 +155,7 @@ class AnalysisListener(Listener):
     def stop(self) -> None:
         with self._lock, contextlib.suppress(BallbarError):
             for msg in self.analyzer.finish():
-                if msg.get("event") == "test_incomplete":
+                if msg.get("event") in ("test_incomplete", "test_rejected"):
                     self.emit(self._wrap(msg))
 
 
@@ -156,8 +178,8 @@ class LogListener(Listener):
                 extra = f"; G(b) {iso.get('G_b_um') or float('nan'):.2f} um, feed {feed:.1f} mm/min"
             log.info("%s %s: %s%s", msg.get("test_id"), what, top, extra)
         elif kind == "event" and msg.get("event") in (
-            "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "test_rejected", "test_incomplete",
-            "analysis_reset",
+            "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
+            "test_incomplete", "analysis_reset",
         ):
             log.warning("event %s: %s", msg["event"], {k: v for k, v in msg.items() if k not in ("kind", "event")})
 
@@ -293,6 +315,7 @@ class Daemon:
                         self.source_state = "connected"
                 elif self.source.finished:
                     log.info("the source has ended")
+                    self._finish_analysis(stop, max_tests)
                     break
                 now = time.monotonic()
                 if now >= next_status:
@@ -311,6 +334,22 @@ class Daemon:
         finally:
             self.shutdown()
         return code
+
+    def _finish_analysis(self, stop: threading.Event, max_tests: int | None, limit_s: float = 120.0) -> None:
+        """A finite source (a replay, a simulation) has ended: the analysis takes all it was given first.
+
+        Faster than real time the source ends well before the analysis, whose
+        queue the shutdown gives only a moment; a replay is meant to be analysed
+        whole.  A stop signal, ``max_tests`` or ``limit_s`` end the wait; the
+        watchdog is kept fed meanwhile.
+        """
+        deadline = time.monotonic() + limit_s
+        while not stop.is_set() and time.monotonic() < deadline:
+            if max_tests is not None and self.tests_seen >= max_tests:
+                return
+            if self.analysis_queue.wait_idle(min(1.0, deadline - time.monotonic())):
+                return
+            self.notifier.watchdog()
 
     def shutdown(self, budget_s: float = 4.0) -> None:
         """Stop within ``budget_s``: the source, then the analysis, then the outputs in parallel."""

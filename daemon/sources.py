@@ -98,7 +98,10 @@ exact count (never interpolated or papered over).  An unplugged adapter (the
 port raises mid-read, or cannot be opened at start) is an ``unplugged`` event;
 the source retries with exponential backoff and reports ``replugged`` with the
 outage when the port returns, then the samples lost across it.  A device that
-stops sending is a ``stall``, then ``resumed``.
+stops sending is a ``stall``, then ``resumed``.  A restarted device (its
+counter or clock went back) is a ``device_reset``, a device clock that steps by
+more than its counter says a ``clock_jump``; each names the first sample after
+it (``seq``), so that the analysis can place the break exactly.
 """
 
 from __future__ import annotations
@@ -274,6 +277,8 @@ class Source(abc.ABC):
                 s.stalls += 1
             elif e.kind == EventKind.DEVICE_RESET:
                 s.resets += 1
+            elif e.kind == EventKind.CLOCK_JUMP:
+                s.clock_jumps += 1
             elif e.kind == EventKind.DECODE_ERRORS:
                 add_counts(s.decode, dict(e.counts))
 
@@ -287,7 +292,7 @@ class Source(abc.ABC):
                 self._lost_logged_at, self._lost_unlogged = ev.t_host, 0
         elif k == EventKind.DECODE_ERRORS:
             log.debug("%s: decoder dropped %s", self.url, dict(ev.counts))
-        elif k in (EventKind.UNPLUGGED, EventKind.STALL, EventKind.DEVICE_RESET):
+        elif k in (EventKind.UNPLUGGED, EventKind.STALL, EventKind.DEVICE_RESET, EventKind.CLOCK_JUMP):
             log.warning("%s: %s %s", self.url, k, ev.detail or (f"after {ev.gap_s:.3f} s" if ev.gap_s else ""))
         else:
             log.info("%s: %s %s", self.url, k, ev.detail or (f"after {ev.gap_s:.3f} s" if ev.gap_s else ""))
@@ -507,8 +512,11 @@ class SerialSource(Source):
             self._gap_events(st.gaps, self._gap_cause or "gap")
         if len(r):
             self._gap_cause = None
-        for _ in range(st.resets):
-            self._event(EventKind.DEVICE_RESET, detail="sample counter or clock went backwards")
+        for seq in st.reset_seqs:
+            self._event(EventKind.DEVICE_RESET, seq=seq, detail="sample counter or clock went backwards")
+        for seq, excess in st.jumps:
+            self._event(EventKind.CLOCK_JUMP, seq=seq, gap_s=excess,
+                        detail=f"device clock stepped {excess:+.6f} s beyond its sample counter")
         self._duplicates += st.duplicates
         self._report_decode()
         if self._stamper.clock.ready:

@@ -11,8 +11,9 @@ under every point.  ``ratio - 1`` is the drift (a crystal's tens of ppm; 0.1
 for a simulator that runs ten times faster than real time).
 
 :class:`Stamper` turns a decoder's raw counters and clocks into unwrapped
-sample numbers and device times, finds gaps (lost samples) and device restarts,
-and stamps host times.  Pure bookkeeping: the caller passes the host time.
+sample numbers and device times, finds gaps (lost samples), device restarts
+and clock jumps, and stamps host times.  Pure bookkeeping: the caller passes
+the host time.
 """
 
 from __future__ import annotations
@@ -90,8 +91,11 @@ class Stamped:
 
     ``keep`` selects the readings that stay (a repeated counter value is a
     duplicate and is dropped); the other arrays are already filtered.
-    ``gaps``: ``(first missing seq, count)`` per gap.  ``resets``: restarts of
-    the device's counter or clock seen in these readings.
+    ``gaps``: ``(first missing seq, count)`` per gap.  ``reset_seqs``: the
+    sample number of the first sample after each restart of the device's
+    counter or clock seen in these readings.  ``jumps``: ``(seq, seconds)``,
+    the first sample after the device clock stepped by more than its counter
+    says (a clock jump; ``seconds`` the excess, negative for a step back).
     """
 
     keep: NDArray[np.bool_]
@@ -99,7 +103,12 @@ class Stamped:
     t_device: NDArray[np.float64]
     t_host: NDArray[np.float64]
     gaps: list[tuple[int, int]] = field(default_factory=list)
-    resets: int = 0
+    reset_seqs: list[int] = field(default_factory=list)
+    jumps: list[tuple[int, float]] = field(default_factory=list)
+
+    @property
+    def resets(self) -> int:
+        return len(self.reset_seqs)
 
     @property
     def duplicates(self) -> int:
@@ -117,8 +126,19 @@ class Stamper:
     Sample numbers start at the device's counter (binary), at the device time
     times the rate (a clock and a rate), or at 0.  Across a device restart (the
     counter or clock goes backwards) the numbers continue by one and the device
-    time by the restarted clock's reading: how much was lost is unknown.
+    time by the restarted clock's reading: how much was lost is unknown, and
+    the times no longer show the outage (the restart is reported instead).
+
+    Where the device has both a counter and a clock, a clock step that the
+    counter does not account for (more than ``JUMP_PERIODS`` sample periods, and
+    more than ``JUMP_FRACTION`` of the step) is a clock jump: reported, and the
+    host clock map starts afresh.  The period is the device's own (the median
+    clock step per counter step), so a nominal rate that is a little off does
+    not matter.
     """
+
+    JUMP_PERIODS = 8.0
+    JUMP_FRACTION = 0.05
 
     def __init__(self, seq_modulus: int | None, clock_wrap_s: float | None, rate_hz: float | None) -> None:
         self.seq_modulus = seq_modulus
@@ -132,6 +152,7 @@ class Stamper:
         self._clk_base = 0.0  # unwrapped device time minus the raw clock
         self._th = -math.inf  # last host time handed out
         self._th_read = math.nan  # host time of the last read that had samples
+        self._clk_period = math.nan  # the device clock's step per counter step (s)
 
     @property
     def last_seq(self) -> int | None:
@@ -199,6 +220,10 @@ class Stamper:
             self._clk_base = float(cbase[-1])
             self._clk_raw = float(clk[-1])
 
+        jump_at: list[tuple[int, float]] = []
+        if clk is not None and r.seq is not None and self.seq_modulus is not None:
+            jump_at = self._clock_jumps(d, steps, keep & ~restart, 1 if first else 0)
+
         if first:
             restart[0] = False
             if r.seq is not None:
@@ -218,8 +243,9 @@ class Stamper:
         if first:
             steps[0] = 1  # not a gap
         gaps = [(int(seq[i] - steps[i] + 1), int(steps[i] - 1)) for i in np.flatnonzero(steps > 1).tolist()]
-        resets = int(np.count_nonzero(restart))
-        if resets:
+        reset_seqs = [int(seq[i]) for i in np.flatnonzero(restart).tolist()]
+        jumps = [(int(seq[i]), excess) for i, excess in jump_at]
+        if reset_seqs or jumps:
             self.clock.reset()
 
         seq, td = seq[keep], td[keep]
@@ -228,7 +254,25 @@ class Stamper:
         if td.shape[0] and not math.isnan(td[-1]):
             self._td = float(td[-1])
         self._th_read = t_read
-        return Stamped(keep, seq, td, th, gaps, resets)
+        return Stamped(keep, seq, td, th, gaps, reset_seqs, jumps)
+
+    def _clock_jumps(
+        self, d: NDArray[np.float64], steps: NDArray[np.int64], ok: NDArray[np.bool_], start: int
+    ) -> list[tuple[int, float]]:
+        """``(index, excess s)`` where the clock's step ``d`` exceeds what the counter's ``steps`` explain."""
+        ones = ok & (steps == 1)
+        ones[:start] = False
+        if np.count_nonzero(ones) >= 4:
+            per = float(np.median(d[ones]))
+            if per > 0:
+                self._clk_period = per
+        per = self._clk_period
+        if not per > 0:
+            return []
+        excess = d - steps * per
+        bad = ok & (np.abs(excess) > np.maximum(self.JUMP_PERIODS * per, self.JUMP_FRACTION * steps * per))
+        bad[:start] = False
+        return [(i, float(excess[i])) for i in np.flatnonzero(bad).tolist()]
 
     def _host_times(self, seq: NDArray[np.int64], td: NDArray[np.float64], t_read: float) -> NDArray[np.float64]:
         n = seq.shape[0]

@@ -94,6 +94,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from numpy.typing import NDArray
 
+from ballbar.analysis.engine import TimingHints
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.patterns import LIBRARY, Geometry, Pattern, design
 from ballbar.analysis.physics import LostMotion, make_offset
@@ -132,7 +133,8 @@ TRENDS: tuple[tuple[str, str, str], ...] = (
     ("scale_mismatch_ppm", "scale_mismatch_ppm", "eX - eY"),
 )
 WARN_EVENTS = frozenset(
-    {"test_rejected", "test_incomplete", "test_aborted", "unplugged", "lost", "stall", "device_reset", "decode_errors"}
+    {"test_rejected", "test_incomplete", "test_aborted", "unplugged", "lost", "stall", "device_reset", "clock_jump",
+     "decode_errors"}
 )
 AUTO_SCALE_START_UM = 20.0
 AUTO_SCALE_FILL = 1.6  # automatic scale: the largest deviation reaches 0.8 R0 from the nominal circle
@@ -1199,12 +1201,10 @@ class RerunViewer(Listener):
         if isinstance(idx, int) and idx != self._test_index:
             self._test_index = idx
         if res.get("kind") == "test":
-            tm = res.get("timing") or {}
-            ratio = _num(tm.get("feed_ratio"))
-            overhead = _num(tm.get("overhead_s"))
-            width = _num(tm.get("spike_width_deg"))
-            if ratio is not None and overhead is not None:
-                self._hints = (ratio, overhead, width or self._hints[2])
+            # the analyzer's own rule: an implausible feed teaches the next test's provisional timing nothing
+            hints = TimingHints.learnt(res.get("timing") or {}, TimingHints(*self._hints))
+            if hints is not None:
+                self._hints = (hints.feed_ratio, hints.overhead_s, hints.spike_width_deg)
             for d in DIRECTIONS:
                 if result_timing(res, d) is not None:
                     self._final[d] = res

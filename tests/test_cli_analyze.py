@@ -130,3 +130,81 @@ def test_console_script_runs_without_traceback(tmp_path: Path) -> None:
         [sys.executable, "-m", "ballbar.daemon.cli", "analyze", path], capture_output=True, text=True, timeout=60
     )
     assert proc.returncode == 1 and "Traceback" not in proc.stderr and "not a finite number" in proc.stderr
+
+
+# ----------------------------------------------------------------------------- bad time axes
+
+
+def _shifted(good_csv: Path, tmp_path: Path, name: str, change) -> str:
+    data = np.loadtxt(good_csv, delimiter=",", skiprows=1)
+    t = change(data[:, 0].copy())
+    p = tmp_path / name
+    np.savetxt(p, np.column_stack([t, data[:, 1]]), delimiter=",", header="t_s,length_mm", comments="", fmt="%.9f")
+    return str(p)
+
+
+def _one_line_error(args: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    code, out, err = run(args, capsys)
+    assert code == 1 and out == "" and err.count("\n") == 1 and "Traceback" not in err, (code, err)
+    return err
+
+
+def test_a_clock_jump_mid_test_is_rejected_not_analysed(
+    good_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def jump(t: np.ndarray) -> np.ndarray:
+        t[t > 60.0] += 10.0
+        return t
+
+    err = _one_line_error(["analyze", _shifted(good_csv, tmp_path, "jump.csv", jump), "--sample-hz", "100", "--json"],
+                          capsys)
+    assert "clock jump or outage of 10.000 s at t=60.000 s" in err and "run it again" in err
+
+
+def test_a_time_that_runs_back_beyond_jitter_is_an_error_with_its_line(
+    good_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def back(t: np.ndarray) -> np.ndarray:
+        t[5000:] -= 50.0
+        return t
+
+    err = _one_line_error(["analyze", _shifted(good_csv, tmp_path, "back.csv", back), "--json"], capsys)
+    assert ":5002: t_s runs backwards by 49.99 s" in err and "more than timestamp jitter" in err
+
+
+def test_a_constant_time_column_is_one_line(good_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    err = _one_line_error(["analyze", _shifted(good_csv, tmp_path, "flat.csv", lambda t: np.full_like(t, 5.0))],
+                          capsys)
+    assert "t_s is 5 s in every one of the" in err and "no time axis to analyse" in err
+
+
+def test_rows_out_of_order_within_jitter_are_sorted_with_a_warning(
+    good_csv: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    def swap(t: np.ndarray) -> np.ndarray:
+        t[[3000, 3001]] = t[[3001, 3000]]
+        return t
+
+    path = _shifted(good_csv, tmp_path, "jitter.csv", swap)
+    code, out, err = run(["analyze", path, "--sample-hz", "100", "--json"], capsys)
+    assert code == 0, err
+    assert any("1 samples out of time order by at most 0.01 s" in r.getMessage() for r in caplog.records)
+    code, plain, _ = run(["analyze", str(good_csv), "--sample-hz", "100", "--json"], capsys)
+    a, b = json.loads(out)["timing"], json.loads(plain)["timing"]
+    assert a["measured_feed_mm_min"] == pytest.approx(b["measured_feed_mm_min"], abs=1e-3)
+
+
+def test_list_of_a_csv_and_usage_errors(good_csv: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(["analyze", str(good_csv), "--sample-hz", "100", "--list", "--json"], capsys)
+    assert code == 0, err
+    (row,) = json.loads(out)
+    assert row["status"] == "complete" and row["number"] == 1
+    assert row["headline"]["findings"][0]["parameter"] and row["headline"]["G_b_um"] > 0
+    code, out, _ = run(["analyze", str(good_csv), "--sample-hz", "100", "--list"], capsys)
+    assert code == 0 and out.startswith("  1  feed-in at t=") and "complete  G(b) " in out
+    code, _, err = run(["analyze", str(good_csv), "--test-id", "latest"], capsys)
+    assert code == 2 and "--test-id picks a test from the daemon's MCAP records" in err
+    code, _, err = run(["analyze", str(good_csv), "--test", "1", "--test-id", "x"], capsys)
+    assert code == 2 and "not both" in err
+    code, _, err = run(["analyze", str(good_csv), "--test", "2"], capsys)
+    assert code == 1 and "holds 1 test(s), test 2 asked for" in err

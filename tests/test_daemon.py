@@ -193,3 +193,31 @@ def _state(pid: int) -> str:
             return fh.read().rsplit(")", 1)[1].split()[0]
     except OSError:
         return "gone"
+
+
+def test_a_finite_sources_end_lets_the_analysis_take_all_it_was_given() -> None:
+    """The queue's wait_idle, which the daemon uses when a replay or simulation ends before its analysis."""
+    from ballbar.daemon.listeners import Listener, ListenerQueue
+
+    class Slow(Listener):
+        name = "slow"
+
+        def __init__(self) -> None:
+            self.got = 0
+
+        def on_message(self, msg: dict) -> None:
+            time.sleep(0.05)
+            self.got += 1
+
+        def stop(self) -> None:
+            pass
+
+    slow = Slow()
+    q = ListenerQueue(slow, 100, "drop_newest")
+    try:
+        for i in range(10):
+            q.put_message({"kind": "x", "i": i})
+        assert not q.wait_idle(0.1)
+        assert q.wait_idle(5.0) and slow.got == 10
+    finally:
+        q.close(1.0)

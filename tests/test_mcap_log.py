@@ -659,14 +659,15 @@ def test_analyze_of_the_log_equals_analyze_of_the_csv(
     (path,) = files(state)
     args = ["--feed-mm-min", "2000", "--sample-hz", "250", "--json"]
     outs = []
-    for p in (csv, path):
+    # a directory whose files record no test (no analysis ran): its newest daemon run's samples, the same
+    for p in (csv, path, state / "recordings"):
         code = cli_main(["analyze", str(p), *args])
         out, err = capsys.readouterr()
         assert code == 0, err
         res = json.loads(out)
         res.pop("source")
         outs.append(res)
-    assert outs[0] == outs[1]
+    assert outs[0] == outs[1] == outs[2]
     assert outs[0]["parameters"]["backlash_x_um"]["significant"]
 
 

@@ -7,15 +7,22 @@ fault shows up as exactly the losses and decoder drops it must cause.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
 from ballbar.analysis.plan import TestPlan
+from ballbar.daemon import config as cfgmod
+from ballbar.daemon.cli import main as cli_main
+from ballbar.daemon.listeners import Listener
+from ballbar.daemon.mcap_log import McapLogger, list_recordings
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
+from ballbar.daemon.service import AnalysisListener
 from ballbar.daemon.sources import Source, open_source
 from ballbar.protocol import Status
 from ballbar.tools.simdevice import DeviceProcess, main
@@ -231,6 +238,128 @@ def test_device_reset_is_reported() -> None:
     assert st.resets == 1 and "device_reset" in col.kinds()
     assert got.seq.shape[0] == done["generated"] and np.all(np.diff(got.seq) == 1)
     assert np.all(np.diff(got.t_device) > 0)
+    # The event names the first sample after the restart: where the device's own clock reads about 0 again.
+    reset = next(e for e in col.events if e.kind == EventKind.DEVICE_RESET)
+    k = int(np.searchsorted(got.seq, reset.seq))
+    assert got.seq[k] == reset.seq and 0 < got.t_device[k] - got.t_device[k - 1] < 0.0015
+
+
+def test_clock_jump_is_reported_and_costs_no_sample() -> None:
+    dev, col = start("--protocol=binary", "--rate=1000", "--speedup=10", *PLAN_ARGS)
+    try:
+        col.until(lambda: col.n > 500, 10.0, "500 samples")
+        assert dev.send("jump 10")["seconds"] == 10.0
+        done = run_to_done(dev, col)
+        st = col.src.stats()
+    finally:
+        finish(dev, col)
+    got = col.merged()
+    assert done["clock_jumps"] == 1 and st.clock_jumps == 1 and st.lost == 0 and st.resets == 0
+    assert got.seq.tolist() == list(range(done["generated"]))
+    jump = next(e for e in col.events if e.kind == EventKind.CLOCK_JUMP)
+    assert jump.gap_s == pytest.approx(10.0, abs=1e-6)
+    steps = np.diff(got.t_device)
+    k = int(np.argmax(steps))
+    assert got.seq[k + 1] == jump.seq and steps[k] == pytest.approx(10.001, abs=1e-6)
+    assert np.all(np.delete(steps, k) == pytest.approx(0.001, abs=1e-6))
+    assert np.all(np.diff(got.t_host) >= 0)
+
+
+# ----------------------------------------------------------------------------- live analysis across faults
+
+
+class Feeding(Collector):
+    """A collector that also hands every batch to listeners, as the daemon's loop does."""
+
+    def __init__(self, src: Source, *listeners: Listener) -> None:
+        super().__init__(src)
+        self.listeners = listeners
+
+    def pump(self, timeout: float = 0.05) -> None:
+        n = len(self.batches)
+        super().pump(timeout)
+        for b in self.batches[n:]:
+            for lst in self.listeners:
+                lst.on_batch(b)
+
+
+def live_test_with_a_fault(tmp_path: Path, fault: str) -> tuple[list[dict[str, Any]], Path]:
+    """Two short tests on the pty device; ``fault`` sent in the middle of the first.
+
+    The samples go through the daemon's analysis and into its MCAP log, as in
+    ``ballbar run``; returns what the analysis emitted and the recordings.
+    """
+    cfg = cfgmod.load(None, [*(f"plan.{k}" for k in ("radius_mm=50", "feed_mm_min=3000", "overshoot_deg=10",
+                                                       "dwell_s=0.2", "sample_hz=1000")), "daemon.machine_id=live"],
+                      env={})
+    logger = McapLogger(tmp_path, "live")
+    got: list[dict[str, Any]] = []
+
+    def emit(msg: dict[str, Any]) -> None:
+        got.append(msg)
+        logger.on_message(msg)
+
+    analysis = AnalysisListener(cfg, emit)
+    logger.on_message({"kind": "config", "config": cfg.to_dict()})
+    # a longer tail: the second feed-out must settle before the stream ends
+    dev = DeviceProcess("--protocol=binary", "--rate=1000", "--speedup=5", "--repeat=2", "--wait", *PLAN_ARGS,
+                        "--set=tail_s=1.5")
+    col = None
+    try:
+        col = Feeding(open_source(dev.url), analysis, logger)
+        col.until(lambda: "opened" in col.kinds(), 5.0, "opened")
+        dev.send("start")
+        col.until(lambda: any(m.get("event") == "feed_in" for m in got), 20.0, "the feed-in")
+        dev.send(fault)
+        run_to_done(dev, col, by_count=fault == "reset")
+        col.until(lambda: sum(m["kind"] == "test" for m in got) >= 1, 10.0, "the second test's result")
+    finally:
+        analysis.stop()
+        logger.stop()
+        if col is not None:
+            col.src.close()
+        assert dev.close() == 0
+    return got, tmp_path / "recordings"
+
+
+@pytest.mark.parametrize(
+    "fault, reason",
+    [("reset", "device reset (its sample counter or clock restarted; how long it was down is unknown) at t="),
+     ("jump 10", "device clock jump of +10.000 s (its sample counter ran on) at t=")],
+)
+def test_a_test_across_a_device_fault_is_rejected_live_and_offline(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fault: str, reason: str
+) -> None:
+    got, records = live_test_with_a_fault(tmp_path, fault)
+    by_index: dict[int, list[str]] = {}
+    for m in got:
+        if isinstance(m.get("test_index"), int):
+            by_index.setdefault(m["test_index"], []).append(m.get("event") or m["kind"])
+    # Live: the first test is rejected at once, before its feed-out, with the reason; the second passes.
+    assert by_index[1][:2] == ["feed_in", "test_rejected"] and "test" not in by_index[1], by_index
+    assert by_index[2][-1] == "test", by_index
+    rejected = next(m for m in got if m.get("event") == "test_rejected")
+    assert rejected["message"].startswith(reason), rejected["message"]
+    first_id, second_id = rejected["test_id"], next(m["test_id"] for m in got if m["kind"] == "test")
+    assert first_id != second_id
+    # The second test's provisional circles assumed the programmed feed: nothing was learnt from the first.
+    circles = [m for m in got if m["kind"] == "circle" and m["test_index"] == 2]
+    assert circles and all(abs(c["timing"]["assumed_feed_mm_min"] - 3000.0) < 1e-9 for c in circles)
+    # Offline, from the MCAP log: the directory's newest complete test is the second ...
+    assert len(list_recordings(records)) == 2
+    capsys.readouterr()
+    assert cli_main(["analyze", str(records), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["source"]["test_id"] == second_id
+    # ... and the first, asked for by id or as its own file, is rejected for the same reason (one line, exit 1).
+    for args in (["analyze", str(records), "--test-id", first_id], ["analyze", str(list_recordings(records)[0])]):
+        assert cli_main(args) == 1
+        err = capsys.readouterr().err
+        assert reason in err and err.count("\n") == 1, err
+    assert cli_main(["analyze", str(records), "--list", "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert [(r["test_id"], r["status"]) for r in listed] == [(first_id, "rejected"), (second_id, "complete")]
+    assert listed[0]["message"].startswith(reason)
 
 
 # ----------------------------------------------------------------------------- polled

@@ -495,3 +495,32 @@ def test_stamper_resolves_wraps_across_a_long_outage_with_the_host_clock() -> No
     assert out.gaps == [(1000, k0 - 1000)]
     assert out.t_device[0] == pytest.approx(k0 / 1000, abs=1e-6)
     assert out.t_host[-1] == pytest.approx(100.0 + (k0 + 19) / 1000, abs=0.05)
+
+
+def test_stamper_tells_a_clock_jump_from_lost_samples_with_the_devices_own_period() -> None:
+    from ballbar.daemon.timebase import Stamper
+    from ballbar.protocol import Readings
+    from ballbar.protocol.binary import CLOCK_WRAP_S
+
+    # The URL says 1000 Hz; the device really samples at 1024 Hz (its clock in 1/1024 s steps).
+    st = Stamper(SEQ_MODULUS, CLOCK_WRAP_S, 1000.0)
+
+    def readings(k: np.ndarray, shift_s: float = 0.0) -> Readings:
+        return Readings(np.zeros(k.size), np.zeros(k.size, np.uint8), k % SEQ_MODULUS, k / 1024 + shift_s)
+
+    t = 100.0
+    for i in range(20):
+        t += 0.02
+        out = st.stamp(readings(np.arange(i * 20, i * 20 + 20)), t)
+        assert out.jumps == [] and out.reset_seqs == []
+    # 5000 samples lost (an outage): a gap the counter explains, no jump
+    out = st.stamp(readings(np.arange(5400, 5420)), t + 5.0)
+    assert out.gaps == [(400, 5000)] and out.jumps == []
+    # the clock steps 2 s ahead while the counter runs on: a jump at the sample after it, nothing lost
+    out = st.stamp(readings(np.arange(5420, 5440), 2.0), t + 5.1)
+    assert out.gaps == [] and [(s, round(x, 6)) for s, x in out.jumps] == [(5420, 2.0)]
+    out = st.stamp(readings(np.arange(5440, 5460), 2.0), t + 5.12)
+    assert out.jumps == [] and out.reset_seqs == []
+    # a restart: counter and clock from 0, reported with the first sample after it
+    out = st.stamp(readings(np.arange(0, 20)), t + 6.0)
+    assert out.reset_seqs == [5460] and out.jumps == [] and out.seq[0] == 5460

@@ -17,11 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.daemon.mcap_log import mcap_files, read_results
-from ballbar.daemon.recordings import analyze_file, config_sections
+from ballbar.daemon.recordings import analyze_file
+from ballbar.daemon.testindex import RecordedTest, TestIndex
 
 log = logging.getLogger(__name__)
 
@@ -155,59 +155,61 @@ def _unique(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def from_records(records: str, test_id: str, options: AnalysisOptions | None = None) -> ReportData:
-    """Gather the test ``test_id`` (or ``"latest"``) from a directory of the daemon's records.
+    """Gather the test ``test_id`` (or ``"latest"``: the newest complete test) from a directory of the daemon's records.
 
-    The result is analysed again from the recorded samples with the recorded
-    plan and machine (the same code path as live, so it equals the published
-    result) to draw the curves; ``options`` replaces the recorded analysis
-    options when given.
+    The test is found and analysed again exactly as ``ballbar analyze DIR
+    --test-id`` does (:mod:`ballbar.daemon.testindex`): from its own files'
+    samples, with the configuration its daemon run recorded (the same code
+    path as live, so it equals the published result) to draw the curves;
+    ``options`` replaces the recorded analysis options when given.
     """
-    from ballbar.daemon.mcap_log import read_logs, valid_samples
+    from ballbar.daemon.testindex import index_recordings
 
-    files = _records_files(records)
-    per_file = [(p, read_results([p])) for p in files]
-    tests = [(i, r) for i, (_p, rs) in enumerate(per_file) for r in rs if r.get("kind") == "test"]
-    if not tests:
+    _records_files(records)
+    index = index_recordings(records)
+    if not any(t.status == "complete" for t in index.tests) and test_id == "latest":
         raise DataError(f"{records}: the records hold no test result yet")
-    if test_id == "latest":
-        i, target = max(tests, key=lambda ir: str(ir[1].get("t_wall", "")))
-    else:
-        found = [(i, r) for i, r in tests if r.get("test_id") == test_id]
-        if not found:
-            known = ", ".join(str(r.get("test_id")) for _i, r in tests[-5:])
-            raise DataError(f"{records}: no test {test_id!r} in the records (the newest: {known})")
-        i, target = found[-1]
-    # The test's own file, and the one before it for samples a short preroll left there.
-    result: dict[str, Any] | None = None
-    for chosen in ([files[i - 1], files[i]] if i > 0 else [], [files[i]]):
-        if not chosen:
-            continue
-        name = os.fspath(chosen[-1])
-        lg = read_logs(chosen)
-        cfg = config_sections(lg.config)  # the newest: the test's own file's, where it has one
-        plan = TestPlan.from_dict(cfg.get("plan", {}))
-        machine = MachineConfig.from_dict(cfg.get("machine", {}))
-        opts = options or AnalysisOptions.from_dict(cfg.get("analysis", {}))
-        t, L = valid_samples(lg, name)
-        analysed = analyze_recording(t, L, plan, machine, opts, curves=True)
-        match = [r for r in analysed if r["kind"] == "test" and _same_test(r, target)]
-        if match:
-            result = match[-1]
-            break
-    if result is None:
-        raise DataError(
-            f"{files[i]}: the samples of test {target.get('test_id')} do not hold a complete test "
-            "(feed-in to feed-out) any more"
-        )
+    test = index.select(test_id)
+    cfg = index.config_for(test)
+    plan = TestPlan.from_dict(cfg.get("plan", {}))
+    machine = MachineConfig.from_dict(cfg.get("machine", {}))
+    opts = options or AnalysisOptions.from_dict(cfg.get("analysis", {}))
+    return from_recorded_test(index, test, plan, machine, opts)
+
+
+def from_recorded_test(
+    index: TestIndex,
+    test: RecordedTest,
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    records: str | None = None,
+) -> ReportData:
+    """Gather one test of an index of the daemon's records (:func:`~ballbar.daemon.testindex.analyze_recorded`).
+
+    It takes the published result's identity, says where the re-analysis
+    differs from it, and draws the trend from the index's results (and those in
+    ``records``, a further directory of records, when given).
+    """
+    from ballbar.daemon.testindex import analyze_recorded
+
+    result = analyze_recorded(index, test, plan, machine, options, curves=True)
     curves = result.pop("curves")
-    _adopt_identity(result, target)
-    result["source"] = {"records": os.path.abspath(records), "file": os.path.abspath(files[i]),
+    published = test.result or {}
+    _adopt_identity(result, published)
+    result.setdefault("test_id", test.test_id)
+    if test.machine_id is not None:
+        result.setdefault("machine_id", test.machine_id)
+    result["source"] = {"records": os.path.abspath(index.path), "file": result["source"]["file"],
                         "reanalysed": "from the recorded samples with the recorded configuration"}
-    drift = published_difference(result, target)
+    drift = published_difference(result, published) if published else None
     if drift is not None:
         result.setdefault("warnings", []).append(drift)
-    history, note = select_history(result, _unique([r for _p, rs in per_file for r in rs]))
-    return ReportData(result, curves, history, note, source=f"{os.path.abspath(records)} test {result['test_id']}")
+    candidates = index.results()
+    if records is not None and os.path.abspath(records) != os.path.abspath(index.path):
+        candidates += read_results(_records_files(records))
+    history, note = select_history(result, _unique(candidates))
+    return ReportData(result, curves, history, note, source=f"{os.path.abspath(index.path)} test {result['test_id']}")
 
 
 def published_difference(result: dict[str, Any], published: dict[str, Any], rel: float = 1e-6) -> str | None:

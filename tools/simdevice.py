@@ -41,6 +41,8 @@ which :class:`DeviceProcess` passes so that its device ends with its parent; SIG
 ``unplug [S]``      close the pty (and remove the link); replug after S seconds if given
 ``replug``          open a new pty behind the same link
 ``reset``           restart the sample counter and clock at 0 (a device reboot)
+``jump S``          the device clock jumps S seconds ahead (S > 0); the counter
+                    runs on and no sample is lost
 ``stats``           counters so far
 ``quit``            exit
 """
@@ -284,6 +286,7 @@ class DeviceStats:
     garbage_bytes: int = 0
     garbage_lines: int = 0
     resets: int = 0
+    clock_jumps: int = 0
     requests: int = 0  # poll mode
     next_seq: int = 0  # device counter of the next sample
     last_seq: int = -1  # device counter of the last sample sent intact
@@ -326,7 +329,7 @@ class SimDevice:
         self._stall_until = -math.inf
         self._replug_at: float | None = None
         self._seq0 = 0  # counter offset since the last reset
-        self._t0 = 0.0  # clock offset since the last reset
+        self._t0 = 0.0  # clock offset since the last reset (minus the jumps since)
         self._req_buf = b""
         self._last_answer: tuple[float, float, int] | None = None
 
@@ -397,6 +400,13 @@ class SimDevice:
             self.stats.resets += 1
             self.stats.next_seq = 0
             return {}
+        if cmd == "jump":
+            s = float(argv[0])
+            if not (math.isfinite(s) and s > 0):
+                raise ValueError("seconds must be > 0")
+            self._t0 -= s  # the clock reads t - t0
+            self.stats.clock_jumps += 1
+            return {"seconds": s}
         if cmd == "stats":
             self.stats.cpu_s = time.process_time()
             return {"stats": asdict(self.stats)}
