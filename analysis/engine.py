@@ -40,7 +40,7 @@ from .advice import advise
 from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
 from .fit import Factor, FitResult, significance_rule, solve
-from .patterns import Geometry, Pattern, design, select, spike_travel
+from .patterns import Geometry, Pattern, design, select
 from .physics import MODEL_WORDS, LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import (
@@ -256,7 +256,7 @@ def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
     out = np.zeros(len(g), dtype=bool)
     for axis, points in ((0, (0.0, math.pi)), (1, (0.5 * math.pi, 1.5 * math.pi))):
         for at in points:
-            du = spike_travel(g.u, g.d, at + g.d * g.onset_rad[axis])
+            du = np.mod(g.d * (g.u - at) - g.onset_rad[axis], 2.0 * math.pi)  # travel past the onset
             out |= du < reach_rad
     return out
 
@@ -904,7 +904,7 @@ class _LagSearch:
             G[np.ix_(cols, cols)] += A.T @ A
             b[cols] += A.T @ y
             blocks.append((A, y, cols))
-        out = []
+        out: list[float] = []
         for use in (np.ones(self.p, dtype=bool), ~self.spike_cols):
             x = np.zeros(self.p)
             x[use] = _normal_solve(G[np.ix_(use, use)], b[use])
@@ -1061,13 +1061,16 @@ class _LagSearch:
                 hi += 1
             # the stair's edges between the grid's points, by bisection
             edges = []
-            for inside, outside in ((g[lo], g[lo - 1] if lo > 0 else None), (g[hi], g[hi + 1] if hi < g.size - 1
-                                                                             else None)):
-                a, b = float(inside), outside
-                for _ in range(STAIR_BISECT if b is not None else 0):
-                    mid = 0.5 * (a + float(b))
+            for inside, outside in ((lo, lo - 1), (hi, hi + 1)):
+                a = float(g[inside])
+                if not 0 <= outside < g.size:
+                    edges.append(a)
+                    continue
+                b = float(g[outside])
+                for _ in range(STAIR_BISECT):
+                    mid = 0.5 * (a + b)
                     a, b = (mid, b) if on(mid) else (a, mid)
-                edges.append(a if b is None else 0.5 * (a + float(b)))
+                edges.append(0.5 * (a + b))
             hyper.overhead_s, hyper.wait_s = at(0.5 * (edges[0] + edges[1]))
             return float(abs(edges[1] - edges[0]) / math.sqrt(12.0))
 
