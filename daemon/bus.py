@@ -119,6 +119,7 @@ from ballbar.analysis.errors import BallbarError
 
 from .listeners import Listener, Message, to_json
 from .samples import SampleBatch
+from .secrets import REDACTED, is_secret_key
 
 log = logging.getLogger(__name__)
 
@@ -186,21 +187,21 @@ class ZenohConfig:
     def to_zenoh_config(self) -> zenoh.Config:
         """The :class:`zenoh.Config`; a bad value raises :class:`BusConfigError` naming its key."""
         if self.mode is not None and self.mode not in MODES:
-            raise BusConfigError(f"zenoh mode: {self.mode!r} is not one of {', '.join(MODES)}")
+            raise BusConfigError(f"zenoh.mode: {self.mode!r} is not one of {', '.join(MODES)}")
         for name in ("listen", "connect"):
             value = getattr(self, name)
             if value is not None and (isinstance(value, str) or not all(isinstance(v, str) for v in value)):
                 raise BusConfigError(
-                    f"zenoh {name}: expected a list of endpoints such as ['tcp/127.0.0.1:7447'], not {value!r}"
+                    f"zenoh.{name}: expected a list of endpoints such as ['tcp/127.0.0.1:7447'], not {value!r}"
                 )
         if self.config_file:
             path = Path(self.config_file)
             if not path.is_file():
-                raise BusConfigError(f"zenoh config_file: {self.config_file}: no such file")
+                raise BusConfigError(f"zenoh.config_file: {self.config_file}: no such file")
             try:
                 cfg = zenoh.Config.from_file(str(path))
             except zenoh.ZError as err:
-                raise BusConfigError(f"zenoh config_file: {self.config_file}: {zenoh_message(err)}") from err
+                raise BusConfigError(f"zenoh.config_file: {self.config_file}: {zenoh_message(err)}") from err
         else:
             cfg = zenoh.Config()
             mode = self.mode or "peer"
@@ -219,7 +220,7 @@ class ZenohConfig:
         if self.multicast_scouting is not None:
             _insert(cfg, "scouting/multicast/enabled", bool(self.multicast_scouting), "multicast_scouting")
         for key, value in self.options.items():
-            _insert(cfg, key, value, key)
+            _insert(cfg, key, value, f"options {key!r}")
         return cfg
 
     def describe(self) -> str:
@@ -244,14 +245,31 @@ def _endpoints(text: str, mode: str) -> list[str]:
 
 
 def _insert(cfg: zenoh.Config, key: str, value: Any, name: str) -> None:
+    shown = REDACTED if is_secret_key(key) else None  # a refused password must not reach the log
     try:
         text = json.dumps(value)
     except (TypeError, ValueError) as err:
-        raise BusConfigError(f"zenoh {name}: {value!r} is not a JSON value") from err
+        raise BusConfigError(f"zenoh.{name}: {shown or repr(value)} is not a JSON value") from err
     try:
         cfg.insert_json5(key, text)
     except zenoh.ZError as err:
-        raise BusConfigError(f"zenoh {name}: {text}: {zenoh_message(err)}") from err
+        detail = zenoh_message(err)
+        if shown:
+            detail = detail.replace(text, REDACTED).replace(str(value), REDACTED)
+        raise BusConfigError(f"zenoh.{name}: {shown or text}: {detail}") from err
+
+
+def zenoh_config(cfg: Any) -> ZenohConfig:
+    """The :class:`ZenohConfig` of the daemon's ``[zenoh]`` section (empty values: not set)."""
+    z = cfg.zenoh
+    return ZenohConfig(
+        mode=getattr(z, "mode", None) or None,
+        listen=list(getattr(z, "listen", None) or []) or None,
+        connect=list(getattr(z, "connect", None) or []) or None,
+        config_file=getattr(z, "config_file", None) or None,
+        multicast_scouting=getattr(z, "multicast_scouting", None),
+        options=dict(getattr(z, "options", None) or {}),
+    )
 
 
 def check_machine(machine: str) -> str:
@@ -385,17 +403,9 @@ class ZenohBus(Listener):
         are read when the section has them.
         """
         z = cfg.zenoh
-        zc = ZenohConfig(
-            mode=getattr(z, "mode", None) or None,
-            listen=list(getattr(z, "listen", None) or []) or None,
-            connect=list(getattr(z, "connect", None) or []) or None,
-            config_file=getattr(z, "config_file", None) or None,
-            multicast_scouting=getattr(z, "multicast_scouting", None),
-            options=dict(getattr(z, "options", None) or {}),
-        )
         return cls(
             cfg.daemon.machine_id,
-            zc,
+            zenoh_config(cfg),
             samples_hz=float(getattr(z, "samples_hz", 0.0) or 0.0),
             history_size=int(getattr(z, "history_size", 500)),
             close_timeout_s=float(getattr(z, "close_timeout_s", 2.0)),
@@ -756,5 +766,6 @@ __all__ = [
     "check_machine",
     "dumps",
     "parse_time_us",
+    "zenoh_config",
     "zenoh_message",
 ]

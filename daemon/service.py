@@ -43,6 +43,7 @@ from ballbar.analysis.errors import BallbarError
 from .config import Config
 from .listeners import Listener, ListenerQueue, Message
 from .samples import SampleBatch
+from .secrets import redacted
 from .sources import Source
 from .systemd import Notifier
 
@@ -272,8 +273,9 @@ class Daemon:
         interval = self.cfg.daemon.status_interval_s
         if self.notifier.watchdog_s:
             interval = min(interval, self.notifier.watchdog_s / 2)
+        # Redacted here, once: this one message is what the bus, last/config and every MCAP file get.
         self.broadcast({"kind": "config", "schema_version": SCHEMA_VERSION, "t_wall": utc_now(),
-                        "machine_id": self.cfg.daemon.machine_id, "config": self.cfg.to_dict()})
+                        "machine_id": self.cfg.daemon.machine_id, "config": redacted(self.cfg.to_dict())})
         self.notifier.ready(f"reading {self.source.url}")
         log.info("ready: reading %s", self.source.url)
         next_status = time.monotonic() + interval

@@ -788,13 +788,14 @@ def source_schemes() -> list[str]:
 class _Options:
     """URL query and keyword options, converted on demand; leftovers are errors."""
 
-    def __init__(self, url: str, query: dict[str, str], kwargs: dict[str, Any]) -> None:
+    def __init__(self, url: str, query: dict[str, str], kwargs: dict[str, Any], check_only: bool = False) -> None:
         both = sorted(set(query) & set(kwargs))
         if both:
             raise SourceConfigError(f"{url}: option {both[0]!r} given both in the URL and as a keyword")
         self.url = url
         self.values: dict[str, Any] = {**query, **kwargs}
         self.known: list[str] = []
+        self.check_only = check_only
 
     def get(self, key: str, conv: Callable[[Any], Any], default: Any = None) -> Any:
         self.known.append(key)
@@ -817,6 +818,12 @@ class _Options:
         if self.values:
             key = sorted(self.values)[0]
             raise SourceConfigError(f"{self.url}: unknown option {key!r} (known: {', '.join(sorted(self.known))})")
+        if self.check_only:
+            raise _Checked
+
+
+class _Checked(Exception):
+    """Raised by :meth:`_Options.done` when only checking: the source is not opened."""
 
 
 def _pos_float(v: Any) -> float:
@@ -894,6 +901,10 @@ def _open_serial(url: str, target: str, opt: _Options) -> Source:
     mode = opt.get("mode", _choice("stream", "poll"), "stream")
     cal_mm = opt.require("cal_mm", _finite, "the bar's length at zero displacement, from its calibration")
     rate = opt.get("rate", _rate)
+    if mode == "poll" and protocol != "ascii":
+        raise SourceConfigError(f"{url}: mode=poll needs protocol=ascii")
+    if mode == "poll" and rate is None:
+        raise SourceConfigError(f"{url}: mode=poll needs rate (the polling rate in Hz)")
     ts = opt.get("timestamp", _choice("s", "ms", "us", "none"), "none")
     try:
         fmt = AsciiFormat(
@@ -983,6 +994,22 @@ def open_source(url: str, **options: Any) -> Source:
     return _REGISTRY[scheme](url, target, opt)
 
 
+def check_source(url: str, **options: Any) -> None:
+    """What :func:`open_source` checks of ``url`` and ``options``, without opening anything.
+
+    Raises :class:`SourceConfigError` naming the problem.  (A source registered
+    by a plug-in that never calls ``opt.done()`` would be opened: the built-in
+    ones all do.)
+    """
+    scheme, target, query = split_url(url)
+    opt = _Options(url, query, {k: v for k, v in options.items() if v is not None}, check_only=True)
+    try:
+        src = _REGISTRY[scheme](url, target, opt)
+    except _Checked:
+        return
+    src.close()
+
+
 __all__ = [
     "RATE_MAX_HZ",
     "RATE_MIN_HZ",
@@ -990,6 +1017,7 @@ __all__ = [
     "SerialSource",
     "SimSource",
     "Source",
+    "check_source",
     "open_source",
     "register_source",
     "source_schemes",

@@ -191,19 +191,19 @@ class ViewerOptions:
 
     def __post_init__(self) -> None:
         checks: list[tuple[bool, str]] = [
-            (self.mode in ("serve", "connect", "off"), f"viewer mode must be serve, connect or off, not {self.mode!r}"),
-            (_is_ip(self.bind), f"viewer bind must be an IP address, not {self.bind!r}"),
-            (isinstance(self.port, int) and 0 < self.port < 65536, f"viewer port must be 1..65535, not {self.port!r}"),
+            (self.mode in ("serve", "connect", "off"), f"rerun.mode must be serve, connect or off, not {self.mode!r}"),
+            (_is_ip(self.bind), f"rerun.bind must be an IP address, not {self.bind!r}"),
+            (isinstance(self.port, int) and 0 < self.port < 65536, f"rerun.port must be 1..65535, not {self.port!r}"),
             (
                 _proxy_address(self.url) is not None,
-                f"viewer url must be rerun+http://HOST:PORT/proxy, not {self.url!r}",
+                f"rerun.url must be rerun+http://HOST:PORT/proxy, not {self.url!r}",
             ),
             (
                 self.clock in ("auto", "device", "host"),
-                f"viewer clock must be auto, device or host, not {self.clock!r}",
+                f"rerun.clock must be auto, device or host, not {self.clock!r}",
             ),
-            (bool(self.application_id), "viewer application_id must not be empty"),
-            (bool(self.server_memory_limit), "viewer server_memory_limit must not be empty"),
+            (bool(self.application_id), "rerun.application_id must not be empty"),
+            (bool(self.server_memory_limit), "rerun.server_memory_limit must not be empty"),
         ]
         for name in (
             "tolerance_um",
@@ -216,13 +216,13 @@ class ViewerOptions:
         ):
             v = getattr(self, name)
             ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-            checks.append((ok, f"viewer {name} must be a number > 0, not {v!r}"))
+            checks.append((ok, f"rerun.{name} must be a number > 0, not {v!r}"))
         s = self.scale_um
         ok = s is None or (isinstance(s, int | float) and not isinstance(s, bool) and math.isfinite(s) and s > 0)
         checks.append((ok, f"viewer scale_um must be a number > 0 or unset (automatic), not {s!r}"))
         for name, lo in (("polar_points", 16), ("max_buffer_samples", 10_000)):
             v = getattr(self, name)
-            checks.append((isinstance(v, int) and v >= lo, f"viewer {name} must be an integer >= {lo}, not {v!r}"))
+            checks.append((isinstance(v, int) and v >= lo, f"rerun.{name} must be an integer >= {lo}, not {v!r}"))
         for ok, msg in checks:
             if not ok:
                 raise ViewerConfigError(msg)
@@ -286,6 +286,32 @@ def _port_free(bind: str, port: int) -> bool:
         except OSError:
             return False
     return True
+
+
+def viewer_options(cfg: Any) -> ViewerOptions:
+    """The :class:`ViewerOptions` of the daemon's configuration: ``[rerun]``, ``plan``, ``daemon.machine_id``.
+
+    Every :class:`ViewerOptions` field the section has is taken as it is;
+    besides, ``memory_limit_mb`` (MiB) sets ``server_memory_limit`` and
+    ``magnification`` (0: automatic) how many times a deviation is drawn
+    larger than the radius (``r/R0 = 1 + M dR/R``), i.e.
+    ``scale_um = 500 R / M``.  Keys the section lacks keep the defaults.
+    Raises :class:`ViewerConfigError` naming a bad value.
+    """
+    sec = cfg.rerun
+    plan: TestPlan | None = getattr(cfg, "plan", None)
+    kw: dict[str, Any] = {f.name: getattr(sec, f.name) for f in fields(ViewerOptions) if hasattr(sec, f.name)}
+    mem = getattr(sec, "memory_limit_mb", None)
+    if mem is not None:
+        if not (isinstance(mem, int | float) and math.isfinite(mem) and mem >= 1):
+            raise ViewerConfigError(f"rerun.memory_limit_mb must be a number >= 1, not {mem!r}")
+        kw["server_memory_limit"] = f"{round(float(mem))}MiB"
+    mag = getattr(sec, "magnification", None)
+    if mag and plan is not None:
+        kw["scale_um"] = 500.0 * plan.radius_mm / float(mag)
+    machine_id = getattr(getattr(cfg, "daemon", None), "machine_id", "") or ""
+    kw.setdefault("recording_name", f"ballbar {machine_id} {time.strftime('%Y-%m-%d %H:%M:%S')}".strip())
+    return ViewerOptions(**kw)
 
 
 # --------------------------------------------------------------------------- pure helpers
@@ -750,27 +776,8 @@ class RerunViewer(Listener):
 
     @classmethod
     def from_config(cls, cfg: Any) -> RerunViewer:
-        """From the daemon's configuration: ``[rerun]``, ``plan``, ``machine``, ``daemon.machine_id``.
-
-        Every :class:`ViewerOptions` field the section has is taken as it is;
-        besides, ``memory_limit_mb`` (MiB) sets ``server_memory_limit`` and
-        ``magnification`` (0: automatic) how many times a deviation is drawn
-        larger than the radius (``r/R0 = 1 + M dR/R``), i.e.
-        ``scale_um = 500 R / M``.  Keys the section lacks keep the defaults.
-        """
-        sec = cfg.rerun
-        plan: TestPlan | None = getattr(cfg, "plan", None)
-        machine: MachineConfig | None = getattr(cfg, "machine", None)
-        kw: dict[str, Any] = {f.name: getattr(sec, f.name) for f in fields(ViewerOptions) if hasattr(sec, f.name)}
-        mem = getattr(sec, "memory_limit_mb", None)
-        if mem is not None:
-            kw["server_memory_limit"] = f"{max(1, round(float(mem)))}MiB"
-        mag = getattr(sec, "magnification", None)
-        if mag and plan is not None:
-            kw["scale_um"] = 500.0 * plan.radius_mm / float(mag)
-        machine_id = getattr(getattr(cfg, "daemon", None), "machine_id", "") or ""
-        kw.setdefault("recording_name", f"ballbar {machine_id} {time.strftime('%Y-%m-%d %H:%M:%S')}".strip())
-        return cls(ViewerOptions(**kw), plan=plan, machine=machine)
+        """From the daemon's configuration (:func:`viewer_options`), with its ``plan`` and ``machine``."""
+        return cls(viewer_options(cfg), plan=getattr(cfg, "plan", None), machine=getattr(cfg, "machine", None))
 
     # ------------------------------------------------------------------ state
 
@@ -1419,4 +1426,5 @@ __all__ = [
     "provisional_timing",
     "result_timing",
     "setup_deviation_um",
+    "viewer_options",
 ]

@@ -204,14 +204,14 @@ def test_settings_pass_through_and_override_a_config_file(tmp_path: Path) -> Non
 @pytest.mark.parametrize(
     ("kwargs", "names"),
     [
-        ({"mode": "bogus"}, "zenoh mode"),
-        ({"listen": ["nonsense"]}, "zenoh listen"),
-        ({"connect": "tcp/127.0.0.1:7447"}, "zenoh connect"),
-        ({"options": {"transport/link/tx/lease": "soon"}}, "zenoh transport/link/tx/lease"),
-        ({"options": {"no/such/key": 1}}, "zenoh no/such/key"),
-        ({"options": {"scouting/multicast/enabled": "yes"}}, "zenoh scouting/multicast/enabled"),
-        ({"config_file": "/nonexistent/zenoh.json5"}, "zenoh config_file: /nonexistent/zenoh.json5"),
-        ({"config_file": "BAD"}, "zenoh config_file"),
+        ({"mode": "bogus"}, "zenoh.mode"),
+        ({"listen": ["nonsense"]}, "zenoh.listen"),
+        ({"connect": "tcp/127.0.0.1:7447"}, "zenoh.connect"),
+        ({"options": {"transport/link/tx/lease": "soon"}}, "zenoh.options 'transport/link/tx/lease'"),
+        ({"options": {"no/such/key": 1}}, "zenoh.options 'no/such/key'"),
+        ({"options": {"scouting/multicast/enabled": "yes"}}, "zenoh.options 'scouting/multicast/enabled'"),
+        ({"config_file": "/nonexistent/zenoh.json5"}, "zenoh.config_file: /nonexistent/zenoh.json5"),
+        ({"config_file": "BAD"}, "zenoh.config_file"),
     ],
 )
 def test_a_bad_setting_is_one_line_naming_its_key(tmp_path: Path, kwargs: dict[str, Any], names: str) -> None:
