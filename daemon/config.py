@@ -83,10 +83,10 @@ class ZenohSection:
 @dataclass
 class RerunSection:
     mode: str = "serve"  # serve: viewers connect here; connect: push to url; off
-    bind: str = "0.0.0.0"
-    port: int = 9876
+    bind: str = "127.0.0.1"  # this PC only; "0.0.0.0" (or one address) lets viewers elsewhere in
+    port: int = 9880  # not the viewer's own 9876
     url: str = "rerun+http://127.0.0.1:9876/proxy"
-    memory_limit_mb: float = 256.0
+    memory_limit_mb: float = 128.0
     tolerance_um: float = 10.0
     magnification: float = 0.0  # 0: automatic
 

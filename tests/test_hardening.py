@@ -97,7 +97,9 @@ def test_a_state_dir_that_cannot_be_written_is_one_line(tmp_path: Path) -> None:
     _one_line_exit_2(proc, "daemon.state_dir")
 
 
-def test_every_started_output_is_stopped_when_a_later_one_fails(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_every_started_output_is_stopped_when_a_later_one_fails(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from ballbar.daemon import config as cfgmod
     from ballbar.daemon import run as runmod
     from ballbar.daemon.bus import ZenohBus
