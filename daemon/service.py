@@ -197,6 +197,7 @@ class Daemon:
         self.samples = 0
         self.lost = 0
         self.source_state = "starting"
+        self.source_reason: str | None = None  # why the source is waiting or unplugged
         self.last_event: dict[str, Any] | None = None
         self._rate_mark = (self.started, 0)
         self.rate_hz = 0.0
@@ -219,10 +220,17 @@ class Daemon:
             kind = d.pop("kind")
             if kind == "lost":
                 self.lost += ev.count
-            self.source_state = {
-                "unplugged": "unplugged", "replugged": "connected", "opened": "connected", "stall": "stalled",
-                "resumed": "connected", "end": "ended",
-            }.get(kind, self.source_state)
+            if kind == "unplugged":
+                self.source_reason = ev.detail
+            elif kind in ("replugged", "opened", "resumed"):
+                self.source_reason = None
+            if kind == "unplugged" and self.source_state in ("starting", "waiting"):
+                self.source_state = "waiting"  # never opened: a service waits for its adapter to appear
+            else:
+                self.source_state = {
+                    "unplugged": "unplugged", "replugged": "connected", "opened": "connected", "stall": "stalled",
+                    "resumed": "connected", "end": "ended",
+                }.get(kind, self.source_state)
             msg = {"kind": "event", "event": kind, "origin": "source", "schema_version": SCHEMA_VERSION,
                    "machine_id": self.cfg.daemon.machine_id, "t_wall": utc_now(), **d}
             self.last_event = msg
@@ -252,6 +260,7 @@ class Daemon:
             "t_wall": utc_now(),
             "uptime_s": now - self.started,
             "source_state": self.source_state,
+            "source_reason": self.source_reason,
             "source": src,
             "samples": self.samples,
             "sample_rate_hz": self.rate_hz,
@@ -276,6 +285,8 @@ class Daemon:
         # Redacted here, once: this one message is what the bus, last/config and every MCAP file get.
         self.broadcast({"kind": "config", "schema_version": SCHEMA_VERSION, "t_wall": utc_now(),
                         "machine_id": self.cfg.daemon.machine_id, "config": redacted(self.cfg.to_dict())})
+        # READY=1 once the source is set up, whether or not its port is there yet: a service waits for its
+        # adapter (the status says "waiting" and why, and a warning repeats every minute).
         self.notifier.ready(f"reading {self.source.url}")
         log.info("ready: reading %s", self.source.url)
         next_status = time.monotonic() + interval
@@ -301,8 +312,9 @@ class Daemon:
                     self.notifier.watchdog()
                     st = self.status()
                     self.broadcast(st)
+                    why = f" ({self.source_reason})" if self.source_state in ("waiting", "unplugged") else ""
                     self.notifier.status(
-                        f"{st['source_state']}, {st['sample_rate_hz']:.0f} samples/s, {st['lost_samples']} lost, "
+                        f"{st['source_state']}{why}, {st['sample_rate_hz']:.0f} samples/s, {st['lost_samples']} lost, "
                         f"{st['analysis']['tests']} tests"
                     )
                     next_status = now + interval

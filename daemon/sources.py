@@ -130,6 +130,7 @@ log = logging.getLogger(__name__)
 RATE_MIN_HZ = 15.625
 RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
+WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 READ_MAX = 1 << 16
 PYSERIAL_SCHEMES = ("loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110")
 
@@ -352,6 +353,7 @@ class SerialSource(Source):
         self._next_retry = 0.0
         self._down_since: float | None = None
         self._failures = 0
+        self._next_wait_warning = 0.0
         self._last_rx = time.monotonic()
         self._stalled = False
         self._gap_cause: str | None = None
@@ -382,8 +384,13 @@ class SerialSource(Source):
                 self._down_since = now
                 self._event(EventKind.UNPLUGGED, detail=f"cannot open {self.port_url}: {err}")
                 self._stats.connected = False
-            elif self._failures % 30 == 0:
-                log.info("%s: still waiting for %s (%d attempts)", self.url, self.port_url, self._failures)
+                self._next_wait_warning = now + WAIT_WARNING_S
+            elif now >= self._next_wait_warning:
+                # A service waits for its adapter, visibly: one warning a minute, not one an attempt.
+                self._next_wait_warning = now + WAIT_WARNING_S
+                since = now - self._down_since if self._down_since is not None else 0.0
+                log.warning("%s: still waiting for %s after %.0f s (%d attempts): %s",
+                            self.url, self.port_url, since, self._failures, err)
             return
         with self._port_lock:
             if self._closed:

@@ -255,3 +255,53 @@ def test_print_config_and_a_refused_secret_never_show_it(tmp_path: Path) -> None
     bad = ballbar("run", "--source", SIM, "--state-dir", str(tmp_path), "--set",
                   f'zenoh.options={{"transport/auth/usrpwd/password"=["{SECRET}"]}}')
     assert bad.returncode == 2 and SECRET not in bad.stdout + bad.stderr, bad.stderr
+
+
+# ----------------------------------------------------------------------------- a port that is not there
+
+
+def test_a_missing_port_is_waiting_visibly(tmp_path: Path) -> None:
+    port = free_port()
+    missing = tmp_path / "ttyUSB-not-yet"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ballbar.daemon.cli", "run", "--source", f"serial:{missing}?rate=1000",
+         "--machine-id", "wait", "--state-dir", str(tmp_path / "state"), "--set", 'rerun.mode="off"',
+         "--set", f'zenoh.listen=["tcp/127.0.0.1:{port}"]', "--set", "daemon.status_interval_s=0.5"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while True:  # until the daemon's session listens
+            got = subprocess.run(
+                [sys.executable, "-m", "ballbar.tools.subscribe", "--machine", "wait", "--connect",
+                 f"tcp/127.0.0.1:{port}", "--topic", "status", "--count", "1", "--timeout", "30"],
+                capture_output=True, text=True, timeout=60,
+            )
+            if got.returncode == 0 or time.monotonic() > deadline or proc.poll() is not None:
+                break
+            time.sleep(0.3)
+        assert got.returncode == 0, got.stderr
+        status = json.loads(got.stdout.splitlines()[0])
+        assert status["source_state"] == "waiting"
+        assert "cannot open" in status["source_reason"] and str(missing) in status["source_reason"]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=15)
+    assert proc.returncode == 0, err
+
+
+def test_the_wait_is_reported_again_at_a_slow_cadence(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    from ballbar.daemon import sources
+
+    monkeypatch.setattr(sources, "WAIT_WARNING_S", 0.5)
+    src = sources.open_source(f"serial:{tmp_path / 'nope'}?rate=1000&retry_max_s=0.05", cal_mm=100.0)
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.3:
+            src.read(0.1)
+    finally:
+        src.close()
+    waits = [r for r in caplog.records if "still waiting" in r.getMessage()]
+    assert 2 <= len(waits) <= 3 and all(r.levelname == "WARNING" for r in waits), [r.getMessage() for r in waits]
