@@ -34,8 +34,9 @@ key                               how         what
 ``ballbar/<m>/last/<topic>``      queryable   the last payload put on ``circle``, ``test``
                                               (results), ``event``, ``status``, ``config``; no
                                               reply when there is none yet. ``last/*`` gives all.
-``ballbar/<m>/history/test``      queryable   results kept by the daemon, one reply:
+``ballbar/<m>/history/test``      queryable   results (and events) kept by the daemon, one reply:
 ``ballbar/<m>/history/circle``                ``{"kind": "history", "topic", "machine_id",
+``ballbar/<m>/history/event``
                                               "count", "more", "results": [...]}``, oldest first.
                                               Parameters (``;``-separated; ``&`` accepted):
                                               ``since=<ISO 8601 or Unix seconds>`` (exclusive,
@@ -58,7 +59,9 @@ Delivery
 --------
 Results, events and the configuration are put with ``CongestionControl.BLOCK``
 at ``Priority.DATA_HIGH``: a subscriber that is slow for a moment still gets
-every one.  A subscriber that stops reading (a frozen process) can then hold
+every one.  To a subscriber that stops reading they are best effort (below),
+and Zenoh does not say what it dropped: ``history/test``, ``history/circle``
+and ``history/event`` are how a service catches up.  A subscriber that stops reading (a frozen process) can then hold
 one put, once its backlog fills Zenoh's queue, for Zenoh's
 ``transport/link/tx/queue/congestion_control/block/wait_before_close`` (5 s by
 default); after that Zenoh drops what that link cannot take without waiting
@@ -137,7 +140,7 @@ TOPICS: dict[str, str] = {
     "samples": "samples",
 }
 LAST_TOPICS = ("circle", "test", "event", "status", "config")
-HISTORY_TOPICS = ("circle", "test")
+HISTORY_TOPICS = ("circle", "test", "event")
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
 _RELIABLE = ("circle", "test", "event", "config")

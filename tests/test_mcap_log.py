@@ -32,9 +32,9 @@ from ballbar.daemon.mcap_log import (
     McapLogger,
     list_recordings,
     read_log,
-    read_results,
     read_logs,
     read_mcap,
+    read_results,
     scaled_ints,
 )
 from ballbar.daemon.recordings import read_recording
