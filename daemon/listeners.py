@@ -135,6 +135,7 @@ class ListenerQueue:
         self._items: deque[tuple[str, Any]] = deque()
         self._cv = threading.Condition()
         self._closing = False
+        self._busy = False
         self.stats = QueueStats(capacity=capacity, policy=policy)
         self._thread = threading.Thread(target=self._run, name=f"listener-{listener.name}", daemon=True)
         self._thread.start()
@@ -171,6 +172,7 @@ class ListenerQueue:
                 else:
                     item = self._items.popleft()
                     self.stats.depth = len(self._items)
+                    self._busy = True
             try:
                 if item is None:
                     self.listener.on_idle()
@@ -183,6 +185,22 @@ class ListenerQueue:
             except Exception:  # a listener's failure must not stop the pipeline
                 self.stats.errors += 1
                 log.exception("listener %s failed", self.listener.name)
+            finally:
+                if item is not None:
+                    with self._cv:
+                        self._busy = False
+                        self._cv.notify_all()
+
+    def wait_idle(self, timeout: float, stop: threading.Event | None = None) -> bool:
+        """Wait until everything queued has been handled (True), ``timeout`` passes or ``stop`` is set."""
+        deadline = time.monotonic() + timeout
+        with self._cv:
+            while self._items or self._busy:
+                left = deadline - time.monotonic()
+                if left <= 0 or (stop is not None and stop.is_set()):
+                    return False
+                self._cv.wait(min(left, 0.1))
+        return True
 
     def close(self, timeout: float = 5.0) -> None:
         """Deliver what is queued (within ``timeout``), then stop the listener."""

@@ -49,6 +49,8 @@ from .systemd import Notifier
 
 log = logging.getLogger(__name__)
 
+FINISH_ANALYSIS_S = 60.0  # after a finite source's end, at most this for the analysis to catch up
+
 
 def utc_now() -> str:
     return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
@@ -305,7 +307,10 @@ class Daemon:
                     if self.source_state == "starting" and len(batch):
                         self.source_state = "connected"
                 elif self.source.finished:
-                    log.info("the source has ended")
+                    # A finite source (a replay, the simulator): the analysis finishes what it was given first.
+                    log.info("the source has ended; finishing the analysis")
+                    if not self.analysis_queue.wait_idle(FINISH_ANALYSIS_S, stop):
+                        log.warning("the analysis did not finish within %.0f s of the source's end", FINISH_ANALYSIS_S)
                     break
                 now = time.monotonic()
                 if now >= next_status:
