@@ -1233,6 +1233,7 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
     complete = False
     problem = ""
     n_msg = 0
+    skipped_blocks = 0  # sample records not decoded (samples=False)
     reader = StreamReader(fh, record_size_limit=1 << 30)
     try:
         for rec in reader.records:
@@ -1247,6 +1248,7 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
                     raise DataError(f"{name}: message {n_msg} is on channel {rec.channel_id}, never declared")
                 if topic == TOPIC_SAMPLES:
                     if not samples:
+                        skipped_blocks += 1
                         continue
                     try:
                         decoded.append(decode_samples(json.loads(rec.data)))
@@ -1268,7 +1270,8 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
     except (McapError, struct.error, ValueError, EOFError, MemoryError, zstandard.ZstdError) as err:
         # A killed writer leaves a partial record: a short read, a torn zstd frame, a bad length.
         detail = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
-        problem = f"ends early after {sum(d.seq.size for d in decoded)} samples ({detail})"
+        what = f"{sum(d.seq.size for d in decoded)} samples" if samples else f"{skipped_blocks} sample records"
+        problem = f"ends early after {what} ({detail})"
     if meta and not meta.get("format", "").startswith("ballbar-mcap/1"):
         raise DataError(f"{name}: format {meta.get('format')!r} is not one this version reads (ballbar-mcap/1)")
     offset = int(meta.get("host_clock_offset_ns", "0") or 0)
@@ -1413,6 +1416,109 @@ def valid_samples(lg: McapLog, name: str) -> tuple[NDArray[np.float64], NDArray[
     return np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(L, dtype=np.float64)
 
 
+# ----------------------------------------------------------------------------- after a crash
+
+
+@dataclass
+class Recovered:
+    """A crashed file rewritten with its index and summary (see :func:`recover_crashed`)."""
+
+    path: Path
+    messages: int
+    cut_test: dict[str, Any] | None  # the feed_in event of a test the crash cut (no result, no verdict)
+    problem: str
+
+
+_TEST_VERDICTS = ("test_rejected", "test_incomplete", "test_aborted")
+
+
+def _has_footer(path: Path) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            if fh.tell() < 2 * len(_MAGIC):
+                return False
+            fh.seek(-len(_MAGIC), os.SEEK_END)
+            return fh.read(len(_MAGIC)) == _MAGIC
+    except OSError:
+        return True  # cannot tell: leave it alone
+
+
+def recover_file(path: Path) -> Recovered:
+    """Rewrite a file whose writer was killed, as ``mcap recover`` does: every whole record, then a footer,
+    indexes and summary.  The original stays until the rewrite is complete (an atomic rename replaces it)."""
+    tmp = path.with_name(path.name + ".recovering")
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    topics: dict[int, str] = {}
+    n = 0
+    problem = ""
+    feed_in: dict[str, Any] | None = None
+    with open(path, "rb") as src, open(tmp, "wb") as dst:
+        w = Writer(dst, compression=CompressionType.ZSTD)
+        w.start(profile="", library=f"ballbar {__version__} (recovered)")
+        try:
+            for rec in StreamReader(src, record_size_limit=1 << 30).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = w.register_channel(
+                        rec.topic, rec.message_encoding, schemas.get(rec.schema_id, 0), dict(rec.metadata)
+                    )
+                    topics[rec.id] = rec.topic
+                elif isinstance(rec, Metadata):
+                    w.add_metadata(rec.name, dict(rec.metadata))
+                elif isinstance(rec, Message) and rec.channel_id in channels:
+                    w.add_message(channels[rec.channel_id], log_time=rec.log_time, data=rec.data,
+                                  publish_time=rec.publish_time, sequence=rec.sequence)
+                    n += 1
+                    topic = topics[rec.channel_id]
+                    if topic in (TOPIC_EVENTS, TOPIC_RESULTS):
+                        with contextlib.suppress(ValueError, RecursionError):
+                            obj = json.loads(rec.data)
+                            if isinstance(obj, dict):
+                                if obj.get("event") == "feed_in":
+                                    feed_in = obj
+                                elif obj.get("kind") == "test" or obj.get("event") in _TEST_VERDICTS:
+                                    feed_in = None
+        except (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError) as err:
+            problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+        w.finish()
+        dst.flush()
+        os.fsync(dst.fileno())
+    os.replace(tmp, path)
+    return Recovered(path, n, feed_in, problem)
+
+
+def recover_crashed(directory: str | os.PathLike[str]) -> list[Recovered]:
+    """Each of the logger's files in ``directory`` left without a footer by a killed daemon, rewritten once
+    with its index (so every reader opens it, and no later start warns about it again).  A file that
+    cannot be rewritten is left as it was, with a warning."""
+    out: list[Recovered] = []
+    d = Path(directory)
+    if not d.is_dir():
+        return out
+    for stale in d.glob("*.mcap.recovering"):  # a rewrite that was itself cut: the original is intact
+        with contextlib.suppress(OSError):
+            stale.unlink()
+    for path in list_recordings(d):
+        if _has_footer(path):
+            continue
+        try:
+            r = recover_file(path)
+        except (OSError, McapError) as err:
+            log.warning("mcap log: cannot recover %s (left as it is): %s", path.name, err)
+            with contextlib.suppress(OSError):
+                path.with_name(path.name + ".recovering").unlink()
+            continue
+        log.warning(
+            "mcap log: %s was cut by a crash; rewrote its %d whole records with an index%s",
+            path.name, r.messages, f" (the test {r.cut_test.get('test_id')} was cut)" if r.cut_test else "",
+        )
+        out.append(r)
+    return out
+
+
 __all__ = [
     "FORMAT",
     "SCHEMAS",
@@ -1434,6 +1540,7 @@ __all__ = [
     "read_logs",
     "read_mcap",
     "read_results",
+    "recover_crashed",
     "scaled_ints",
     "to_json",
     "valid_samples",

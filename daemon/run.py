@@ -149,6 +149,24 @@ def _overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
     return ov
 
 
+def _recover(cfg: Config) -> list[dict[str, Any]]:
+    """Files a killed daemon left without a footer, rewritten once; a ``test_incomplete`` event for each
+    test the crash cut, to publish at start."""
+    if not cfg.mcap.enabled:
+        return []
+    from .mcap_log import recover_crashed
+
+    out = []
+    for r in recover_crashed(os.path.join(cfg.daemon.state_dir, "recordings")):
+        if r.cut_test is not None:
+            out.append({
+                "kind": "event", "event": "test_incomplete", "origin": "recovery",
+                "test_id": r.cut_test.get("test_id"), "file": r.path.name,
+                "message": f"the daemon stopped (killed) during this test; its samples up to then are in {r.path.name}",
+            })
+    return out
+
+
 def _source_options(cfg: Config, url: str) -> dict[str, Any]:
     try:
         _, _, query = split_url(url)
@@ -186,6 +204,8 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         except SourceConfigError as err:
             raise ConfigError(f"source.url: {err}") from err
         stack.callback(source.close)
+        cut = _recover(cfg)  # before the bus reads the history from the recordings
         listeners = build_listeners(cfg)
         daemon = Daemon(cfg, source, listeners)
+        daemon.startup_messages.extend(cut)
         return daemon.run(stop, max_tests=args.tests, duration_s=args.duration_s)

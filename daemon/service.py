@@ -205,6 +205,7 @@ class Daemon:
         self.rate_hz = 0.0
         self.results_seen = 0
         self.tests_seen = 0
+        self.startup_messages: list[Message] = []  # events found at start (a test a crash cut), sent after config
         self._count_lock = threading.Lock()
 
     def broadcast(self, msg: Message) -> None:
@@ -287,6 +288,9 @@ class Daemon:
         # Redacted here, once: this one message is what the bus, last/config and every MCAP file get.
         self.broadcast({"kind": "config", "schema_version": SCHEMA_VERSION, "t_wall": utc_now(),
                         "machine_id": self.cfg.daemon.machine_id, "config": redacted(self.cfg.to_dict())})
+        for msg in self.startup_messages:
+            self.broadcast({"schema_version": SCHEMA_VERSION, "machine_id": self.cfg.daemon.machine_id,
+                            "t_wall": utc_now(), "t_host": time.monotonic(), **msg})
         # READY=1 once the source is set up, whether or not its port is there yet: a service waits for its
         # adapter (the status says "waiting" and why, and a warning repeats every minute).
         self.notifier.ready(f"reading {self.source.url}")

@@ -305,3 +305,87 @@ def test_the_wait_is_reported_again_at_a_slow_cadence(
         src.close()
     waits = [r for r in caplog.records if "still waiting" in r.getMessage()]
     assert 2 <= len(waits) <= 3 and all(r.levelname == "WARNING" for r in waits), [r.getMessage() for r in waits]
+
+
+# ----------------------------------------------------------------------------- start after a crash
+
+
+def _daemon(tmp_path: Path, port: int, log_name: str) -> tuple[subprocess.Popen[str], Path]:
+    log_path = tmp_path / log_name
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--source", "sim:?rate=1000&speedup=10&repeat=0",
+             "--machine-id", "crash", "--state-dir", str(tmp_path / "state"), "--set", 'rerun.mode="off"',
+             "--set", f'zenoh.listen=["tcp/127.0.0.1:{port}"]'],
+            stdout=log, stderr=subprocess.STDOUT, text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )
+    return proc, log_path
+
+
+def _subscribe(port: int, *args: str, timeout: float = 60) -> list[dict[str, Any]]:
+    deadline = time.monotonic() + timeout
+    while True:
+        got = subprocess.run(
+            [sys.executable, "-m", "ballbar.tools.subscribe", "--machine", "crash", "--connect",
+             f"tcp/127.0.0.1:{port}", *args], capture_output=True, text=True, timeout=timeout + 30,
+        )
+        if got.returncode == 0 or time.monotonic() > deadline:
+            break
+        time.sleep(0.3)
+    assert got.returncode == 0, got.stderr[-2000:]
+    return [json.loads(line) for line in got.stdout.splitlines() if line.strip()]
+
+
+def test_a_start_after_kill_9_recovers_the_file_once_and_reports_the_cut_test(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    port = free_port()
+    proc, first_log = _daemon(tmp_path, port, "first.log")
+    feed_in: list[dict[str, Any]] = []
+    try:
+        deadline = time.monotonic() + 30
+        while "zenoh: publishing under" not in first_log.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, first_log.read_text()[-2000:]
+            time.sleep(0.1)
+        sub = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.tools.subscribe", "--machine", "crash", "--connect",
+             f"tcp/127.0.0.1:{port}", "--topic", "event", "--timeout", "60"],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        )
+        try:
+            assert sub.stdout is not None
+            for line in sub.stdout:  # kill -9 a second after a test starts: the crash cuts it
+                if json.loads(line).get("event") == "feed_in":
+                    feed_in.append(json.loads(line))
+                    break
+        finally:
+            sub.kill()
+            sub.wait()
+        assert feed_in, "no test started"
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    cut_id = feed_in[-1]["test_id"]
+    logs = []
+    for run in ("second", "third"):
+        proc, log_path = _daemon(tmp_path, port, f"{run}.log")
+        try:
+            if run == "second":
+                events = _subscribe(port, "--topic", "event", "--history", "--count", "1", "--timeout", "30")
+                incomplete = [e for e in events if e.get("event") == "test_incomplete"]
+                assert incomplete and incomplete[0]["test_id"] == cut_id, events
+            else:
+                time.sleep(3.0)
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(15)
+        logs.append(log_path.read_text())
+    assert sum(text.count("was cut by a crash") for text in logs) == 1, logs
+    assert "ends early" not in "".join(logs)
+    for f in (tmp_path / "state" / "recordings").glob("*.mcap"):
+        with open(f, "rb") as fh:  # the mcap library's default (seeking) reader opens every file
+            assert sum(1 for _ in make_reader(fh).iter_messages()) > 0
