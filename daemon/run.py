@@ -115,11 +115,8 @@ def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[
     return load
 
 
-@contextlib.contextmanager
-def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
-    """The built-in simulated ball-bar on a pty, repeating tests; yields its source URL."""
-    from ballbar.tools.simdevice import DeviceProcess
-
+def simdevice_args(cfg: Config, speedup: float) -> list[str]:
+    """``python -m ballbar.tools.simdevice`` arguments: the demo machine running the configured plan, forever."""
     p = cfg.plan
     args = [
         "--rate", f"{p.sample_hz:g}", "--speedup", f"{speedup:g}", "--repeat", "0", "--gap-s", "5",
@@ -130,7 +127,15 @@ def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
     ]
     for item in SIM_MACHINE:
         args += ["--set", item]
-    with DeviceProcess(*args) as dev:
+    return args
+
+
+@contextlib.contextmanager
+def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
+    """The built-in simulated ball-bar on a pty, repeating tests; yields its source URL."""
+    from ballbar.tools.simdevice import DeviceProcess
+
+    with DeviceProcess(*simdevice_args(cfg, speedup)) as dev:
         log.info("simulated ball-bar on %s (x%g speed)", dev.path, speedup)
         yield dev.url
 
