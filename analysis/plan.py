@@ -178,6 +178,13 @@ class AnalysisOptions:
             raise PlanError(f"servo_model must be auto, linear or physical, not {self.servo_model!r}")
         if not 0 < self.spike_width_min_deg < self.spike_width_max_deg:
             raise PlanError("spike widths must satisfy 0 < min < max")
+        # VIF >= 1 by construction: a limit at or below 1 would leave every parameter out.
+        if not (_finite(self.vif_limit) and self.vif_limit > 1):
+            raise PlanError(f"vif_limit must be a number > 1, not {self.vif_limit!r}")
+        if not _pos(self.max_lag_s):
+            raise PlanError(f"max_lag_s must be a number > 0, not {self.max_lag_s!r}")
+        if not _pos(self.vibration_cutoff_cpr):
+            raise PlanError(f"vibration_cutoff_cpr must be a number > 0, not {self.vibration_cutoff_cpr!r}")
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> AnalysisOptions:

@@ -35,8 +35,9 @@ key                               how         what
 ``ballbar/<m>/last/<topic>``      queryable   the last payload put on ``circle``, ``test``
                                               (results), ``event``, ``status``, ``config``; no
                                               reply when there is none yet. ``last/*`` gives all.
-``ballbar/<m>/history/test``      queryable   results kept by the daemon, one reply:
+``ballbar/<m>/history/test``      queryable   results (and events) kept by the daemon, one reply:
 ``ballbar/<m>/history/circle``                ``{"kind": "history", "topic", "machine_id",
+``ballbar/<m>/history/event``
                                               "count", "more", "results": [...]}``, oldest first.
                                               Parameters (``;``-separated; ``&`` accepted):
                                               ``since=<ISO 8601 or Unix seconds>`` (exclusive,
@@ -59,7 +60,9 @@ Delivery
 --------
 Results, events and the configuration are put with ``CongestionControl.BLOCK``
 at ``Priority.DATA_HIGH``: a subscriber that is slow for a moment still gets
-every one.  A subscriber that stops reading (a frozen process) can then hold
+every one.  To a subscriber that stops reading they are best effort (below),
+and Zenoh does not say what it dropped: ``history/test``, ``history/circle``
+and ``history/event`` are how a service catches up.  A subscriber that stops reading (a frozen process) can then hold
 one put, once its backlog fills Zenoh's queue, for Zenoh's
 ``transport/link/tx/queue/congestion_control/block/wait_before_close`` (5 s by
 default); after that Zenoh drops what that link cannot take without waiting
@@ -120,6 +123,7 @@ from ballbar.analysis.errors import BallbarError
 
 from .listeners import Listener, Message, to_json
 from .samples import SampleBatch
+from .secrets import REDACTED, is_secret_key
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +141,7 @@ TOPICS: dict[str, str] = {
     "samples": "samples",
 }
 LAST_TOPICS = ("circle", "test", "event", "status", "config")
-HISTORY_TOPICS = ("circle", "test")
+HISTORY_TOPICS = ("circle", "test", "event")
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
 _RELIABLE = ("circle", "test", "event", "config")
@@ -187,21 +191,21 @@ class ZenohConfig:
     def to_zenoh_config(self) -> zenoh.Config:
         """The :class:`zenoh.Config`; a bad value raises :class:`BusConfigError` naming its key."""
         if self.mode is not None and self.mode not in MODES:
-            raise BusConfigError(f"zenoh mode: {self.mode!r} is not one of {', '.join(MODES)}")
+            raise BusConfigError(f"zenoh.mode: {self.mode!r} is not one of {', '.join(MODES)}")
         for name in ("listen", "connect"):
             value = getattr(self, name)
             if value is not None and (isinstance(value, str) or not all(isinstance(v, str) for v in value)):
                 raise BusConfigError(
-                    f"zenoh {name}: expected a list of endpoints such as ['tcp/127.0.0.1:7447'], not {value!r}"
+                    f"zenoh.{name}: expected a list of endpoints such as ['tcp/127.0.0.1:7447'], not {value!r}"
                 )
         if self.config_file:
             path = Path(self.config_file)
             if not path.is_file():
-                raise BusConfigError(f"zenoh config_file: {self.config_file}: no such file")
+                raise BusConfigError(f"zenoh.config_file: {self.config_file}: no such file")
             try:
                 cfg = zenoh.Config.from_file(str(path))
             except zenoh.ZError as err:
-                raise BusConfigError(f"zenoh config_file: {self.config_file}: {zenoh_message(err)}") from err
+                raise BusConfigError(f"zenoh.config_file: {self.config_file}: {zenoh_message(err)}") from err
         else:
             cfg = zenoh.Config()
             mode = self.mode or "peer"
@@ -220,7 +224,7 @@ class ZenohConfig:
         if self.multicast_scouting is not None:
             _insert(cfg, "scouting/multicast/enabled", bool(self.multicast_scouting), "multicast_scouting")
         for key, value in self.options.items():
-            _insert(cfg, key, value, key)
+            _insert(cfg, key, value, f"options {key!r}")
         return cfg
 
     def describe(self) -> str:
@@ -245,14 +249,31 @@ def _endpoints(text: str, mode: str) -> list[str]:
 
 
 def _insert(cfg: zenoh.Config, key: str, value: Any, name: str) -> None:
+    shown = REDACTED if is_secret_key(key) else None  # a refused password must not reach the log
     try:
         text = json.dumps(value)
     except (TypeError, ValueError) as err:
-        raise BusConfigError(f"zenoh {name}: {value!r} is not a JSON value") from err
+        raise BusConfigError(f"zenoh.{name}: {shown or repr(value)} is not a JSON value") from err
     try:
         cfg.insert_json5(key, text)
     except zenoh.ZError as err:
-        raise BusConfigError(f"zenoh {name}: {text}: {zenoh_message(err)}") from err
+        detail = zenoh_message(err)
+        if shown:
+            detail = detail.replace(text, REDACTED).replace(str(value), REDACTED)
+        raise BusConfigError(f"zenoh.{name}: {shown or text}: {detail}") from err
+
+
+def zenoh_config(cfg: Any) -> ZenohConfig:
+    """The :class:`ZenohConfig` of the daemon's ``[zenoh]`` section (empty values: not set)."""
+    z = cfg.zenoh
+    return ZenohConfig(
+        mode=getattr(z, "mode", None) or None,
+        listen=list(getattr(z, "listen", None) or []) or None,
+        connect=list(getattr(z, "connect", None) or []) or None,
+        config_file=getattr(z, "config_file", None) or None,
+        multicast_scouting=getattr(z, "multicast_scouting", None),
+        options=dict(getattr(z, "options", None) or {}),
+    )
 
 
 def check_machine(machine: str) -> str:
@@ -386,17 +407,9 @@ class ZenohBus(Listener):
         are read when the section has them.
         """
         z = cfg.zenoh
-        zc = ZenohConfig(
-            mode=getattr(z, "mode", None) or None,
-            listen=list(getattr(z, "listen", None) or []) or None,
-            connect=list(getattr(z, "connect", None) or []) or None,
-            config_file=getattr(z, "config_file", None) or None,
-            multicast_scouting=getattr(z, "multicast_scouting", None),
-            options=dict(getattr(z, "options", None) or {}),
-        )
         return cls(
             cfg.daemon.machine_id,
-            zc,
+            zenoh_config(cfg),
             samples_hz=float(getattr(z, "samples_hz", 0.0) or 0.0),
             history_size=int(getattr(z, "history_size", 500)),
             close_timeout_s=float(getattr(z, "close_timeout_s", 2.0)),
@@ -757,5 +770,6 @@ __all__ = [
     "check_machine",
     "dumps",
     "parse_time_us",
+    "zenoh_config",
     "zenoh_message",
 ]

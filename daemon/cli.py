@@ -12,19 +12,21 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 import tomllib
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ballbar.analysis.errors import BallbarError, PlanError
-from ballbar.analysis.patterns import BY_NAME
-from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
-from ballbar.analysis.report import summary
 
-from .output import write_atomic
-from .recordings import analyze_file, config_sections, recorded_config
+if TYPE_CHECKING:
+    from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+
+# numpy, scipy and the bus come in with the command that needs them: ``ballbar run`` must have its
+# SIGTERM handler in place within milliseconds of starting, before anything slow is imported.
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +161,11 @@ def configs_from_args(
     args: argparse.Namespace, base: dict[str, Any] | None = None
 ) -> tuple[TestPlan, MachineConfig, AnalysisOptions]:
     """``base`` (default: the recorded configuration of an MCAP file), then --plan FILE, then the flags."""
+    from ballbar.analysis.patterns import BY_NAME
+    from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+
+    from .recordings import recorded_config
+
     if base is None:
         base = recorded_config(args.file) if getattr(args, "file", None) else {}
     if args.plan_file:
@@ -198,7 +205,9 @@ def configs_from_args(
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    from .recordings import is_mcap
+    from ballbar.analysis.report import summary
+
+    from .recordings import analyze_file, is_mcap
 
     if args.test is not None and args.test < 1:
         raise UsageError("--test counts from 1")
@@ -230,7 +239,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 def _analyze_records(args: argparse.Namespace) -> dict[str, Any]:
     """A test from the daemon's records: a directory's newest complete one, or the one asked for."""
     from .mcap_log import read_logs, recording
-    from .recordings import analyze, pick_test
+    from .recordings import analyze, config_sections, pick_test
     from .testindex import analyze_recorded, index_recordings
 
     index = index_recordings(args.file)
@@ -300,6 +309,7 @@ def cmd_gcode(args: argparse.Namespace) -> int:
     from ballbar.tools.ncinterp import check_against_plan, model_limits
 
     from .config import load
+    from .output import write_atomic
 
     cfg = load(args.config)
     plan, _machine, _options = configs_from_args(args, base={"plan": cfg.plan.to_dict()})
@@ -365,6 +375,15 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _install_stop_handlers(stop: threading.Event) -> None:
+    def on_signal(signum: int, _frame: Any) -> None:
+        log.info("signal %d: stopping", signum)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+
 def _safe_name(text: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)[:100] or "test"
 
@@ -378,19 +397,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except SystemExit as exc:  # --help
         return int(exc.code or 0)
+    stop = threading.Event()
+    if args.command == "run":
+        _install_stop_handlers(stop)  # first: a SIGTERM from now on is a clean stop, exit 0
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    from .run import cmd_run
-
-    handlers = {"analyze": cmd_analyze, "gcode": cmd_gcode, "report": cmd_report, "run": cmd_run}
     from .config import ConfigError
+    from .lock import StateLockError
 
+    def run(a: argparse.Namespace) -> int:
+        from .run import cmd_run
+
+        return cmd_run(a, stop)
+
+    handlers = {"analyze": cmd_analyze, "gcode": cmd_gcode, "report": cmd_report, "run": run}
     try:
         return handlers[args.command](args)
-    except (UsageError, ConfigError) as err:
+    except (UsageError, ConfigError, StateLockError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except BallbarError as err:

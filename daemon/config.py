@@ -16,7 +16,9 @@ An unknown section or key, or a value of the wrong type, is one
 
 from __future__ import annotations
 
+import math
 import os
+import re
 import tomllib
 import types
 import typing
@@ -27,6 +29,8 @@ from typing import Any
 
 from ballbar.analysis.errors import BallbarError, PlanError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+
+from .secrets import REDACTED, is_secret_key
 
 DEFAULT_FILE = Path(__file__).with_name("default.toml")
 SYSTEM_FILE = Path("/etc/ballbar/ballbar.toml")
@@ -79,10 +83,10 @@ class ZenohSection:
 @dataclass
 class RerunSection:
     mode: str = "serve"  # serve: viewers connect here; connect: push to url; off
-    bind: str = "0.0.0.0"
-    port: int = 9876
+    bind: str = "127.0.0.1"  # this PC only; "0.0.0.0" (or one address) lets viewers elsewhere in
+    port: int = 9880  # not the viewer's own 9876
     url: str = "rerun+http://127.0.0.1:9876/proxy"
-    memory_limit_mb: float = 256.0
+    memory_limit_mb: float = 128.0
     tolerance_um: float = 10.0
     magnification: float = 0.0  # 0: automatic
 
@@ -136,7 +140,16 @@ class Config:
 
 
 def _check_type(where: str, value: Any, tp: Any) -> Any:
-    """``value`` converted to the field type ``tp``, or a ConfigError naming ``where``."""
+    """``value`` converted to the field type ``tp``, or a ConfigError naming ``where`` (never a secret's value)."""
+    try:
+        return _convert(where, value, tp)
+    except ConfigError:
+        if is_secret_key(where):
+            raise ConfigError(f"{where}: bad value ({REDACTED})") from None
+        raise
+
+
+def _convert(where: str, value: Any, tp: Any) -> Any:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
     if origin in (typing.Union, types.UnionType):
@@ -178,6 +191,8 @@ def _check_type(where: str, value: Any, tp: Any) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{where} must be a number, not {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{where} must be a finite number, not {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
@@ -214,6 +229,10 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as err:
         raise ConfigError(f"{os.fspath(path)}: cannot read: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raw = Path(path).read_bytes()
+        line = raw[: err.start].count(b"\n") + 1
+        raise ConfigError(f"{os.fspath(path)}:{line}: not valid TOML: byte {err.start} is not UTF-8") from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
@@ -267,22 +286,58 @@ def load(
     return cfg
 
 
+_BAD_CHUNK = re.compile(r"[/*$?#\s]")
+
+
 def _validate(cfg: Config) -> None:
-    if not cfg.daemon.machine_id or any(c in cfg.daemon.machine_id for c in "/*?$#"):
-        raise ConfigError(f"daemon.machine_id must be a non-empty key segment without / * ? $ #, "
-                          f"not {cfg.daemon.machine_id!r}")
-    if cfg.daemon.log_level not in ("debug", "info", "warning", "error"):
-        raise ConfigError(f"daemon.log_level must be debug, info, warning or error, not {cfg.daemon.log_level!r}")
-    if cfg.rerun.mode not in ("serve", "connect", "off"):
-        raise ConfigError(f"rerun.mode must be serve, connect or off, not {cfg.rerun.mode!r}")
-    if cfg.zenoh.mode not in ("", "peer", "client", "router"):
-        raise ConfigError(f"zenoh.mode must be peer, client or router, not {cfg.zenoh.mode!r}")
-    if not 0 < cfg.daemon.status_interval_s <= 60:
-        raise ConfigError("daemon.status_interval_s must be within (0, 60]")
+    """Values that type checks alone let through; each error names its key."""
+    checks: list[tuple[bool, str]] = [
+        (
+            bool(cfg.daemon.machine_id) and not _BAD_CHUNK.search(cfg.daemon.machine_id),
+            f"daemon.machine_id must be a non-empty key segment without / * ? $ # or spaces, "
+            f"not {cfg.daemon.machine_id!r}",
+        ),
+        (
+            cfg.daemon.log_level in ("debug", "info", "warning", "error"),
+            f"daemon.log_level must be debug, info, warning or error, not {cfg.daemon.log_level!r}",
+        ),
+        (bool(cfg.daemon.state_dir.strip()), "daemon.state_dir must not be empty"),
+        (0 < cfg.daemon.status_interval_s <= 60, "daemon.status_interval_s must be within (0, 60]"),
+        (bool(cfg.source.url.strip()), "source.url must not be empty (serial:/dev/ttyUSB0?..., sim:, replay:FILE)"),
+        (cfg.source.cal_mm is None or cfg.source.cal_mm > 0, f"source.cal_mm must be > 0, not {cfg.source.cal_mm}"),
+        (
+            cfg.rerun.mode in ("serve", "connect", "off"),
+            f"rerun.mode must be serve, connect or off, not {cfg.rerun.mode!r}",
+        ),
+        (
+            cfg.zenoh.mode in ("", "peer", "client", "router"),
+            f"zenoh.mode must be peer, client or router, not {cfg.zenoh.mode!r}",
+        ),
+        (1 <= cfg.rerun.port <= 65535, f"rerun.port must be within 1..65535, not {cfg.rerun.port}"),
+        (cfg.rerun.memory_limit_mb >= 1, f"rerun.memory_limit_mb must be at least 1, not {cfg.rerun.memory_limit_mb}"),
+        (cfg.rerun.tolerance_um > 0, f"rerun.tolerance_um must be > 0, not {cfg.rerun.tolerance_um}"),
+        (cfg.rerun.magnification >= 0, f"rerun.magnification must be >= 0 (0: auto), not {cfg.rerun.magnification}"),
+        (cfg.zenoh.samples_hz >= 0, f"zenoh.samples_hz must be 0 (off) or a positive rate, not {cfg.zenoh.samples_hz}"),
+        (cfg.zenoh.history_size >= 1, f"zenoh.history_size must be at least 1, not {cfg.zenoh.history_size}"),
+        (cfg.zenoh.close_timeout_s > 0, f"zenoh.close_timeout_s must be > 0, not {cfg.zenoh.close_timeout_s}"),
+        (
+            cfg.mcap.rotate_mb * (1 << 20) >= 4096,
+            f"mcap.rotate_mb must be at least 0.004 (4 KiB), not {cfg.mcap.rotate_mb}",
+        ),
+        (cfg.mcap.rotate_minutes > 0, f"mcap.rotate_minutes must be > 0, not {cfg.mcap.rotate_minutes}"),
+        (
+            cfg.mcap.quota_mb >= 2 * cfg.mcap.rotate_mb,
+            f"mcap.quota_mb must be at least twice mcap.rotate_mb ({2 * cfg.mcap.rotate_mb:g}), "
+            f"not {cfg.mcap.quota_mb}",
+        ),
+        (cfg.mcap.keep_days > 0, f"mcap.keep_days must be > 0, not {cfg.mcap.keep_days}"),
+        (
+            0 < cfg.mcap.flush_s <= 0.9,
+            f"mcap.flush_s must be within (0, 0.9] (1 s old samples must be on disk), not {cfg.mcap.flush_s}",
+        ),
+    ]
     for name in ("analysis", "mcap", "zenoh", "rerun"):
-        if getattr(cfg.queues, name) < 1:
-            raise ConfigError(f"queues.{name} must be at least 1")
-    if not 1 <= cfg.rerun.port <= 65535:
-        raise ConfigError(f"rerun.port must be within 1..65535, not {cfg.rerun.port}")
-    if cfg.source.cal_mm is not None and not cfg.source.cal_mm > 0:
-        raise ConfigError(f"source.cal_mm must be > 0, not {cfg.source.cal_mm}")
+        checks.append((getattr(cfg.queues, name) >= 1, f"queues.{name} must be at least 1"))
+    for ok, message in checks:
+        if not ok:
+            raise ConfigError(message)

@@ -192,15 +192,15 @@ class ListenerQueue:
                     if not self._items:
                         self._cv.notify_all()
 
-    def wait_idle(self, timeout: float) -> bool:
-        """Wait until everything queued has been delivered (at most ``timeout`` s); whether it has."""
+    def wait_idle(self, timeout: float, stop: threading.Event | None = None) -> bool:
+        """Wait until everything queued has been delivered (True), ``timeout`` passes or ``stop`` is set."""
         deadline = time.monotonic() + timeout
         with self._cv:
             while self._items or self._busy:
                 left = deadline - time.monotonic()
-                if left <= 0 or not self._thread.is_alive():
+                if left <= 0 or not self._thread.is_alive() or (stop is not None and stop.is_set()):
                     return False
-                self._cv.wait(min(left, 0.5))
+                self._cv.wait(min(left, 0.1))
         return True
 
     def close(self, timeout: float = 5.0) -> None:

@@ -418,6 +418,21 @@ def _open_output(path: Path) -> IO[bytes]:
     return open(path, "xb")
 
 
+def _free_bytes(path: Path) -> int | None:
+    """Bytes available to this process on the file system of ``path`` (None: cannot tell).  Cheap: one statvfs.
+    (Tests replace this together with ``_open_output``.)"""
+    try:
+        st = os.statvfs(path)
+    except OSError:
+        return None
+    return st.f_bavail * st.f_frsize
+
+
+_NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+HELD_MAX = 2000  # results and events kept in memory while nothing can be written (oldest dropped, counted)
+_HELD_TOPICS = (TOPIC_RESULTS, TOPIC_EVENTS, TOPIC_CONFIG)
+
+
 def _safe_machine(machine_id: str) -> str:
     s = re.sub(r"[^A-Za-z0-9.-]+", "-", machine_id).strip("-.")
     return s or "machine"
@@ -481,6 +496,8 @@ class McapLogger(Listener):
         preroll_s: float = 10.0,
         retry_min_s: float = 1.0,
         retry_max_s: float = 60.0,
+        headroom_bytes: int = 64 << 20,
+        space_probe_s: float = 0.5,
     ) -> None:
         checks = [
             (rotate_bytes >= 4096, f"rotate_bytes must be >= 4096, not {rotate_bytes!r}"),
@@ -509,6 +526,12 @@ class McapLogger(Listener):
         self.preroll_s = float(preroll_s)
         self.retry_min_s = float(retry_min_s)
         self.retry_max_s = float(retry_max_s)
+        # A full disk: retried as soon as a cheap probe sees this much free (never on a sliver of space).
+        self.headroom_bytes = int(headroom_bytes)
+        self.space_probe_s = float(space_probe_s)
+        self._no_space = False
+        self._next_probe = 0.0
+        self._held: deque[tuple[str, Mapping[str, Any], int]] = deque()
         # Host monotonic -> wall clock, once: log times stay monotonic if the wall clock steps.
         self.host_clock_offset_ns = time.time_ns() - time.monotonic_ns()
 
@@ -534,7 +557,7 @@ class McapLogger(Listener):
         # counters
         self._c: dict[str, int] = dict.fromkeys(
             ("files", "bytes", "samples", "messages", "samples_lost", "messages_lost", "write_errors",
-             "deleted_files", "deleted_bytes", "encode_errors"),
+             "deleted_files", "deleted_bytes", "encode_errors", "messages_held", "messages_held_written"),
             0,
         )
         self._last_error = ""
@@ -595,14 +618,14 @@ class McapLogger(Listener):
                 return
             now = time.monotonic()
             kind = str(msg.get("kind", ""))
+            topic = {
+                "circle": TOPIC_RESULTS, "test": TOPIC_RESULTS, "status": TOPIC_STATUS, "config": TOPIC_CONFIG,
+            }.get(kind, TOPIC_OTHER)
             if kind == "event":
                 self._on_event_message(msg, now)
             elif not self._ensure_file(now):
-                self._c["messages_lost"] += 1
+                self._hold_or_lose(topic, msg, self._msg_time_ns(msg))
             else:
-                topic = {
-                    "circle": TOPIC_RESULTS, "test": TOPIC_RESULTS, "status": TOPIC_STATUS, "config": TOPIC_CONFIG,
-                }.get(kind, TOPIC_OTHER)
                 self._write(topic, msg, self._msg_time_ns(msg))
                 if kind == "test":
                     self._in_test = False
@@ -631,6 +654,10 @@ class McapLogger(Listener):
                 self._close_file()
             if self._pending.n:  # no file could take them
                 self._lose_pending()
+            if self._held:
+                self._c["messages_lost"] += len(self._held)
+                log.warning("mcap log: %d results and events held during a write outage are lost", len(self._held))
+                self._held.clear()
             self._ring.clear()
         self._wake.set()
         if threading.current_thread() is not self._thread:
@@ -657,6 +684,7 @@ class McapLogger(Listener):
                 "state": state,
                 "file": str(self._file.path) if self._file else None,
                 "pending_samples": self._pending.n,
+                "held_messages": len(self._held),
                 "last_error": self._last_error,
             }
 
@@ -678,6 +706,8 @@ class McapLogger(Listener):
             self._dirty_since = now
 
     def _tick(self, now: float) -> None:
+        if self._file is None and self._failing and not self._stopped:
+            self._ensure_file(now)  # space came back: resume now, with what was held, not at the next batch
         f = self._file
         if f is not None and self._dirty_since is not None and now - self._dirty_since >= self.flush_s:
             self._flush_file()
@@ -723,7 +753,7 @@ class McapLogger(Listener):
         if name == "feed_in":
             self._test_started(now)
         if not self._ensure_file(now):
-            self._c["messages_lost"] += 1
+            self._hold_or_lose(TOPIC_EVENTS, d, self._msg_time_ns(d))
             return
         self._write(TOPIC_EVENTS, d, self._msg_time_ns(d))
         if name == "feed_in" and self._file is not None:
@@ -772,7 +802,19 @@ class McapLogger(Listener):
     def _ensure_file(self, now: float) -> bool:
         if self._file is not None:
             return True
-        if self._stopped or now < self._retry_at:
+        if self._stopped:
+            return False
+        if self._no_space:
+            # Out of space: not the backoff, but a statvfs every space_probe_s; a retry only with headroom.
+            if now < self._next_probe:
+                return False
+            self._next_probe = now + self.space_probe_s
+            free = _free_bytes(self.directory if self.directory.exists() else self.state_dir)
+            if free is not None and free < self.headroom_bytes:
+                return False
+            if free is None and now < self._retry_at:
+                return False
+        elif now < self._retry_at:
             return False
         return self._open_file(now)
 
@@ -823,6 +865,10 @@ class McapLogger(Listener):
             gap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
                    "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
             self._write(TOPIC_EVENTS, gap, self._wall_ns(now))
+        if self._held and self._file is not None:
+            held = len(self._held)
+            self._write_held()
+            log.info("mcap log: wrote %d results and events held in memory during the outage", held)
         if self._file is not None:
             self._flush_file()  # proves the disk takes data again, and makes the head readable at once
         if self._file is None:
@@ -833,6 +879,7 @@ class McapLogger(Listener):
                 path.name, now - self._fail_since, self._fail_lost,
             )
             self._failing = False
+            self._no_space = False
             self._backoff = self.retry_min_s
         log.info("mcap log: writing %s", path)
         self._retention(now)
@@ -885,7 +932,7 @@ class McapLogger(Listener):
         """One message on ``topic``; an encoding problem drops the message, a write error the file."""
         f = self._file
         if f is None:
-            self._c["messages_lost"] += 1
+            self._hold_or_lose(topic, payload, log_time)
             return
         try:
             data = to_json(payload)
@@ -900,10 +947,31 @@ class McapLogger(Listener):
             f.writer.add_message(ch, log_time=max(0, log_time), data=data, publish_time=time.time_ns(), sequence=seq)
         except OSError as err:
             self._failed(err, f.path)
-            self._c["messages_lost"] += 1
+            self._hold_or_lose(topic, payload, log_time)
             return
         self._c["messages"] += 1
         self._mark_dirty(time.monotonic())
+
+    def _hold_or_lose(self, topic: str, payload: Mapping[str, Any], log_time: int) -> None:
+        """A message no file can take now: results, events and the configuration wait in memory (bounded)
+        for the next file; anything else (status, samples' side records) is counted lost."""
+        if topic not in _HELD_TOPICS or self._stopped:
+            self._c["messages_lost"] += 1
+            return
+        if topic == TOPIC_CONFIG:  # the next file starts with the configuration anyway
+            return
+        if len(self._held) >= HELD_MAX:
+            self._held.popleft()
+            self._c["messages_lost"] += 1
+        self._held.append((topic, payload, log_time))
+        self._c["messages_held"] += 1
+
+    def _write_held(self) -> None:
+        while self._held and self._file is not None:
+            topic, payload, log_time = self._held.popleft()
+            self._write(topic, payload, log_time)
+            if self._file is not None:
+                self._c["messages_held_written"] += 1
 
     def _write_pending(self) -> None:
         if not self._pending.n:
@@ -986,15 +1054,21 @@ class McapLogger(Listener):
         self._c["samples"] -= f.unflushed_samples if f is not None else 0
         detail = f"{err.strerror or err}" + (f" (errno {err.errno})" if err.errno else "")
         self._last_error = f"{path.name if path else self.directory}: {detail}"
+        self._no_space = err.errno in _NO_SPACE
+        self._next_probe = now + self.space_probe_s
         if not self._failing:
             self._failing = True
             self._fail_since = now
             self._fail_lost = 0
             self._fail_detail = detail
+            when = (
+                f"when {self.headroom_bytes / 2**20:.0f} MiB are free (checked every {self.space_probe_s:g} s)"
+                if self._no_space else f"in {self._backoff:.0f} s"
+            )
             log.error(
-                "mcap log: cannot write %s: %s; dropping the file and logging nothing until writes work "
-                "again (retrying in %.0f s)",
-                path or self.directory, detail, self._backoff,
+                "mcap log: cannot write %s: %s; dropping the file and logging no samples until writes work "
+                "again (retrying %s; results and events are held in memory)",
+                path or self.directory, detail, when,
             )
         else:
             log.debug("mcap log: still cannot write %s: %s", path or self.directory, detail)
@@ -1202,6 +1276,7 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
     complete = False
     problem = ""
     n_msg = 0
+    skipped_blocks = 0  # sample records not decoded (samples=False)
     reader = StreamReader(fh, record_size_limit=1 << 30)
     try:
         for rec in reader.records:
@@ -1216,17 +1291,18 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
                     raise DataError(f"{name}: message {n_msg} is on channel {rec.channel_id}, never declared")
                 if topic == TOPIC_SAMPLES:
                     if not samples:
+                        skipped_blocks += 1
                         continue
                     try:
                         decoded.append(decode_samples(json.loads(rec.data)))
-                    except (ValueError, KeyError, TypeError, OverflowError) as err:
+                    except (ValueError, KeyError, TypeError, OverflowError, RecursionError) as err:
                         raise DataError(
                             f"{name}: message {n_msg} on {TOPIC_SAMPLES} is not a ballbar.Samples record: {err}"
                         ) from None
                 elif topic in _TOPIC_LISTS:
                     try:
                         obj = json.loads(rec.data)
-                    except ValueError:
+                    except (ValueError, RecursionError):  # deeply nested JSON: RecursionError
                         continue  # a bad side record does not hide the samples
                     if isinstance(obj, dict):
                         lists[_TOPIC_LISTS[topic]].append(obj)
@@ -1237,7 +1313,8 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
     except (McapError, struct.error, ValueError, EOFError, MemoryError, zstandard.ZstdError) as err:
         # A killed writer leaves a partial record: a short read, a torn zstd frame, a bad length.
         detail = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
-        problem = f"ends early after {sum(d.seq.size for d in decoded)} samples ({detail})"
+        what = f"{sum(d.seq.size for d in decoded)} samples" if samples else f"{skipped_blocks} sample records"
+        problem = f"ends early after {what} ({detail})"
     if meta and not meta.get("format", "").startswith("ballbar-mcap/1"):
         raise DataError(f"{name}: format {meta.get('format')!r} is not one this version reads (ballbar-mcap/1)")
     offset = int(meta.get("host_clock_offset_ns", "0") or 0)
@@ -1303,8 +1380,8 @@ def read_results(paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]
     for path in paths:
         try:
             out.extend(read_log(path, samples=False).results)
-        except BallbarError as err:
-            log.warning("results: %s", err)
+        except (BallbarError, OSError, RecursionError, MemoryError) as err:  # one bad file costs only itself
+            log.warning("results: %s: %s", os.fspath(path), err)
     return out
 
 
@@ -1417,6 +1494,109 @@ def recording(lg: McapLog, name: str) -> Recording:
                      sorted(breaks), axis, name)
 
 
+# ----------------------------------------------------------------------------- after a crash
+
+
+@dataclass
+class Recovered:
+    """A crashed file rewritten with its index and summary (see :func:`recover_crashed`)."""
+
+    path: Path
+    messages: int
+    cut_test: dict[str, Any] | None  # the feed_in event of a test the crash cut (no result, no verdict)
+    problem: str
+
+
+_TEST_VERDICTS = ("test_rejected", "test_incomplete", "test_aborted")
+
+
+def _has_footer(path: Path) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            if fh.tell() < 2 * len(_MAGIC):
+                return False
+            fh.seek(-len(_MAGIC), os.SEEK_END)
+            return fh.read(len(_MAGIC)) == _MAGIC
+    except OSError:
+        return True  # cannot tell: leave it alone
+
+
+def recover_file(path: Path) -> Recovered:
+    """Rewrite a file whose writer was killed, as ``mcap recover`` does: every whole record, then a footer,
+    indexes and summary.  The original stays until the rewrite is complete (an atomic rename replaces it)."""
+    tmp = path.with_name(path.name + ".recovering")
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    topics: dict[int, str] = {}
+    n = 0
+    problem = ""
+    feed_in: dict[str, Any] | None = None
+    with open(path, "rb") as src, open(tmp, "wb") as dst:
+        w = Writer(dst, compression=CompressionType.ZSTD)
+        w.start(profile="", library=f"ballbar {__version__} (recovered)")
+        try:
+            for rec in StreamReader(src, record_size_limit=1 << 30).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = w.register_channel(
+                        rec.topic, rec.message_encoding, schemas.get(rec.schema_id, 0), dict(rec.metadata)
+                    )
+                    topics[rec.id] = rec.topic
+                elif isinstance(rec, Metadata):
+                    w.add_metadata(rec.name, dict(rec.metadata))
+                elif isinstance(rec, Message) and rec.channel_id in channels:
+                    w.add_message(channels[rec.channel_id], log_time=rec.log_time, data=rec.data,
+                                  publish_time=rec.publish_time, sequence=rec.sequence)
+                    n += 1
+                    topic = topics[rec.channel_id]
+                    if topic in (TOPIC_EVENTS, TOPIC_RESULTS):
+                        with contextlib.suppress(ValueError, RecursionError):
+                            obj = json.loads(rec.data)
+                            if isinstance(obj, dict):
+                                if obj.get("event") == "feed_in":
+                                    feed_in = obj
+                                elif obj.get("kind") == "test" or obj.get("event") in _TEST_VERDICTS:
+                                    feed_in = None
+        except (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError) as err:
+            problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+        w.finish()
+        dst.flush()
+        os.fsync(dst.fileno())
+    os.replace(tmp, path)
+    return Recovered(path, n, feed_in, problem)
+
+
+def recover_crashed(directory: str | os.PathLike[str]) -> list[Recovered]:
+    """Each of the logger's files in ``directory`` left without a footer by a killed daemon, rewritten once
+    with its index (so every reader opens it, and no later start warns about it again).  A file that
+    cannot be rewritten is left as it was, with a warning."""
+    out: list[Recovered] = []
+    d = Path(directory)
+    if not d.is_dir():
+        return out
+    for stale in d.glob("*.mcap.recovering"):  # a rewrite that was itself cut: the original is intact
+        with contextlib.suppress(OSError):
+            stale.unlink()
+    for path in list_recordings(d):
+        if _has_footer(path):
+            continue
+        try:
+            r = recover_file(path)
+        except (OSError, McapError) as err:
+            log.warning("mcap log: cannot recover %s (left as it is): %s", path.name, err)
+            with contextlib.suppress(OSError):
+                path.with_name(path.name + ".recovering").unlink()
+            continue
+        log.warning(
+            "mcap log: %s was cut by a crash; rewrote its %d whole records with an index%s",
+            path.name, r.messages, f" (the test {r.cut_test.get('test_id')} was cut)" if r.cut_test else "",
+        )
+        out.append(r)
+    return out
+
+
 __all__ = [
     "FORMAT",
     "SCHEMAS",
@@ -1439,6 +1619,7 @@ __all__ = [
     "read_mcap",
     "read_results",
     "recording",
+    "recover_crashed",
     "scaled_ints",
     "to_json",
     "valid_samples",

@@ -7,8 +7,8 @@ import contextlib
 import json
 import logging
 import os
-import signal
 import sys
+import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -16,6 +16,7 @@ from typing import Any
 from .config import Config, ConfigError, load
 from .errors import SourceConfigError
 from .listeners import Listener
+from .lock import StateLock
 from .service import Daemon
 from .sources import open_source, split_url
 
@@ -30,22 +31,74 @@ SIM_MACHINE = (
 
 
 def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
-    """The outputs the configuration turns on, each with its queue bound and drop policy."""
+    """The outputs the configuration turns on, each with its queue bound and drop policy.
+
+    If one fails to start, those already started are stopped before the error
+    goes on: a Zenoh session left open would keep the process alive.
+    """
     out: list[tuple[Listener, int, str]] = []
-    if cfg.mcap.enabled:
-        from .mcap_log import McapLogger
+    try:
+        if cfg.mcap.enabled:
+            from .mcap_log import McapLogger
 
-        out.append((McapLogger.from_config(cfg), cfg.queues.mcap, "drop_newest"))
-    if cfg.zenoh.enabled:
-        from .bus import ZenohBus
+            out.append((McapLogger.from_config(cfg), cfg.queues.mcap, "drop_newest"))
+        if cfg.zenoh.enabled:
+            from .bus import ZenohBus
 
-        loader = recorded_results(cfg) if cfg.mcap.enabled else None
-        out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
-    if cfg.rerun.mode != "off":
-        from .viewer import RerunViewer
+            loader = recorded_results(cfg) if cfg.mcap.enabled else None
+            out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
+        if cfg.rerun.mode != "off":
+            from .viewer import RerunViewer
 
-        out.append((RerunViewer.from_config(cfg), cfg.queues.rerun, "drop_oldest"))
+            out.append((RerunViewer.from_config(cfg), cfg.queues.rerun, "drop_oldest"))
+    except BaseException:
+        for listener, _cap, _policy in reversed(out):
+            try:
+                listener.stop()
+            except Exception:
+                log.exception("stopping %s after a failed start", listener.name)
+        raise
     return out
+
+
+def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
+    """Check what the outputs and the source will be given, before any of them opens.
+
+    Each problem is a :class:`ConfigError` naming its key (exit code 2).
+    """
+    from .sources import check_source
+
+    try:
+        check_source(url, **source_options)
+    except SourceConfigError as err:
+        raise ConfigError(f"source.url: {err}") from None
+    if cfg.zenoh.enabled:
+        from .bus import BusConfigError, check_machine, zenoh_config
+
+        try:
+            check_machine(cfg.daemon.machine_id)
+            zenoh_config(cfg).to_zenoh_config()
+        except BusConfigError as err:
+            raise ConfigError(str(err)) from None
+    if cfg.rerun.mode != "off":
+        from .viewer import ViewerConfigError, viewer_options
+
+        try:
+            viewer_options(cfg)
+        except ViewerConfigError as err:
+            raise ConfigError(str(err)) from None
+    if cfg.mcap.enabled:
+        _check_writable(os.path.join(cfg.daemon.state_dir, "recordings"))
+
+
+def _check_writable(directory: str) -> None:
+    try:
+        os.makedirs(directory, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".probe-", dir=directory)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise ConfigError(f"daemon.state_dir: cannot write {directory}: {err.strerror or err}") from None
 
 
 def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[dict[str, Any]]]:
@@ -62,11 +115,8 @@ def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[
     return load
 
 
-@contextlib.contextmanager
-def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
-    """The built-in simulated ball-bar on a pty, repeating tests; yields its source URL."""
-    from ballbar.tools.simdevice import DeviceProcess
-
+def simdevice_args(cfg: Config, speedup: float) -> list[str]:
+    """``python -m ballbar.tools.simdevice`` arguments: the demo machine running the configured plan, forever."""
     p = cfg.plan
     args = [
         "--rate", f"{p.sample_hz:g}", "--speedup", f"{speedup:g}", "--repeat", "0", "--gap-s", "5",
@@ -77,52 +127,90 @@ def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
     ]
     for item in SIM_MACHINE:
         args += ["--set", item]
-    with DeviceProcess(*args) as dev:
+    return args
+
+
+@contextlib.contextmanager
+def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
+    """The built-in simulated ball-bar on a pty, repeating tests; yields its source URL."""
+    from ballbar.tools.simdevice import DeviceProcess
+
+    with DeviceProcess(*simdevice_args(cfg, speedup)) as dev:
         log.info("simulated ball-bar on %s (x%g speed)", dev.path, speedup)
         yield dev.url
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
     ov: dict[str, dict[str, Any]] = {}
-    if args.machine_id:
+    # "is not None": an empty value given on the command line is a mistake to report, not "unset"
+    if args.machine_id is not None:
         ov.setdefault("daemon", {})["machine_id"] = args.machine_id
-    if args.state_dir:
+    if args.state_dir is not None:
         ov.setdefault("daemon", {})["state_dir"] = args.state_dir
     elif args.simulate:
         ov.setdefault("daemon", {})["state_dir"] = SIM_STATE_DIR
-    if args.source:
+    if args.source is not None:
         ov.setdefault("source", {})["url"] = args.source
     return ov
 
 
-def cmd_run(args: argparse.Namespace) -> int:
+def _recover(cfg: Config) -> list[dict[str, Any]]:
+    """Files a killed daemon left without a footer, rewritten once; a ``test_incomplete`` event for each
+    test the crash cut, to publish at start."""
+    if not cfg.mcap.enabled:
+        return []
+    from .mcap_log import recover_crashed
+
+    out = []
+    for r in recover_crashed(os.path.join(cfg.daemon.state_dir, "recordings")):
+        if r.cut_test is not None:
+            out.append({
+                "kind": "event", "event": "test_incomplete", "origin": "recovery",
+                "test_id": r.cut_test.get("test_id"), "file": r.path.name,
+                "message": f"the daemon stopped (killed) during this test; its samples up to then are in {r.path.name}",
+            })
+    return out
+
+
+def _source_options(cfg: Config, url: str) -> dict[str, Any]:
+    try:
+        _, _, query = split_url(url)
+    except SourceConfigError as err:
+        raise ConfigError(f"source.url: {err}") from None
+    if url.startswith("sim:"):
+        return {"plan": cfg.plan}
+    return {} if "cal_mm" in query or not url.startswith("serial") else {"cal_mm": cfg.cal_mm}
+
+
+def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """``ballbar run``; ``stop`` is the event the caller's SIGTERM and SIGINT handlers set."""
+    if stop is None:
+        stop = threading.Event()
     cfg = load(args.config, args.set, overrides=_overrides(args))
     logging.getLogger().setLevel(cfg.daemon.log_level.upper())
     if args.print_config:
-        json.dump(cfg.to_dict(), sys.stdout, indent=2)
+        from .secrets import redacted
+
+        json.dump(redacted(cfg.to_dict()), sys.stdout, indent=2)
         sys.stdout.write("\n")
         return 0
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        log.info("signal %d: stopping", signum)
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    url = "sim:" if args.simulate else cfg.source.url  # the simulated device's pty comes later
+    preflight(cfg, url, _source_options(cfg, url))
+    if stop.is_set():
+        return 0
     with contextlib.ExitStack() as stack:
-        url = cfg.source.url
+        stack.enter_context(StateLock(cfg.daemon.state_dir))
         if args.simulate:
             url = stack.enter_context(simulated_device(cfg, args.speedup))
-        _, _, query = split_url(url)
-        kwargs = {} if "cal_mm" in query or not url.startswith("serial") else {"cal_mm": cfg.cal_mm}
-        if url.startswith("sim:"):
-            kwargs = {"plan": cfg.plan}
+        if stop.is_set():
+            return 0
         try:
-            source = open_source(url, **kwargs)
+            source = open_source(url, **_source_options(cfg, url))
         except SourceConfigError as err:
             raise ConfigError(f"source.url: {err}") from err
         stack.callback(source.close)
+        cut = _recover(cfg)  # before the bus reads the history from the recordings
         listeners = build_listeners(cfg)
         daemon = Daemon(cfg, source, listeners)
+        daemon.startup_messages.extend(cut)
         return daemon.run(stop, max_tests=args.tests, duration_s=args.duration_s)

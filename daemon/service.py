@@ -43,10 +43,13 @@ from ballbar.analysis.errors import BallbarError
 from .config import Config
 from .listeners import Listener, ListenerQueue, Message
 from .samples import SampleBatch, breaks_in
+from .secrets import redacted
 from .sources import Source
 from .systemd import Notifier
 
 log = logging.getLogger(__name__)
+
+FINISH_ANALYSIS_S = 120.0  # after a finite source's end, at most this for the analysis to catch up
 
 
 def utc_now() -> str:
@@ -218,11 +221,13 @@ class Daemon:
         self.samples = 0
         self.lost = 0
         self.source_state = "starting"
+        self.source_reason: str | None = None  # why the source is waiting or unplugged
         self.last_event: dict[str, Any] | None = None
         self._rate_mark = (self.started, 0)
         self.rate_hz = 0.0
         self.results_seen = 0
         self.tests_seen = 0
+        self.startup_messages: list[Message] = []  # events found at start (a test a crash cut), sent after config
         self._count_lock = threading.Lock()
 
     def broadcast(self, msg: Message) -> None:
@@ -240,10 +245,17 @@ class Daemon:
             kind = d.pop("kind")
             if kind == "lost":
                 self.lost += ev.count
-            self.source_state = {
-                "unplugged": "unplugged", "replugged": "connected", "opened": "connected", "stall": "stalled",
-                "resumed": "connected", "end": "ended",
-            }.get(kind, self.source_state)
+            if kind == "unplugged":
+                self.source_reason = ev.detail
+            elif kind in ("replugged", "opened", "resumed"):
+                self.source_reason = None
+            if kind == "unplugged" and self.source_state in ("starting", "waiting"):
+                self.source_state = "waiting"  # never opened: a service waits for its adapter to appear
+            else:
+                self.source_state = {
+                    "unplugged": "unplugged", "replugged": "connected", "opened": "connected", "stall": "stalled",
+                    "resumed": "connected", "end": "ended",
+                }.get(kind, self.source_state)
             msg = {"kind": "event", "event": kind, "origin": "source", "schema_version": SCHEMA_VERSION,
                    "machine_id": self.cfg.daemon.machine_id, "t_wall": utc_now(), **d}
             self.last_event = msg
@@ -273,6 +285,7 @@ class Daemon:
             "t_wall": utc_now(),
             "uptime_s": now - self.started,
             "source_state": self.source_state,
+            "source_reason": self.source_reason,
             "source": src,
             "samples": self.samples,
             "sample_rate_hz": self.rate_hz,
@@ -294,8 +307,14 @@ class Daemon:
         interval = self.cfg.daemon.status_interval_s
         if self.notifier.watchdog_s:
             interval = min(interval, self.notifier.watchdog_s / 2)
+        # Redacted here, once: this one message is what the bus, last/config and every MCAP file get.
         self.broadcast({"kind": "config", "schema_version": SCHEMA_VERSION, "t_wall": utc_now(),
-                        "machine_id": self.cfg.daemon.machine_id, "config": self.cfg.to_dict()})
+                        "machine_id": self.cfg.daemon.machine_id, "config": redacted(self.cfg.to_dict())})
+        for msg in self.startup_messages:
+            self.broadcast({"schema_version": SCHEMA_VERSION, "machine_id": self.cfg.daemon.machine_id,
+                            "t_wall": utc_now(), "t_host": time.monotonic(), **msg})
+        # READY=1 once the source is set up, whether or not its port is there yet: a service waits for its
+        # adapter (the status says "waiting" and why, and a warning repeats every minute).
         self.notifier.ready(f"reading {self.source.url}")
         log.info("ready: reading %s", self.source.url)
         next_status = time.monotonic() + interval
@@ -314,7 +333,7 @@ class Daemon:
                     if self.source_state == "starting" and len(batch):
                         self.source_state = "connected"
                 elif self.source.finished:
-                    log.info("the source has ended")
+                    log.info("the source has ended; finishing the analysis")
                     self._finish_analysis(stop, max_tests)
                     break
                 now = time.monotonic()
@@ -322,8 +341,9 @@ class Daemon:
                     self.notifier.watchdog()
                     st = self.status()
                     self.broadcast(st)
+                    why = f" ({self.source_reason})" if self.source_state in ("waiting", "unplugged") else ""
                     self.notifier.status(
-                        f"{st['source_state']}, {st['sample_rate_hz']:.0f} samples/s, {st['lost_samples']} lost, "
+                        f"{st['source_state']}{why}, {st['sample_rate_hz']:.0f} samples/s, {st['lost_samples']} lost, "
                         f"{st['analysis']['tests']} tests"
                     )
                     next_status = now + interval
@@ -335,7 +355,9 @@ class Daemon:
             self.shutdown()
         return code
 
-    def _finish_analysis(self, stop: threading.Event, max_tests: int | None, limit_s: float = 120.0) -> None:
+    def _finish_analysis(
+        self, stop: threading.Event, max_tests: int | None, limit_s: float = FINISH_ANALYSIS_S
+    ) -> None:
         """A finite source (a replay, a simulation) has ended: the analysis takes all it was given first.
 
         Faster than real time the source ends well before the analysis, whose
@@ -347,9 +369,11 @@ class Daemon:
         while not stop.is_set() and time.monotonic() < deadline:
             if max_tests is not None and self.tests_seen >= max_tests:
                 return
-            if self.analysis_queue.wait_idle(min(1.0, deadline - time.monotonic())):
+            if self.analysis_queue.wait_idle(min(1.0, deadline - time.monotonic()), stop):
                 return
             self.notifier.watchdog()
+        if not stop.is_set():
+            log.warning("the analysis did not finish within %.0f s of the source's end", limit_s)
 
     def shutdown(self, budget_s: float = 4.0) -> None:
         """Stop within ``budget_s``: the source, then the analysis, then the outputs in parallel."""

@@ -133,6 +133,7 @@ log = logging.getLogger(__name__)
 RATE_MIN_HZ = 15.625
 RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
+WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 READ_MAX = 1 << 16
 PYSERIAL_SCHEMES = ("loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110")
 
@@ -357,6 +358,7 @@ class SerialSource(Source):
         self._next_retry = 0.0
         self._down_since: float | None = None
         self._failures = 0
+        self._next_wait_warning = 0.0
         self._last_rx = time.monotonic()
         self._stalled = False
         self._gap_cause: str | None = None
@@ -387,8 +389,13 @@ class SerialSource(Source):
                 self._down_since = now
                 self._event(EventKind.UNPLUGGED, detail=f"cannot open {self.port_url}: {err}")
                 self._stats.connected = False
-            elif self._failures % 30 == 0:
-                log.info("%s: still waiting for %s (%d attempts)", self.url, self.port_url, self._failures)
+                self._next_wait_warning = now + WAIT_WARNING_S
+            elif now >= self._next_wait_warning:
+                # A service waits for its adapter, visibly: one warning a minute, not one an attempt.
+                self._next_wait_warning = now + WAIT_WARNING_S
+                since = now - self._down_since if self._down_since is not None else 0.0
+                log.warning("%s: still waiting for %s after %.0f s (%d attempts): %s",
+                            self.url, self.port_url, since, self._failures, err)
             return
         with self._port_lock:
             if self._closed:
@@ -796,13 +803,14 @@ def source_schemes() -> list[str]:
 class _Options:
     """URL query and keyword options, converted on demand; leftovers are errors."""
 
-    def __init__(self, url: str, query: dict[str, str], kwargs: dict[str, Any]) -> None:
+    def __init__(self, url: str, query: dict[str, str], kwargs: dict[str, Any], check_only: bool = False) -> None:
         both = sorted(set(query) & set(kwargs))
         if both:
             raise SourceConfigError(f"{url}: option {both[0]!r} given both in the URL and as a keyword")
         self.url = url
         self.values: dict[str, Any] = {**query, **kwargs}
         self.known: list[str] = []
+        self.check_only = check_only
 
     def get(self, key: str, conv: Callable[[Any], Any], default: Any = None) -> Any:
         self.known.append(key)
@@ -825,6 +833,12 @@ class _Options:
         if self.values:
             key = sorted(self.values)[0]
             raise SourceConfigError(f"{self.url}: unknown option {key!r} (known: {', '.join(sorted(self.known))})")
+        if self.check_only:
+            raise _Checked
+
+
+class _Checked(Exception):
+    """Raised by :meth:`_Options.done` when only checking: the source is not opened."""
 
 
 def _pos_float(v: Any) -> float:
@@ -902,6 +916,10 @@ def _open_serial(url: str, target: str, opt: _Options) -> Source:
     mode = opt.get("mode", _choice("stream", "poll"), "stream")
     cal_mm = opt.require("cal_mm", _finite, "the bar's length at zero displacement, from its calibration")
     rate = opt.get("rate", _rate)
+    if mode == "poll" and protocol != "ascii":
+        raise SourceConfigError(f"{url}: mode=poll needs protocol=ascii")
+    if mode == "poll" and rate is None:
+        raise SourceConfigError(f"{url}: mode=poll needs rate (the polling rate in Hz)")
     ts = opt.get("timestamp", _choice("s", "ms", "us", "none"), "none")
     try:
         fmt = AsciiFormat(
@@ -991,6 +1009,22 @@ def open_source(url: str, **options: Any) -> Source:
     return _REGISTRY[scheme](url, target, opt)
 
 
+def check_source(url: str, **options: Any) -> None:
+    """What :func:`open_source` checks of ``url`` and ``options``, without opening anything.
+
+    Raises :class:`SourceConfigError` naming the problem.  (A source registered
+    by a plug-in that never calls ``opt.done()`` would be opened: the built-in
+    ones all do.)
+    """
+    scheme, target, query = split_url(url)
+    opt = _Options(url, query, {k: v for k, v in options.items() if v is not None}, check_only=True)
+    try:
+        src = _REGISTRY[scheme](url, target, opt)
+    except _Checked:
+        return
+    src.close()
+
+
 __all__ = [
     "RATE_MAX_HZ",
     "RATE_MIN_HZ",
@@ -998,6 +1032,7 @@ __all__ = [
     "SerialSource",
     "SimSource",
     "Source",
+    "check_source",
     "open_source",
     "register_source",
     "source_schemes",

@@ -5,11 +5,15 @@ into its own :class:`rerun.RecordingStream` (application ``ballbar``, one
 recording per daemon run), never the global one, and reaches viewers one of two
 ways:
 
-``serve``    (default) the daemon hosts a gRPC server (``bind``:``port``, 9876);
-             viewers connect whenever they like with
-             ``rerun rerun+http://DAEMON:9876/proxy`` and receive the buffered
-             history, bounded by ``server_memory_limit`` (oldest data dropped
-             first; static data such as the reference circles is kept).
+``serve``    (default) a gRPC server on ``bind``:``port`` (127.0.0.1:9880: this PC
+             only, and not the viewer's own 9876); viewers connect whenever they
+             like with ``rerun rerun+http://127.0.0.1:9880/proxy`` and receive the
+             buffered history, bounded by ``server_memory_limit`` (oldest data
+             dropped first; static data such as the reference circles is kept).
+             The server is ``rerun --serve-grpc`` in a child process that the
+             daemon pushes to (see :class:`_ServerProcess`): Rerun's server takes
+             data from any client, and some of it outside its memory limit, so
+             it is kept out of the daemon's memory, capped and restarted.
 ``connect``  the daemon pushes to a viewer listening at ``url``
              (``rerun`` started on a workstation listens on 9876 by default).
 ``off``      nothing is created; every call is a no-op.
@@ -69,17 +73,23 @@ machine):
   at this streamer's rate (tens of kB/s) that takes hours, and the listener's
   queue shields the daemon meanwhile.
 
-In ``serve`` mode a viewer that is still connected keeps the server's socket
-after :meth:`stop` until it leaves or the process exits (rerun 0.41).
+In ``serve`` mode :meth:`stop` ends the server process (SIGTERM, then SIGKILL
+after a second); a daemon killed outright takes it along (``PR_SET_PDEATHSIG``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import ipaddress
 import logging
 import math
+import os
+import re
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 import urllib.parse
@@ -87,6 +97,7 @@ import uuid
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -111,6 +122,8 @@ Clock = Literal["auto", "device", "host"]
 FloatArray = NDArray[np.float64]
 
 APPLICATION_ID = "ballbar"
+# Not the viewer's own 9876: a user's `rerun some.rrd` on this PC must not stream into the daemon's view.
+DEFAULT_SERVE_PORT = 9880
 R0 = 100.0  # display radius of the nominal circle (arbitrary units of the 2D view)
 DIRECTIONS: dict[int, str] = {1: "ccw", -1: "cw"}
 COLOURS: dict[str, tuple[int, int, int]] = {
@@ -151,8 +164,11 @@ class ViewerOptions:
     """The streamer's configuration (from the daemon's ``[rerun]`` section: :meth:`RerunViewer.from_config`).
 
     ``mode``: ``serve``, ``connect`` or ``off``.  ``bind``/``port``: where the
-    ``serve`` mode listens (``0.0.0.0``: every interface, viewers anywhere on
-    the network).  ``url``: the viewer to push to in ``connect`` mode,
+    ``serve`` mode listens (default ``127.0.0.1``: this PC only; ``0.0.0.0``:
+    every interface, viewers anywhere on the network, and anyone there can
+    push data into the server too).  ``server_rss_cap_mb``: the server
+    process is restarted when its resident memory passes this (default
+    ``2 x server_memory_limit + 128 MiB``).  ``url``: the viewer to push to in ``connect`` mode,
     ``rerun+http://HOST:PORT/proxy``.  ``server_memory_limit``: the serve
     mode's history buffer (rerun syntax: ``256MiB``, ``10%``).
 
@@ -172,10 +188,11 @@ class ViewerOptions:
     """
 
     mode: Mode = "serve"
-    bind: str = "0.0.0.0"  # every interface: the viewer is normally on another machine
-    port: int = 9876
+    bind: str = "127.0.0.1"  # this PC only; viewers elsewhere: bind an address on purpose, or connect mode
+    port: int = DEFAULT_SERVE_PORT
     url: str = "rerun+http://127.0.0.1:9876/proxy"
-    server_memory_limit: str = "256MiB"
+    server_memory_limit: str = "128MiB"
+    server_rss_cap_mb: float | None = None  # None: 2 x server_memory_limit + 128 MiB
     application_id: str = APPLICATION_ID
     recording_name: str = ""
     tolerance_um: float = 10.0
@@ -193,19 +210,27 @@ class ViewerOptions:
 
     def __post_init__(self) -> None:
         checks: list[tuple[bool, str]] = [
-            (self.mode in ("serve", "connect", "off"), f"viewer mode must be serve, connect or off, not {self.mode!r}"),
-            (_is_ip(self.bind), f"viewer bind must be an IP address, not {self.bind!r}"),
-            (isinstance(self.port, int) and 0 < self.port < 65536, f"viewer port must be 1..65535, not {self.port!r}"),
+            (self.mode in ("serve", "connect", "off"), f"rerun.mode must be serve, connect or off, not {self.mode!r}"),
+            (_is_ip(self.bind), f"rerun.bind must be an IP address, not {self.bind!r}"),
+            (isinstance(self.port, int) and 0 < self.port < 65536, f"rerun.port must be 1..65535, not {self.port!r}"),
             (
                 _proxy_address(self.url) is not None,
-                f"viewer url must be rerun+http://HOST:PORT/proxy, not {self.url!r}",
+                f"rerun.url must be rerun+http://HOST:PORT/proxy, not {self.url!r}",
             ),
             (
                 self.clock in ("auto", "device", "host"),
-                f"viewer clock must be auto, device or host, not {self.clock!r}",
+                f"rerun.clock must be auto, device or host, not {self.clock!r}",
             ),
-            (bool(self.application_id), "viewer application_id must not be empty"),
-            (bool(self.server_memory_limit), "viewer server_memory_limit must not be empty"),
+            (bool(self.application_id), "rerun.application_id must not be empty"),
+            (
+                _memory_bytes(self.server_memory_limit) is not None,
+                f"rerun.server_memory_limit must be a size such as 128MiB, not {self.server_memory_limit!r}",
+            ),
+            (
+                self.server_rss_cap_mb is None
+                or (isinstance(self.server_rss_cap_mb, int | float) and self.server_rss_cap_mb >= 64),
+                f"rerun.server_rss_cap_mb must be at least 64, not {self.server_rss_cap_mb!r}",
+            ),
         ]
         for name in (
             "tolerance_um",
@@ -218,13 +243,13 @@ class ViewerOptions:
         ):
             v = getattr(self, name)
             ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-            checks.append((ok, f"viewer {name} must be a number > 0, not {v!r}"))
+            checks.append((ok, f"rerun.{name} must be a number > 0, not {v!r}"))
         s = self.scale_um
         ok = s is None or (isinstance(s, int | float) and not isinstance(s, bool) and math.isfinite(s) and s > 0)
         checks.append((ok, f"viewer scale_um must be a number > 0 or unset (automatic), not {s!r}"))
         for name, lo in (("polar_points", 16), ("max_buffer_samples", 10_000)):
             v = getattr(self, name)
-            checks.append((isinstance(v, int) and v >= lo, f"viewer {name} must be an integer >= {lo}, not {v!r}"))
+            checks.append((isinstance(v, int) and v >= lo, f"rerun.{name} must be an integer >= {lo}, not {v!r}"))
         for ok, msg in checks:
             if not ok:
                 raise ViewerConfigError(msg)
@@ -238,12 +263,30 @@ class ViewerOptions:
         return cls(**dict(data))
 
     @property
+    def server_rss_cap(self) -> int:
+        """Bytes of resident memory above which the serve mode's server process is restarted."""
+        if self.server_rss_cap_mb is not None:
+            return int(self.server_rss_cap_mb * 2**20)
+        limit = _memory_bytes(self.server_memory_limit)
+        return 2 * (limit if limit is not None else 128 * 2**20) + 128 * 2**20
+
+    @property
     def address(self) -> str:
         """Where viewers find the stream: the URL to give ``rerun``."""
         if self.mode == "serve":
             host = "127.0.0.1" if self.bind in ("0.0.0.0", "::") else self.bind
             return f"rerun+http://{_host_for_url(host)}:{self.port}/proxy"
         return self.url
+
+
+def _memory_bytes(text: str) -> int | None:
+    """``128MiB``, ``1GB``, ``512kB`` as bytes (rerun's size syntax, without its percentages), or None."""
+    m = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]+)?)\s*([kMGT]i?B|B)\s*", str(text))
+    if not m:
+        return None
+    mult = {"B": 1, "kB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12,
+            "kiB": 2**10, "KiB": 2**10, "MiB": 2**20, "GiB": 2**30, "TiB": 2**40}.get(m[2])
+    return int(float(m[1]) * mult) if mult else None
 
 
 def _is_ip(text: str) -> bool:
@@ -288,6 +331,32 @@ def _port_free(bind: str, port: int) -> bool:
         except OSError:
             return False
     return True
+
+
+def viewer_options(cfg: Any) -> ViewerOptions:
+    """The :class:`ViewerOptions` of the daemon's configuration: ``[rerun]``, ``plan``, ``daemon.machine_id``.
+
+    Every :class:`ViewerOptions` field the section has is taken as it is;
+    besides, ``memory_limit_mb`` (MiB) sets ``server_memory_limit`` and
+    ``magnification`` (0: automatic) how many times a deviation is drawn
+    larger than the radius (``r/R0 = 1 + M dR/R``), i.e.
+    ``scale_um = 500 R / M``.  Keys the section lacks keep the defaults.
+    Raises :class:`ViewerConfigError` naming a bad value.
+    """
+    sec = cfg.rerun
+    plan: TestPlan | None = getattr(cfg, "plan", None)
+    kw: dict[str, Any] = {f.name: getattr(sec, f.name) for f in fields(ViewerOptions) if hasattr(sec, f.name)}
+    mem = getattr(sec, "memory_limit_mb", None)
+    if mem is not None:
+        if not (isinstance(mem, int | float) and math.isfinite(mem) and mem >= 1):
+            raise ViewerConfigError(f"rerun.memory_limit_mb must be a number >= 1, not {mem!r}")
+        kw["server_memory_limit"] = f"{round(float(mem))}MiB"
+    mag = getattr(sec, "magnification", None)
+    if mag and plan is not None:
+        kw["scale_um"] = 500.0 * plan.radius_mm / float(mag)
+    machine_id = getattr(getattr(cfg, "daemon", None), "machine_id", "") or ""
+    kw.setdefault("recording_name", f"ballbar {machine_id} {time.strftime('%Y-%m-%d %H:%M:%S')}".strip())
+    return ViewerOptions(**kw)
 
 
 # --------------------------------------------------------------------------- pure helpers
@@ -667,6 +736,161 @@ class _Prober:
         self._thread.join(timeout)
 
 
+# Started through Python so that the server dies with the daemon even on kill -9: PR_SET_PDEATHSIG (1)
+# survives the exec, and the parent check closes the window between fork and prctl.
+_LAUNCHER = (
+    "import ctypes,os,signal,sys\n"
+    "ctypes.CDLL(None).prctl(1, signal.SIGKILL)\n"
+    "if os.getppid() != int(sys.argv[1]): sys.exit(1)\n"
+    "os.execv(sys.argv[2], sys.argv[2:])\n"
+)
+
+
+def rerun_binary() -> str | None:
+    """The ``rerun`` executable that rerun-sdk ships (its viewer and CLI), or None."""
+    spec = importlib.util.find_spec("rerun_cli")
+    if spec is None or spec.origin is None:
+        return None
+    exe = Path(spec.origin).parent / "rerun"
+    return str(exe) if exe.is_file() and os.access(exe, os.X_OK) else None
+
+
+def _rss_bytes(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+class _ServerProcess:
+    """The serve mode's gRPC server: ``rerun --serve-grpc`` in a child process, supervised.
+
+    Rerun's server accepts data from any client that reaches it (``WriteMessages``), and keeps
+    blueprint and store-info messages outside its memory limit: a client can grow it without bound
+    (checked with rerun 0.41: 200 MB of blueprints took a 32 MiB-limited server from 115 to 332 MB).
+    In its own process, whatever clients push never touches the daemon's memory; this supervisor
+    restarts the server when it exits and kills it when its resident memory passes ``rss_cap``
+    (the daemon then sends the scene again).  ``generation`` counts the starts: a new one needs a
+    new sink.
+    """
+
+    def __init__(self, bind: str, port: int, memory_limit: str, rss_cap: int, period_s: float = 0.25) -> None:
+        exe = rerun_binary()
+        if exe is None:
+            raise ViewerConfigError("rerun.mode = \"serve\" needs the rerun binary of rerun-sdk (rerun_cli)")
+        self.exe, self.bind, self.port = exe, bind, port
+        self.memory_limit, self.rss_cap, self.period_s = memory_limit, rss_cap, period_s
+        host = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(bind, bind)
+        self.url = f"rerun+http://{_host_for_url(host)}:{port}/proxy"  # where the daemon pushes
+        self._probe = (host, port)
+        self.generation = 0
+        self.listening = False
+        self.restarts = 0
+        self.rss_kills = 0
+        self.max_rss = 0
+        self.last_rss = 0
+        self.proc: subprocess.Popen[bytes] | None = None
+        self._backoff = 0.5
+        self._next_start = 0.0
+        self._warned_busy = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rerun-server", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        # Popen from this thread, which lives as long as the server may: PR_SET_PDEATHSIG follows the thread.
+        while not self._stop.is_set():
+            try:
+                self._step(time.monotonic())
+            except Exception:  # the supervisor must outlive any surprise
+                log.exception("rerun server: supervisor error")
+            self._stop.wait(self.period_s)
+        self._terminate()
+
+    def _step(self, now: float) -> None:
+        proc = self.proc
+        if proc is not None and proc.poll() is not None:
+            log.warning("rerun server (pid %d) exited with code %s; restarting", proc.pid, proc.returncode)
+            self.proc, self.listening = None, False
+            self.restarts += 1
+            self._next_start = now + self._backoff
+            self._backoff = min(2 * self._backoff, 30.0)
+            return
+        if proc is None:
+            if now >= self._next_start:
+                self._start(now)
+            return
+        rss = _rss_bytes(proc.pid) or 0
+        self.last_rss = rss
+        self.max_rss = max(self.max_rss, rss)
+        if rss > self.rss_cap:
+            log.warning(
+                "rerun server: %.0f MiB resident, over its %.0f MiB cap (a client pushed data into it); "
+                "restarting it, and sending viewers the scene again",
+                rss / 2**20, self.rss_cap / 2**20,
+            )
+            self.rss_kills += 1
+            self._terminate(grace_s=0.0)
+            self.restarts += 1
+            self._next_start = now
+            return
+        if not self.listening and _tcp_listening(*self._probe, timeout=0.2):
+            self.listening = True
+            self._backoff = 0.5
+
+    def _start(self, now: float) -> None:
+        if not _port_free(self.bind, self.port):
+            if not self._warned_busy:
+                log.warning("rerun viewer: %s:%d is in use; retrying", self.bind, self.port)
+                self._warned_busy = True
+            self._next_start = now + 2.0
+            return
+        self._warned_busy = False
+        args = [sys.executable, "-I", "-S", "-c", _LAUNCHER, str(os.getpid()), self.exe, "--serve-grpc",
+                "--bind", self.bind, "--port", str(self.port), "--server-memory-limit", self.memory_limit]
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("NOTIFY_SOCKET", "WATCHDOG_"))}
+        env.setdefault("RUST_LOG", "warn")
+        self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL, env=env, close_fds=True)
+        self.generation += 1
+        self.listening = False
+        log.debug("rerun server started (pid %d) on %s:%d", self.proc.pid, self.bind, self.port)
+
+    def _terminate(self, grace_s: float = 1.0) -> None:
+        proc, self.proc = self.proc, None
+        self.listening = False
+        if proc is None or proc.poll() is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGTERM if grace_s > 0 else signal.SIGKILL)
+        try:
+            proc.wait(grace_s if grace_s > 0 else 5.0)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                proc.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(5.0)
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "pid": self.proc.pid if self.proc is not None else None,
+            "listening": self.listening,
+            "rss_mb": round(self.last_rss / 2**20, 1),
+            "max_rss_mb": round(self.max_rss / 2**20, 1),
+            "rss_cap_mb": round(self.rss_cap / 2**20, 1),
+            "restarts": self.restarts,
+            "rss_kills": self.rss_kills,
+        }
+
+    def close(self, timeout: float = 3.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout)
+
+
 _ABANDONED: list[rr.RecordingStream] = []  # recordings whose disconnect did not finish: never collected
 
 
@@ -736,10 +960,16 @@ class RerunViewer(Listener):
         self._hints = (1.0, 0.0, 3.0)  # feed ratio, overhead (s), spike width (deg) from the last test
         self._findings_md = ""
         self._trends: deque[tuple[int, float, dict[str, float]]] = deque(maxlen=TRENDS_KEPT)
+        self._server: _ServerProcess | None = None
+        self._sink_generation = 0
         if self.options.mode == "off":
             self._closed = True
             return
         self._rec = rr.RecordingStream(self.options.application_id, recording_id=self.recording_id)
+        if self.options.mode == "serve":
+            self._server = _ServerProcess(
+                self.options.bind, self.options.port, self.options.server_memory_limit, self.options.server_rss_cap
+            )
         if self.options.mode == "connect":
             addr = _proxy_address(self.options.url)
             assert addr is not None  # validated by ViewerOptions
@@ -748,27 +978,8 @@ class RerunViewer(Listener):
 
     @classmethod
     def from_config(cls, cfg: Any) -> RerunViewer:
-        """From the daemon's configuration: ``[rerun]``, ``plan``, ``machine``, ``daemon.machine_id``.
-
-        Every :class:`ViewerOptions` field the section has is taken as it is;
-        besides, ``memory_limit_mb`` (MiB) sets ``server_memory_limit`` and
-        ``magnification`` (0: automatic) how many times a deviation is drawn
-        larger than the radius (``r/R0 = 1 + M dR/R``), i.e.
-        ``scale_um = 500 R / M``.  Keys the section lacks keep the defaults.
-        """
-        sec = cfg.rerun
-        plan: TestPlan | None = getattr(cfg, "plan", None)
-        machine: MachineConfig | None = getattr(cfg, "machine", None)
-        kw: dict[str, Any] = {f.name: getattr(sec, f.name) for f in fields(ViewerOptions) if hasattr(sec, f.name)}
-        mem = getattr(sec, "memory_limit_mb", None)
-        if mem is not None:
-            kw["server_memory_limit"] = f"{max(1, round(float(mem)))}MiB"
-        mag = getattr(sec, "magnification", None)
-        if mag and plan is not None:
-            kw["scale_um"] = 500.0 * plan.radius_mm / float(mag)
-        machine_id = getattr(getattr(cfg, "daemon", None), "machine_id", "") or ""
-        kw.setdefault("recording_name", f"ballbar {machine_id} {time.strftime('%Y-%m-%d %H:%M:%S')}".strip())
-        return cls(ViewerOptions(**kw), plan=plan, machine=machine)
+        """From the daemon's configuration (:func:`viewer_options`), with its ``plan`` and ``machine``."""
+        return cls(viewer_options(cfg), plan=getattr(cfg, "plan", None), machine=getattr(cfg, "machine", None))
 
     # ------------------------------------------------------------------ state
 
@@ -789,6 +1000,7 @@ class RerunViewer(Listener):
             "clock": "host" if self._use_host else "device",
             "buffered_samples": self._n_kept,
             **self.counters,
+            **({"server": self._server.stats()} if self._server is not None else {}),
         }
 
     # ------------------------------------------------------------------ sinks
@@ -799,22 +1011,15 @@ class RerunViewer(Listener):
         if rec is None:
             return
         if self.options.mode == "serve":
-            if not self._sink_live and now >= self._next_retry:
-                self._next_retry = now + self.options.retry_s
-                if not _port_free(self.options.bind, self.options.port):
-                    log.warning(
-                        "rerun viewer: %s:%d is in use; retrying every %.0f s",
-                        self.options.bind,
-                        self.options.port,
-                        self.options.retry_s,
-                    )
-                    return
-                rec.set_sinks(
-                    rr.GrpcServerSink(
-                        self.options.bind, self.options.port, server_memory_limit=self.options.server_memory_limit
-                    ),
-                    default_blueprint=default_blueprint(),
-                )
+            srv = self._server
+            assert srv is not None
+            if self._sink_live and srv.generation != self._sink_generation:
+                log.info("rerun viewer: the server was restarted; sending the scene again")
+                self._sink_live = False
+            if not self._sink_live and srv.listening and now >= self._next_retry:
+                self._next_retry = now + min(self.options.retry_s, 0.5)
+                self._sink_generation = srv.generation
+                rec.set_sinks(rr.GrpcSink(srv.url), default_blueprint=default_blueprint())
                 self._on_new_sink(
                     "serving on %s:%d (viewers: rerun %s)", self.options.bind, self.options.port, self.address
                 )
@@ -1370,9 +1575,12 @@ class RerunViewer(Listener):
             self._closed = True
             rec, self._rec = self._rec, None
             prober, self._prober = self._prober, None
+            server, self._server = self._server, None
         if prober is not None:
             prober.close()
         if rec is None:
+            if server is not None:
+                server.close()
             return
         t0 = time.monotonic()
         done = threading.Event()
@@ -1387,6 +1595,8 @@ class RerunViewer(Listener):
         th.start()
         th.join(self.options.stop_timeout_s)
         self._sink_live = False
+        if server is not None:  # after the stream: what was flushed to it reaches connected viewers
+            server.close()
         if not done.is_set():
             # A frozen viewer holds the SDK's connection: dropping the recording or the SDK's own
             # exit hook would wait for it forever.  Keep it referenced and let the process exit.
@@ -1415,4 +1625,5 @@ __all__ = [
     "provisional_timing",
     "result_timing",
     "setup_deviation_um",
+    "viewer_options",
 ]

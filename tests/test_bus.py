@@ -204,14 +204,14 @@ def test_settings_pass_through_and_override_a_config_file(tmp_path: Path) -> Non
 @pytest.mark.parametrize(
     ("kwargs", "names"),
     [
-        ({"mode": "bogus"}, "zenoh mode"),
-        ({"listen": ["nonsense"]}, "zenoh listen"),
-        ({"connect": "tcp/127.0.0.1:7447"}, "zenoh connect"),
-        ({"options": {"transport/link/tx/lease": "soon"}}, "zenoh transport/link/tx/lease"),
-        ({"options": {"no/such/key": 1}}, "zenoh no/such/key"),
-        ({"options": {"scouting/multicast/enabled": "yes"}}, "zenoh scouting/multicast/enabled"),
-        ({"config_file": "/nonexistent/zenoh.json5"}, "zenoh config_file: /nonexistent/zenoh.json5"),
-        ({"config_file": "BAD"}, "zenoh config_file"),
+        ({"mode": "bogus"}, "zenoh.mode"),
+        ({"listen": ["nonsense"]}, "zenoh.listen"),
+        ({"connect": "tcp/127.0.0.1:7447"}, "zenoh.connect"),
+        ({"options": {"transport/link/tx/lease": "soon"}}, "zenoh.options 'transport/link/tx/lease'"),
+        ({"options": {"no/such/key": 1}}, "zenoh.options 'no/such/key'"),
+        ({"options": {"scouting/multicast/enabled": "yes"}}, "zenoh.options 'scouting/multicast/enabled'"),
+        ({"config_file": "/nonexistent/zenoh.json5"}, "zenoh.config_file: /nonexistent/zenoh.json5"),
+        ({"config_file": "BAD"}, "zenoh.config_file"),
     ],
 )
 def test_a_bad_setting_is_one_line_naming_its_key(tmp_path: Path, kwargs: dict[str, Any], names: str) -> None:
@@ -371,7 +371,9 @@ def test_last_and_history_answer_from_the_daemons_records() -> None:
         assert doc["ids"] == ["m-0", "m-1", "m-2"]
         assert history("ballbar/m/history/circle")["ids"] == ["m-0", "m-1", "m-2"]
         ok, _ = get(c, "ballbar/m/history/*?limit=1")
-        assert sorted(str(s.key_expr) for s in ok) == ["ballbar/m/history/circle", "ballbar/m/history/test"]
+        assert sorted(str(s.key_expr) for s in ok) == [
+            "ballbar/m/history/circle", "ballbar/m/history/event", "ballbar/m/history/test"
+        ]
         for bad, says in [
             ("since=yesterday", "since"),
             ("limit=0", "limit"),
@@ -584,3 +586,18 @@ def test_stop_is_bounded_even_when_close_hangs(monkeypatch: pytest.MonkeyPatch) 
     assert not bus.wait_closed(0)
     release.set()
     assert bus.wait_closed(10)
+
+
+def test_events_have_a_history_to_catch_up_from() -> None:
+    """Events to a subscriber that stops reading are best effort: ``history/event`` is how it catches up."""
+    bus = ZenohBus("evh", ZenohConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]))
+    try:
+        for i in range(5):
+            bus.on_message(
+                {"kind": "event", "event": "feed_in", "test_id": f"evh-{i}", "t_wall": f"2026-01-01T00:00:0{i}Z"}
+            )
+        doc = json.loads(bus.history_payload("event", limit=3))
+        assert doc["topic"] == "event" and doc["count"] == 3 and doc["more"] is True
+        assert [r["test_id"] for r in doc["results"]] == ["evh-2", "evh-3", "evh-4"]
+    finally:
+        bus.stop()

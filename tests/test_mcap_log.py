@@ -34,6 +34,7 @@ from ballbar.daemon.mcap_log import (
     read_log,
     read_logs,
     read_mcap,
+    read_results,
     scaled_ints,
 )
 from ballbar.daemon.recordings import read_recording
@@ -684,3 +685,69 @@ def test_from_config(tmp_path: Path) -> None:
     assert (lg.machine_id, lg.directory) == ("mill-3", tmp_path / "recordings")
     assert (lg.rotate_bytes, lg.quota_bytes, lg.rotate_s) == (1 << 20, 8 << 20, 120.0)
     assert (lg.rotate_per_test, lg.keep_days, lg.flush_s) == (False, 30.0, 0.25)
+
+
+def test_full_disk_resumes_within_2_s_of_space_with_headroom_and_keeps_the_results(
+    state: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Default backoff (up to 60 s): a full disk is retried on a free-space probe instead, only with headroom,
+    and the results and events of the outage are written when it ends."""
+    free = {"bytes": 1 << 30}
+    monkeypatch.setattr(mcap_log, "_open_output", lambda p: io.BufferedWriter(_FullDiskRaw(p, "xb")))
+    monkeypatch.setattr(mcap_log, "_free_bytes", lambda _p: free["bytes"])
+    monkeypatch.setattr(_Disk, "full", False)
+    caplog.set_level(logging.INFO, logger="ballbar.daemon.mcap_log")
+    lg = McapLogger(state, "m")  # retry_min_s 1, retry_max_s 60
+    try:
+        lg.on_message({"kind": "config", "config": {"x": 1}})
+        lg.on_batch(make_batch(0, 50))
+        lg.flush()
+        _Disk.full, free["bytes"] = True, 28 << 10  # 28 KB left
+        for k in range(50, 2050, 50):
+            lg.on_batch(make_batch(k, 50))
+        lg.flush()
+        assert lg.stats()["state"] == "failed"
+        lg.on_message({"kind": "event", "event": "feed_in", "t_host": 123.0})
+        lg.on_message({"kind": "test", "test_id": "m-outage", "t_host": 124.0})
+        lg.on_message({"kind": "status", "t_host": 124.5})
+        errors_before = lg.stats()["write_errors"]
+        time.sleep(1.5)  # a sliver of space: no retry, no "writing again" that fails at once
+        for k in range(2050, 2550, 50):
+            lg.on_batch(make_batch(k, 50))
+        assert lg.stats()["write_errors"] == errors_before
+        assert not any("writing again" in r.getMessage() for r in caplog.records)
+        _Disk.full, free["bytes"] = False, 1 << 30
+        t0 = time.monotonic()
+        while lg.stats()["state"] != "writing":  # no data needed: the flush thread probes
+            assert time.monotonic() - t0 < 2.0, lg.stats()
+            time.sleep(0.05)
+        st = lg.stats()
+        assert st["messages_held_written"] == 2 and st["held_messages"] == 0
+    finally:
+        _Disk.full = False
+        lg.stop()
+    fs = files(state)
+    after = read_log(fs[-1])
+    assert [r["test_id"] for r in after.results] == ["m-outage"]
+    assert [e["event"] for e in after.events][:2] == ["log_gap", "feed_in"]
+
+
+def test_deeply_nested_json_costs_only_its_own_record(state: Path, tmp_path: Path) -> None:
+    lg = McapLogger(state, "m")
+    for i in range(3):
+        lg.on_message({"kind": "test", "test_id": f"m-{i}", "t_host": float(i)})
+        lg._rotate("size", time.monotonic())  # one result per file
+    lg.stop()
+    good = files(state)
+    # a hostile file: a result nested 100000 deep (json.loads raises RecursionError on it)
+    bad = state / "recordings" / "m_19700101T000000Z_0001.mcap"
+    with open(bad, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema("ballbar.Result", "jsonschema", b"{}")
+        ch = w.register_channel(mcap_log.TOPIC_RESULTS, "json", sid)
+        w.add_message(ch, log_time=0, data=b"[" * 100_000 + b"]" * 100_000, publish_time=0)
+        w.add_message(ch, log_time=1, data=b'{"kind": "test", "test_id": "m-bad-file"}', publish_time=1)
+        w.finish()
+    results = read_results(list_recordings(state / "recordings"))
+    assert [r["test_id"] for r in results] == ["m-bad-file", "m-0", "m-1", "m-2"], good

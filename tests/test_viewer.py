@@ -205,6 +205,14 @@ def receivers(tmp_path: Path) -> Iterator[list[Receiver]]:
         r.close()
 
 
+def wait_connected(v: RerunViewer, timeout: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not v.connected:
+        assert time.monotonic() < deadline, f"the viewer did not connect within {timeout} s: {v.stats()}"
+        v.on_idle()
+        time.sleep(0.02)
+
+
 def connected_viewer(url: str, **kw: Any) -> RerunViewer:
     opts = ViewerOptions(mode="connect", url=url, retry_s=0.1, **kw)
     v = RerunViewer(opts, plan=PLAN, recording_id="test-run")
@@ -368,7 +376,8 @@ def test_connect_mode_stream_is_received_and_read_back(
 def test_serve_mode_late_viewer_gets_the_history(script: Script, receivers: list[Receiver], tmp_path: Path) -> None:
     port = free_port()
     v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=port, server_memory_limit="64MiB"), plan=PLAN)
-    assert v.connected and v.address == f"rerun+http://127.0.0.1:{port}/proxy"
+    wait_connected(v)
+    assert v.address == f"rerun+http://127.0.0.1:{port}/proxy"
     assert listening(port)
     first, rest = script.split(0.6)
     feed(v, first)  # nobody watches yet: the server keeps it
@@ -410,15 +419,17 @@ def test_serve_mode_waits_for_a_busy_port(caplog: pytest.LogCaptureFixture) -> N
         blocker.listen()
         port = blocker.getsockname()[1]
         v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=port, retry_s=0.05), plan=PLAN)
+        deadline = time.monotonic() + 5.0
+        while "in use" not in caplog.text and time.monotonic() < deadline:
+            time.sleep(0.02)
         assert not v.connected
         assert "in use" in caplog.text
         v.on_batch(SampleBatch.from_columns([1.0], [1.0], [50.0], [0], [0]))  # logs nothing, keeps nothing big
         assert v.stats()["skipped"] == 1
-    time.sleep(0.06)
-    v.on_idle()
-    assert v.connected and listening(port)
+    wait_connected(v)
+    assert listening(port)
     v.stop()
-    assert not listening(port)  # with no viewer connected, the server goes with the stream
+    assert not listening(port)  # the server process goes with the stream
 
 
 # --------------------------------------------------------------------------- viewers that misbehave
@@ -611,7 +622,8 @@ def test_from_daemon_config() -> None:
     try:
         assert v.options.scale_um == pytest.approx(20.0)  # 500 R / M
         assert v.options.server_memory_limit == "64MiB"
-        assert v.connected and listening(port)
+        wait_connected(v)
+        assert listening(port)
     finally:
         v.stop()
 

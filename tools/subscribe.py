@@ -59,7 +59,8 @@ TOPIC_KEYS = {
     "samples": ("samples",),
     "all": ("**",),
 }
-HISTORY_FOR = {"result": HISTORY_TOPICS, "circle": ("circle",), "test": ("test",), "all": HISTORY_TOPICS}
+HISTORY_FOR = {"result": ("circle", "test"), "circle": ("circle",), "test": ("test",), "event": ("event",),
+               "all": HISTORY_TOPICS}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -99,7 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _identity(obj: dict[str, Any]) -> tuple[Any, ...]:
-    return (obj.get("kind"), obj.get("machine_id"), obj.get("test_id"), obj.get("t_wall"), obj.get("direction"))
+    return (obj.get("kind"), obj.get("machine_id"), obj.get("test_id"), obj.get("t_wall"), obj.get("direction"),
+            obj.get("event"))
 
 
 class _Printer:

@@ -1,0 +1,156 @@
+"""Who can see and touch the daemon: the Rerun server's defaults and its memory under a hostile client.
+
+(The Zenoh side, TLS and access control, is in ``test_zenoh_secure.py``.)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from test_viewer import RERUN, Receiver, read_rrd
+
+HERE = Path(__file__).resolve().parent
+pytestmark = pytest.mark.skipif(RERUN is None, reason="the rerun CLI binary is not installed")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def children(pid: int) -> set[int]:
+    kids: set[int] = set()
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{tid}/children") as fh:
+                kids.update(int(p) for p in fh.read().split())
+    except OSError:
+        pass
+    return kids
+
+
+def listeners(port: int) -> list[str]:
+    """Local addresses (hex, as /proc/net/tcp shows them) listening on ``port``."""
+    out = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as fh:
+            next(fh)
+            for line in fh:
+                local, _remote, state = line.split()[1:4]
+                addr, p = local.split(":")
+                if int(p, 16) == port and state == "0A":
+                    out.append(addr)
+    return out
+
+
+def test_default_is_loopback_on_a_port_the_viewer_does_not_use() -> None:
+    proc = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "run", "--print-config"],
+                          capture_output=True, text=True, timeout=30)
+    rerun = json.loads(proc.stdout)["rerun"]
+    assert rerun["mode"] == "serve" and rerun["bind"] == "127.0.0.1" and rerun["port"] != 9876
+
+
+def test_a_client_pushing_hundreds_of_mb_cannot_grow_the_daemon(tmp_path: Path) -> None:
+    port = free_port()
+    log_path = tmp_path / "daemon.log"
+    with open(log_path, "w") as log:
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--source", "sim:?rate=1000&speedup=5&repeat=0",
+             "--state-dir", str(tmp_path / "state"), "--set", "zenoh.enabled=false", "--set", "mcap.enabled=false",
+             "--set", f"rerun.port={port}", "--set", "rerun.memory_limit_mb=32"],
+            stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    samples: list[tuple[float, float]] = []
+    try:
+        deadline = time.monotonic() + 30
+        while not listeners(port):
+            assert daemon.poll() is None and time.monotonic() < deadline, log_path.read_text()[-2000:]
+            time.sleep(0.1)
+        assert listeners(port) == ["0100007F"]  # 127.0.0.1 only
+        time.sleep(3.0)  # the daemon settles: the simulator, the first circle drawn
+        base = rss_mb(daemon.pid)
+        for kind, mb in (("temporal", 300), ("static", 100), ("blueprint", 300)):
+            pusher = subprocess.Popen([sys.executable, str(HERE / "pusher.py"), url, kind, str(mb)],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            while pusher.poll() is None:
+                servers = [k for k in children(daemon.pid) if k != pusher.pid]
+                samples.append((rss_mb(daemon.pid), max([rss_mb(k) for k in servers], default=0.0)))
+                time.sleep(0.1)
+                assert time.monotonic() - deadline < 300
+        grown = max(d for d, _ in samples) - base
+        worst_server = max(s for _, s in samples)
+        print(f"daemon RSS {base:.0f} MB before, +{grown:.0f} MB at most while 700 MB were pushed; "
+              f"server process at most {worst_server:.0f} MB (cap 192 MiB)")
+        assert grown < 40, (base, grown)
+        # cap (2 x 32 + 128 MiB) plus what arrives within one supervision period
+        assert worst_server < 192 * 1.05 + 120, worst_server
+        out = log_path.read_text()
+        assert "over its 192 MiB cap" in out, (worst_server, out[-3000:])
+        # the server is back, and a viewer that connects now is sent the scene
+        deadline = time.monotonic() + 20
+        while not listeners(port):
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        time.sleep(1.0)
+        rx = Receiver(tmp_path, "late", free_port(), connect=url)
+        try:
+            time.sleep(3.0)
+        finally:
+            rx.finish()
+        saved = read_rrd(rx.rrd)
+        assert saved.rows.get("/polar/reference/nominal", 0) > 0, sorted(saved.rows)
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(10) == 0
+        assert not listeners(port)
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
+        for k in children(daemon.pid):
+            os.kill(k, signal.SIGKILL)
+
+
+def test_the_server_goes_with_a_killed_daemon(tmp_path: Path) -> None:
+    port = free_port()
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "ballbar.daemon.cli", "run", "--source", "sim:?rate=1000&speedup=1&repeat=0",
+         "--state-dir", str(tmp_path), "--set", "zenoh.enabled=false", "--set", "mcap.enabled=false",
+         "--set", f"rerun.port={port}"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while not listeners(port):
+            assert daemon.poll() is None and time.monotonic() < deadline
+            time.sleep(0.1)
+        daemon.kill()
+        daemon.wait(10)
+        deadline = time.monotonic() + 10
+        while listeners(port) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not listeners(port), "the rerun server outlived the daemon"
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
