@@ -73,8 +73,9 @@ HOLD_REACH_S = (0.01, 0.003)  # the lag's reach (s) either side while holding on
 COMPASS_S = (0.001, 0.00002)  # the joint refinement of lag and wait: first step, last step at most (s)
 COMPASS_EVALS, COMPASS_GAIN_NATS = 120, 0.5  # at most this many objectives; a step must gain this much
 SMOOTH_MAX_SAMPLE_DEG = 0.025  # samples further apart (deg) are searched as points: no smoothing
-WAIT_MAX_S = 0.1  # no extra wait beyond this (s), either sign
-WAIT_PRIOR_S = 0.005  # prior on it: where the data cannot see it (low rates), it stays near 0
+WAIT_MAX_S = 0.3  # no extra wait beyond this (s), either sign
+WAIT_PRIOR_S = 0.1  # prior on it: where the data cannot see it (low rates), it stays near 0
+WAIT_GRID_S = (0.01, 15)  # the wait's grid: steps (s) and how many either side
 LAG_PRIOR_S = 0.05
 SSE_FLOOR_UM = 1e-3
 DEFAULT_KV_PER_S = 30.0
@@ -1090,8 +1091,11 @@ class _LagSearch:
                 g = np.arange(full.size) * LAG_GRID_S[1]
                 a2 = np.polyfit(g - g[int(np.argmin(full))], full, 2)[0]
                 hyper.lag_stderr_s = 1.0 / math.sqrt(2 * a2) if a2 > 0 else float("inf")
-            # each arc's start in turn, the other's held (one direction: its start, then the feed)
+            # the feed-in's extra wait over its whole range (the lag's grids above held it at 0)
             dirs = self.plan.direction_list
+            if start is None:
+                pick(-WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0], wait=True)
+            # each arc's start in turn, the other's held (one direction: its start, then the feed)
             for reach in HOLD_REACH_S:
                 if len(dirs) == 1:
                     pick(-reach * 2, reach * 2, reach / 5, wait=True)
@@ -1305,6 +1309,7 @@ def analyze_test(
     lost = LostMotion()
     spacing_rad = base.feed_mm_s / plan.radius_mm / sample_hz if sample_hz > 0 else 0.0
     u_in = arc_start_deg(plan, plan.direction_list[0])
+    frame_cos2 = math.cos(2.0 * math.radians(u_in))  # the feed-in's delay is the angles' frame
 
     def choose(fit: FitResult) -> LostMotion:
         values = _credible_backlash(fit, search.kappa if fit.kappa == 1.0 else 1.0, options.min_effect_um)
@@ -1320,7 +1325,7 @@ def analyze_test(
         rho = _lag1(pre.residuals(pre_fit.x))
         search.kappa = min(max((1 + rho) / (1 - rho), 1.0), 400.0) if rho < 1 else 400.0
         lost = choose(pre_fit)
-        offset = make_offset(_values(pre_fit), tau, lost, cos2)
+        offset = make_offset(_values(pre_fit), tau, lost, cos2, frame_cos2)
         # 2. Lag and spike width with the corrections applied; then, where the fit at that timing changes a
         # lost-motion model or moves a table's reversal by a tenth of a sample (a sample at the onset decides a
         # spike's height), again from there.
@@ -1329,7 +1334,7 @@ def analyze_test(
             hyper = search.run(offset, lost, start)
             fit_s = search.joint(search.fine, hyper, offset, lost).solve(options)
             chosen = choose(fit_s)
-            offset = make_offset(_values(fit_s), tau, chosen, cos2)
+            offset = make_offset(_values(fit_s), tau, chosen, cos2, frame_cos2)
             moved = max(abs(a - b) for a, b in zip(chosen.onset_rad, lost.onset_rad, strict=True))
             same = chosen.models == lost.models and moved <= ONSET_MOVE_SAMPLES * spacing_rad
             lost, start = chosen, hyper
@@ -1367,11 +1372,11 @@ def analyze_test(
         chosen = choose(fit)
         if chosen.models != lost.models:  # the final fit turned a backlash's sign: the other model
             lost = chosen
-            offset = make_offset(_values(fit), tau, lost, cos2)
+            offset = make_offset(_values(fit), tau, lost, cos2, frame_cos2)
             joint = full(lost, offset)
             fit = joint.solve(options, exclude=exclude)
             continue
-        offset = make_offset(_values(fit), tau, lost, cos2)
+        offset = make_offset(_values(fit), tau, lost, cos2, frame_cos2)
         if offset is None and all(c.offset is None for c in joint.circles):
             break
         for c in joint.circles:

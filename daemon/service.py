@@ -42,6 +42,7 @@ from ballbar.analysis.errors import BallbarError
 
 from .config import Config
 from .listeners import Listener, ListenerQueue, Message
+from .mcap_log import scaled_ints
 from .samples import SampleBatch, breaks_in
 from .secrets import redacted
 from .sources import Source
@@ -98,6 +99,10 @@ class AnalysisListener(Listener):
         t = batch.t_device if self.use_device_time else batch.t_host
         good = valid & np.isfinite(t)
         t, L, seq = t[good], batch.length_mm[good], batch.seq[good]
+        if self.use_device_time:
+            # As the log records them (1 ns, 1 pm): ``ballbar analyze`` of the log then sees these very numbers,
+            # and its result is the one published (the timing search's decisions are discrete).
+            t, L = scaled_ints(t, 10**9) / 1e9, scaled_ints(L, 10**9) / 1e9
         # A device reset, clock jump or long loss the batch reports: a break before its first sample after it.
         cuts = breaks_in(batch.events, seq)
         if not t.size and not cuts:

@@ -516,7 +516,8 @@ def model_deviation_um(result: Mapping[str, Any], direction: int, u: FloatArray)
         tm = result.get("timing") or {}
         cos2 = _num(tm["loop_lag_radial_cos2u"]) if "loop_lag_radial_cos2u" in tm else _radial_cos2(
             plan, machine, str(tm.get("loop_lag_source", "")))
-        offset = make_offset(values, timing.loop_lag_s, lost, cos2)
+        frame_cos2 = math.cos(2.0 * math.radians(arc_start_deg(plan, plan.direction_list[0])))
+        offset = make_offset(values, timing.loop_lag_s, lost, cos2, frame_cos2)
         if offset is not None:
             dr = dr + offset(g)
     return np.asarray(dr, dtype=float)
