@@ -87,6 +87,7 @@ WIDTH_AT_BOUND = 1.03  # a fitted width within 3 % of a bound of its search has 
 WIDTH_STEP_LN = 0.05  # the step in ln w of the width's error estimate
 SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full) standard errors
 SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
+KAPPA_RESEARCH = 0.5  # the timing is searched again where the residual's correlation has fallen below this share
 ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
 # A measured feed this far from the programmed one is not the machine's habit (controls hold the feed to well
 # under 1 % at 100 % override): something else went wrong, and the next test must not assume it.
@@ -260,6 +261,11 @@ def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
             du = np.mod(g.d * (g.u - at) - g.onset_rad[axis], 2.0 * math.pi)  # travel past the onset
             out |= du < reach_rad
     return out
+
+
+def _kappa(rho: float) -> float:
+    """The AR(1) variance inflation ``(1 + rho) / (1 - rho)`` of a residual's lag-1 correlation, 1..400."""
+    return min(max((1 + rho) / (1 - rho), 1.0), 400.0) if rho < 1 else 400.0
 
 
 def _lag1(residuals: Sequence[np.ndarray]) -> float:
@@ -1322,8 +1328,7 @@ def analyze_test(
     if search.coarse.idx.size > 50:
         pre = search.joint(search.coarse, hyper, None, lost, keep=True)
         pre_fit = pre.solve(options)
-        rho = _lag1(pre.residuals(pre_fit.x))
-        search.kappa = min(max((1 + rho) / (1 - rho), 1.0), 400.0) if rho < 1 else 400.0
+        search.kappa = _kappa(_lag1(pre.residuals(pre_fit.x)))
         lost = choose(pre_fit)
         offset = make_offset(_values(pre_fit), tau, lost, cos2, frame_cos2)
         # 2. Lag and spike width with the corrections applied; then, where the fit at that timing changes a
@@ -1332,11 +1337,17 @@ def analyze_test(
         start = None
         for _pass in range(3):
             hyper = search.run(offset, lost, start)
-            fit_s = search.joint(search.fine, hyper, offset, lost).solve(options)
+            joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
+            fit_s = joint_s.solve(options)
             chosen = choose(fit_s)
             offset = make_offset(_values(fit_s), tau, chosen, cos2, frame_cos2)
             moved = max(abs(a - b) for a, b in zip(chosen.onset_rad, lost.onset_rad, strict=True))
             same = chosen.models == lost.models and moved <= ONSET_MOVE_SAMPLES * spacing_rad
+            # The residual's correlation, judged before the timing was found, may have been the misfit's
+            # (a large servo pattern turned by a wrong start): judged again, it can sharpen the likelihood.
+            kappa = _kappa(_lag1(joint_s.residuals(fit_s.x)))
+            if kappa < KAPPA_RESEARCH * search.kappa:
+                search.kappa, same = kappa, False
             lost, start = chosen, hyper
             if same:
                 break

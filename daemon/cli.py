@@ -75,7 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--significance", type=float, help="F-test level (default 0.05)")
     an.add_argument("--servo-model", choices=("auto", "linear", "physical"), help="servo mismatch model")
     an.add_argument("--lost-motion", choices=("physical", "deadband", "step"),
-                    help="backlash as a dead band with take-up (default) or the seed's step")
+                    help="per axis a dead band or over-set compensation through the loop (physical, default), "
+                    "or the seed's step")
     an.add_argument("--patterns", help="comma-separated pattern names to fit (default: all that apply)")
     an.add_argument("--test", type=int, help="which test: the N-th in a file (default 1), the N-th that "
                     "--list shows for a directory")

@@ -1251,7 +1251,7 @@ def _records_indexed(name: str, fh: IO[bytes]) -> McapLog | None:
         for _schema, channel, msg in reader.iter_messages(topics=list(wanted), log_time_order=False):
             try:
                 obj = json.loads(msg.data)
-            except ValueError:
+            except (ValueError, RecursionError):  # deeply nested JSON: one bad record costs only itself
                 continue
             if isinstance(obj, dict):
                 lists[wanted[channel.topic]].append(obj)

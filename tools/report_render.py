@@ -927,7 +927,7 @@ def _findings(result: Mapping[str, Any]) -> str:
 def _rule_words(result: Mapping[str, Any], alpha: float) -> str:
     """The result's significance rule as it states it (older results: the level alone)."""
     rule = (result.get("fit") or {}).get("significance_rule")
-    return str(rule) if rule else f"p < {alpha:g}"
+    return _prose(rule) if rule else f"p < {alpha:g}"
 
 
 def _iso(result: Mapping[str, Any]) -> str:
@@ -1056,7 +1056,7 @@ def _diagnostics(result: Mapping[str, Any]) -> str:
         ("Condition number", _fmt(fit.get("condition_number"), 1)),
         ("Samples / parameters", f"{fit.get('n_samples', _MISSING)} / {fit.get('n_parameters', _MISSING)} "
          f"(dof {fit.get('dof', _MISSING)})"),
-        ("Significance", _prose(str(fit.get("significance_rule") or f"p < {_fmt(fit.get('significance'), 3)}"))),
+        ("Significance", _rule_words(result, _num(fit.get("significance")) or 0.05)),
         ("Servo model", f"{fit.get('servo_model', _MISSING)}"
          + (f" — {fit['servo_model_note']}" if fit.get("servo_model_note") else "")),
         ("Lost-motion model", _lost_motion_words(fit, axes)),
