@@ -30,10 +30,10 @@ import logging
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, stats
 
 from . import iso230, noise
 from .advice import advise
@@ -79,6 +79,10 @@ WAIT_GRID_S = (0.01, 15)  # the wait's grid: steps (s) and how many either side
 LAG_PRIOR_S = 0.05
 SSE_FLOOR_UM = 1e-3
 DEFAULT_KV_PER_S = 30.0
+PROFILE_KV_PER_S = (12.0, 19.0, 30.0, 48.0, 76.0)  # the gains tried where the feed-in does not show the loop
+PROFILE_REFINE = 3  # parabola steps after the grid
+PROFILE_FLOOR_UM = 0.01  # no gauge resolves finer: a misfit below it tells no gain apart
+PROFILE_NATS = 2.0  # another gain must beat the default by this much log-likelihood
 TAIL_SAMPLES = 1.8  # samples per loop time constant the settling fit needs (6 within ~3.4 tau)
 FAST_LOOP_S = 0.02  # a loop lag the settling fit must be able to see before "none seen" means "fast"
 DEFAULT_SPIKE_WIDTH_DEG = 0.5
@@ -565,6 +569,8 @@ class _Hyper:
     lag_stderr_s: float = float("nan")
     wait_s: float = 0.0  # how much more the feed-in's move costs than each arc's (in-position waits)
     shift_s: dict[int, float] = field(default_factory=dict)  # per direction: its data arc's delay from that
+    # the spikes' likelihood ratio (nats) against the spike-free model at its own best timing (nan: not found)
+    spike_lr_nats: float = float("nan")
 
 
 def _has_spikes(patterns: Sequence[Pattern]) -> bool:
@@ -626,11 +632,11 @@ class _Joint:
 
     def solve(
         self, options: AnalysisOptions, rho: float = 0.0, exclude: dict[str, str] | None = None,
-        family_dof: dict[str, int] | None = None,
+        family_dof: dict[str, int] | None = None, family_lr: dict[str, float] | None = None,
     ) -> FitResult:
         return solve(self.factor(), self.patterns, rho=rho, significance=options.significance,
                      min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=self.colmax(),
-                     exclude=exclude, family_dof=family_dof)
+                     exclude=exclude, family_dof=family_dof, family_lr=family_lr)
 
 
 def _spike_timing_error(res: dict[str, Any], hyper: _Hyper, omega_rad_s: float) -> None:
@@ -838,6 +844,9 @@ class _LagSearch:
             start[pat.name] = self.p
             self.p += pat.q
         self.spike_cols = np.array([p.reversal is not None for p in patterns for _ in range(p.q)], dtype=bool)
+        # how much worse (nats) the spike-free model may be than the full one before the spikes' joint test,
+        # their heights and width as parameters, calls them significant
+        self.spike_nats = float(stats.chi2.isf(options.significance, int(self.spike_cols.sum()) + 1)) / 2
         self.last_x = np.zeros(0)  # the full model's coefficients of the last sse()
         self.by_direction = {}  # per direction: its patterns and their columns among all
         for d in plan.direction_list:
@@ -951,11 +960,14 @@ class _LagSearch:
         above all a compensation step filtered by the loop), a lag that puts
         the step a sample off leaves a residual the shape of a spike, and the
         free spike heights take it up, so the full model's likelihood can be
-        flat over several milliseconds.  Of the lags the full model cannot tell
-        apart (``LAG_CI_NATS``, a 95 % profile interval), the one the model
-        without spikes fits best is taken: spikes do not buy a timing the
-        steps refute, and where spikes are real and sharp their onsets narrow
-        that interval themselves.
+        flat over several milliseconds, or even a little better a sample off.
+        Of the lags the full model cannot tell apart (``LAG_CI_NATS``, a 95 %
+        profile interval), and of those where the model without spikes is not
+        worse than the full model's best by more than the spikes' joint test
+        allows (``spike_nats``: their count and the width as parameters, at the
+        significance level), the one the model without spikes fits best is
+        taken: spikes do not buy a timing the steps refute, and where spikes
+        are real the model without them is far worse everywhere.
 
         The feed-in may also cost more or less than the arcs (``wait_s``): a
         control that waits for in-position after each move waits longer after
@@ -1035,7 +1047,7 @@ class _LagSearch:
 
         def choose(full: np.ndarray, bare: np.ndarray) -> int:
             best[0] = min(best[0], float(full.min()))
-            return _pick(full, bare, best[0])
+            return _pick(full, bare, best[0], self.spike_nats)
 
         def width() -> None:
             r = optimize.minimize_scalar(
@@ -1053,13 +1065,13 @@ class _LagSearch:
             g, full, bare, pr, _ = grid(-reach, reach, step, wait, hold)
             k = choose(full, bare)
             like = bare - pr  # the stair is a level of the likelihood, not of the prior
-            ok = full <= best[0] + LAG_CI_NATS
+            ok = (full <= best[0] + LAG_CI_NATS) | (bare <= best[0] + self.spike_nats)
             level = like[k] + STAIR_NATS
 
             def on(x: float) -> bool:
                 c, w = at(x)
                 f, b, p = objs(c, w)
-                return f <= best[0] + LAG_CI_NATS and b - p <= level
+                return (f <= best[0] + LAG_CI_NATS or b <= best[0] + self.spike_nats) and b - p <= level
 
             lo, hi = k, k
             while lo > 0 and ok[lo - 1] and like[lo - 1] <= level:
@@ -1115,30 +1127,57 @@ class _LagSearch:
             # halving them down to a fraction of a sample period: it crosses stairs, and it does not wander
             # where the full model cannot tell timings apart (there the spike-free model chose above).
             smooth(None)
-            here = objs(hyper.overhead_s, hyper.wait_s)[0]
-            best[0] = min(best[0], here)
-            step_c = COMPASS_S[0]
-            evals = 0
-            while step_c >= min(COMPASS_S[1], 0.02 / self.sample_hz) and evals < COMPASS_EVALS:
-                moved = False
-                for dc, dw in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
-                    c, w = hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c
-                    if not (lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S):
-                        continue
-                    f = objs(c, w)[0]
-                    evals += 1
-                    if f < here - COMPASS_GAIN_NATS:
-                        hyper.overhead_s, hyper.wait_s, here, moved = c, w, f, True
-                        best[0] = min(best[0], f)
-                        break
-                if not moved:
-                    step_c /= 2
+
+            def compass(value: Callable[[float, float], float], gain: float = COMPASS_GAIN_NATS) -> float:
+                """Move the timing by compass steps while ``value`` falls by ``gain``; return the last value."""
+                here = value(hyper.overhead_s, hyper.wait_s)
+                step_c = COMPASS_S[0]
+                evals = 0
+                while step_c >= min(COMPASS_S[1], 0.02 / self.sample_hz) and evals < COMPASS_EVALS:
+                    moved = False
+                    for dc, dw in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
+                        c, w = hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c
+                        if not (lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S):
+                            continue
+                        f = value(c, w)
+                        evals += 1
+                        if f < here - gain:
+                            hyper.overhead_s, hyper.wait_s, here, moved = c, w, f, True
+                            break
+                    if not moved:
+                        step_c /= 2
+                return here
+
+            def full_value(c: float, w: float) -> float:
+                f = objs(c, w)[0]
+                best[0] = min(best[0], f)
+                return f
+
+            def bare_value(c: float, w: float) -> float:
+                f, b, _ = objs(c, w)
+                best[0] = min(best[0], f)
+                return b if f <= best[0] + LAG_CI_NATS or b <= best[0] + self.spike_nats else math.inf
+
+            compass(full_value)
+            if spikes:
+                # then along the timings the full model cannot tell apart, to the one the steps fit best: free
+                # spikes can follow a step a sample off, and the lines above may have ended on such a timing
+                compass(bare_value)
             if spikes:
                 width()
             spread = stair(wait=True) if len(dirs) == 1 else 0.0
             for d in dirs:
                 spread = max(spread, stair(hold=-d if len(dirs) > 1 else d))
             hyper.lag_stderr_s = max(hyper.lag_stderr_s, spread)
+            if spikes:
+                # The spikes' test against the spike-free model at its own best timing: at the timing the full
+                # model chose, free spikes may be taking up a step a sample off that another timing fits.
+                smooth(None)
+                chosen = replace(hyper)
+                full_here, _, prior_here = objs(chosen.overhead_s, chosen.wait_s)
+                bare_best = compass(lambda c, w: float(np.subtract(*objs(c, w)[1:])), gain=STAIR_NATS)
+                hyper.overhead_s, hyper.wait_s = chosen.overhead_s, chosen.wait_s
+                hyper.spike_lr_nats = max(bare_best - (full_here - prior_here), 0.0)
         elif spikes and start is None:
             self.fine = idx = self.fine_samples(hyper.overhead_s)
             width()
@@ -1199,10 +1238,11 @@ def _width_verdict(w: float, bounds: tuple[float, float], options: AnalysisOptio
     return ""
 
 
-def _pick(full: np.ndarray, bare: np.ndarray, best: float) -> int:
-    """Of the grid's timings the full model cannot tell from its ``best``, the index of the one the spike-free
-    model fits best (the grid's own best where none is that close)."""
-    ok = np.flatnonzero(full <= best + LAG_CI_NATS)
+def _pick(full: np.ndarray, bare: np.ndarray, best: float, spike_nats: float) -> int:
+    """Of the grid's timings the full model cannot tell from its ``best``, or where the spike-free model is
+    within ``spike_nats`` of it, the index of the one the spike-free model fits best (the grid's own best where
+    none is that close)."""
+    ok = np.flatnonzero((full <= best + LAG_CI_NATS) | (bare <= best + spike_nats))
     if ok.size == 0:
         return int(np.argmin(full))
     return int(ok[np.argmin(bare[ok])])
@@ -1235,44 +1275,62 @@ def _embed(f: Factor, sub: Sequence[Pattern], full: Sequence[Pattern]) -> Factor
     return out
 
 
+class Lag(NamedTuple):
+    """The position loops' mean lag for the physical servo model (:func:`loop_lag`).
+
+    ``tau`` (s): ``(1/KX + 1/KY)/2``, None for no servo correction; ``cos2``:
+    where it was measured along the feed-in/out's radial direction, that
+    direction's mean ``cos 2u`` (the lag there is ``tau_bar + (m/2) cos 2u``).
+    ``origin``: ``configured``, ``feed_in``, ``fast`` (no settling seen where
+    it would have been), ``linear`` (chosen), ``assumed`` (a default gain) or
+    ``fitted`` (to the data arcs, :func:`_profile_lag`); ``source`` says it in words.
+    """
+
+    tau: float | None
+    cos2: float | None
+    source: str
+    origin: str
+
+
 def loop_lag(
     plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, fi: StepEvent, fo: StepEvent, sample_hz: float
-) -> tuple[float | None, float | None, str]:
-    """Position-loop lag for the physical servo model: ``(tau, cos2, source)``.
+) -> Lag:
+    """Position-loop lag for the physical servo model.
 
-    ``tau`` (s): the mean lag ``(1/KX + 1/KY)/2`` from configured gains (``cos2``
-    None), or the lag measured along the feed-in/out's radial direction, which
-    is ``tau_bar + (m/2) cos 2u`` at angle ``u``: ``cos2`` is that mean ``cos 2u``.
-    Where no settling was seen although the rate would have shown a loop slower
-    than ``FAST_LOOP_S``, the loops are fast: no correction.  Else the lag is
-    assumed (a common default gain), and the result says so.
+    From configured gains, or measured on the feed-in/out's approach to the
+    circle.  Where no settling was seen although the rate would have shown a
+    loop slower than ``FAST_LOOP_S``, the loops are fast: no correction.  Else
+    the lag is assumed (a common default gain), and the result says so.
     """
     if options.servo_model == "linear":
-        return None, None, "linear model chosen"
+        return Lag(None, None, "linear model chosen", "linear")
     if machine.kv_x_per_s and machine.kv_y_per_s:
-        return 0.5 * (1.0 / machine.kv_x_per_s + 1.0 / machine.kv_y_per_s), None, "configured gains kv_x, kv_y"
+        tau = 0.5 * (1.0 / machine.kv_x_per_s + 1.0 / machine.kv_y_per_s)
+        return Lag(tau, None, "configured gains kv_x, kv_y", "configured")
     u_in = math.radians(arc_start_deg(plan, plan.direction_list[0]))
     resolvable_s = TAIL_SAMPLES / sample_hz if sample_hz > 0 else math.inf
     u_last = math.radians(arc_start_deg(plan, plan.direction_list[-1]))
     u_out = u_last + plan.direction_list[-1] * math.radians(plan.arc_deg)
     found = [(e.tau_s, math.cos(2 * u)) for e, u in ((fi, u_in), (fo, u_out)) if math.isfinite(e.tau_s)]
     if found:
-        return (
+        return Lag(
             float(np.mean([f[0] for f in found])),
             float(np.mean([f[1] for f in found])),
             "approach of the feed-in/feed-out to the circle (first-order loop fit)",
+            "feed_in",
         )
     if resolvable_s <= FAST_LOOP_S:
         # A loop as slow as machines' usually are would have shown its settling at this rate.
-        return None, None, (
+        return Lag(None, None, (
             f"no loop settling after the feed-in: the position loops are faster than {resolvable_s * 1000:.0f} ms "
             "at this sample rate (no servo dynamics to correct)"
-        )
-    return (
+        ), "fast")
+    return Lag(
         1.0 / DEFAULT_KV_PER_S,
         None,
         f"assumed {DEFAULT_KV_PER_S:g}/s (a common default position gain): the feed-in's settling is not "
         "resolved at this sample rate and no kv_x/kv_y is configured",
+        "assumed",
     )
 
 
@@ -1295,9 +1353,105 @@ def analyze_test(
     ``measured_um - model_um`` is the fit's residual).
     """
     check_plan(plan, fi, fo)
+    lag = loop_lag(plan, machine, options, fi, fo, _rate(t))
+    if lag.origin != "assumed":
+        return _analyze_at(plan, machine, options, t, L, fi, fo, curves, lag)
+    return _profile_lag(plan, machine, options, t, L, fi, fo, curves, lag)
+
+
+def _profile_lag(
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    t: np.ndarray,
+    L: np.ndarray,
+    fi: StepEvent,
+    fo: StepEvent,
+    curves: bool,
+    assumed: Lag,
+) -> dict[str, Any]:
+    """The fit at the position-loop gain the data arcs prefer, where the feed-in does not show it.
+
+    At a low sample rate the feed-in's settling is not resolved, but the loop
+    still shapes what the fit sees: a backlash compensation's step reaches the
+    table through it, and the servo remainder is its size.  With the wrong gain
+    that misfit is slow, and the slow patterns (drift above all) take it for
+    signal.  The whole fit is run over a grid of gains (``PROFILE_KV_PER_S``)
+    and a parabola through the best three, in the logarithm of the gain; the
+    default gain stays unless another is better by more than ``PROFILE_NATS``
+    of likelihood (the residual's inflation counted, its rms floored at
+    ``PROFILE_FLOOR_UM``).
+    """
+    runs: dict[float, dict[str, Any]] = {}
+
+    def run(kv: float) -> float:
+        if kv not in runs:
+            lag = Lag(1.0 / kv, None, assumed.source, "fitted")
+            try:
+                runs[kv] = _analyze_at(plan, machine, options, t, L, fi, fo, curves, lag)
+            except DataError:
+                if kv == DEFAULT_KV_PER_S:
+                    raise
+                return math.inf
+        # per sample, times the default's count: the runs may keep a few samples more or less
+        return 0.5 * n / inflation * math.log(runs[kv]["residual_rms_um"] ** 2 + PROFILE_FLOOR_UM**2)
+
+    default = _analyze_at(plan, machine, options, t, L, fi, fo, curves, assumed)
+    runs[DEFAULT_KV_PER_S] = default
+    inflation = max(float(default["fit"].get("variance_inflation") or 1.0), 1.0)
+    n = default["samples"]["in_data_arcs"]
+    grid = sorted({*PROFILE_KV_PER_S, DEFAULT_KV_PER_S})
+    for kv in grid:
+        run(kv)
+    for _ in range(PROFILE_REFINE):  # a parabola through the best and its neighbours, in log(gain)
+        tried = sorted(runs)
+        nll = [run(kv) for kv in tried]
+        k = int(np.argmin(nll))
+        if not (0 < k < len(tried) - 1 and all(math.isfinite(v) for v in nll[k - 1 : k + 2])):
+            break
+        a, b, _ = np.polyfit(np.log(tried[k - 1 : k + 2]), nll[k - 1 : k + 2], 2)
+        kv = float(round(math.exp(-b / (2 * a)), 1)) if a > 0 else tried[k]
+        if min(abs(math.log(kv / x)) for x in tried) < 0.02:
+            break
+        run(kv)
+    best = min(runs, key=run)
+    gain = run(DEFAULT_KV_PER_S) - run(best)
+    span = f"{min(grid):g}..{max(grid):g}/s"
+    # the data fix the gain only where both ends of the range are clearly worse than the best
+    bounded = min(run(min(grid)), run(max(grid))) - run(best) > PROFILE_NATS
+    if gain > PROFILE_NATS and bounded:
+        res = runs[best]
+        res["timing"]["loop_lag_source"] = (
+            f"fitted to the data arcs: {best:g}/s, {gain:.1f} nats better than the default {DEFAULT_KV_PER_S:g}/s "
+            f"over {span} (the feed-in's settling is not resolved at this sample rate and no kv_x/kv_y is "
+            "configured; a backlash compensation's step and the servo remainder pass through the loop)"
+        )
+    else:
+        res = default
+        why = (f"another gain is at most {gain:.1f} nats better (best {best:g}/s), not more than {PROFILE_NATS:g}"
+               if gain <= PROFILE_NATS else
+               f"the best, {best:g}/s, is not more than {PROFILE_NATS:g} nats better than both ends of the range")
+        res["timing"]["loop_lag_source"] = f"{assumed.source}; the data arcs do not fix the gain in {span}: {why}"
+    res["fit"]["servo_model_note"] = res["timing"]["loop_lag_source"]
+    res["timing"]["loop_gain_profile"] = {f"{kv:g}": round(run(kv) - run(best), 3) for kv in sorted(runs)}
+    return res
+
+
+def _analyze_at(
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    t: np.ndarray,
+    L: np.ndarray,
+    fi: StepEvent,
+    fo: StepEvent,
+    curves: bool,
+    lag: Lag,
+) -> dict[str, Any]:
+    """:func:`analyze_test` at a position-loop lag ``(tau, cos2, source)`` (:func:`loop_lag`)."""
     span = fo.t_s - fi.t_s
     patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
-    tau, cos2, tau_source = loop_lag(plan, machine, options, fi, fo, _rate(t))
+    tau, cos2, tau_source, _ = lag
     # 1. A preliminary fit on the search's coarse set of samples: the corrections' first values.
     sample_hz = _rate(t)
     base = make_timing(plan, fi.t_s, feed_from_span(plan, span, 0.0), 0.0)
@@ -1395,7 +1549,8 @@ def analyze_test(
         fit = joint.solve(options, exclude=exclude)
     residuals = joint.residuals(fit.x)
     # the spikes' width was fitted to these samples: their joint test counts it
-    fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1})
+    fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1},
+                      family_lr={"reversal_spike": hyper.spike_lr_nats})
     res = _result_body(plan, machine, options, fit, patterns)
     _spike_timing_error(res, hyper, V / plan.radius_mm)
     res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
@@ -1412,6 +1567,7 @@ def analyze_test(
     res["advice"] = advise(res["parameters"], plan, machine)  # on the final verdicts
     res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
     res["timing"]["loop_lag_source"] = tau_source
+    res["timing"]["loop_lag_origin"] = lag.origin
     res["timing"]["loop_lag_radial_cos2u"] = cos2
     res["timing"]["backlash_takeup_deg"] = {
         axis: math.degrees(o) if m == "deadband" else 0.0

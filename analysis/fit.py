@@ -184,6 +184,7 @@ def solve(
     effect_scale: np.ndarray | None = None,
     exclude: dict[str, str] | None = None,
     family_dof: dict[str, int] | None = None,
+    family_lr: dict[str, float] | None = None,
 ) -> FitResult:
     """Fit ``patterns`` from ``factor``; rank them; say which cannot be identified.
 
@@ -194,6 +195,10 @@ def solve(
     ``exclude``: patterns left out beforehand, with the reason.
     ``family_dof``: per family (:func:`family`), parameters its shape was
     searched for (the reversal spikes' width), counted in its joint test.
+    ``family_lr``: per family, its likelihood ratio (nats) against the model
+    without it at that model's own best search (the spike-free model at its
+    own timing): its joint test is also the chi-square test of that ratio,
+    and the larger p of the two is the family's.
     """
     patterns = list(patterns)
     R = factor.rows
@@ -281,7 +286,7 @@ def solve(
     for i, pat in enumerate(patterns):
         if used[i]:
             members.setdefault(family(pat.name), []).append(i)
-    gates: dict[str, tuple[float, int]] = {}
+    gates: dict[str, tuple[float, int, str]] = {}
     for fam, idx in members.items():
         if len(idx) < 2:
             continue
@@ -289,8 +294,16 @@ def solve(
         q = len(own) + (family_dof or {}).get(fam, 0)
         fam_ssr = max(sse_subset(R, [c for c in cols if c not in own]) - sse_full, 0.0)
         F = (fam_ssr / q) / mse if mse > 0 else math.inf
-        gates[fam] = (float(stats.f.sf(F, q, dof)) if math.isfinite(F) else 0.0, q)
-    _judge(result.terms, significance, min_effect_um, gates)
+        p_gate = float(stats.f.sf(F, q, dof)) if math.isfinite(F) else 0.0
+        how = f"joint F-test over {q} parameters"
+        lr = (family_lr or {}).get(fam, math.nan)
+        if math.isfinite(lr) and float(stats.chi2.sf(2.0 * lr, q)) > p_gate:
+            p_gate = float(stats.chi2.sf(2.0 * lr, q))
+            how = (f"likelihood ratio over {q} parameters against the model without them at its own best "
+                   f"timing, {lr:.3g} nats")
+        gates[fam] = (p_gate, q, how)
+    setup = frozenset(pat.name for i, pat in enumerate(patterns) if used[i] and pat.kind == "setup")
+    _judge(result.terms, significance, min_effect_um, gates, setup)
     return result
 
 
@@ -306,42 +319,75 @@ def family(name: str) -> str:
 def significance_rule(level: float, min_effect_um: float) -> str:
     """The rule :func:`solve` applies, in words (it goes into every result)."""
     return (
-        f"a pattern is significant when its extra-sum-of-squares F-test gives p < {level:g}, where it belongs to "
-        "a family (the reversal spikes; the X and Y patterns of one kind) the family's joint F-test does too "
-        "(counting the spikes' fitted width as a parameter) and its own p passes Holm's step-down correction "
-        f"within the family, and its largest radial effect over the data is at least {min_effect_um:g} um"
+        "the machine's error patterns are tested in families (the reversal spikes; the X and Y patterns of one "
+        "kind; each other pattern alone), each family by its joint extra-sum-of-squares F-test (counting the "
+        "spikes' fitted width as a parameter; for the spikes also against the spike-free model at its own best "
+        "timing, the larger p counting); the families pass Holm's step-down correction at "
+        f"{level:g} together, so that a machine with none of them shows any with a chance of at most {level:g}; "
+        "within a family that passes, a pattern's own p passes Holm's correction among its members; and a "
+        f"pattern's largest radial effect over the data is at least {min_effect_um:g} um. The set-up's terms "
+        f"(centre, radius) are tested alone at {level:g}"
     )
 
 
+def _holm(ps: Sequence[float], level: float) -> list[tuple[bool, float]]:
+    """Holm's step-down test of ``ps`` at ``level``: per p, whether it passes, and the threshold it was held to
+    (after the first failure, that failure's: every later p is at least as large)."""
+    out: list[tuple[bool, float]] = [(False, level)] * len(ps)
+    stop = 0.0
+    m = len(ps)
+    for k, i in enumerate(sorted(range(m), key=lambda i: ps[i])):
+        threshold = stop or level / (m - k)
+        if not stop and not ps[i] < threshold:
+            stop = threshold
+        out[i] = (not stop, threshold)
+    return out
+
+
 def _judge(
-    terms: dict[str, TermResult], level: float, min_effect_um: float, gates: dict[str, tuple[float, int]]
+    terms: dict[str, TermResult],
+    level: float,
+    min_effect_um: float,
+    gates: dict[str, tuple[float, int, str]],
+    setup: frozenset[str] = frozenset(),
 ) -> None:
     """Apply :func:`significance_rule`; a term that passes the F-test but fails a further rule says which."""
     groups: dict[str, list[TermResult]] = {}
     for t in terms.values():
-        groups.setdefault(family(t.pattern), []).append(t)
+        groups.setdefault(t.pattern if t.pattern in setup else family(t.pattern), []).append(t)
+    machine = [f for f in groups if groups[f][0].pattern not in setup]
+    fam_p = {f: gates[f][0] if f in gates else min(t.p_value for t in groups[f]) for f in groups}
+    fam_pass = dict(zip(machine, _holm([fam_p[f] for f in machine], level), strict=True))
+    for f in groups:
+        fam_pass.setdefault(f, (fam_p[f] < level, level))
     for fam, members in groups.items():
         m = len(members)
         words = fam.replace("_", " ")
-        gate_p, gate_q = gates.get(fam, (0.0, 0))
-        failed = False
-        for k, t in enumerate(sorted(members, key=lambda t: t.p_value)):
-            threshold = level / (m - k)
-            passes = not failed and t.p_value < threshold and gate_p < level
-            failed = failed or not passes
-            if passes and t.effect_um >= min_effect_um:
+        passed, fam_threshold = fam_pass[fam]
+        inner = _holm([t.p_value for t in members], level)
+        for t, (own_passes, threshold) in zip(members, inner, strict=True):
+            if passed and own_passes and t.effect_um >= min_effect_um:
                 t.significant = True
-            elif passes:
+            elif not t.p_value < level:
+                continue
+            elif passed and own_passes:
                 t.reason = (
                     f"statistically significant (p = {t.p_value:.2g}) but its largest radial effect, "
                     f"{t.effect_um:.3g} um, is below the minimum effect of {min_effect_um:g} um"
                 )
-            elif t.p_value < level and gate_p >= level:
+            elif not passed and fam not in gates:
                 t.reason = (
-                    f"p = {t.p_value:.2g} is below {level:g}, but the {m} {words} patterns together are not "
-                    f"significant (joint F-test over {gate_q} parameters, p = {gate_p:.2g})"
+                    f"p = {t.p_value:.2g} is below {level:g} but not below {fam_threshold:.2g}, Holm's threshold "
+                    f"for it among the {len(machine)} families of machine errors tested"
                 )
-            elif t.p_value < level:
+            elif not passed:
+                together = f"the {m} {words} patterns together ({gates[fam][2]})"
+                t.reason = (
+                    f"p = {t.p_value:.2g} is below {level:g}, but {together} give p = {fam_p[fam]:.2g}, "
+                    + (f"not below {fam_threshold:.2g}, Holm's threshold for the family among the {len(machine)} "
+                       "families of machine errors tested" if fam_p[fam] < level else f"not below {level:g}")
+                )
+            else:
                 t.reason = (
                     f"p = {t.p_value:.2g} is below {level:g} but not below {threshold:.2g}, Holm's threshold for it "
                     f"among the {m} {words} patterns tested together"

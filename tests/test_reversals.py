@@ -17,20 +17,11 @@ import math
 import numpy as np
 import pytest
 
-from ballbar.analysis import TestPlan
-from ballbar.analysis.engine import analyze_recording
-from ballbar.tools.simulator import MachineModel, simulate
+from ballbar.tools.false_alarms import analyse, false_findings, random_machine
+from ballbar.tools.simulator import MachineModel
 
 RATES = [15.625, 250.0, 1000.0]
 SPIKES = [f"reversal_spike_{a}_{e}_{d}_um" for a in "xy" for e in ("pos", "neg") for d in ("ccw", "cw")]
-
-
-def analyse(machine: MachineModel, fs: float, seed: int = 0, **plan: float) -> tuple[dict, dict]:
-    plan = TestPlan(sample_hz=fs, **plan)
-    sim = simulate(plan, machine, fs, seed=seed)
-    tests = [r for r in analyze_recording(sim.t_s, sim.length_mm, plan) if r["kind"] == "test"]
-    assert len(tests) == 1
-    return tests[0], sim.truth
 
 
 def significant(res: dict, prefix: str) -> list[str]:
@@ -143,35 +134,18 @@ def test_a_large_gain_mismatch_is_servo_mismatch_only() -> None:
         assert not found, (extra, [(k, res["parameters"][k]["value"]) for k in found])
 
 
-def random_machine(rng: np.random.Generator) -> tuple[MachineModel, float]:
-    """A machine without spikes, lateral play or drift, and a sample rate."""
-    kx = float(rng.uniform(20.0, 50.0))
-    ky = kx * float(rng.uniform(0.9, 1.1)) if rng.random() < 0.6 else kx
-    kw = dict(
-        backlash_x_um=float(rng.uniform(-6, 6)), backlash_y_um=float(rng.uniform(-6, 6)), kv_x_per_s=kx,
-        kv_y_per_s=ky, squareness_urad=float(rng.uniform(-30, 30)), scale_x_ppm=float(rng.uniform(-10, 10)),
-        centre_x_um=float(rng.uniform(-20, 20)), centre_y_um=float(rng.uniform(-20, 20)),
-        noise_um=float(rng.uniform(0.05, 0.3)), jerk_mm_s3=float(rng.choice([math.inf, 50_000.0, 20_000.0])),
-        master_slave_a_um=float(rng.uniform(-1, 1)) if rng.random() < 0.3 else 0.0,
-        quantum_um=0.1 if rng.random() < 0.3 else 0.0,
-    )
-    if rng.random() < 0.3:
-        kw.update(drop_fraction=0.02, jitter_s=0.0005, jitter_stamped=bool(rng.random() < 0.5))
-    return MachineModel(**kw), float(rng.choice([15.625, 250.0, 500.0, 1000.0]))
-
-
 FALSE_ALARM_MACHINES = 50
 
 
 def test_false_alarms_on_random_machines() -> None:
-    """At significance 0.05, no more than 5 % of random machines without them show any significant spike,
-    lateral play or drift (the families are tested as wholes, Holm's correction within them)."""
+    """At significance 0.05, no more than 5 % of random machines show any error they do not have (spikes,
+    lateral play, straightness, drift, and servo mismatch or a changeover where they have none): the families
+    are tested together under Holm's correction, so the chance of any is at most the level."""
     rng = np.random.default_rng(20261122)
-    hits = {"reversal_spike": 0, "lateral_play": 0, "drift": 0}
+    found = {}
     for i in range(FALSE_ALARM_MACHINES):
         machine, fs = random_machine(rng)
-        res, _ = analyse(machine, fs, seed=i)
-        for family in hits:
-            hits[family] += bool(significant(res, family))
-    rates = {k: v / FALSE_ALARM_MACHINES for k, v in hits.items()}
-    assert all(r <= 0.05 for r in rates.values()), rates
+        res, truth = analyse(machine, fs, seed=i)
+        if false := false_findings(res, truth):
+            found[(i, fs)] = false
+    assert len(found) <= 0.05 * FALSE_ALARM_MACHINES, found

@@ -1,0 +1,136 @@
+"""False alarms: how often the analyzer reports an error a simulated machine does not have.
+
+Each random machine (:func:`random_machine`) has the errors a real one
+usually has, in random sizes: backlash of either sign (a negative one is an
+over-set compensation), position-loop gains of 20..50/s, unequal on most
+machines, squareness, scale, a pivot offset, sometimes a master-slave
+changeover, noise of 0.05..0.3 um, a jerk limit, a coarse gauge (0.1 um
+steps), dropped and jittered samples; at 15.625, 250, 500 or 1000 Hz. It has
+no reversal spikes, lateral play, straightness or drift, and often no servo
+mismatch or changeover. Every significant pattern whose true value is zero
+(``simulate``'s truth) is a false alarm.
+
+Printed: per family, the share of machines that showed it falsely (with a
+Wilson 95 % interval); the share with any false finding, in all and per
+sample rate; each false finding with its p-value. Run:
+``python -m ballbar.tools.false_alarms --machines 200 --seed 1000 --jobs 2``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import multiprocessing
+import sys
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ballbar.analysis import TestPlan
+from ballbar.analysis.engine import analyze_recording
+from ballbar.analysis.fit import family
+from ballbar.analysis.patterns import BY_NAME, LIBRARY
+from ballbar.tools.simulator import MachineModel, simulate
+
+RATES = (15.625, 250.0, 500.0, 1000.0)
+
+
+def random_machine(rng: np.random.Generator) -> tuple[MachineModel, float]:
+    """A machine without spikes, lateral play, straightness or drift, and a sample rate."""
+    kx = float(rng.uniform(20.0, 50.0))
+    ky = kx * float(rng.uniform(0.9, 1.1)) if rng.random() < 0.6 else kx
+    kw: dict[str, Any] = dict(
+        backlash_x_um=float(rng.uniform(-6, 6)), backlash_y_um=float(rng.uniform(-6, 6)), kv_x_per_s=kx,
+        kv_y_per_s=ky, squareness_urad=float(rng.uniform(-30, 30)), scale_x_ppm=float(rng.uniform(-10, 10)),
+        centre_x_um=float(rng.uniform(-20, 20)), centre_y_um=float(rng.uniform(-20, 20)),
+        noise_um=float(rng.uniform(0.05, 0.3)), jerk_mm_s3=float(rng.choice([math.inf, 50_000.0, 20_000.0])),
+        master_slave_a_um=float(rng.uniform(-1, 1)) if rng.random() < 0.3 else 0.0,
+        quantum_um=0.1 if rng.random() < 0.3 else 0.0,
+    )
+    if rng.random() < 0.3:
+        kw.update(drop_fraction=0.02, jitter_s=0.0005, jitter_stamped=bool(rng.random() < 0.5))
+    return MachineModel(**kw), float(rng.choice(RATES))
+
+
+def analyse(machine: MachineModel, fs: float, seed: int = 0, **plan: float) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The one test of a simulated recording of ``machine`` at ``fs``, and the simulation's truth."""
+    test_plan = TestPlan(sample_hz=fs, **plan)
+    sim = simulate(test_plan, machine, fs, seed=seed)
+    tests = [r for r in analyze_recording(sim.t_s, sim.length_mm, test_plan) if r["kind"] == "test"]
+    if len(tests) != 1:
+        raise AssertionError(f"{len(tests)} tests found in one simulated test")
+    return tests[0], sim.truth
+
+
+def false_findings(result: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
+    """The machine patterns ``result`` calls significant whose truth is zero: name -> p-value."""
+    out = {}
+    for r in result["ranking"]:
+        pat = BY_NAME.get(r["pattern"])
+        if (pat is not None and pat.kind == "setup") or not r["significant"]:
+            continue
+        fields = pat.fields if pat is not None else (f"{r['pattern']}_um",)  # a reversal spike
+        if all(k in truth for k in fields) and all(truth[k] == 0.0 for k in fields):
+            out[r["pattern"]] = float(r["p_value"])
+    return out
+
+
+def _one(job: tuple[int, MachineModel, float]) -> tuple[int, float, dict[str, float]]:
+    i, machine, fs = job
+    res, truth = analyse(machine, fs, seed=i)
+    return i, fs, false_findings(res, truth)
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval of a proportion ``k/n``."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def survey(machines: int, seed: int, jobs: int = 1) -> list[tuple[int, float, dict[str, float]]]:
+    """Analyse ``machines`` random machines drawn from ``seed``: per machine its rate and false findings."""
+    rng = np.random.default_rng(seed)
+    work = [(i, *random_machine(rng)) for i in range(machines)]
+    if jobs <= 1:
+        return [_one(w) for w in work]
+    with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+        return sorted(pool.imap_unordered(_one, work), key=lambda r: r[0])
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.false_alarms", description=__doc__.splitlines()[0])
+    p.add_argument("--machines", type=int, default=100)
+    p.add_argument("--seed", type=int, default=1000)
+    p.add_argument("--jobs", type=int, default=1, help="processes (one per core)")
+    a = p.parse_args(argv)
+    t0 = time.perf_counter()
+    rows = survey(a.machines, a.seed, a.jobs)
+    n = len(rows)
+    print(f"{n} random machines from seed {a.seed}, {time.perf_counter() - t0:.0f} s")
+    for i, fs, found in rows:
+        if found:
+            print(f"  machine {i} at {fs:g} Hz: " + ", ".join(f"{k} (p = {v:.2g})" for k, v in found.items()))
+    families = sorted({family(pat.name) for pat in LIBRARY if pat.kind != "setup"} | {"reversal_spike"})
+    print("false alarm rate per family (machines with it falsely significant, Wilson 95 %):")
+    for fam in families:
+        k = sum(any(family(name) == fam for name in found) for _, _, found in rows)
+        lo, hi = wilson(k, n)
+        print(f"  {fam:18s} {k:4d}/{n} = {100 * k / n:5.1f} %  [{100 * lo:.1f}, {100 * hi:.1f}]")
+    k = sum(bool(found) for _, _, found in rows)
+    lo, hi = wilson(k, n)
+    print(f"  {'any':18s} {k:4d}/{n} = {100 * k / n:5.1f} %  [{100 * lo:.1f}, {100 * hi:.1f}]")
+    for rate in sorted({fs for _, fs, _ in rows}):
+        sub = [found for _, fs, found in rows if fs == rate]
+        k = sum(bool(found) for found in sub)
+        print(f"  any at {rate:g} Hz: {k}/{len(sub)} = {100 * k / len(sub):.1f} %")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
