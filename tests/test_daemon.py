@@ -135,8 +135,10 @@ def test_unit_verifies_and_is_hardened(tmp_path: Path) -> None:
                        text=True, timeout=60)
     m = re.search(r"Overall exposure level for \S+: ([0-9.]+)", s.stdout + s.stderr)
     assert m, s.stdout[-500:]
-    assert float(m.group(1)) <= 1.4
-    for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "DynamicUser=yes", "StateDirectory=ballbar"):
+    assert float(m.group(1)) <= 1.2
+    for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "DynamicUser=yes", "StateDirectory=ballbar",
+                "DevicePolicy=closed", "DeviceAllow=char-ttyUSB rw", "DeviceAllow=char-ttyACM rw",
+                "SupplementaryGroups=dialout", "RestrictAddressFamilies="):
         assert key in text
 
 
