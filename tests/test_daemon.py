@@ -135,9 +135,94 @@ def test_unit_verifies_and_is_hardened(tmp_path: Path) -> None:
                        text=True, timeout=60)
     m = re.search(r"Overall exposure level for \S+: ([0-9.]+)", s.stdout + s.stderr)
     assert m, s.stdout[-500:]
-    assert float(m.group(1)) <= 1.4
-    for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "DynamicUser=yes", "StateDirectory=ballbar"):
+    assert float(m.group(1)) <= 1.2
+    for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "DynamicUser=yes", "StateDirectory=ballbar",
+                "DevicePolicy=closed", "DeviceAllow=char-ttyUSB rw", "DeviceAllow=char-ttyACM rw",
+                "SupplementaryGroups=dialout", "RestrictAddressFamilies="):
         assert key in text
+
+
+def _seccomp_missing() -> str | None:
+    import unitsandbox
+
+    if systemd_analyze is None:
+        return "systemd-analyze is not installed (it expands the system call groups)"
+    if unitsandbox.library() is None:
+        return "libseccomp is not installed"
+    return None
+
+
+PROBE = """
+import ctypes, errno, socket
+for name in ("AF_UNIX", "AF_INET", "AF_INET6", "AF_NETLINK", "AF_PACKET"):
+    try:
+        kind = socket.SOCK_RAW if name in ("AF_NETLINK", "AF_PACKET") else socket.SOCK_DGRAM
+        socket.socket(getattr(socket, name), kind).close()
+        print(name, "ok")
+    except OSError as err:
+        print(name, errno.errorcode[err.errno])
+libc = ctypes.CDLL(None, use_errno=True)
+libc.mmap.restype = ctypes.c_void_p
+libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_long]
+for name, prot in (("rw", 3), ("rwx", 7)):
+    ok = libc.mmap(None, 4096, prot, 0x22, -1, 0) not in (None, ctypes.c_void_p(-1).value)
+    print(name, "ok" if ok else errno.errorcode[ctypes.get_errno()])
+"""
+
+
+def _children(pid: int) -> list[str]:
+    names = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{tid}/children") as fh:
+            for kid in fh.read().split():
+                with contextlib.suppress(OSError), open(f"/proc/{kid}/comm") as c:
+                    names.append(c.read().strip())
+    return names
+
+
+@pytest.mark.skipif(_seccomp_missing() is not None, reason=str(_seccomp_missing()))
+def test_the_daemon_lives_under_the_units_seccomp_filters(tmp_path: Path) -> None:
+    """The unit's system call filter, address families, W^X and namespace settings, applied as systemd does
+    (tests/unitsandbox.py): the simulated device's pty, numpy/scipy, Zenoh and the Rerun child all work."""
+    sandbox = [sys.executable, str(Path(__file__).with_name("unitsandbox.py")), str(UNIT), "--"]
+    probe = subprocess.run([*sandbox, sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=60)
+    assert probe.returncode == 0, probe.stderr
+    got = dict(line.split() for line in probe.stdout.splitlines())
+    assert got == {"AF_UNIX": "ok", "AF_INET": "ok", "AF_INET6": "ok", "AF_NETLINK": "ok",
+                   "AF_PACKET": "EAFNOSUPPORT", "rw": "ok", "rwx": "EPERM"}, got  # the filters are really there
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    endpoint = f"tcp/127.0.0.1:{ports[0]}"
+    log = tmp_path / "daemon.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [*sandbox, sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--speedup", "5",
+             "--state-dir", str(tmp_path / "state"), "--set", f'zenoh.listen=["{endpoint}"]',
+             "--set", f"rerun.port={ports[1]}"],
+            stdout=out, stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + 60
+        while "ready: reading" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        sub = subprocess.run(
+            [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint, "--topic", "circle",
+             "--count", "1", "--timeout", "120"],
+            capture_output=True, text=True, timeout=150,
+        )
+        assert sub.returncode == 0 and '"kind":"circle"' in sub.stdout, (sub.stderr, log.read_text()[-2000:])
+        assert "rerun" in _children(proc.pid), _children(proc.pid)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log.read_text()
+    assert "unitsandbox: address families" in text and "Traceback" not in text and "ERROR" not in text, text[-3000:]
 
 
 def test_notify_never_blocks_when_nobody_reads(tmp_path: Path) -> None:

@@ -69,6 +69,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from ballbar.protocol.binary import FRAME_SIZE
+
 log = logging.getLogger(__name__)
 
 MACHINE = "soak"
@@ -641,6 +643,12 @@ def account(final: dict[str, Any], files: dict[str, Any]) -> dict[str, Any]:
     if by_cause.get("outage", 0) != dev["unplugged"] + in_transit:
         problems.append(f"lost across unplugs {by_cause.get('outage', 0)} != lost while unplugged "
                         f"{dev['unplugged']} + on the wire {in_transit}")
+    # The decoder skips the junk, and at each unplug at most the part of a frame cut off by it.
+    skipped = int(st["source"].get("decode", {}).get("skipped_bytes", 0))
+    unplugs = int(st["source"].get("unplugs", 0))
+    if not dev["garbage_bytes"] <= skipped < dev["garbage_bytes"] + FRAME_SIZE * unplugs + 1:
+        problems.append(f"the decoder skipped {skipped} bytes: not the {dev['garbage_bytes']} junk bytes sent "
+                        f"plus less than a frame at each of {unplugs} unplugs")
     other = {k: v for k, v in by_cause.items() if k != "outage" and v}
     if other:
         problems.append(f"losses nobody injected: {other}")
@@ -713,7 +721,8 @@ def report(r: dict[str, Any]) -> Iterator[str]:
            f"(+ {rec['preroll']} preroll copies) + lost by the logger {a['mcap']['samples_lost']} "
            f"(log_gap events: {rec['log_gap_samples']} in {rec['log_gaps']}); MCAP queue dropped "
            f"{a['mcap_queue'].get('dropped', 0)}")
-    yield (f"  garbage  device sent {d['garbage_bytes']} junk bytes; decoder: {a['decode']}; resets {d['resets']}")
+    yield (f"  garbage  device sent {d['garbage_bytes']} junk bytes; decoder: {a['decode']} (and the frames that "
+           f"unplugs cut); resets {d['resets']}")
     yield (f"  held     results/events held through disk-full spells: {a['mcap']['messages_held']} "
            f"(written {a['mcap']['messages_held_written']}); status messages lost {a['mcap']['messages_lost']}")
     b = r["bus"]
