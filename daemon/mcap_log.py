@@ -69,7 +69,7 @@ instant on the wall clock).
 
 ``/ballbar/results`` (``ballbar.Result``): the analysis results, ``kind`` =
 ``circle`` or ``test``, as ``ballbar analyze --json`` prints them plus
-``machine_id``, ``test_id``, ``t_host``, ``last_sample_t``.
+``machine_id``, ``test_id``, ``t_host``, ``last_sample_t``, ``last_sample_t_host``, ``latency_ms``.
 
 ``/ballbar/status`` (``ballbar.Status``): the daemon's status messages
 (``kind`` = ``status``: rates, losses, queue depths, source state).

@@ -19,8 +19,11 @@ matters).  The main loop also sends ``READY=1`` once the source is open,
 Results carry, besides the ``ballbar analyze --json`` object, ``machine_id``,
 ``test_id`` (``<machine>-<UTC time of the feed-in>``, then ``-2``, ``-3`` for
 more tests started within the same second), ``t_wall`` (ISO time of
-publication), ``t_host`` (monotonic) and ``last_sample_t`` (the time axis
-value of the last sample the analysis had seen).
+publication), ``t_host`` (monotonic), ``last_sample_t`` (the time axis
+value of the last sample the analysis had seen), ``last_sample_t_host`` (that
+sample's host time, on the same monotonic clock as ``t_host``) and
+``latency_ms`` (``t_host - last_sample_t_host``: how long after its last sample
+a result went out).
 """
 
 from __future__ import annotations
@@ -80,6 +83,7 @@ class AnalysisListener(Listener):
         self.test_id: str | None = None
         self._id_base, self._same_second = "", 0
         self.last_t = math.nan
+        self.last_t_host = math.nan
         self.results = 0
         self.tests = 0
         self.errors = 0
@@ -107,7 +111,8 @@ class AnalysisListener(Listener):
         cuts = breaks_in(batch.events, seq)
         if not t.size and not cuts:
             return
-        self.last_t = float(t[-1]) if t.size else self.last_t
+        if t.size:
+            self.last_t, self.last_t_host = float(t[-1]), float(batch.t_host[good][-1])
         t0 = time.perf_counter()
         out: list[Message] = []
         i = 0
@@ -155,8 +160,10 @@ class AnalysisListener(Listener):
         msg["machine_id"] = self.cfg.daemon.machine_id
         msg["test_id"] = self.test_id
         msg["t_wall"] = utc_now()
-        msg["t_host"] = time.monotonic()
+        msg["t_host"] = now = time.monotonic()
         msg["last_sample_t"] = self.last_t
+        msg["last_sample_t_host"] = self.last_t_host
+        msg["latency_ms"] = 1000.0 * (now - self.last_t_host)
         msg["time_axis"] = "device" if self.use_device_time else "host"
         return msg
 

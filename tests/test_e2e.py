@@ -150,6 +150,10 @@ def test_daemon_end_to_end(device: DeviceProcess, tmp_path: Path, capsys: pytest
     assert kinds == [("circle", "ccw"), ("circle", "cw"), ("test", None)], kinds
     test = lines[-1]
     assert test["machine_id"] == "e2e" and test["test_id"].startswith("e2e-")
+    # Each result says when its last sample arrived, on the host clock of its publication time.
+    for m in lines:
+        assert 0.0 < m["t_host"] - m["last_sample_t_host"] < 30.0, m
+        assert m["latency_ms"] == pytest.approx(1000.0 * (m["t_host"] - m["last_sample_t_host"]))
     p = test["parameters"]
     assert abs(p["backlash_x_um"]["value"] - 4.0) < 0.1
     assert abs(p["servo_mismatch_ms"]["value"] - 1000 * (1 / 30 - 1 / 33)) < 0.05
