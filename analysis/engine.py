@@ -57,6 +57,7 @@ from .timeaxis import Break, TimeAxis
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
+FOLD_SAMPLES = 256  # a live circle folds new samples in blocks of at least this many (or as it completes)
 SEARCH_SAMPLES_PER_CIRCLE = 1000  # thinned samples per circle away from the sharp features
 # Near each 45 deg point (before, after it; deg) the search keeps samples up to one per spacing (deg): over the
 # whole lag range (which moves the points by up to ~3 deg) coarsely, then where they are finely (at 10 kHz 1 in 4).
@@ -445,15 +446,17 @@ class TestAnalyzer:
         self._added = 0
 
     def _advance(self, final: bool) -> list[dict[str, Any]]:
-        """Fold new samples into the running circles; emit the circles now complete."""
+        """Fold new samples into the running circles, ``FOLD_SAMPLES`` at a time or as a circle completes;
+        emit the circles now complete."""
         tb, Lb = self.detector.samples()
-        if self._added < tb.size:
+        t_last = tb[-1] if tb.size else -math.inf
+        due = final or any(c.d not in self._emitted and t_last >= c.t_end for c in self._circles)
+        if self._added < tb.size and (due or tb.size - self._added >= FOLD_SAMPLES):
             t_new, L_new = tb[self._added :], Lb[self._added :]
             for c in self._circles:
                 c.add(t_new, L_new)
             self._added = tb.size
         out = []
-        t_last = tb[-1] if tb.size else -math.inf
         for c in self._circles:
             if c.d in self._emitted or (t_last < c.t_end and not final):
                 continue

@@ -26,7 +26,9 @@ watches it (:class:`TimeAxis`), with the median sample period as its yardstick:
 
 The period is the median of the recent positive steps (the last
 ``PERIOD_WINDOW``), so repeated timestamps (a host stamping a whole read at
-once) and a few losses do not move it.
+once) and a few losses do not move it.  Once the window is full it is taken
+again every ``PERIOD_REFRESH`` steps, not on every chunk: a live stream comes
+in chunks of a few samples, and the period changes slowly if at all.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from .errors import DataError
 GAP_PERIODS = 8.0  # a forward step longer than this many median periods is a break
 JITTER_PERIODS = 3.0  # a backward step up to this many median periods is timestamp jitter
 PERIOD_WINDOW = 2048  # positive steps the median period is taken over
+PERIOD_REFRESH = 256  # ... and taken again after this many more, once the window is full
 MIN_STEPS = 8  # positive steps needed before a forward step is judged
 
 
@@ -126,6 +129,7 @@ class TimeAxis:
         self.forward_steps = 0  # positive steps seen
         self.period_s = math.nan
         self._recent = np.empty(0)
+        self._since_median = 0  # positive steps since the period was last taken
         self._told: list[str] = []
 
     def mark(self, reason: str) -> None:
@@ -146,7 +150,11 @@ class TimeAxis:
         steps = np.diff(full)
         pos = steps[steps > 0]
         recent = pos if pos.size >= PERIOD_WINDOW else np.concatenate((self._recent[pos.size - PERIOD_WINDOW :], pos))
-        period = float(np.median(recent)) if recent.size else math.nan
+        since = self._since_median + pos.size
+        if recent.size < PERIOD_WINDOW or since >= PERIOD_REFRESH or not math.isfinite(self.period_s):
+            period, since = (float(np.median(recent)) if recent.size else math.nan), 0
+        else:
+            period = self.period_s
         # Against the latest time so far, so that one sample stamped late cannot hide a clock that ran back.
         prior = np.maximum.accumulate(np.concatenate(([self.max_t], t[:-1])))
         tol = JITTER_PERIODS * period if math.isfinite(period) else 0.0
@@ -181,8 +189,12 @@ class TimeAxis:
         self.max_t = max(self.max_t, float(t.max()))
         self.forward_steps += pos.size
         self.period_s = period
+        self._since_median = since
         self._recent = recent[-PERIOD_WINDOW:]
         return out
 
 
-__all__ = ["GAP_PERIODS", "JITTER_PERIODS", "Break", "TimeAxis", "TimeAxisError", "backward_steps", "median_period"]
+__all__ = [
+    "GAP_PERIODS", "JITTER_PERIODS", "PERIOD_REFRESH", "Break", "TimeAxis", "TimeAxisError", "backward_steps",
+    "median_period",
+]

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from masksynth import FULL_TRUTH, mask_recording
 
-from ballbar.analysis import AnalysisOptions, TestPlan
-from ballbar.analysis.engine import TestAnalyzer, analyze_recording
+from ballbar.analysis import AnalysisOptions, TestPlan, engine
+from ballbar.analysis.engine import FOLD_SAMPLES, TestAnalyzer, analyze_recording
 from ballbar.analysis.errors import DetectionError
 
 # The recordings here follow the masks exactly: no dead band, no servo dynamics.
@@ -97,6 +97,50 @@ def test_streamed_in_chunks_equals_whole_file() -> None:
     assert circle["timing"]["provisional"] is True
     # one direction, provisional timing and spike width: close, not exact
     assert abs(circle["parameters"]["backlash_x_um"]["value"] - 4.0) < 0.4
+
+
+def test_a_live_stream_folds_in_blocks_and_its_circles_do_not_depend_on_the_chunks(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Samples arriving a few at a time (a 20 ms batch) are folded into the circles in blocks, not per chunk:
+    the circle results are those of large chunks, to rounding."""
+    plan = TestPlan(sample_hz=1000)
+    t, L = mask_recording(plan, FULL_TRUTH, fs=1000.0, noise_um=0.2)
+    folds: list[int] = []
+    real_add = engine.CircleFit.add
+
+    def add(self: engine.CircleFit, tt: np.ndarray, LL: np.ndarray) -> None:
+        folds.append(tt.size)
+        real_add(self, tt, LL)
+
+    monkeypatch.setattr(engine.CircleFit, "add", add)
+
+    def circles(sizes: np.random.Generator | int) -> list[dict]:
+        an = TestAnalyzer(plan, options=MASKS)
+        out: list[dict] = []
+        i = 0
+        while i < t.size:
+            n = sizes if isinstance(sizes, int) else int(sizes.integers(1, 30))
+            out.extend(r for r in an.feed(t[i : i + n], L[i : i + n]) if r["kind"] == "circle")
+            i += n
+        return out
+
+    def no_test(*_a: object, **_k: object) -> dict:
+        raise engine.DataError("the circles only")
+
+    monkeypatch.setattr(engine, "analyze_test", no_test)
+    small = circles(np.random.default_rng(1))
+    small_folds = folds[:]
+    folds.clear()
+    large = circles(5000)
+    assert [c["direction"] for c in small] == [c["direction"] for c in large] == ["ccw", "cw"]
+    # per circle, all but the fold that completes it hold at least FOLD_SAMPLES new samples
+    assert len(small_folds) < t.size / FOLD_SAMPLES * 2 + 10, len(small_folds)
+    assert sum(n >= FOLD_SAMPLES for n in small_folds) >= len(small_folds) - 6
+    for a, b in zip(small, large, strict=True):
+        for key, p in a["parameters"].items():
+            v, w = p["value"], b["parameters"][key]["value"]
+            assert (v is None and w is None) or abs(v - w) <= 1e-9 * max(1.0, abs(w)), key
 
 
 def test_single_direction_cannot_separate_squareness_from_servo() -> None:
