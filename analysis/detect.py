@@ -58,21 +58,31 @@ class StepEvent:
 
 
 class _Buffer:
-    """Growable (t, L) storage without quadratic copying."""
+    """Growable (t, L) storage without quadratic copying.
+
+    An empty buffer may *borrow* a chunk (:meth:`extend` with ``borrow``):
+    it keeps views of the caller's arrays instead of a copy, drops samples
+    by slicing them, and copies only when more samples come.
+    """
 
     def __init__(self) -> None:
         self.t = np.empty(1024)
         self.L = np.empty(1024)
         self.n = 0
+        self.borrowed = False
 
-    def extend(self, t: np.ndarray, L: np.ndarray) -> None:
+    def extend(self, t: np.ndarray, L: np.ndarray, borrow: bool = False) -> None:
+        if borrow and self.n == 0:
+            self.t, self.L, self.n, self.borrowed = t, L, t.size, True
+            return
         need = self.n + t.size
-        if need > self.t.size:
+        if need > self.t.size or self.borrowed:
             cap = max(need, 2 * self.t.size)
             for name in ("t", "L"):
                 new = np.empty(cap)
                 new[: self.n] = getattr(self, name)[: self.n]
                 setattr(self, name, new)
+            self.borrowed = False
         self.t[self.n : need] = t
         self.L[self.n : need] = L
         self.n = need
@@ -81,8 +91,11 @@ class _Buffer:
         if k <= 0:
             return
         rest = self.n - k
-        self.t[:rest] = self.t[k : self.n]
-        self.L[:rest] = self.L[k : self.n]
+        if self.borrowed:
+            self.t, self.L = self.t[k : self.n], self.L[k : self.n]
+        else:
+            self.t[:rest] = self.t[k : self.n]
+            self.L[:rest] = self.L[k : self.n]
         self.n = rest
 
     def view(self) -> tuple[np.ndarray, np.ndarray]:
@@ -117,8 +130,12 @@ class TestDetector:
     def seen_range(self) -> tuple[float, float]:
         return float(self.lmin), float(self.lmax)
 
-    def feed(self, t: np.ndarray, L: np.ndarray) -> None:
-        """Append a chunk; then call :meth:`poll` until it returns None."""
+    def feed(self, t: np.ndarray, L: np.ndarray, borrow: bool = False) -> None:
+        """Append a chunk; then call :meth:`poll` until it returns None.
+
+        ``borrow``: where nothing is held yet, keep views of ``t`` and ``L``
+        rather than a copy (the caller leaves them unchanged from then on).
+        """
         t = np.asarray(t, dtype=float)
         L = np.asarray(L, dtype=float)
         if t.size == 0:
@@ -126,7 +143,7 @@ class TestDetector:
         self.n_seen += t.size
         self.lmin = min(self.lmin, float(L.min()))
         self.lmax = max(self.lmax, float(L.max()))
-        self.buf.extend(t, L)
+        self.buf.extend(t, L, borrow)
 
     def poll(self) -> StepEvent | None:
         """The next completed step, or None when the samples so far hold no more.
@@ -161,24 +178,23 @@ class TestDetector:
         s = self.scan_from
         if s >= tb.size:
             return None
-        Ls = Lb[s:]
-        on = np.abs(Ls - self.low) <= BAND * self.f
-        out = np.abs(Ls - self.high) <= BAND * self.f
-        src, dst = (out, on) if not self.in_test else (on, out)
+        # "on" within BAND * f of R, "out" of R + f; a feed-in goes from out to on, a feed-out back
+        src, dst = (self.high, self.low) if not self.in_test else (self.low, self.high)
+        band = BAND * self.f
         # the first destination sample preceded (somewhere) by a source sample
-        src_idx = np.flatnonzero(src)
-        if src_idx.size == 0:
+        first_src = _first_near(Lb, src, band, s, tb.size)
+        if first_src is None:
             self.scan_from = tb.size
             return None
-        dst_after = np.flatnonzero(dst[src_idx[0] :])
-        if dst_after.size == 0:
+        i2 = _first_near(Lb, dst, band, first_src, tb.size)
+        if i2 is None:
+            last_src = _last_near(Lb, src, band, first_src, tb.size)
             if self.final and self.in_test:
-                return self._truncated_feed_out(tb, Lb, s + int(src_idx[-1]))
+                return self._truncated_feed_out(tb, Lb, last_src)
             # keep scanning from the last source sample next time
-            self.scan_from = s + int(src_idx[-1])
+            self.scan_from = last_src
             return None
-        i2 = s + src_idx[0] + int(dst_after[0])
-        i1 = s + int(np.flatnonzero(src[: i2 - s])[-1])
+        i1 = _last_near(Lb, src, band, first_src, i2)
         # settle: need samples after i2 on the new level to fix it
         level_after, b, settled = self._settle(tb, Lb, i2, forward=True)
         if not settled:
@@ -206,7 +222,6 @@ class TestDetector:
         band = BAND * self.f
         if forward:
             j = i
-            near = np.abs(L[i:] - target) <= band
             # The level: the median over the later part of the dwell that follows, when
             # the position loop has closed its following error and the arc has not begun.
             w0, w1 = self._settle_window()
@@ -215,7 +230,12 @@ class TestDetector:
             if k_end >= L.size and not self.final:
                 return float("nan"), i, False
             k_lo = min(k_lo, max(k_end - 1, i))
-            seg = L[k_lo : max(k_end, i + 1)][near[k_lo - i : max(k_end, i + 1) - i]]
+            e = max(k_end, i + 1)
+            if k_lo >= i:  # the samples near the target in the window (not the whole rest: a file may follow)
+                seg = L[k_lo:e][np.abs(L[k_lo:e] - target) <= band]
+            else:  # times out of order before i
+                near = np.abs(L[i:] - target) <= band
+                seg = L[k_lo:e][near[k_lo - i : e - i]]
             level = float(np.median(seg)) if seg.size else float(L[i])
             tol = self._tolerance(seg)
             k = i
@@ -385,3 +405,30 @@ class TestDetector:
     def samples(self) -> tuple[np.ndarray, np.ndarray]:
         """The samples held: from the current (or just ended) test's feed-in on."""
         return self.buf.view()
+
+
+FIND_FIRST = 4096  # samples looked at first for the next level crossing; twice as many each time after
+
+
+def _first_near(L: np.ndarray, level: float, band: float, lo: int, hi: int) -> int | None:
+    """The first index in ``lo:hi`` with ``|L - level| <= band``, or None: looked for in growing windows."""
+    w = FIND_FIRST
+    while lo < hi:
+        b = min(hi, lo + w)
+        hit = np.flatnonzero(np.abs(L[lo:b] - level) <= band)
+        if hit.size:
+            return lo + int(hit[0])
+        lo, w = b, min(2 * w, 1 << 20)
+    return None
+
+
+def _last_near(L: np.ndarray, level: float, band: float, lo: int, hi: int) -> int:
+    """The last index in ``lo:hi`` with ``|L - level| <= band`` (there is one): looked for from ``hi`` back."""
+    w = FIND_FIRST
+    while hi > lo:
+        a = max(lo, hi - w)
+        hit = np.flatnonzero(np.abs(L[a:hi] - level) <= band)
+        if hit.size:
+            return a + int(hit[-1])
+        hi, w = a, min(2 * w, 1 << 20)
+    raise AssertionError("no sample near the level")  # pragma: no cover - callers pass a range holding one

@@ -319,12 +319,14 @@ class TestAnalyzer:
         self._breaks: list[Break] = []
         self.last_t = float("nan")
 
-    def feed(self, t: np.ndarray, L: np.ndarray) -> list[dict[str, Any]]:
+    def feed(self, t: np.ndarray, L: np.ndarray, borrow: bool = False) -> list[dict[str, Any]]:
         """Take the next samples (times in seconds, any origin; lengths in mm).
 
         Raises :class:`DataError` for a non-finite value and
         :class:`~.timeaxis.TimeAxisError` for a time that runs backwards beyond
-        jitter; nothing of the chunk is taken then.
+        jitter; nothing of the chunk is taken then.  ``borrow``: the detector
+        may keep views of ``t`` and ``L`` instead of a copy (the caller leaves
+        them unchanged while the analyzer lives: a whole recording).
         """
         t = np.asarray(t, dtype=float)
         L = np.asarray(L, dtype=float)
@@ -334,7 +336,7 @@ class TestAnalyzer:
         self._breaks.extend(self.axis.check(t))
         if t.size:
             self.last_t = float(t[-1])
-        self.detector.feed(t, L)
+        self.detector.feed(t, L, borrow)
         return self._drain()
 
     def mark_break(self, reason: str) -> None:
@@ -1740,7 +1742,7 @@ def analyze_recording(
     """
     t = np.asarray(t, dtype=float)
     L = np.asarray(L, dtype=float)
-    if t.size >= 2 and np.all(np.isfinite(t)) and not np.any(np.diff(t) > 0):
+    if t.size >= 2 and np.all(np.isfinite(t)) and not np.any(t[1:] > t[:-1]):  # no full-length np.diff
         what = f"all {t.size} samples have t={t[0]:g} s" if np.all(t == t[0]) else "it never increases"
         raise DataError(f"the time axis does not advance ({what}): no test can be timed")
     an = TestAnalyzer(plan, machine, options, curves=curves)
@@ -1748,10 +1750,10 @@ def analyze_recording(
     i = 0
     for j, reason in sorted(breaks, key=lambda b: b[0]):
         j = min(max(int(j), i), t.size)
-        out.extend(an.feed(t[i:j], L[i:j]))
+        out.extend(an.feed(t[i:j], L[i:j], borrow=True))
         an.mark_break(reason)
         i = j
-    out.extend(an.feed(t[i:], L[i:]))
+    out.extend(an.feed(t[i:], L[i:], borrow=True))
     out.extend(an.finish())
     if not any(r.get("event") == "feed_in" for r in out):
         lo, hi = an.detector.seen_range()

@@ -45,6 +45,7 @@ JITTER_PERIODS = 3.0  # a backward step up to this many median periods is timest
 PERIOD_WINDOW = 2048  # positive steps the median period is taken over
 PERIOD_REFRESH = 256  # ... and taken again after this many more, once the window is full
 MIN_STEPS = 8  # positive steps needed before a forward step is judged
+CHECK_BLOCK = 1 << 20  # samples of a long chunk checked at a time (the size of the temporaries)
 
 
 class TimeAxisError(DataError):
@@ -141,60 +142,93 @@ class TimeAxis:
         """The breaks before and within the chunk ``t`` (finite times); updates the state.
 
         Raises :class:`TimeAxisError` for a step backwards beyond jitter (the
-        state is then unchanged).
+        state is then unchanged).  A long chunk (a whole recording) is worked
+        through :data:`CHECK_BLOCK` samples at a time, with the same answers.
         """
         t = np.asarray(t, dtype=float)
         if t.size == 0:
             return []
-        full = t if self.n == 0 else np.concatenate(([self.last_t], t))
-        steps = np.diff(full)
-        pos = steps[steps > 0]
-        recent = pos if pos.size >= PERIOD_WINDOW else np.concatenate((self._recent[pos.size - PERIOD_WINDOW :], pos))
-        since = self._since_median + pos.size
-        if recent.size < PERIOD_WINDOW or since >= PERIOD_REFRESH or not math.isfinite(self.period_s):
-            period, since = (float(np.median(recent)) if recent.size else math.nan), 0
+        pos = positive_steps(t, self.last_t if self.n else None)
+        npos = pos.size
+        since = self._since_median + npos
+        if npos >= PERIOD_WINDOW:
+            recent = pos[-PERIOD_WINDOW:].copy()  # not a view: pos may be a whole recording's
+            period, since = float(np.median(pos, overwrite_input=True)), 0  # pos is ours; the same median
         else:
-            period = self.period_s
-        # Against the latest time so far, so that one sample stamped late cannot hide a clock that ran back.
-        prior = np.maximum.accumulate(np.concatenate(([self.max_t], t[:-1])))
+            recent = np.concatenate((self._recent[npos - PERIOD_WINDOW :], pos))
+            if recent.size < PERIOD_WINDOW or since >= PERIOD_REFRESH or not math.isfinite(self.period_s):
+                period, since = (float(np.median(recent)) if recent.size else math.nan), 0
+            else:
+                period = self.period_s
+            recent = recent[-PERIOD_WINDOW:]
+        del pos
         tol = JITTER_PERIODS * period if math.isfinite(period) else 0.0
-        back = prior - t
-        if np.any(back > tol):
-            k = int(np.argmax(back > tol))
-            allowed = f"{tol:.3g} s, {JITTER_PERIODS:g} sample periods" if tol > 0 else "no period known yet"
-            raise TimeAxisError(
-                f"sample {self.n + k}: the time runs backwards by {back[k]:.6g} s (t={t[k]:.6f} s after "
-                f"t={prior[k]:.6f} s), more than timestamp jitter ({allowed}): a clock that restarted or "
-                "jumped back, or samples out of order",
-                self.n + k,
-            )
+        judged = self.forward_steps + npos >= MIN_STEPS and math.isfinite(period)
+        gaps: list[tuple[int, float, float]] = []  # (index in t, latest time before it, its time)
+        latest = self.max_t
+        first_prior = latest
+        for a in range(0, t.size, CHECK_BLOCK):
+            seg = t[a : a + CHECK_BLOCK]
+            # Against the latest time so far, so that one sample stamped late cannot hide a clock that ran back.
+            prior = np.maximum.accumulate(np.concatenate(([latest], seg[:-1])))
+            latest = max(float(prior[-1]), float(seg[-1]))
+            back = prior - seg
+            if np.any(back > tol):
+                j = int(np.argmax(back > tol))
+                allowed = f"{tol:.3g} s, {JITTER_PERIODS:g} sample periods" if tol > 0 else "no period known yet"
+                raise TimeAxisError(
+                    f"sample {self.n + a + j}: the time runs backwards by {back[j]:.6g} s (t={seg[j]:.6f} s after "
+                    f"t={prior[j]:.6f} s), more than timestamp jitter ({allowed}): a clock that restarted or "
+                    "jumped back, or samples out of order",
+                    self.n + a + j,
+                )
+            if a == 0:
+                first_prior = float(prior[0])
+            if judged:
+                fwd = seg - prior
+                if a == 0 and self.n == 0:
+                    fwd[0] = 0.0  # the stream's first sample follows nothing
+                gaps.extend((a + k, float(prior[k]), float(seg[k]))
+                            for k in np.flatnonzero(fwd > GAP_PERIODS * period).tolist())
         out: list[Break] = []
         told, self._told = self._told, []
-        fwd = t - prior
-        if self.n == 0:
-            fwd[0] = 0.0  # the stream's first sample follows nothing
-        if self.forward_steps + pos.size >= MIN_STEPS and math.isfinite(period):
-            gaps = set(np.flatnonzero(fwd > GAP_PERIODS * period).tolist())
-        else:
-            gaps = set()
-        if told and self.n:
-            gaps.add(0)
-        for k in sorted(gaps):
+        if told and self.n and not (gaps and gaps[0][0] == 0):
+            gaps.insert(0, (0, first_prior, float(t[0])))
+        for k, before, after in gaps:
             reason = "; ".join(told) if k == 0 and told else ""
-            out.append(Break(self.n + k, float(prior[k]), float(t[k]), period, reason))
+            out.append(Break(self.n + k, before, after, period, reason))
         if self.n == 0:
             self.first_t = float(t[0])
         self.n += t.size
         self.last_t = float(t[-1])
-        self.max_t = max(self.max_t, float(t.max()))
-        self.forward_steps += pos.size
+        self.max_t = max(self.max_t, latest)
+        self.forward_steps += npos
         self.period_s = period
         self._since_median = since
-        self._recent = recent[-PERIOD_WINDOW:]
+        self._recent = recent
         return out
+
+
+def positive_steps(t: np.ndarray, before: float | None = None) -> np.ndarray:
+    """The positive steps of ``t`` (after ``before``, if given), in order: ``np.diff`` a block at a time."""
+    t = np.asarray(t, dtype=float)
+    if t.size <= CHECK_BLOCK:
+        steps = np.diff(t if before is None else np.concatenate(([before], t)))
+        return steps[steps > 0]
+    out = np.empty(t.size if before is not None else t.size - 1)
+    m = 0
+    if before is not None and t.size and t[0] - before > 0:
+        out[0] = t[0] - before
+        m = 1
+    for a in range(0, t.size - 1, CHECK_BLOCK):
+        steps = np.diff(t[a : a + CHECK_BLOCK + 1])
+        pos = steps[steps > 0]
+        out[m : m + pos.size] = pos
+        m += pos.size
+    return out[:m]
 
 
 __all__ = [
     "GAP_PERIODS", "JITTER_PERIODS", "PERIOD_REFRESH", "Break", "TimeAxis", "TimeAxisError", "backward_steps",
-    "median_period",
+    "median_period", "positive_steps",
 ]

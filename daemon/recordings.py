@@ -31,7 +31,7 @@ import numpy as np
 from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
-from ballbar.analysis.timeaxis import JITTER_PERIODS
+from ballbar.analysis.timeaxis import JITTER_PERIODS, positive_steps
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def read_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     csv.t = csv.L = np.empty(0)
     if t.size < 2:
         return t, length
-    pos = _positive_steps(t)
+    pos = positive_steps(t)
     if pos.size == 0:
         what = f"is {t[0]:g} s in every one of the {t.size} samples" if np.all(t == t[0]) else "never increases"
         raise DataError(f"{name}: t_s {what}: no time axis to analyse")
@@ -120,18 +120,6 @@ def read_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
         t = t[order]
         length = length[order]
     return t, length
-
-
-def _positive_steps(t: np.ndarray) -> np.ndarray:
-    """The positive ones of ``np.diff(t)``, in order, computed a block at a time."""
-    out = np.empty(t.size - 1)
-    m = 0
-    for a in range(0, t.size - 1, SCAN_ROWS):
-        steps = np.diff(t[a : a + SCAN_ROWS + 1])
-        pos = steps[steps > 0]
-        out[m : m + pos.size] = pos
-        m += pos.size
-    return out[:m]
 
 
 class _CsvParser:
