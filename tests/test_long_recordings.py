@@ -150,3 +150,10 @@ def test_analyze_memory_is_bounded(tmp_path: Path) -> None:
     samples = 16 * (n - t.size)  # t and L
     assert grown < 3 * samples + 60e6, f"analyze grew {grown / 1e6:.0f} MB more for {samples / 1e6:.0f} MB of samples"
 
+
+def test_bench_csv_runs(capsys: pytest.CaptureFixture[str]) -> None:
+    from ballbar.tools import bench_csv
+
+    assert bench_csv.main(["--rows", "3000", "--sample-hz", "100", "--modes", "read"]) == 0
+    out = capsys.readouterr().out
+    assert "3000 rows" in out and " read " in out and "peak" in out
