@@ -7,18 +7,24 @@ import contextlib
 import json
 import logging
 import os
+import shutil
 import sys
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .config import Config, ConfigError, load
-from .errors import SourceConfigError
+from .errors import SourceClosed, SourceConfigError, SourceError
 from .listeners import Listener
 from .lock import StateLock
+from .samples import SampleBatch, SourceStats
 from .service import Daemon
-from .sources import open_source, split_url
+from .sources import Source, open_source, split_url
+
+if TYPE_CHECKING:
+    from ballbar.tools.simdevice import DeviceProcess
 
 log = logging.getLogger(__name__)
 
@@ -130,14 +136,100 @@ def simdevice_args(cfg: Config, speedup: float) -> list[str]:
     return args
 
 
-@contextlib.contextmanager
-def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
-    """The built-in simulated ball-bar on a pty, repeating tests; yields its source URL."""
-    from ballbar.tools.simdevice import DeviceProcess
+class SimulatedDeviceSource(Source):
+    """The simulated device's serial source, opened once the device is up.
 
-    with DeviceProcess(*simdevice_args(cfg, speedup)) as dev:
-        log.info("simulated ball-bar on %s (x%g speed)", dev.path, speedup)
-        yield dev.url
+    The device starts beside the daemon: it imports the simulator and simulates its
+    first test (about a second) before its pty appears, and READY=1 does not wait for
+    that.  Until then a read waits for the device and returns nothing, without an
+    event (the port is not missing, it is being made); then the serial source on its
+    pty takes over (its ``opened`` event first).  A device that exits before it is up
+    is a :class:`SourceError`.
+    """
+
+    scheme = "serial"
+
+    def __init__(self, dev: DeviceProcess, url: str, rate_hz: float, start_timeout_s: float = 60.0) -> None:
+        super().__init__(url, rate_hz)
+        self.device = dev
+        self._inner: Source | None = None
+        self._give_up = time.monotonic() + start_timeout_s
+        self._lock = threading.Lock()
+
+    def read(self, timeout: float | None = None) -> SampleBatch | None:
+        if self._closed:
+            raise SourceClosed(f"{self.url}: read after close")
+        inner = self._inner
+        if inner is None:
+            deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+            inner = self._open(deadline)
+            if inner is None:
+                return None
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+        return inner.read(timeout)
+
+    def _open(self, deadline: float | None) -> Source | None:
+        while True:
+            left = 0.5 if deadline is None else min(0.5, max(0.0, deadline - time.monotonic()))
+            try:
+                up = self.device.wait_ready(left)
+            except EOFError:
+                raise SourceError(
+                    f"{self.url}: the simulated device exited before it was up (code {self.device.proc.poll()})"
+                ) from None
+            if up:
+                break
+            if time.monotonic() > self._give_up:
+                raise SourceError(f"{self.url}: the simulated device was not up within a minute")
+            if self._closed or (deadline is not None and time.monotonic() >= deadline):
+                return None
+        if self.device.url != self.url:
+            log.warning("the simulated device reads as %s, not %s", self.device.url, self.url)
+        inner = open_source(self.device.url)
+        with self._lock:
+            if self._closed:
+                inner.close()
+                return None
+            self._inner = inner
+        return inner
+
+    def _read(self, deadline: float | None) -> SampleBatch | None:
+        raise NotImplementedError  # read() hands over to the serial source
+
+    @property
+    def finished(self) -> bool:
+        return self._inner is not None and self._inner.finished
+
+    def stats(self) -> SourceStats:
+        return self._inner.stats() if self._inner is not None else super().stats()
+
+    def _close(self) -> None:
+        with self._lock:
+            inner = self._inner
+        if inner is not None:
+            inner.close()
+
+
+@contextlib.contextmanager
+def simulated_device(cfg: Config, speedup: float) -> Iterator[SimulatedDeviceSource]:
+    """The built-in simulated ball-bar on a pty, repeating tests: its source (see :class:`SimulatedDeviceSource`)."""
+    from ballbar.tools.simdevice import DeviceProcess, Settings, source_url
+
+    tmpdir = tempfile.mkdtemp(prefix="ballbar-simdevice-")
+    try:
+        link = os.path.join(tmpdir, "ttyBALLBAR0")
+        p = cfg.plan
+        # The URL the device will print (simdevice_args: binary, the plan's rate, calibrated at the radius).
+        url = source_url(link, Settings(protocol="binary", rate=p.sample_hz, cal_mm=p.radius_mm))
+        with DeviceProcess(*simdevice_args(cfg, speedup), "--link", link, wait=False) as dev:
+            log.info("simulated ball-bar on %s (x%g speed), starting", link, speedup)
+            source = SimulatedDeviceSource(dev, url, p.sample_hz)
+            try:
+                yield source
+            finally:
+                source.close()
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)  # the link, if the device could not remove it
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
@@ -200,15 +292,17 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         return 0
     with contextlib.ExitStack() as stack:
         stack.enter_context(StateLock(cfg.daemon.state_dir))
+        source: Source
         if args.simulate:
-            url = stack.enter_context(simulated_device(cfg, args.speedup))
+            source = stack.enter_context(simulated_device(cfg, args.speedup))
+        else:
+            try:
+                source = open_source(url, **_source_options(cfg, url))
+            except SourceConfigError as err:
+                raise ConfigError(f"source.url: {err}") from err
+            stack.callback(source.close)
         if stop.is_set():
             return 0
-        try:
-            source = open_source(url, **_source_options(cfg, url))
-        except SourceConfigError as err:
-            raise ConfigError(f"source.url: {err}") from err
-        stack.callback(source.close)
         cut = _recover(cfg)  # before the bus reads the history from the recordings
         listeners = build_listeners(cfg)
         daemon = Daemon(cfg, source, listeners)

@@ -513,3 +513,35 @@ def test_next_wake_is_the_next_sample_or_the_next_burst() -> None:
         assert wake == pytest.approx(t0 + expect, abs=1e-5)
         dev.step(wake + 1e-6)
         assert dev.stats.sent == (2 if rate < 100 else 17)
+
+
+# ----------------------------------------------------------------------------- the daemon's simulated device
+
+
+def test_the_daemons_source_opens_the_simulated_device_once_it_is_up() -> None:
+    """``ballbar run --simulate`` does not wait for the device: its source reads nothing, with no event,
+    until the device's pty is there, then the serial source on it takes over."""
+    from ballbar.daemon.run import simulated_device
+
+    cfg = cfgmod.load(None, [*(f"plan.{k}" for k in ("radius_mm=50", "feed_mm_min=3000", "overshoot_deg=10",
+                                                       "dwell_s=0.2", "sample_hz=1000"))], env={})
+    with simulated_device(cfg, 10.0) as src:
+        link = src.url.split("?")[0].removeprefix("serial:")
+        assert src.url == f"serial:{link}?protocol=binary&rate=1000&cal_mm=50.0"  # known before the device is up
+        col = Collector(src)
+        col.until(lambda: col.n > 2000, 30.0, "2000 samples")
+        assert src.url == src.device.url and col.kinds()[0] == "opened" and "unplugged" not in col.kinds()
+        assert src.stats().samples == col.n and src.stats().lost == 0
+    assert not os.path.exists(os.path.dirname(link))
+
+
+def test_a_simulated_device_that_fails_to_start_is_a_source_error() -> None:
+    from ballbar.daemon.errors import SourceError
+    from ballbar.daemon.run import SimulatedDeviceSource
+
+    with DeviceProcess("--rate=20000", wait=False) as dev:
+        src = SimulatedDeviceSource(dev, "serial:/nonexistent?protocol=binary&rate=1000&cal_mm=50", 1000.0)
+        with pytest.raises(SourceError, match="exited before it was up"):
+            for _ in range(100):
+                src.read(0.2)
+        src.close()

@@ -719,10 +719,12 @@ class DeviceProcess:
             dev.send("drop 5")
             done = dev.wait_event("done", timeout=30)
 
-    No threads: stdout is read with ``select`` as replies are awaited.
+    No threads: stdout is read with ``select`` as replies are awaited.  ``wait=False``
+    returns at once, before the device is up (it simulates its first test first):
+    :meth:`wait_ready` then says when its port is there.
     """
 
-    def __init__(self, *args: str, timeout: float = 15.0) -> None:
+    def __init__(self, *args: str, timeout: float = 15.0, wait: bool = True) -> None:
         import subprocess
 
         self.proc = subprocess.Popen(
@@ -735,27 +737,45 @@ class DeviceProcess:
         self._in = self.proc.stdin
         self._buf = b""
         self.events: list[dict[str, Any]] = []
+        self.path = ""
+        self.ready: dict[str, Any] = {}
+        self.url = ""
+        if wait:
+            try:
+                if not self.wait_ready(timeout):
+                    raise TimeoutError(f"simdevice: not ready within {timeout} s")
+            except Exception:
+                self.close()
+                raise
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Whether the device is up (its port path and ``ready`` line read), waiting up to ``timeout`` s.
+
+        Raises :class:`EOFError` if it exited first (a bad argument: its stderr says why).
+        """
+        deadline = time.monotonic() + timeout
         try:
-            self.path = self._line(timeout)
-            self.ready: dict[str, Any] = json.loads(self._line(timeout))
-        except Exception:
-            self.close()
-            raise
-        self.url: str = self.ready["url"]
+            if not self.path:
+                self.path = self._line(timeout)
+            if not self.ready:
+                self.ready = json.loads(self._line(max(0.0, deadline - time.monotonic())))
+                self.url = self.ready["url"]
+        except TimeoutError:
+            return False
+        return True
 
     def _line(self, timeout: float) -> str:
         deadline = time.monotonic() + timeout
         fd = self._out.fileno()
         while b"\n" not in self._buf:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise TimeoutError(f"simdevice: no output within {timeout} s")
-            ready, _, _ = select.select([fd], [], [], left)
+            ready, _, _ = select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
             if ready:
                 chunk = os.read(fd, 65536)
                 if not chunk:
                     raise EOFError(f"simdevice exited (code {self.proc.poll()})")
                 self._buf += chunk
+            elif time.monotonic() >= deadline:
+                raise TimeoutError(f"simdevice: no output within {timeout} s")
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode()
 
@@ -804,7 +824,9 @@ class DeviceProcess:
         """Ask it to quit, wait, kill it if it will not; close the pipes."""
         import subprocess
 
-        if self.proc.poll() is None:
+        if self.proc.poll() is None and not self.url:
+            self.proc.terminate()  # not up yet: it reads no command until it is
+        elif self.proc.poll() is None:
             with contextlib.suppress(OSError, ValueError):
                 self._in.write(b"quit\n")
                 self._in.flush()
