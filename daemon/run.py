@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from .config import Config, ConfigError, load
 from .errors import SourceClosed, SourceConfigError, SourceError
-from .listeners import Listener
+from .listeners import Listener, Message
 from .lock import StateLock
 from .samples import SampleBatch, SourceStats
 from .service import Daemon
@@ -54,9 +54,7 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
             loader = recorded_results(cfg) if cfg.mcap.enabled else None
             out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
         if cfg.rerun.mode != "off":
-            from .viewer import RerunViewer
-
-            out.append((RerunViewer.from_config(cfg), cfg.queues.rerun, "drop_oldest"))
+            out.append((StartedLater("rerun", lambda: _rerun_viewer(cfg)), cfg.queues.rerun, "drop_oldest"))
     except BaseException:
         for listener, _cap, _policy in reversed(out):
             try:
@@ -65,6 +63,71 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
                 log.exception("stopping %s after a failed start", listener.name)
         raise
     return out
+
+
+def _rerun_viewer(cfg: Config) -> Listener:
+    from .viewer import RerunViewer
+
+    return RerunViewer.from_config(cfg)
+
+
+class StartedLater(Listener):
+    """A listener made on its own queue's thread when the first item (or idle tick) reaches it.
+
+    For the Rerun viewer: importing Rerun and starting its recording take about half a
+    second, which READY=1 does not wait for; what arrives meanwhile waits in the queue.
+    If it cannot be made, that is logged once and everything sent to it is dropped
+    (the daemon's other outputs run on).
+    """
+
+    def __init__(self, name: str, make: Callable[[], Listener]) -> None:
+        self.name = name
+        self._make = make
+        self._inner: Listener | None = None
+        self._failed = False
+        self._stopped = False
+        self._lock = threading.Lock()
+
+    def _listener(self) -> Listener | None:
+        if self._inner is None and not self._failed:
+            with self._lock:
+                if self._inner is None and not self._failed and not self._stopped:
+                    t0 = time.monotonic()
+                    try:
+                        self._inner = self._make()
+                    except Exception:
+                        self._failed = True
+                        log.exception("%s: could not start; its output is off", self.name)
+                    else:
+                        log.debug("%s: started in %.2f s", self.name, time.monotonic() - t0)
+        return self._inner
+
+    def on_batch(self, batch: SampleBatch) -> None:
+        if (inner := self._listener()) is not None:
+            inner.on_batch(batch)
+
+    def on_message(self, msg: Message) -> None:
+        if (inner := self._listener()) is not None:
+            inner.on_message(msg)
+
+    def on_idle(self) -> None:
+        if (inner := self._listener()) is not None:
+            inner.on_idle()
+
+    def stats(self) -> dict[str, Any]:
+        inner = self._inner
+        stats = getattr(inner, "stats", None)
+        if callable(stats):
+            out: dict[str, Any] = stats()
+            return out
+        return {"state": "failed" if self._failed else "starting"}
+
+    def stop(self) -> None:
+        with self._lock:  # waits for a start in progress: what it started is stopped too
+            self._stopped = True
+            inner = self._inner
+        if inner is not None:
+            inner.stop()
 
 
 def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
@@ -87,12 +150,14 @@ def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
         except BusConfigError as err:
             raise ConfigError(str(err)) from None
     if cfg.rerun.mode != "off":
-        from .viewer import ViewerConfigError, viewer_options
+        from .viewer import ViewerConfigError, rerun_binary, viewer_options  # without Rerun itself
 
         try:
-            viewer_options(cfg)
+            options = viewer_options(cfg)
         except ViewerConfigError as err:
             raise ConfigError(str(err)) from None
+        if options.mode == "serve" and rerun_binary() is None:
+            raise ConfigError('rerun.mode = "serve" needs the rerun binary of rerun-sdk (rerun_cli)')
     if cfg.mcap.enabled:
         _check_writable(os.path.join(cfg.daemon.state_dir, "recordings"))
 
