@@ -821,15 +821,16 @@ class DeviceProcess:
         return stats
 
     def close(self, timeout: float = 5.0) -> int | None:
-        """Ask it to quit, wait, kill it if it will not; close the pipes."""
+        """Ask it to quit (end it if it is not up yet), wait, kill it if it will not; close the pipes."""
         import subprocess
 
-        if self.proc.poll() is None and not self.url:
-            self.proc.terminate()  # not up yet: it reads no command until it is
-        elif self.proc.poll() is None:
-            with contextlib.suppress(OSError, ValueError):
-                self._in.write(b"quit\n")
-                self._in.flush()
+        if self.proc.poll() is None:
+            if not self.url:
+                self.proc.terminate()  # not up yet: it reads no command until it is
+            else:
+                with contextlib.suppress(OSError, ValueError):
+                    self._in.write(b"quit\n")
+                    self._in.flush()
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
