@@ -6,8 +6,9 @@
 Each run starts the daemon as systemd would see it (``$NOTIFY_SOCKET`` a datagram
 socket of this process), with the default configuration's outputs (MCAP, Zenoh as a
 peer, the Rerun server) on ports of ``--port-base`` and a fresh state directory;
-records, from just before the process is spawned: the READY=1 datagram, the log
-lines of readiness (``ready:``), of the source opening the simulated device's pty
+records, from just before the process is spawned: the READY=1 datagram (and the
+daemon's CPU time then, all threads: a figure the machine's load inflates less than
+wall time), the log lines of the source opening the simulated device's pty
 (``opened``: samples flow from then on) and of the Rerun server (``serving on``); once
 all are there, stops it with SIGTERM and times the exit. Runs of
 ``--baseline-python`` (another checkout's interpreter) alternate with this one's;
@@ -31,6 +32,14 @@ import tempfile
 import time
 from collections.abc import Sequence
 from typing import Any
+
+
+def proc_cpu_s(pid: int) -> float:
+    """utime + stime of a process (all its threads, not its children), seconds."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
 
 MARKS = {
     "ready_log": "ready: reading",
@@ -69,6 +78,7 @@ def run_once(python: str, port_base: int, max_after_s: float, extra: Sequence[st
                     msg = sock.recv(4096).decode(errors="replace")
                     if "READY=1" in msg.split("\n") and "ready" not in out:
                         out["ready"] = now
+                        out["cpu"] = proc_cpu_s(proc.pid)
                         stop_at = time.monotonic() + max_after_s
                 if err in ready:
                     chunk = os.read(err, 65536)
@@ -125,7 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     print(f"ballbar run --simulate, every output on: seconds from spawn, median of {args.runs} (min..max)")
     print(
-        f"{'variant':<10}{'READY=1':>18}{'ready line':>18}{'source opened':>18}{'rerun serving':>18}"
+        f"{'variant':<10}{'READY=1':>18}{'CPU at READY':>18}{'source opened':>18}{'rerun serving':>18}"
         f"{'SIGTERM->exit':>16}"
     )
 
@@ -137,7 +147,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     for name, _ in variants:
         rs = runs[name]
-        print(f"{name:<10}{col(rs, 'ready')}{col(rs, 'ready_log')}{col(rs, 'opened')}{col(rs, 'rerun')}"
+        print(f"{name:<10}{col(rs, 'ready')}{col(rs, 'cpu')}{col(rs, 'opened')}{col(rs, 'rerun')}"
               f"{statistics.median(r['stop'] for r in rs):>15.2f}s")
         bad = [r["code"] for r in rs if r["code"] != 0]
         if bad:
