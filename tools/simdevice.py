@@ -84,7 +84,7 @@ log = logging.getLogger(__name__)
 
 Chunk = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
 Wire = tuple[bytes, NDArray[np.int64]]  # encoded samples, and where each starts (and the last ends)
-PENDING_LIMIT = 16 * 1024  # bytes waiting for the reader before the device waits
+PENDING_LIMIT = 16 * 1024  # bytes waiting for the reader before the device waits (at least 4 bursts' worth)
 BURST_S = 0.016  # the shortest time between two writes (FTDI adapters' default latency timer)
 IDLE_S = 1.0  # the longest sleep with nothing due (commands wake the device at once)
 GARBAGE_CHARS = b"#$%&@!*=~^|<>"  # none is a digit, letter, sign, point or separator
@@ -389,6 +389,9 @@ class SimDevice:
         self._req_buf = b""
         self._last_answer: tuple[float, float, int] | None = None
         self._encoder = BlockEncoder(self._encode_block)
+        one = self._encode(np.zeros(1), np.full(1, settings.cal_mm), np.zeros(1, np.int64))
+        burst = settings.rate * settings.speedup * settings.burst_s * len(one)
+        self._pending_limit = max(PENDING_LIMIT, int(4 * burst))
 
     # -- output -------------------------------------------------------------------
 
@@ -583,7 +586,7 @@ class SimDevice:
 
     def _stream(self, now: float) -> None:
         """Take the samples due by wall time ``now`` (none while the reader is too far behind)."""
-        blocked = len(self._pending) >= PENDING_LIMIT
+        blocked = len(self._pending) >= self._pending_limit
         if not blocked:
             self.sim_t += (now - self._last_wall) * self.s.speedup
         self._last_wall = now
