@@ -33,9 +33,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize
 
-from . import iso230, noise
+from . import iso230, noise, stats
 from .advice import advise
 from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError

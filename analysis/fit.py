@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import linalg as sla
-from scipy import stats
 
+from . import stats
 from .patterns import Pattern
 
 KAPPA_MAX = 400.0

@@ -7,18 +7,24 @@ import contextlib
 import json
 import logging
 import os
+import shutil
 import sys
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .config import Config, ConfigError, load
-from .errors import SourceConfigError
-from .listeners import Listener
+from .errors import SourceClosed, SourceConfigError, SourceError
+from .listeners import Listener, Message
 from .lock import StateLock
+from .samples import SampleBatch, SourceStats
 from .service import Daemon
-from .sources import open_source, split_url
+from .sources import Source, open_source, split_url
+
+if TYPE_CHECKING:
+    from ballbar.tools.simdevice import DeviceProcess
 
 log = logging.getLogger(__name__)
 
@@ -48,9 +54,7 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
             loader = recorded_results(cfg) if cfg.mcap.enabled else None
             out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
         if cfg.rerun.mode != "off":
-            from .viewer import RerunViewer
-
-            out.append((RerunViewer.from_config(cfg), cfg.queues.rerun, "drop_oldest"))
+            out.append((StartedLater("rerun", lambda: _rerun_viewer(cfg)), cfg.queues.rerun, "drop_oldest"))
     except BaseException:
         for listener, _cap, _policy in reversed(out):
             try:
@@ -59,6 +63,71 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
                 log.exception("stopping %s after a failed start", listener.name)
         raise
     return out
+
+
+def _rerun_viewer(cfg: Config) -> Listener:
+    from .viewer import RerunViewer
+
+    return RerunViewer.from_config(cfg)
+
+
+class StartedLater(Listener):
+    """A listener made on its own queue's thread when the first item (or idle tick) reaches it.
+
+    For the Rerun viewer: importing Rerun and starting its recording take about half a
+    second, which READY=1 does not wait for; what arrives meanwhile waits in the queue.
+    If it cannot be made, that is logged once and everything sent to it is dropped
+    (the daemon's other outputs run on).
+    """
+
+    def __init__(self, name: str, make: Callable[[], Listener]) -> None:
+        self.name = name
+        self._make = make
+        self._inner: Listener | None = None
+        self._failed = False
+        self._stopped = False
+        self._lock = threading.Lock()
+
+    def _listener(self) -> Listener | None:
+        if self._inner is None and not self._failed:
+            with self._lock:
+                if self._inner is None and not self._failed and not self._stopped:
+                    t0 = time.monotonic()
+                    try:
+                        self._inner = self._make()
+                    except Exception:
+                        self._failed = True
+                        log.exception("%s: could not start; its output is off", self.name)
+                    else:
+                        log.debug("%s: started in %.2f s", self.name, time.monotonic() - t0)
+        return self._inner
+
+    def on_batch(self, batch: SampleBatch) -> None:
+        if (inner := self._listener()) is not None:
+            inner.on_batch(batch)
+
+    def on_message(self, msg: Message) -> None:
+        if (inner := self._listener()) is not None:
+            inner.on_message(msg)
+
+    def on_idle(self) -> None:
+        if (inner := self._listener()) is not None:
+            inner.on_idle()
+
+    def stats(self) -> dict[str, Any]:
+        inner = self._inner
+        stats = getattr(inner, "stats", None)
+        if callable(stats):
+            out: dict[str, Any] = stats()
+            return out
+        return {"state": "failed" if self._failed else "starting"}
+
+    def stop(self) -> None:
+        with self._lock:  # waits for a start in progress: what it started is stopped too
+            self._stopped = True
+            inner = self._inner
+        if inner is not None:
+            inner.stop()
 
 
 def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
@@ -81,12 +150,14 @@ def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
         except BusConfigError as err:
             raise ConfigError(str(err)) from None
     if cfg.rerun.mode != "off":
-        from .viewer import ViewerConfigError, viewer_options
+        from .viewer import ViewerConfigError, rerun_binary, viewer_options  # without Rerun itself
 
         try:
-            viewer_options(cfg)
+            options = viewer_options(cfg)
         except ViewerConfigError as err:
             raise ConfigError(str(err)) from None
+        if options.mode == "serve" and rerun_binary() is None:
+            raise ConfigError('rerun.mode = "serve" needs the rerun binary of rerun-sdk (rerun_cli)')
     if cfg.mcap.enabled:
         _check_writable(os.path.join(cfg.daemon.state_dir, "recordings"))
 
@@ -130,14 +201,100 @@ def simdevice_args(cfg: Config, speedup: float) -> list[str]:
     return args
 
 
-@contextlib.contextmanager
-def simulated_device(cfg: Config, speedup: float) -> Iterator[str]:
-    """The built-in simulated ball-bar on a pty, repeating tests; yields its source URL."""
-    from ballbar.tools.simdevice import DeviceProcess
+class SimulatedDeviceSource(Source):
+    """The simulated device's serial source, opened once the device is up.
 
-    with DeviceProcess(*simdevice_args(cfg, speedup)) as dev:
-        log.info("simulated ball-bar on %s (x%g speed)", dev.path, speedup)
-        yield dev.url
+    The device starts beside the daemon: it imports the simulator and simulates its
+    first test (about a second) before its pty appears, and READY=1 does not wait for
+    that.  Until then a read waits for the device and returns nothing, without an
+    event (the port is not missing, it is being made); then the serial source on its
+    pty takes over (its ``opened`` event first).  A device that exits before it is up
+    is a :class:`SourceError`.
+    """
+
+    scheme = "serial"
+
+    def __init__(self, dev: DeviceProcess, url: str, rate_hz: float, start_timeout_s: float = 60.0) -> None:
+        super().__init__(url, rate_hz)
+        self.device = dev
+        self._inner: Source | None = None
+        self._give_up = time.monotonic() + start_timeout_s
+        self._lock = threading.Lock()
+
+    def read(self, timeout: float | None = None) -> SampleBatch | None:
+        if self._closed:
+            raise SourceClosed(f"{self.url}: read after close")
+        inner = self._inner
+        if inner is None:
+            deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+            inner = self._open(deadline)
+            if inner is None:
+                return None
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+        return inner.read(timeout)
+
+    def _open(self, deadline: float | None) -> Source | None:
+        while True:
+            left = 0.5 if deadline is None else min(0.5, max(0.0, deadline - time.monotonic()))
+            try:
+                up = self.device.wait_ready(left)
+            except EOFError:
+                raise SourceError(
+                    f"{self.url}: the simulated device exited before it was up (code {self.device.proc.poll()})"
+                ) from None
+            if up:
+                break
+            if time.monotonic() > self._give_up:
+                raise SourceError(f"{self.url}: the simulated device was not up within a minute")
+            if self._closed or (deadline is not None and time.monotonic() >= deadline):
+                return None
+        if self.device.url != self.url:
+            log.warning("the simulated device reads as %s, not %s", self.device.url, self.url)
+        inner = open_source(self.device.url)
+        with self._lock:
+            if self._closed:
+                inner.close()
+                return None
+            self._inner = inner
+        return inner
+
+    def _read(self, deadline: float | None) -> SampleBatch | None:
+        raise NotImplementedError  # read() hands over to the serial source
+
+    @property
+    def finished(self) -> bool:
+        return self._inner is not None and self._inner.finished
+
+    def stats(self) -> SourceStats:
+        return self._inner.stats() if self._inner is not None else super().stats()
+
+    def _close(self) -> None:
+        with self._lock:
+            inner = self._inner
+        if inner is not None:
+            inner.close()
+
+
+@contextlib.contextmanager
+def simulated_device(cfg: Config, speedup: float) -> Iterator[SimulatedDeviceSource]:
+    """The built-in simulated ball-bar on a pty, repeating tests: its source (see :class:`SimulatedDeviceSource`)."""
+    from ballbar.tools.simdevice import DeviceProcess, Settings, source_url
+
+    tmpdir = tempfile.mkdtemp(prefix="ballbar-simdevice-")
+    try:
+        link = os.path.join(tmpdir, "ttyBALLBAR0")
+        p = cfg.plan
+        # The URL the device will print (simdevice_args: binary, the plan's rate, calibrated at the radius).
+        url = source_url(link, Settings(protocol="binary", rate=p.sample_hz, cal_mm=p.radius_mm))
+        with DeviceProcess(*simdevice_args(cfg, speedup), "--link", link, wait=False) as dev:
+            log.info("simulated ball-bar on %s (x%g speed), starting", link, speedup)
+            source = SimulatedDeviceSource(dev, url, p.sample_hz)
+            try:
+                yield source
+            finally:
+                source.close()
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)  # the link, if the device could not remove it
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
@@ -200,15 +357,17 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         return 0
     with contextlib.ExitStack() as stack:
         stack.enter_context(StateLock(cfg.daemon.state_dir))
+        source: Source
         if args.simulate:
-            url = stack.enter_context(simulated_device(cfg, args.speedup))
+            source = stack.enter_context(simulated_device(cfg, args.speedup))
+        else:
+            try:
+                source = open_source(url, **_source_options(cfg, url))
+            except SourceConfigError as err:
+                raise ConfigError(f"source.url: {err}") from err
+            stack.callback(source.close)
         if stop.is_set():
             return 0
-        try:
-            source = open_source(url, **_source_options(cfg, url))
-        except SourceConfigError as err:
-            raise ConfigError(f"source.url: {err}") from err
-        stack.callback(source.close)
         cut = _recover(cfg)  # before the bus reads the history from the recordings
         listeners = build_listeners(cfg)
         daemon = Daemon(cfg, source, listeners)

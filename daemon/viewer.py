@@ -98,12 +98,18 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    import rerun as rr
+    import rerun.blueprint as rrb
+else:  # imported at first use: the configuration check and READY=1 do not wait for it (half a second)
+    from .lazy import LazyModule
+
+    rr, rrb = LazyModule("rerun"), LazyModule("rerun.blueprint")
 
 from ballbar.analysis.engine import TimingHints
 from ballbar.analysis.errors import BallbarError

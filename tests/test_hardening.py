@@ -117,14 +117,64 @@ def test_every_started_output_is_stopped_when_a_later_one_fails(
     def boom(*_a: Any, **_k: Any) -> Any:
         raise RuntimeError("cannot start")
 
-    for failing, before in (("McapLogger", []), ("ZenohBus", ["mcap"]), ("RerunViewer", ["zenoh", "mcap"])):
+    for failing, before in (("McapLogger", []), ("ZenohBus", ["mcap"])):
         stopped.clear()
         with monkeypatch.context() as m:
-            target = {"McapLogger": McapLogger, "ZenohBus": ZenohBus, "RerunViewer": RerunViewer}[failing]
+            target = {"McapLogger": McapLogger, "ZenohBus": ZenohBus}[failing]
             m.setattr(target, "from_config", classmethod(boom))
             with pytest.raises(RuntimeError):
                 runmod.build_listeners(cfg)
         assert stopped == before, (failing, stopped)
+    # The Rerun viewer is made on its own queue's thread (READY=1 does not wait for Rerun): if it cannot be,
+    # its output is off and the others run on.
+    stopped.clear()
+    with monkeypatch.context() as m:
+        m.setattr(RerunViewer, "from_config", classmethod(boom))
+        listeners = runmod.build_listeners(cfg)
+        try:
+            viewer = listeners[-1][0]
+            assert viewer.name == "rerun" and viewer.stats() == {"state": "starting"}  # type: ignore[attr-defined]
+            viewer.on_message({"kind": "status"})
+            viewer.on_idle()
+            assert viewer.stats() == {"state": "failed"}  # type: ignore[attr-defined]
+        finally:
+            for lst, _cap, _policy in reversed(listeners):
+                lst.stop()
+    assert stopped == ["zenoh", "mcap"]
+
+
+def test_a_listener_started_later_is_made_once_on_first_use_and_stopped() -> None:
+    from ballbar.daemon.listeners import Listener
+    from ballbar.daemon.run import StartedLater
+
+    made: list[str] = []
+
+    class Inner(Listener):
+        name = "inner"
+
+        def __init__(self) -> None:
+            made.append("made")
+            self.got: list[Any] = []
+
+        def on_message(self, msg: dict[str, Any]) -> None:
+            self.got.append(msg)
+
+        def stats(self) -> dict[str, Any]:
+            return {"got": len(self.got)}
+
+        def stop(self) -> None:
+            made.append("stopped")
+
+    never = StartedLater("x", Inner)
+    never.stop()
+    never.on_message({})  # after stop: nothing is made
+    assert made == []
+    lst = StartedLater("x", Inner)
+    lst.on_message({"a": 1})
+    lst.on_message({"a": 2})
+    assert made == ["made"] and lst.stats() == {"got": 2}
+    lst.stop()
+    assert made == ["made", "stopped"]
 
 
 def _catches_sigterm(pid: int) -> bool:

@@ -8,8 +8,10 @@ fault shows up as exactly the losses and decoder drops it must cause.
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -411,3 +413,135 @@ def test_command_line_errors() -> None:
     assert main(["--mode=poll", "--protocol=binary"]) == 2
     assert main(["--rate=20000"]) == 2
     assert main(["--radius-mm=-1"]) == 2
+
+
+# ----------------------------------------------------------------------------- bursts (in process)
+
+
+class FakePort:
+    """A port that keeps what is written: the device's loop driven by hand, without a pty."""
+
+    path = "fake"
+
+    def __init__(self) -> None:
+        self.is_open = True
+        self.data = bytearray()
+        self.writes = 0
+
+    def open(self) -> None:
+        self.is_open = True
+
+    def close(self) -> None:
+        self.is_open = False
+
+    def fileno(self) -> int | None:
+        return None
+
+    def write(self, data: bytes | bytearray) -> int:
+        self.data += data
+        self.writes += 1
+        return len(data)
+
+    def read(self) -> bytes:
+        return b""
+
+
+def synthetic_tests(rate: float, n: int, tests: int = 2, gap_s: float = 0.5) -> Any:
+    for i in range(tests):
+        t = np.arange(n) / rate + i * (n / rate + gap_s)
+        yield t, 100.0 + 0.4 * np.sin(7.0 * t) + 1e-3 * np.cos(91.0 * t), np.rint(t * rate).astype(np.int64)
+
+
+def drive(settings: Any, steps: list[float], commands: dict[float, str], t0: float, rate: float, n: int) -> Any:
+    from ballbar.tools.simdevice import Feed, SimDevice
+
+    port = FakePort()
+    out = os.open(os.devnull, os.O_WRONLY)
+    try:
+        dev = SimDevice(Feed(synthetic_tests(rate, n)), port, settings, out)  # type: ignore[arg-type]
+        dev.started = True
+        dev._last_wall = t0
+        for now in sorted({*steps, *commands}):
+            dev.step(now)
+            if now in commands:
+                dev.command(commands[now], now)
+                dev.step(now)
+    finally:
+        os.close(out)
+    return dev, port
+
+
+@pytest.mark.parametrize("protocol", ["binary", "ascii"])
+def test_bursts_carry_the_bytes_of_one_write_per_sample(protocol: str) -> None:
+    """The device stepped at random coarse times (a write each) sends exactly the bytes and counts
+    it sends stepped every millisecond, across faults, a reset, a clock jump and a test boundary."""
+    from ballbar.protocol import ascii as ascii_proto
+    from ballbar.tools.simdevice import Settings
+
+    rate, n, t0 = 1000.0, 3000, 1000.0
+    fmt = ascii_proto.AsciiFormat(ts_unit="us", width=9, ts_width=12)
+    settings = Settings(protocol=protocol, rate=rate, cal_mm=100.0, fmt=fmt, burst_s=0.016)
+    # Commands between two samples' due times (x.xxx5 s), so that no sample sits on a boundary.
+    commands = {
+        t0 + 0.2505: "garbage 5", t0 + 0.4005: "corrupt 2", t0 + 0.6005: "drop 3", t0 + 0.8005: "stall 0.1",
+        t0 + 1.2005: "unplug 0.05", t0 + 1.5005: "reset", t0 + 2.0005: "jump 3", t0 + 2.9995: "stall 0.004",
+    }
+    fine = [t0 + k / 1000 for k in range(1, 7000)]
+    rng = np.random.default_rng(1)
+    coarse = (t0 + np.cumsum(rng.uniform(0.0005, 0.04, 400))).tolist()
+    a, port_a = drive(settings, fine, commands, t0, rate, n)
+    b, port_b = drive(settings, coarse, commands, t0, rate, n)
+    assert a.done and b.done
+    sa, sb = asdict(a.stats), asdict(b.stats)
+    sa.pop("cpu_s")
+    sb.pop("cpu_s")
+    assert sa == sb
+    assert sa["generated"] == 2 * n and sa["stalled"] >= 100 and sa["unplugged"] >= 50
+    assert (sa["dropped"], sa["corrupted"], sa["garbage_bytes"], sa["resets"], sa["clock_jumps"]) == (3, 2, 5, 1, 1)
+    assert bytes(port_a.data) == bytes(port_b.data)
+    assert port_b.writes < 400 and b._encoder.blocks < 20  # encoded a block at a time, not per write
+
+
+def test_next_wake_is_the_next_sample_or_the_next_burst() -> None:
+    from ballbar.tools.simdevice import Settings
+
+    t0 = 1000.0
+    for rate, expect in ((15.625, 0.064), (1000.0, 0.016)):
+        dev, port = drive(Settings(rate=rate, cal_mm=100.0, burst_s=0.016), [t0], {}, t0, rate, 1000)
+        assert port.writes == 1 and dev.stats.sent == 1
+        wake = dev.next_wake(t0)
+        assert wake == pytest.approx(t0 + expect, abs=1e-5)
+        dev.step(wake + 1e-6)
+        assert dev.stats.sent == (2 if rate < 100 else 17)
+
+
+# ----------------------------------------------------------------------------- the daemon's simulated device
+
+
+def test_the_daemons_source_opens_the_simulated_device_once_it_is_up() -> None:
+    """``ballbar run --simulate`` does not wait for the device: its source reads nothing, with no event,
+    until the device's pty is there, then the serial source on it takes over."""
+    from ballbar.daemon.run import simulated_device
+
+    cfg = cfgmod.load(None, [*(f"plan.{k}" for k in ("radius_mm=50", "feed_mm_min=3000", "overshoot_deg=10",
+                                                       "dwell_s=0.2", "sample_hz=1000"))], env={})
+    with simulated_device(cfg, 10.0) as src:
+        link = src.url.split("?")[0].removeprefix("serial:")
+        assert src.url == f"serial:{link}?protocol=binary&rate=1000&cal_mm=50.0"  # known before the device is up
+        col = Collector(src)
+        col.until(lambda: col.n > 2000, 30.0, "2000 samples")
+        assert src.url == src.device.url and col.kinds()[0] == "opened" and "unplugged" not in col.kinds()
+        assert src.stats().samples == col.n and src.stats().lost == 0
+    assert not os.path.exists(os.path.dirname(link))
+
+
+def test_a_simulated_device_that_fails_to_start_is_a_source_error() -> None:
+    from ballbar.daemon.errors import SourceError
+    from ballbar.daemon.run import SimulatedDeviceSource
+
+    with DeviceProcess("--rate=20000", wait=False) as dev:
+        src = SimulatedDeviceSource(dev, "serial:/nonexistent?protocol=binary&rate=1000&cal_mm=50", 1000.0)
+        with pytest.raises(SourceError, match="exited before it was up"):
+            for _ in range(100):
+                src.read(0.2)
+        src.close()

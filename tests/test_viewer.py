@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import rerun  # noqa: F401 - its runtime's descriptors (opened at import, once) exist before any leak check
 
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.plan import MachineConfig, TestPlan

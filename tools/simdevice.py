@@ -21,9 +21,14 @@ stdout, one line each:
 ASCII lines are fixed width (zero-padded reading and timestamp), as gauges
 write them.  Device time runs ``speedup`` times faster than wall time: at ``--rate 1000
 --speedup 10`` the device clock and sample counter advance as at 1 kHz and
-10 000 frames leave per wall second.  If the reader does not keep up (the pty
-buffer fills), the device waits rather than losing samples; samples are lost
-only on command.  The simulated interface is powered on its own: across an
+10 000 frames leave per wall second.  Samples go out as they fall due, but
+at most one write per ``--burst-ms`` (16 ms, the default latency timer of FTDI
+adapters, which deliver in bursts too): at 15.625 Hz each sample on time, at
+1 kHz 16 in one write.  The device sleeps in between; the frames and their
+counter and clock are the same as with one write per sample (the samples of a
+test are encoded a few thousand at a time, ahead of need).  If the reader does
+not keep up (the pty buffer fills), the device waits rather than losing samples;
+samples are lost only on command.  The simulated interface is powered on its own: across an
 unplug or a stall it keeps sampling, so its counter shows the gap.
 
 Commands on stdin, one per line (EOF on stdin is ignored unless ``--exit-on-eof``,
@@ -64,7 +69,7 @@ import tempfile
 import time
 import tty
 import urllib.parse
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -78,7 +83,10 @@ from ballbar.protocol import binary as binary_proto
 log = logging.getLogger(__name__)
 
 Chunk = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]
-PENDING_LIMIT = 16 * 1024  # bytes waiting for the reader before the device waits
+Wire = tuple[bytes, NDArray[np.int64]]  # encoded samples, and where each starts (and the last ends)
+PENDING_LIMIT = 16 * 1024  # bytes waiting for the reader before the device waits (at least 4 bursts' worth)
+BURST_S = 0.016  # the shortest time between two writes (FTDI adapters' default latency timer)
+IDLE_S = 1.0  # the longest sleep with nothing due (commands wake the device at once)
 GARBAGE_CHARS = b"#$%&@!*=~^|<>"  # none is a digit, letter, sign, point or separator
 
 
@@ -115,25 +123,71 @@ class Feed:
 
     def take_until(self, t_lim: float, limit: int = 1 << 16) -> Chunk:
         """Samples with device time <= ``t_lim`` (at most ``limit``), across tests."""
+        return self._take(t_lim, limit, None)[0]
+
+    def take_encoded(self, t_lim: float, encoder: BlockEncoder, limit: int = 1 << 16) -> tuple[Chunk, bytes]:
+        """:meth:`take_until`, and the samples' wire bytes from ``encoder``."""
+        return self._take(t_lim, limit, encoder)
+
+    def _take(self, t_lim: float, limit: int, encoder: BlockEncoder | None) -> tuple[Chunk, bytes]:
         parts: list[Chunk] = []
+        data: list[bytes] = []
         n = 0
         while n < limit and self._load() and self._t[self._i] <= t_lim:
             end = int(np.searchsorted(self._t, t_lim, side="right"))
             end = min(end, self._i + limit - n)
             sl = slice(self._i, end)
             parts.append((self._t[sl], self._len[sl], self._seq[sl]))
+            if encoder is not None:
+                data.append(encoder.wire(self.tests, self._t, self._len, self._seq, self._i, end))
             n += end - self._i
             self._i = end
         self._load()
+        wire = data[0] if len(data) == 1 else b"".join(data)
         if not parts:
-            return np.empty(0), np.empty(0), np.empty(0, np.int64)
+            return (np.empty(0), np.empty(0), np.empty(0, np.int64)), wire
         if len(parts) == 1:
-            return parts[0]
+            return parts[0], wire
         return (
             np.concatenate([p[0] for p in parts]),
             np.concatenate([p[1] for p in parts]),
             np.concatenate([p[2] for p in parts]),
-        )
+        ), wire
+
+
+class BlockEncoder:
+    """The wire bytes of a test's samples, encoded ``block`` samples at a time ahead of need.
+
+    numpy's cost is per call: encoding the few samples of each write one call at a
+    time would cost more than all else the device does.  ``encode`` returns a block's
+    bytes and the offset of each sample's bytes in them (plus the end); ``key`` is the
+    device state they depend on (its counter and clock offsets): change it and what
+    is left is encoded again.
+    """
+
+    def __init__(
+        self,
+        encode: Callable[[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]], Wire],
+        block: int = 4096,
+    ) -> None:
+        self.encode = encode
+        self.block = block
+        self.key: object = None
+        self._cache: tuple[int, object, int, int, bytes, NDArray[np.int64]] | None = None
+        self.blocks = 0  # blocks encoded so far
+
+    def wire(
+        self, test: int, t: NDArray[np.float64], length: NDArray[np.float64], seq: NDArray[np.int64], i0: int, i1: int
+    ) -> bytes:
+        """The bytes of samples ``i0`` to ``i1`` (excluded) of test number ``test`` (its arrays)."""
+        c = self._cache
+        if c is None or c[0] != test or c[1] != self.key or not c[2] <= i0 <= i1 <= c[3]:
+            b1 = min(t.shape[0], max(i1, i0 + self.block))
+            data, off = self.encode(t[i0:b1], length[i0:b1], seq[i0:b1])
+            c = self._cache = (test, self.key, i0, b1, data, off)
+            self.blocks += 1
+        b0, data, off = c[2], c[4], c[5]
+        return data[off[i0 - b0] : off[i1 - b0]]
 
 
 def simulator_tests(args: argparse.Namespace) -> Iterator[Chunk]:
@@ -205,7 +259,7 @@ class PtyPort:
     def fileno(self) -> int | None:
         return self.master
 
-    def write(self, data: bytes) -> int:
+    def write(self, data: bytes | bytearray) -> int:
         if self.master is None:
             return 0
         try:
@@ -259,7 +313,7 @@ class SerialPort:
         except Exception:
             return None
 
-    def write(self, data: bytes) -> int:
+    def write(self, data: bytes | bytearray) -> int:
         return int(self.port.write(data) or 0) if self.port is not None else 0
 
     def read(self) -> bytes:
@@ -305,6 +359,7 @@ class Settings:
     range_mm: float = 2.5
     fmt: ascii_proto.AsciiFormat = field(default_factory=ascii_proto.AsciiFormat)
     seed: int = 0
+    burst_s: float = BURST_S
 
 
 class SimDevice:
@@ -321,7 +376,8 @@ class SimDevice:
         self.running = True
         self.done = False
         self.sim_t = feed.next_t  # device time now
-        self._last_wall = time.monotonic()
+        self._last_wall = time.monotonic()  # wall time that sim_t corresponds to
+        self._last_burst = -math.inf  # wall time of the last samples taken out
         self._pending = bytearray()
         self._garbage: list[int] = []
         self._corrupt = 0
@@ -332,6 +388,10 @@ class SimDevice:
         self._t0 = 0.0  # clock offset since the last reset (minus the jumps since)
         self._req_buf = b""
         self._last_answer: tuple[float, float, int] | None = None
+        self._encoder = BlockEncoder(self._encode_block)
+        one = self._encode(np.zeros(1), np.full(1, settings.cal_mm), np.zeros(1, np.int64))
+        burst = settings.rate * settings.speedup * settings.burst_s * len(one)
+        self._pending_limit = max(PENDING_LIMIT, int(4 * burst))
 
     # -- output -------------------------------------------------------------------
 
@@ -344,26 +404,26 @@ class SimDevice:
 
     # -- commands -----------------------------------------------------------------
 
-    def command(self, line: str) -> None:
+    def command(self, line: str, now: float | None = None) -> None:
+        """Obey one command line, received at wall time ``now`` (default: now)."""
         words = line.split()
         if not words:
             return
         cmd, argv = words[0].lower(), words[1:]
         try:
-            reply = self._command(cmd, argv)
+            reply = self._command(cmd, argv, time.monotonic() if now is None else now)
         except (ValueError, IndexError) as err:
             self.emit({"ok": False, "cmd": cmd, "error": str(err) or "bad arguments"})
             return
         self.emit({"ok": True, "cmd": cmd, **reply})
 
-    def _command(self, cmd: str, argv: list[str]) -> dict[str, Any]:
+    def _command(self, cmd: str, argv: list[str], now: float) -> dict[str, Any]:
         def count() -> int:
             n = int(argv[0]) if argv else 1
             if n < 0:
                 raise ValueError("count must be >= 0")
             return n
 
-        now = time.monotonic()
         if cmd == "start":
             self.started = True
             self._last_wall = now
@@ -465,6 +525,20 @@ class SimDevice:
             return binary_proto.encode_samples(dseq, dt, disp, status)
         return ascii_proto.encode(disp, self.s.fmt, t_s=dt if self.s.fmt.ts_unit else None, status=status)
 
+    def _encode_block(
+        self, t: NDArray[np.float64], length: NDArray[np.float64], seq: NDArray[np.int64]
+    ) -> tuple[bytes, NDArray[np.int64]]:
+        """:meth:`_encode`, and where each sample's bytes start (and the last ends)."""
+        data = self._encode(t, length, seq)
+        if self.s.protocol == "binary":
+            off = np.arange(t.shape[0] + 1, dtype=np.int64) * binary_proto.FRAME_SIZE
+        else:  # one line each, and no line holds its end's last byte
+            ends = np.flatnonzero(np.frombuffer(data, np.uint8) == self.s.fmt.eol[-1]) + 1
+            off = np.concatenate((np.zeros(1, np.int64), ends))
+        if off.shape[0] != t.shape[0] + 1 or off[-1] != len(data):
+            raise AssertionError("simdevice: an encoded block does not split into its samples")
+        return data, off
+
     def _corrupt_one(self, data: bytes) -> bytes:
         """One sample's bytes, damaged so that the decoder must drop exactly this sample."""
         self.stats.corrupted_bytes += len(data.rstrip(b"\r\n")) if self.s.protocol == "ascii" else len(data)
@@ -511,21 +585,32 @@ class SimDevice:
         self._pending += out
 
     def _stream(self, now: float) -> None:
-        blocked = len(self._pending) >= PENDING_LIMIT
+        """Take the samples due by wall time ``now`` (none while the reader is too far behind)."""
+        blocked = len(self._pending) >= self._pending_limit
         if not blocked:
             self.sim_t += (now - self._last_wall) * self.s.speedup
         self._last_wall = now
         if blocked:
             return
-        t, length, seq = self.feed.take_until(self.sim_t)
+        wire: bytes | None = None
+        if self.port.is_open and now > self._stall_until and not (self._drop or self._corrupt or self._garbage):
+            self._encoder.key = (self._seq0, self._t0)  # nothing to inject: the bytes encoded ahead
+            (t, length, seq), wire = self.feed.take_encoded(self.sim_t, self._encoder)
+        else:
+            t, length, seq = self.feed.take_until(self.sim_t)
         n = t.shape[0]
         if n:
+            self._last_burst = now
             self.stats.generated += n
             self.stats.next_seq = int(seq[-1] - self._seq0) + 1
             if not self.port.is_open:
                 self.stats.unplugged += n
-            elif now < self._stall_until:
+            elif now <= self._stall_until:
                 self.stats.stalled += n
+            elif wire is not None:
+                self._pending += wire
+                self.stats.sent += n
+                self.stats.last_seq = self.stats.next_seq - 1
             else:
                 self._send_chunk(t, length, seq)
 
@@ -565,22 +650,34 @@ class SimDevice:
                 self.stats.last_seq = sa - self._seq0
             self._pending += out + one
 
-    def _flush(self) -> None:
-        if self._pending and self.port.is_open:
-            n = self.port.write(bytes(self._pending))
-            del self._pending[:n]
-
-    def step(self, now: float) -> None:
-        if self._replug_at is not None and now >= self._replug_at:
-            self._replug()
+    def _advance(self, now: float) -> None:
         if not self.started:
             self._last_wall = now
-            return
-        tests_before = self.feed.tests
-        if self.s.mode == "stream":
+        elif self.s.mode == "stream":
             self._stream(now)
         else:
             self._poll(now)
+
+    def _flush(self) -> None:
+        if self._pending and self.port.is_open:
+            n = self.port.write(self._pending)
+            del self._pending[:n]
+
+    def step(self, now: float) -> None:
+        """Bring the device to wall time ``now``: what fell due since the last step goes out in one write.
+
+        A stall's end or a replug within the interval splits it: the samples taken
+        before are judged by the state before (lost), those after go out.
+        """
+        tests_before = self.feed.tests
+        timers = (self._stall_until, self._replug_at)
+        for at in sorted(x for x in timers if x is not None and self._last_wall < x < now):
+            self._advance(at)
+            if self._replug_at is not None and at >= self._replug_at:
+                self._replug()
+        if self._replug_at is not None and now >= self._replug_at:
+            self._replug()
+        self._advance(now)
         self._flush()
         if self.feed.tests != tests_before:
             self.emit({"event": "test", "index": self.feed.tests - 1, "seq": self.stats.next_seq})
@@ -589,9 +686,26 @@ class SimDevice:
             self.done = True
             self.emit({"event": "done", "stats": asdict(self.stats)})
 
-    def tick_s(self) -> float:
-        wall_rate = self.s.rate * self.s.speedup
-        return min(0.02, max(0.001, 1.0 / wall_rate))
+    def next_wake(self, now: float) -> float:
+        """Wall time of the next :meth:`step`, unless a command, a request or room for pending bytes comes first.
+
+        Streaming, that is when the next sample falls due, but not sooner than
+        ``burst_s`` after the last write of samples: at low rates each sample goes out
+        on time, at high rates the samples of ``burst_s`` go out together, as a USB
+        adapter delivers them.
+        """
+        at = now + IDLE_S
+        if self._replug_at is not None:
+            at = min(at, self._replug_at)
+        if self.started and self.s.mode == "stream" and not self.feed.exhausted:
+            # (a microsecond late: device time computed from the wall clock then surely reaches the sample's)
+            due = self._last_wall + (self.feed.next_t - self.sim_t) / self.s.speedup + 1e-6
+            at = min(at, max(due, self._last_burst + self.s.burst_s))
+        return at
+
+    def write_fd(self) -> int | None:
+        """The port's descriptor while bytes wait for room in it (the reader is behind)."""
+        return self.port.fileno() if self._pending and self.port.is_open else None
 
 
 # ----------------------------------------------------------------------------- driving it
@@ -608,10 +722,12 @@ class DeviceProcess:
             dev.send("drop 5")
             done = dev.wait_event("done", timeout=30)
 
-    No threads: stdout is read with ``select`` as replies are awaited.
+    No threads: stdout is read with ``select`` as replies are awaited.  ``wait=False``
+    returns at once, before the device is up (it simulates its first test first):
+    :meth:`wait_ready` then says when its port is there.
     """
 
-    def __init__(self, *args: str, timeout: float = 15.0) -> None:
+    def __init__(self, *args: str, timeout: float = 15.0, wait: bool = True) -> None:
         import subprocess
 
         self.proc = subprocess.Popen(
@@ -624,27 +740,45 @@ class DeviceProcess:
         self._in = self.proc.stdin
         self._buf = b""
         self.events: list[dict[str, Any]] = []
+        self.path = ""
+        self.ready: dict[str, Any] = {}
+        self.url = ""
+        if wait:
+            try:
+                if not self.wait_ready(timeout):
+                    raise TimeoutError(f"simdevice: not ready within {timeout} s")
+            except Exception:
+                self.close()
+                raise
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Whether the device is up (its port path and ``ready`` line read), waiting up to ``timeout`` s.
+
+        Raises :class:`EOFError` if it exited first (a bad argument: its stderr says why).
+        """
+        deadline = time.monotonic() + timeout
         try:
-            self.path = self._line(timeout)
-            self.ready: dict[str, Any] = json.loads(self._line(timeout))
-        except Exception:
-            self.close()
-            raise
-        self.url: str = self.ready["url"]
+            if not self.path:
+                self.path = self._line(timeout)
+            if not self.ready:
+                self.ready = json.loads(self._line(max(0.0, deadline - time.monotonic())))
+                self.url = self.ready["url"]
+        except TimeoutError:
+            return False
+        return True
 
     def _line(self, timeout: float) -> str:
         deadline = time.monotonic() + timeout
         fd = self._out.fileno()
         while b"\n" not in self._buf:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise TimeoutError(f"simdevice: no output within {timeout} s")
-            ready, _, _ = select.select([fd], [], [], left)
+            ready, _, _ = select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
             if ready:
                 chunk = os.read(fd, 65536)
                 if not chunk:
                     raise EOFError(f"simdevice exited (code {self.proc.poll()})")
                 self._buf += chunk
+            elif time.monotonic() >= deadline:
+                raise TimeoutError(f"simdevice: no output within {timeout} s")
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode()
 
@@ -690,13 +824,16 @@ class DeviceProcess:
         return stats
 
     def close(self, timeout: float = 5.0) -> int | None:
-        """Ask it to quit, wait, kill it if it will not; close the pipes."""
+        """Ask it to quit (end it if it is not up yet), wait, kill it if it will not; close the pipes."""
         import subprocess
 
         if self.proc.poll() is None:
-            with contextlib.suppress(OSError, ValueError):
-                self._in.write(b"quit\n")
-                self._in.flush()
+            if not self.url:
+                self.proc.terminate()  # not up yet: it reads no command until it is
+            else:
+                with contextlib.suppress(OSError, ValueError):
+                    self._in.write(b"quit\n")
+                    self._in.flush()
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -738,6 +875,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--wait", action="store_true", help="stream only after the 'start' command")
     p.add_argument("--exit-when-done", action="store_true", help="exit once every test is sent")
     p.add_argument("--exit-on-eof", action="store_true", help="exit when stdin closes (a child of a program)")
+    p.add_argument(
+        "--burst-ms", type=float, default=1e3 * BURST_S,
+        help="shortest time between two writes of samples, ms (a USB adapter's latency timer; 0: every sample "
+        "as it falls due)",
+    )
     g = p.add_argument_group("ASCII format")
     g.add_argument("--unit", choices=["mm", "um", "nm", "in"], default="mm")
     g.add_argument("--timestamp", choices=["none", "s", "ms", "us"], default="none")
@@ -771,8 +913,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     from ballbar.analysis.errors import BallbarError
 
-    if not 15.625 <= args.rate <= 10_000 or not args.speedup > 0 or args.repeat < 0:
-        log.error("--rate must be within 15.625..10000, --speedup > 0, --repeat >= 0")
+    if not 15.625 <= args.rate <= 10_000 or not args.speedup > 0 or args.repeat < 0 or not 0 <= args.burst_ms <= 1000:
+        log.error("--rate must be within 15.625..10000, --speedup > 0, --repeat >= 0, --burst-ms within 0..1000")
         return 2
     if args.mode == "poll" and args.protocol != "ascii":
         log.error("--mode poll needs --protocol ascii")
@@ -800,6 +942,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             range_mm=args.range_mm,
             fmt=fmt,
             seed=args.seed,
+            burst_s=args.burst_ms / 1e3,
         )
         tests = csv_tests(args.csv, args.rate, args.repeat, args.gap_s) if args.csv else simulator_tests(args)
         feed = Feed(tests)
@@ -829,6 +972,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    # A signal wakes the loop at once (it may sleep up to IDLE_S): its number comes down this pipe.
+    wake_r, wake_w = os.pipe()
+    os.set_blocking(wake_r, False)
+    os.set_blocking(wake_w, False)
+    old_wakeup = signal.set_wakeup_fd(wake_w)
 
     out = sys.stdout.fileno()
     dev = SimDevice(feed, port, settings, out)
@@ -843,15 +991,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     inbuf = b""
     try:
         while dev.running and not stop:
-            rlist = [stdin_fd] if stdin_fd is not None else []
+            rlist = [wake_r] if stdin_fd is None else [wake_r, stdin_fd]
             if settings.mode == "poll" and port.is_open:
                 fd = port.fileno()
                 if fd is not None:
                     rlist.append(fd)
+            wfd = dev.write_fd()
+            now = time.monotonic()
             try:
-                ready, _, _ = select.select(rlist, [], [], dev.tick_s())
+                ready, _, _ = select.select(rlist, [] if wfd is None else [wfd], [], max(0.0, dev.next_wake(now) - now))
             except InterruptedError:
                 continue
+            now = time.monotonic()
+            if wake_r in ready:
+                with contextlib.suppress(BlockingIOError):
+                    os.read(wake_r, 512)
             if stdin_fd is not None and stdin_fd in ready:
                 chunk = os.read(stdin_fd, 4096)
                 if not chunk:
@@ -859,15 +1013,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                         break  # the process driving it has gone (a killed daemon's demo device)
                     stdin_fd = None  # EOF: keep running, commands are optional
                 inbuf += chunk
+                if b"\n" in inbuf:
+                    dev.step(now)  # what fell due before the commands goes out as it was
                 while b"\n" in inbuf:
                     line, inbuf = inbuf.split(b"\n", 1)
-                    dev.command(line.decode("utf-8", "replace"))
-            dev.step(time.monotonic())
+                    dev.command(line.decode("utf-8", "replace"), now)
+            dev.step(now)
             if dev.done and args.exit_when_done:
                 break
     except BrokenPipeError:
         pass  # the controlling process went away
     finally:
+        signal.set_wakeup_fd(old_wakeup)
+        os.close(wake_r)
+        os.close(wake_w)
         port.close()
         if tmpdir:
             with contextlib.suppress(OSError):

@@ -1,0 +1,46 @@
+"""``ballbar.analysis.stats`` gives what ``scipy.stats`` gives, to the bit, edge cases included."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from ballbar.analysis import stats
+
+XS = [-1.0, -0.0, 0.0, 1e-300, 1e-12, 1e-3, 0.1, 0.5, 1.0, 1.7, 3.0, 10.0, 55.5, 1e3, 1e6, math.inf, math.nan]
+DFS = [-1.0, 0.0, 0.5, 1.0, 2.0, 3.0, 7.0, 40.0, 1234.0, 1e6, math.nan]
+
+
+def same(a: float, b: float) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or a == b
+
+
+def test_f_sf() -> None:
+    for x in XS:
+        for d1 in DFS:
+            for d2 in DFS:
+                assert same(stats.f.sf(x, d1, d2), float(sps.f.sf(x, d1, d2))), (x, d1, d2)
+
+
+def test_chi2_sf_and_isf() -> None:
+    for x in XS:
+        for df in DFS:
+            assert same(stats.chi2.sf(x, df), float(sps.chi2.sf(x, df))), (x, df)
+    for q in [-0.1, 0.0, 1e-300, 1e-9, 0.001, 0.01, 0.05, 0.5, 0.95, 1.0 - 1e-16, 1.0, 1.5, math.nan]:
+        for df in DFS:
+            assert same(stats.chi2.isf(q, df), float(sps.chi2.isf(q, df))), (q, df)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_random_arguments(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    for _ in range(2000):
+        x = float(rng.lognormal(0.0, 3.0))
+        d1, d2 = int(rng.integers(1, 60)), int(rng.integers(1, 200_000))
+        assert stats.f.sf(x, d1, d2) == float(sps.f.sf(x, d1, d2))
+        assert stats.chi2.sf(x, d1) == float(sps.chi2.sf(x, d1))
+        q = float(rng.uniform())
+        assert stats.chi2.isf(q, d1) == float(sps.chi2.isf(q, d1))
