@@ -8,7 +8,10 @@ sometimes small (USB polling, scheduler), so the map is the *lower envelope* of
 the points: the ratio is fitted through the lowest-latency point of each
 ``bin_s`` of host time over the last ``window`` bins, and the offset puts the line
 under every point.  ``ratio - 1`` is the drift (a crystal's tens of ppm; 0.1
-for a simulator that runs ten times faster than real time).
+for a simulator that runs ten times faster than real time).  The ratio is
+refitted once per bin (when a bin closes: about once a second), not per point;
+between refits a point only lowers the offset if it lies under the line (one
+subtraction), so stamping a read costs an affine map.
 
 :class:`Stamper` turns a decoder's raw counters and clocks into unwrapped
 sample numbers and device times, finds gaps (lost samples), device restarts
@@ -38,6 +41,7 @@ class ClockMap:
         self._first: tuple[float, float] | None = None
         self.ratio = 1.0
         self.offset = math.nan
+        self.refits = 0  # full refits so far (about one a bin)
 
     def reset(self) -> None:
         self._bins.clear()
@@ -57,15 +61,21 @@ class ClockMap:
         if self._first is None:
             self._first = (t_device, t_host)
         b = math.floor(t_host / self.bin_s)
-        if self._cur is None:
+        cur = self._cur
+        if cur is None:
             self._cur = (b, t_device, t_host)
-        elif self._cur[0] == b:
-            if t_host - self.ratio * t_device < self._cur[2] - self.ratio * self._cur[1]:
+        elif cur[0] == b:
+            if t_host - self.ratio * t_device < cur[2] - self.ratio * cur[1]:
                 self._cur = (b, t_device, t_host)
         else:
-            self._bins.append((self._cur[1], self._cur[2]))
+            self._bins.append((cur[1], cur[2]))
             self._cur = (b, t_device, t_host)
+        if len(self._bins) >= 2 and cur is not None and cur[0] == b and self.ready:
+            # Within a bin, once the ratio comes from a fit: the line only has to stay under the new point.
+            self.offset = min(self.offset, t_host - self.ratio * t_device)
+            return
         self._refit(t_device, t_host)
+        self.refits += 1
 
     def _refit(self, t_device: float, t_host: float) -> None:
         assert self._cur is not None and self._first is not None
