@@ -15,7 +15,8 @@ and counts what it dropped:
 Messages are JSON-ready dicts with a ``kind``:
 
 ``circle`` / ``test``   an analysis result (the ``ballbar analyze --json`` object
-                        plus ``machine_id``, ``test_id``, ``t_host``, ``last_sample_t``, ``last_sample_t_host``, ``latency_ms``)
+                        plus ``machine_id``, ``test_id``, ``t_host``, ``last_sample_t``,
+                        ``last_sample_t_host``, ``latency_ms``)
 ``event``               ``event``: feed_in, feed_out, circle_done, test_rejected,
                         test_incomplete, analysis_reset, or a source event (unplugged,
                         replugged, lost, decode_errors, stall, resumed, device_reset,
