@@ -149,6 +149,7 @@ class Stamper:
 
     JUMP_PERIODS = 8.0
     JUMP_FRACTION = 0.05
+    PERIOD_EVERY_S = 1.0
 
     def __init__(self, seq_modulus: int | None, clock_wrap_s: float | None, rate_hz: float | None) -> None:
         self.seq_modulus = seq_modulus
@@ -163,6 +164,7 @@ class Stamper:
         self._th = -math.inf  # last host time handed out
         self._th_read = math.nan  # host time of the last read that had samples
         self._clk_period = math.nan  # the device clock's step per counter step (s)
+        self._clk_period_at = -math.inf  # the host time it was last measured
 
     @property
     def last_seq(self) -> int | None:
@@ -232,7 +234,7 @@ class Stamper:
 
         jump_at: list[tuple[int, float]] = []
         if clk is not None and r.seq is not None and self.seq_modulus is not None:
-            jump_at = self._clock_jumps(d, steps, keep & ~restart, 1 if first else 0)
+            jump_at = self._clock_jumps(d, steps, keep & ~restart, 1 if first else 0, t_read)
 
         if first:
             restart[0] = False
@@ -267,15 +269,18 @@ class Stamper:
         return Stamped(keep, seq, td, th, gaps, reset_seqs, jumps)
 
     def _clock_jumps(
-        self, d: NDArray[np.float64], steps: NDArray[np.int64], ok: NDArray[np.bool_], start: int
+        self, d: NDArray[np.float64], steps: NDArray[np.int64], ok: NDArray[np.bool_], start: int, t_read: float
     ) -> list[tuple[int, float]]:
         """``(index, excess s)`` where the clock's step ``d`` exceeds what the counter's ``steps`` explain."""
-        ones = ok & (steps == 1)
-        ones[:start] = False
-        if np.count_nonzero(ones) >= 4:
-            per = float(np.median(d[ones]))
-            if per > 0:
-                self._clk_period = per
+        if not (self._clk_period > 0) or t_read - self._clk_period_at >= self.PERIOD_EVERY_S:
+            # The device's period is its own and steady: measured once a second, not on every read.
+            ones = ok & (steps == 1)
+            ones[:start] = False
+            if np.count_nonzero(ones) >= 4:
+                per = float(np.median(d[ones]))
+                if per > 0:
+                    self._clk_period = per
+                    self._clk_period_at = t_read
         per = self._clk_period
         if not per > 0:
             return []

@@ -29,7 +29,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import ArrayLike, NDArray
 
 from ._common import BAD_CRC, SKIPPED_BYTES, Readings, Status, add_counts
@@ -100,14 +99,14 @@ def _position_tables() -> tuple[NDArray[np.uint16], int]:
 
 
 _POS_TABLES, _CRC_CONST = _position_tables()
+_POS_INDEX = np.arange(_BODY)
+_FRAME_OFFSETS = np.arange(FRAME_SIZE)
 
 
 def crc16_rows(rows: NDArray[np.uint8]) -> NDArray[np.uint16]:
-    """CRC of each row of a ``(n, 15)`` byte matrix, vectorised over rows."""
-    crc = np.full(rows.shape[0], _CRC_CONST, dtype=np.uint16)
-    for i in range(_BODY):
-        crc ^= _POS_TABLES[i][rows[:, i]]
-    return crc
+    """CRC of each row of a ``(n, 15)`` byte matrix, vectorised over rows and positions."""
+    crc: NDArray[np.uint16] = np.bitwise_xor.reduce(_POS_TABLES[_POS_INDEX, rows[:, :_BODY]], axis=1)
+    return crc ^ np.uint16(_CRC_CONST)
 
 
 # ----------------------------------------------------------------------------- encoder
@@ -192,7 +191,7 @@ def decode(buffer: bytes | bytearray | memoryview, final: bool = False) -> Decod
     cand = np.flatnonzero((buf[:-1] == _SYNC0) & (buf[1:] == _SYNC1))
     full = cand[cand <= n - FRAME_SIZE]
     if full.shape[0]:
-        windows = sliding_window_view(buf, FRAME_SIZE)[full]
+        windows = buf[full[:, None] + _FRAME_OFFSETS]
         crc = windows[:, _BODY].astype(np.uint16) | (windows[:, _BODY + 1].astype(np.uint16) << 8)
         ok = crc16_rows(windows[:, :_BODY]) == crc
         valid_idx = np.flatnonzero(ok)
