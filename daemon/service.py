@@ -235,8 +235,10 @@ class Daemon:
         self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]
         self.analysis = AnalysisListener(cfg, self.broadcast)
         self.analysis_queue = ListenerQueue(self.analysis, cfg.queues.analysis, "drop_newest")
-        # Batches go only where they are wanted (the log and, without samples_hz, the bus take none).
-        self.batch_queues = [q for q in [self.analysis_queue, *self.outputs] if q.wants_batches]
+        # Batches go only where they are wanted (the log and, without samples_hz, the bus take none).  The
+        # analysis last: its thread wakes at once, and the reader is then about to sleep, not to contend for
+        # the GIL with it (the merging queues before it only append).
+        self.batch_queues = [q for q in [*self.outputs, self.analysis_queue] if q.wants_batches]
         self.started = time.monotonic()
         self.samples = 0
         self.lost = 0

@@ -144,6 +144,7 @@ RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
 WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 READ_MAX = 1 << 16
+READ_MORE_AT = 4000  # a read at least this long is followed by another
 READ_BURST_MAX = 1 << 20  # at most this much in one go, however fast the device floods the port
 FALLBACK_WAIT_S = 0.02  # ports without a file descriptor (loop://, rfc2217://): their fixed read timeout
 PYSERIAL_SCHEMES = ("loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110")
@@ -369,6 +370,7 @@ class SerialSource(Source):
         self._fd: int | None = None
         self._poller: select.poll | None = None
         self._abort: tuple[int, int] | None = None
+        self._napper: select.poll | None = None
         self._io = threading.RLock()  # held by the reader inside read(); close() takes it to release the port
         self._held = b""  # a port without a descriptor: the byte its wait read
         # Stream mode reads at most once per batch period when more than one sample comes per period.
@@ -479,6 +481,8 @@ class SerialSource(Source):
             os.set_blocking(r, False)
             os.set_blocking(w, False)
             self._abort = (r, w)
+            self._napper = select.poll()  # sleeps to the batch boundary: one poll(), close() ends it
+            self._napper.register(r, select.POLLIN)
         poller = select.poll()
         poller.register(fd, select.POLLIN | select.POLLPRI)
         poller.register(self._abort[0], select.POLLIN)
@@ -565,6 +569,17 @@ class SerialSource(Source):
                 return True
         return False
 
+    def _nap(self, until: float) -> None:
+        """Sleep until ``until``; close() ends it."""
+        napper = self._napper
+        if napper is None or self._fd is None:
+            self._sleep_until(until)
+            return
+        left = until - time.monotonic()
+        if left > 0:
+            with contextlib.suppress(OSError, ValueError):
+                napper.poll(math.ceil(left * 1000.0))
+
     def _wait_fallback(self, until: float | None) -> bool:
         port = self._port
         try:
@@ -601,7 +616,8 @@ class SerialSource(Source):
             else:
                 chunks = []
                 total = 0
-                # A tty hands over at most its line buffer (4 KiB) a read: read until it has no more.
+                # A tty hands over at most its line buffer (4 KiB) a read: a read that long may have left
+                # more behind; a shorter one took all (asking again would cost a tty buffer flush).
                 while total < READ_BURST_MAX:
                     try:
                         chunk = os.read(fd, READ_MAX)
@@ -611,6 +627,8 @@ class SerialSource(Source):
                         break
                     chunks.append(chunk)
                     total += len(chunk)
+                    if len(chunk) < READ_MORE_AT:
+                        break
                 data = b"".join(chunks) if len(chunks) != 1 else chunks[0]
             if waited and not data:
                 raise serial.SerialException(
@@ -650,7 +668,7 @@ class SerialSource(Source):
         data: bytes | None = b""
         if self._flowing and self._pace:
             b = self.batch_s
-            self._sleep_until((math.floor(time.monotonic() / b) + 1.0) * b)
+            self._nap((math.floor(time.monotonic() / b) + 1.0) * b)
             if self._closed:
                 return None
             data = self._read_now()

@@ -180,6 +180,6 @@ def test_the_daemon_puts_batches_only_where_they_are_wanted() -> None:
     merged.name = "merged"
     d = Daemon(cfg, src, [(rec, 10, "drop_oldest"), (merged, 10, "drop_oldest")])
     try:
-        assert [q.listener.name for q in d.batch_queues] == ["analysis", "merged"]  # not "recorder", not "log"
+        assert [q.listener.name for q in d.batch_queues] == ["merged", "analysis"]  # not "recorder", not "log"
     finally:
         d.shutdown(1.0)

@@ -611,3 +611,49 @@ def test_a_slow_device_is_read_as_each_sample_comes(dev: FakeDevice) -> None:
     assert [k for k, _ in got] == list(range(10))
     assert st.reads == 10
     assert max(t - w for (_, t), w in zip(got, written, strict=True)) < 0.015
+
+
+def test_the_stampers_steady_shortcut_gives_what_the_general_path_gives() -> None:
+    from ballbar.daemon.timebase import Stamper
+    from ballbar.protocol import Readings
+    from ballbar.protocol.binary import CLOCK_WRAP_S
+
+    rng = np.random.default_rng(7)
+    k, clock_us = 1000, 4_294_000_000  # the clock wraps a few seconds in
+    reads = []
+    outage = 0.0
+    for i in range(800):
+        n = int(rng.integers(1, 40))
+        ks = k + np.arange(n)
+        cl = clock_us + 1000 * np.arange(n)
+        what = rng.random()
+        if what < 0.02:
+            ks[n // 2 :] += int(rng.integers(1, 50))  # lost samples
+        elif what < 0.03:
+            ks[n // 2 :] -= 500  # a restart
+            cl[n // 2 :] = 1000 * np.arange(n - n // 2)
+        elif what < 0.04:
+            cl[n // 2 :] += 3_000_000  # a clock jump
+        elif what < 0.05 and n > 1:
+            ks[-1], cl[-1] = ks[-2], cl[-2]  # a duplicate
+        k, clock_us = int(ks[-1]) + 1, int(cl[-1]) + 1000
+        outage += 5.0 if what > 0.995 else 0.0
+        t_read = 50.0 + i * 0.02 + outage + rng.exponential(1e-3)
+        reads.append((Readings(np.zeros(n), np.zeros(n, np.uint8), ks % SEQ_MODULUS, (cl % 2**32) / 1e6), t_read))
+    fast, slow = Stamper(SEQ_MODULUS, CLOCK_WRAP_S, 1000.0), Stamper(SEQ_MODULUS, CLOCK_WRAP_S, 1000.0)
+    slow.fast = False
+    taken: list[bool] = []
+    shortcut = fast._stamp_steady
+
+    def spy(r: Readings, t: float) -> object:
+        out = shortcut(r, t)
+        taken.append(out is not None)
+        return out
+
+    fast._stamp_steady = spy  # type: ignore[method-assign]
+    for r, t in reads:
+        a, b = fast.stamp(r, t), slow.stamp(r, t)
+        assert np.array_equal(a.keep, b.keep) and np.array_equal(a.seq, b.seq)
+        assert np.array_equal(a.t_device, b.t_device) and np.array_equal(a.t_host, b.t_host)
+        assert (a.gaps, a.reset_seqs, a.jumps) == (b.gaps, b.reset_seqs, b.jumps)
+    assert 0.5 * len(reads) < sum(taken) < len(reads) - 50  # both ways were taken, often
