@@ -206,7 +206,7 @@ class ListenerQueue:
                 now = time.monotonic()
                 if self._run_since is None:
                     self._run_since = now
-                    if self._wait_until > now + 2.0 * period:  # the thread would not look in time by itself
+                    if self._wait_until > now + 1.5 * period:  # the thread would not look in time by itself
                         self._cv.notify()
                 elif now - self._run_since >= period:
                     self._release()
@@ -242,7 +242,8 @@ class ListenerQueue:
                 return []
             until = next_idle
             if self._run_since is not None:
-                until = min(until, self._run_since + 2.0 * period)  # the putter went quiet
+                # The putter wakes us when the run is due; this timer is for a putter that went quiet.
+                until = min(until, self._run_since + 1.5 * period)
             elif now < self._expect_until:
                 until = min(until, self._expect_until)
             self._wait_until = until

@@ -402,6 +402,12 @@ class SerialSource(Source):
             # The timeout is set here, once: assigning it later re-applies termios (and the lock) each time.
             # 0: a read takes what has arrived; the reader waits for bytes with poll() (see _wait).
             port = serial.serial_for_url(self.port_url, baudrate=self.baud, timeout=0, exclusive=self.exclusive)
+            try:
+                self._setup_wait(port)
+            except (OSError, ValueError) as err:  # as a port that could not be opened: retried
+                with contextlib.suppress(Exception):
+                    port.close()
+                raise serial.SerialException(f"cannot wait on {self.port_url}: {err}") from err
         except ValueError as err:  # pyserial: bad URL or setting, never a missing device
             raise SourceConfigError(f"{self.url}: {err}") from err
         except (serial.SerialException, OSError) as err:
@@ -420,12 +426,6 @@ class SerialSource(Source):
                 log.warning("%s: still waiting for %s after %.0f s (%d attempts): %s",
                             self.url, self.port_url, since, self._failures, err)
             return
-        try:
-            self._setup_wait(port)
-        except (serial.SerialException, OSError, ValueError) as err:
-            with contextlib.suppress(Exception):
-                port.close()
-            raise SourceError(f"{self.url}: cannot wait on {self.port_url}: {err}") from err
         with self._port_lock:
             if self._closed:
                 port.close()
