@@ -151,9 +151,10 @@ def test_listener_threads_sleep_until_there_is_work() -> None:
             qe.put_batch(batch(i * 20, 20))
             time.sleep(0.02)
         da, db = switches(idle.tid) - a0, switches(every.tid) - b0
-        # merged every 0.25 s: a few wake-ups, against about one a batch for the listener that wants each
-        assert da <= 12, da
-        assert db >= 25, db
+        # merged every 0.25 s: a few deliveries and wake-ups (each may also wait for the GIL once or twice),
+        # against about one a batch for the listener that wants each
+        assert len(idle.calls) - 1 <= 6 and len(every.calls) - 1 == 50
+        assert da < db / 2 and db >= 25, (da, db)
     finally:
         qi.close(1.0)
         qe.close(1.0)
