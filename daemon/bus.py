@@ -28,8 +28,9 @@ key                               how         what
 ``ballbar/<m>/config``            put         ``kind: "config"``: the effective configuration, at
                                               start
 ``ballbar/<m>/samples``           put         ``kind: "samples"``, decimated samples (off unless
-                                              ``samples_hz`` > 0): one message per ~20 ms batch with
-                                              columns ``t_host``, ``t_device``, ``length_mm``,
+                                              ``samples_hz`` > 0): one message per max(0.1 s,
+                                              1/``samples_hz``) with columns ``t_host``,
+                                              ``t_device``, ``length_mm``,
                                               ``seq``, ``status``; the first sample of each
                                               1/``samples_hz`` slot, unfiltered: for display only
 ``ballbar/<m>/last/<topic>``      queryable   the last payload put on ``circle``, ``test``
@@ -350,6 +351,7 @@ class ZenohBus(Listener):
     """
 
     name = "zenoh"
+    idle_s = None  # no timers here: the session retries on its own
 
     def __init__(
         self,
@@ -370,6 +372,8 @@ class ZenohBus(Listener):
         if history_size < 1:
             raise BusConfigError(f"zenoh history_size: {history_size!r} must be at least 1")
         self.samples_hz = float(samples_hz)
+        # Batches only to publish samples, merged: one message per max(0.1 s, 1 / samples_hz).
+        self.batch_period_s: float | None = max(0.1, 1.0 / self.samples_hz) if self.samples_hz else None
         self.close_timeout_s = close_timeout_s
         self.slow_put_s = slow_put_s
         self.prefix = f"ballbar/{self.machine}"

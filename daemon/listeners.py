@@ -12,6 +12,16 @@ and counts what it dropped:
 - ``drop_newest``: when full, the new item is refused (keeps a contiguous
   prefix; for consumers that must not see holes in what they did get).
 
+A listener says what it wants, and its thread wakes only for that:
+``batch_period_s`` is ``None`` (no batches: the queue never takes one; source
+events still come as ``event`` messages), ``0`` (every batch as it is read: the
+analysis, whose latency budget the batches set) or a period in seconds (the
+batches are held and handed over merged, one :class:`SampleBatch` of all their
+samples and events in order, about once per period, or at once before a
+message so that the order holds: the MCAP log, the viewer).  ``idle_s`` is how
+long without deliveries before :meth:`Listener.on_idle` (``None``: never).  A
+merged batch still counts as the items it was made of, delivered or dropped.
+
 Messages are JSON-ready dicts with a ``kind``:
 
 ``circle`` / ``test``   an analysis result (the ``ballbar analyze --json`` object
@@ -91,9 +101,16 @@ def to_json(msg: Any) -> bytes:
 
 
 class Listener(abc.ABC):
-    """Receives samples and messages on its own thread; ``stop()`` flushes and closes."""
+    """Receives samples and messages on its own thread; ``stop()`` flushes and closes.
+
+    ``batch_period_s``: ``None`` for no batches, ``0`` for every batch, a period
+    to receive them merged about that often; ``idle_s``: how long without
+    deliveries before ``on_idle`` (``None``: never).  See the module docstring.
+    """
 
     name: str = "listener"
+    batch_period_s: float | None = 0.0
+    idle_s: float | None = 1.0
 
     def on_batch(self, batch: SampleBatch) -> None:  # noqa: B027 - optional
         """Samples and the source events that came before them."""
@@ -102,7 +119,7 @@ class Listener(abc.ABC):
         """An analysis result, an event, the status or the configuration."""
 
     def on_idle(self) -> None:  # noqa: B027 - optional
-        """Called about once a second when nothing arrived (timers: flushes, reconnects)."""
+        """Called after ``idle_s`` without deliveries, and again every ``idle_s`` (timers: flushes, reconnects)."""
 
     @abc.abstractmethod
     def stop(self) -> None:
@@ -128,21 +145,42 @@ class ListenerQueue:
     ``capacity`` counts items (a batch or a message).  A listener that raises
     is logged and counted, never allowed to stop the others; it keeps
     receiving (a transient error, such as a full disk, may pass).
+
+    The thread sleeps until there is something to deliver: a message, a batch
+    for a listener that wants each one, a run of batches whose period is up
+    (the putter wakes it then; a timer of its own covers a source that went
+    quiet), ``on_idle``'s time, or ``close()``.
     """
 
     def __init__(self, listener: Listener, capacity: int = 1000, policy: DropPolicy = "drop_oldest") -> None:
         self.listener = listener
         self.capacity = capacity
         self.policy: DropPolicy = policy
+        period = getattr(listener, "batch_period_s", 0.0)
+        self.batch_period_s: float | None = None if period is None else max(0.0, float(period))
+        idle = getattr(listener, "idle_s", 1.0)
+        self.idle_s: float | None = None if idle is None else max(0.001, float(idle))
         self._items: deque[tuple[str, Any]] = deque()
-        self._cv = threading.Condition()
+        self._lock = threading.Lock()
+        self._cv = threading.Condition(self._lock)  # the listener's thread waits on it
+        self._drained = threading.Condition(self._lock)  # wait_idle() waits on it
         self._closing = False
-        self._busy = False  # an item taken from the queue is being delivered
+        self._busy = False  # items taken from the queue are being delivered
+        self._ready = 0  # the first this many items are due now (the rest: a run of batches, held)
+        self._run_since: float | None = None  # when the held run's first batch came
+        self._wait_until = math.inf  # when the thread's current wait ends by itself (inf: not waiting by a timer)
+        self._expect_until = -math.inf  # batches came lately: wait by a timer until then, not indefinitely
         self.stats = QueueStats(capacity=capacity, policy=policy)
         self._thread = threading.Thread(target=self._run, name=f"listener-{listener.name}", daemon=True)
         self._thread.start()
 
+    @property
+    def wants_batches(self) -> bool:
+        return self.batch_period_s is not None
+
     def put_batch(self, batch: SampleBatch) -> bool:
+        if self.batch_period_s is None:
+            return False
         return self._put(("batch", batch))
 
     def put_message(self, msg: Message) -> bool:
@@ -157,51 +195,114 @@ class ListenerQueue:
                 if self.policy == "drop_newest":
                     return False
                 self._items.popleft()
+                self._ready = max(0, self._ready - 1)
             self._items.append(item)
             self.stats.depth = len(self._items)
-            self._cv.notify()
+            period = self.batch_period_s
+            if item[0] == "message" or not period:
+                self._release()
+                self._cv.notify()
+            else:
+                now = time.monotonic()
+                if self._run_since is None:
+                    self._run_since = now
+                    if self._wait_until > now + 1.5 * period:  # the thread would not look in time by itself
+                        self._cv.notify()
+                elif now - self._run_since >= period:
+                    self._release()
+                    self._cv.notify()
         return True
+
+    def _release(self) -> None:
+        """Everything queued is due (under the lock)."""
+        self._ready = len(self._items)
+        self._run_since = None
+
+    def _take(self) -> list[tuple[str, Any]] | None:
+        """Under the lock: wait for what is due; ``[]`` for ``on_idle``, ``None`` when closed and drained."""
+        period = self.batch_period_s or 0.0
+        next_idle = time.monotonic() + self.idle_s if self.idle_s is not None else math.inf
+        while True:
+            now = time.monotonic()
+            if self._items and (
+                self._closing or (self._run_since is not None and now - self._run_since >= period)
+            ):
+                self._release()
+            if self._ready:
+                n = self._ready if period else 1  # with a period, all that is due at once: its batches merged
+                out = [self._items.popleft() for _ in range(n)]
+                self._ready -= n
+                self.stats.depth = len(self._items)
+                if period and any(kind == "batch" for kind, _ in out):
+                    self._expect_until = now + 2.0 * period
+                return out
+            if self._closing:
+                return None
+            if now >= next_idle:
+                return []
+            until = next_idle
+            if self._run_since is not None:
+                # The putter wakes us when the run is due; this timer is for a putter that went quiet.
+                until = min(until, self._run_since + 1.5 * period)
+            elif now < self._expect_until:
+                until = min(until, self._expect_until)
+            self._wait_until = until
+            self._cv.wait(None if until == math.inf else until - now)
+            self._wait_until = math.inf
 
     def _run(self) -> None:
         while True:
             with self._cv:
-                if not self._items and not self._closing:
-                    self._cv.wait(timeout=1.0)
-                if not self._items:
-                    if self._closing:
-                        return
-                    item = None
-                else:
-                    item = self._items.popleft()
-                    self.stats.depth = len(self._items)
-                    self._busy = True
+                items = self._take()
+                if items is None:
+                    return
+                self._busy = True
             try:
-                if item is None:
-                    self.listener.on_idle()
-                elif item[0] == "batch":
-                    self.listener.on_batch(item[1])
-                else:
-                    self.listener.on_message(item[1])
-                if item is not None:
-                    self.stats.delivered += 1
-            except Exception:  # a listener's failure must not stop the pipeline
-                self.stats.errors += 1
-                log.exception("listener %s failed", self.listener.name)
+                self._deliver(items)
             finally:
-                with self._cv:
+                with self._lock:
                     self._busy = False
                     if not self._items:
-                        self._cv.notify_all()
+                        self._drained.notify_all()
+
+    def _deliver(self, items: list[tuple[str, Any]]) -> None:
+        if not items:
+            self._call(self.listener.on_idle, None, 0)
+            return
+        i = 0
+        while i < len(items):
+            kind, payload = items[i]
+            if kind == "message":
+                self._call(self.listener.on_message, payload, 1)
+                i += 1
+                continue
+            j = i + 1
+            while j < len(items) and items[j][0] == "batch":
+                j += 1
+            merged = payload if j == i + 1 else SampleBatch.concat([b for _, b in items[i:j]])
+            self._call(self.listener.on_batch, merged, j - i)
+            i = j
+
+    def _call(self, fn: Any, arg: Any, count: int) -> None:
+        try:
+            if count:
+                fn(arg)
+                self.stats.delivered += count
+            else:
+                fn()
+        except Exception:  # a listener's failure must not stop the pipeline
+            self.stats.errors += 1
+            log.exception("listener %s failed", self.listener.name)
 
     def wait_idle(self, timeout: float, stop: threading.Event | None = None) -> bool:
         """Wait until everything queued has been delivered (True), ``timeout`` passes or ``stop`` is set."""
         deadline = time.monotonic() + timeout
-        with self._cv:
+        with self._lock:
             while self._items or self._busy:
                 left = deadline - time.monotonic()
                 if left <= 0 or not self._thread.is_alive() or (stop is not None and stop.is_set()):
                     return False
-                self._cv.wait(min(left, 0.1))
+                self._drained.wait(min(left, 0.1))
         return True
 
     def close(self, timeout: float = 5.0) -> None:

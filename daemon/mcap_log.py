@@ -82,11 +82,13 @@ instant on the wall clock).
 Crash safety
 ------------
 Chunks are zstd-compressed and closed (``Writer.flush``) at most ``flush_s``
-(0.5 s) plus a 50 ms tick after the first record in them was handed over, by a
-small flush thread, whatever the caller does; the kernel then has them, so a
-killed daemon (``kill -9``) loses at most that last half second (a power cut
-can lose more: files are fsync'ed only when closed).  :func:`read_log` reads such a file up to its last
-whole chunk.  ``stop()`` (SIGTERM) writes the footer and indexes.
+(0.5 s) after the first record in them was handed over, or for samples after
+the first of them was read (their host time: the pipeline hands samples over
+merged about every 0.25 s, and the time they waited counts), by a small flush
+thread that sleeps until that deadline, whatever the caller does; the kernel
+then has them, so a killed daemon (``kill -9``) loses at most that last half
+second (a power cut can lose more: files are fsync'ed only when closed).
+:func:`read_log` reads such a file up to its last whole chunk.  ``stop()`` (SIGTERM) writes the footer and indexes.
 
 Write errors
 ------------
@@ -153,6 +155,7 @@ PM_PER_MM = 1_000_000_000
 MAX_BLOCK = 1 << 16  # samples per message at most
 MAX_ABS_LENGTH_MM = 1.0e6  # beyond this a length is stored as missing (it would overflow the integers' exactness)
 RETENTION_EVERY_S = 60.0
+FLUSHER_MAX_WAIT_S = 1.0
 _MAGIC = b"\x89MCAP0\r\n"
 _NAME_RE = re.compile(r"^(?P<machine>.+)_(?P<ts>\d{8}T\d{6}Z)_(?P<seq>\d+)\.mcap$")
 
@@ -480,6 +483,8 @@ class McapLogger(Listener):
     """
 
     name = "mcap"
+    batch_period_s = 0.25  # samples merged: a write a quarter second, not one per 20 ms batch
+    idle_s = None  # the flush thread keeps the time
 
     def __init__(
         self,
@@ -563,6 +568,7 @@ class McapLogger(Listener):
         self._last_error = ""
 
         self._wake = threading.Event()
+        self._flusher_until = math.inf
         self._thread = threading.Thread(target=self._flusher, name="mcap-flush", daemon=True)
         self._thread.start()
 
@@ -607,7 +613,11 @@ class McapLogger(Listener):
             if n:
                 self._pending.batches.append(batch)
                 self._pending.n += n
-                self._mark_dirty(now)
+                # The flush deadline counts from when the first sample was read, not from when it got here
+                # (it waited up to a batch period in the queue; longer, and it was no read time of this run).
+                t0 = float(batch.t_host[0])
+                waited = min(now - t0, self.batch_period_s + 0.05) if math.isfinite(t0) else 0.0
+                self._mark_dirty(now - max(0.0, waited))
                 if self._pending.n >= MAX_BLOCK:
                     self._write_pending()
             self._tick(now)
@@ -691,19 +701,34 @@ class McapLogger(Listener):
     # ------------------------------------------------------------------ internals: timing
 
     def _flusher(self) -> None:
-        tick = min(0.05, self.flush_s / 5.0)
-        while not self._wake.wait(tick):
+        """Sleeps until the next flush deadline (or at most ``FLUSHER_MAX_WAIT_S``: rotation by age,
+        retention); ``_mark_dirty`` wakes it when a new deadline comes before its wake-up."""
+        while True:
             try:
                 with self._lock:
                     if self._stopped:
                         return
-                    self._tick(time.monotonic())
+                    now = time.monotonic()
+                    self._tick(now)
+                    if self._dirty_since is not None:
+                        wait = self._dirty_since + self.flush_s - now
+                    elif self._file is None and self._failing:
+                        wait = min(0.05, self.flush_s / 5.0)  # a write outage: look for space back often
+                    else:
+                        wait = FLUSHER_MAX_WAIT_S
+                    wait = max(0.001, wait)
+                    self._flusher_until = now + wait
+                    self._wake.clear()
             except Exception:  # the flush thread must outlive any surprise
                 log.exception("mcap log: flush thread error")
+                wait = 0.05
+            self._wake.wait(wait)
 
-    def _mark_dirty(self, now: float) -> None:
+    def _mark_dirty(self, since: float) -> None:
         if self._dirty_since is None:
-            self._dirty_since = now
+            self._dirty_since = since
+            if since + self.flush_s < self._flusher_until:
+                self._wake.set()  # the flush thread sleeps past this deadline
 
     def _tick(self, now: float) -> None:
         if self._file is None and self._failing and not self._stopped:

@@ -255,7 +255,9 @@ def breaks_in(events: Sequence[SourceEvent], seq: NDArray[np.int64]) -> list[tup
 class SourceStats:
     """Running totals of a source (a copy: :meth:`Source.stats` returns a snapshot).
 
-    ``lost`` counts every sample reported lost, whatever the cause; ``decode``
+    ``lost`` counts every sample reported lost, whatever the cause; ``reads`` the
+    port reads that returned bytes (a serial source: about one per batch period
+    while samples flow); ``decode``
     the decoder's drops by reason; ``clock_ratio`` and ``clock_offset_s`` the
     current device-to-host clock map (``t_host = offset + ratio * t_device``),
     ``drift_ppm`` its ratio's departure from 1.
@@ -265,6 +267,7 @@ class SourceStats:
     lost: int = 0
     batches: int = 0
     bytes_read: int = 0
+    reads: int = 0
     unplugs: int = 0
     replugs: int = 0
     stalls: int = 0

@@ -8,8 +8,10 @@
                            +-------------> [queue] Zenoh bus
                            +-------------> [queue] Rerun viewer
 
-The main loop only reads the source and puts what it read into each queue; it
-never waits on a consumer.  Each queue has a bound and a drop policy
+The main loop only reads the source and puts what it read into each queue that
+wants batches; it never waits on a consumer.  The analysis takes every ~20 ms
+batch (its latency budget); the MCAP logger and the viewer take them merged,
+about every 0.25 s; the bus only when it publishes samples; the log none.  Each queue has a bound and a drop policy
 (:mod:`.listeners`); what a queue drops is counted and shown in the status.
 The analysis queue and the MCAP queue drop new items when full (a contiguous
 prefix, the gap counted); the bus and the viewer drop the oldest (the newest
@@ -74,6 +76,8 @@ class AnalysisListener(Listener):
     """
 
     name = "analysis"
+    batch_period_s = 0.0  # every batch as read: the results' latency budget
+    idle_s = None
 
     def __init__(self, cfg: Config, emit: Callable[[Message], None]) -> None:
         self.cfg = cfg
@@ -178,6 +182,8 @@ class LogListener(Listener):
     """One log line per result and per notable event (journald under systemd)."""
 
     name = "log"
+    batch_period_s = None  # results and events only (source events come as messages)
+    idle_s = None
 
     def on_message(self, msg: Message) -> None:
         kind = msg.get("kind")
@@ -229,6 +235,10 @@ class Daemon:
         self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]
         self.analysis = AnalysisListener(cfg, self.broadcast)
         self.analysis_queue = ListenerQueue(self.analysis, cfg.queues.analysis, "drop_newest")
+        # Batches go only where they are wanted (the log and, without samples_hz, the bus take none).  The
+        # analysis last: its thread wakes at once, and the reader is then about to sleep, not to contend for
+        # the GIL with it (the merging queues before it only append).
+        self.batch_queues = [q for q in [*self.outputs, self.analysis_queue] if q.wants_batches]
         self.started = time.monotonic()
         self.samples = 0
         self.lost = 0
@@ -339,8 +349,7 @@ class Daemon:
                     if batch.events:
                         self._source_events(batch)
                     self.samples += len(batch)
-                    self.analysis_queue.put_batch(batch)
-                    for q in self.outputs:
+                    for q in self.batch_queues:
                         q.put_batch(batch)
                     if self.source_state == "starting" and len(batch):
                         self.source_state = "connected"

@@ -30,6 +30,14 @@ The interface (:class:`Source`)
     Sources are context managers.
 ``stats() -> SourceStats``, ``finished``, ``rate_hz``, ``url``.
 
+A serial source wakes at most once per batch period while samples flow: it
+sleeps to the next boundary of a ``batch_s`` grid on the monotonic clock and
+takes everything the port has in one go; when nothing came (idle, or a device
+slower than one sample per batch period) it waits for the first bytes with
+``poll()`` and takes them at once.  The port's settings (its timeout among
+them) are applied once, at open: pyserial re-applies termios and the lock on
+each assignment.  ``stats().reads`` counts the reads that returned bytes.
+
 Call ``read`` from one thread that does nothing else (the pipeline's reader):
 a serial port's kernel buffer holds only a few tenths of a second at 10 kHz,
 so a consumer that is slow must be decoupled by a queue, not by reading late.
@@ -111,6 +119,7 @@ import contextlib
 import logging
 import math
 import os
+import select
 import threading
 import time
 import urllib.parse
@@ -135,6 +144,9 @@ RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
 WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 READ_MAX = 1 << 16
+READ_MORE_AT = 4000  # a read at least this long is followed by another
+READ_BURST_MAX = 1 << 20  # at most this much in one go, however fast the device floods the port
+FALLBACK_WAIT_S = 0.02  # ports without a file descriptor (loop://, rfc2217://): their fixed read timeout
 PYSERIAL_SCHEMES = ("loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110")
 
 
@@ -353,6 +365,17 @@ class SerialSource(Source):
         self._reported: dict[str, int] = {}
         self._port: serial.SerialBase | None = None
         self._port_lock = threading.Lock()
+        # How the reader waits (see "reading"): the port's descriptor and a poll object on it and on
+        # the abort pipe that close() writes to; None for ports without a descriptor.
+        self._fd: int | None = None
+        self._poller: select.poll | None = None
+        self._abort: tuple[int, int] | None = None
+        self._napper: select.poll | None = None
+        self._io = threading.RLock()  # held by the reader inside read(); close() takes it to release the port
+        self._held = b""  # a port without a descriptor: the byte its wait read
+        # Stream mode reads at most once per batch period when more than one sample comes per period.
+        self._pace = not (rate_hz is not None and 1.0 / rate_hz >= batch_s)
+        self._flowing = False  # the last read found bytes: the next one waits for the batch boundary
         self._ever_open = False
         self._retry_s = retry_min_s
         self._next_retry = 0.0
@@ -376,9 +399,15 @@ class SerialSource(Source):
 
     def _try_open(self, now: float, first: bool = False) -> None:
         try:
-            port = serial.serial_for_url(
-                self.port_url, baudrate=self.baud, timeout=self.batch_s, exclusive=self.exclusive
-            )
+            # The timeout is set here, once: assigning it later re-applies termios (and the lock) each time.
+            # 0: a read takes what has arrived; the reader waits for bytes with poll() (see _wait).
+            port = serial.serial_for_url(self.port_url, baudrate=self.baud, timeout=0, exclusive=self.exclusive)
+            try:
+                self._setup_wait(port)
+            except (OSError, ValueError) as err:  # as a port that could not be opened: retried
+                with contextlib.suppress(Exception):
+                    port.close()
+                raise serial.SerialException(f"cannot wait on {self.port_url}: {err}") from err
         except ValueError as err:  # pyserial: bad URL or setting, never a missing device
             raise SourceConfigError(f"{self.url}: {err}") from err
         except (serial.SerialException, OSError) as err:
@@ -402,6 +431,8 @@ class SerialSource(Source):
                 port.close()
                 return
             self._port = port
+        self._flowing = False
+        self._held = b""
         self._failures = 0
         self._retry_s = self.retry_min_s
         self._stats.connected = True
@@ -433,23 +464,69 @@ class SerialSource(Source):
             self._lose(self._out[0], 1, "outage")
             self._out = None
 
+    def _setup_wait(self, port: serial.SerialBase) -> None:
+        """Wait on the port's descriptor (and the abort pipe) with poll(); a port without one reads with a
+        fixed timeout, set once."""
+        try:
+            fd = port.fileno()
+        except Exception:  # loop://, rfc2217://: no descriptor
+            fd = None
+        if fd is None or fd < 0:
+            self._fd, self._poller = None, None
+            port.timeout = FALLBACK_WAIT_S
+            return
+        os.set_blocking(fd, False)  # pyserial opens ttys so already; a socket:// port too
+        if self._abort is None:
+            r, w = os.pipe()
+            os.set_blocking(r, False)
+            os.set_blocking(w, False)
+            self._abort = (r, w)
+            self._napper = select.poll()  # sleeps to the batch boundary: one poll(), close() ends it
+            self._napper.register(r, select.POLLIN)
+        poller = select.poll()
+        poller.register(fd, select.POLLIN | select.POLLPRI)
+        poller.register(self._abort[0], select.POLLIN)
+        self._fd, self._poller = fd, poller
+
     def _drop_port(self) -> None:
         with self._port_lock:
             port, self._port = self._port, None
+            self._fd, self._poller = None, None
         if port is not None:
             with contextlib.suppress(Exception):
                 port.close()
 
     def _close(self) -> None:
+        # Wake the reader (a poll() on the abort pipe; a port without a descriptor cancels its read), then
+        # release the port and the pipe once the reader is out of read(): never under its feet.
+        if self._abort is not None:
+            with contextlib.suppress(OSError):
+                os.write(self._abort[1], b"x")
         port = self._port
-        if port is not None:
+        if port is not None and self._fd is None:
             with contextlib.suppress(Exception):
                 port.cancel_read()
-        self._drop_port()
+        got = self._io.acquire(timeout=2.0)
+        try:
+            self._drop_port()
+            if got and self._abort is not None:
+                for fd in self._abort:
+                    with contextlib.suppress(OSError):
+                        os.close(fd)
+                self._abort = None
+            elif not got:
+                log.warning("%s: the reader did not leave read() within 2 s of close()", self.url)
+        finally:
+            if got:
+                self._io.release()
 
     # -- reading ------------------------------------------------------------------
 
     def _read(self, deadline: float | None) -> SampleBatch | None:
+        with self._io:
+            return self._read_locked(deadline)
+
+    def _read_locked(self, deadline: float | None) -> SampleBatch | None:
         while not self._closed:
             now = time.monotonic()
             if self._port is None:
@@ -470,14 +547,93 @@ class SerialSource(Source):
                 return None
         return None
 
-    def _read_port(self, size: int, timeout: float) -> bytes | None:
-        """Bytes from the port, or ``None`` when it went away (an event is queued)."""
+    # The port is read in two steps, neither of which touches its settings: wait until it has bytes
+    # (poll() on its descriptor, woken by close() through the abort pipe), then take everything it has.
+
+    def _wait(self, until: float | None) -> bool:
+        """Wait until the port has bytes (True; also when it hung up), ``until`` passes or close() (False)."""
+        poller = self._poller
+        if poller is None:
+            return self._wait_fallback(until)
+        while not self._closed:
+            left = None if until is None else until - time.monotonic()
+            if left is not None and left <= 0:
+                return False
+            try:
+                ready = poller.poll(None if left is None else max(1, math.ceil(left * 1000.0)))
+            except (OSError, ValueError):  # the port went away under a concurrent close()
+                return False
+            if self._closed:
+                return False
+            if any(fd == self._fd for fd, _ in ready):
+                return True
+        return False
+
+    def _nap(self, until: float) -> None:
+        """Sleep until ``until``; close() ends it."""
+        napper = self._napper
+        if napper is None or self._fd is None:
+            self._sleep_until(until)
+            return
+        left = until - time.monotonic()
+        if left > 0:
+            with contextlib.suppress(OSError, ValueError):
+                napper.poll(math.ceil(left * 1000.0))
+
+    def _wait_fallback(self, until: float | None) -> bool:
+        port = self._port
+        try:
+            while port is not None and not self._closed:
+                if port.in_waiting:
+                    return True
+                if until is not None and time.monotonic() >= until:
+                    return False
+                b = port.read(1)  # the fixed timeout set at open
+                if b:
+                    self._held += b
+                    return True
+        except (serial.SerialException, OSError) as err:
+            if not self._closed:
+                self._port_lost(err)
+        except (TypeError, AttributeError):  # pyserial after a concurrent close()
+            pass
+        return False
+
+    def _read_now(self, waited: bool = False) -> bytes | None:
+        """Everything the port has now (maybe nothing), or ``None`` when it went away (an event is queued).
+
+        ``waited``: the wait said the port has bytes; none then is a port that hung up.
+        """
         port = self._port
         if port is None:
             return None
+        fd = self._fd
         try:
-            port.timeout = max(0.0, timeout)
-            data = port.read(size)
+            if fd is None:
+                n = port.in_waiting
+                data = self._held + (port.read(n) if n else b"")
+                self._held = b""
+            else:
+                chunks = []
+                total = 0
+                # A tty hands over at most its line buffer (4 KiB) a read: a read that long may have left
+                # more behind; a shorter one took all (asking again would cost a tty buffer flush).
+                while total < READ_BURST_MAX:
+                    try:
+                        chunk = os.read(fd, READ_MAX)
+                    except BlockingIOError:
+                        break
+                    if not chunk:
+                        break
+                    chunks.append(chunk)
+                    total += len(chunk)
+                    if len(chunk) < READ_MORE_AT:
+                        break
+                data = b"".join(chunks) if len(chunks) != 1 else chunks[0]
+            if waited and not data:
+                raise serial.SerialException(
+                    "device reports readiness to read but returned no data (device disconnected?)"
+                )
         except (serial.SerialException, OSError) as err:
             if not self._closed:
                 self._port_lost(err)
@@ -488,6 +644,7 @@ class SerialSource(Source):
             raise SourceError(f"{self.url}: {err}") from err
         if data:
             self._stats.bytes_read += len(data)
+            self._stats.reads += 1
         return data
 
     def _check_stall(self, now: float, got_bytes: bool) -> None:
@@ -502,12 +659,29 @@ class SerialSource(Source):
             self._event(EventKind.STALL, gap_s=now - self._last_rx)
 
     def _stream_step(self, deadline: float | None) -> SampleBatch | None:
-        now = time.monotonic()
-        wait = self.batch_s if deadline is None else min(self.batch_s, deadline - now)
-        data = self._read_port(READ_MAX, wait)
+        """One read: at most one wake-up per batch period while samples flow.
+
+        While bytes flow (the last read found some, and more than one sample comes per batch period),
+        sleep to the next boundary of a ``batch_s`` grid on the monotonic clock and take all that came
+        meanwhile.  Otherwise (idle, or a slow device) wait for the first bytes and take them at once.
+        """
+        data: bytes | None = b""
+        if self._flowing and self._pace:
+            b = self.batch_s
+            self._nap((math.floor(time.monotonic() / b) + 1.0) * b)
+            if self._closed:
+                return None
+            data = self._read_now()
+        if data is not None and not data:
+            until = deadline
+            if not self._stalled:
+                until = self._last_rx + self.stall_s if until is None else min(until, self._last_rx + self.stall_s)
+            data = self._read_now(waited=True) if self._wait(until) else b""
         if data is None:
+            self._flowing = False
             return self._events_only()
         t_read = time.monotonic()
+        self._flowing = bool(data)
         self._check_stall(t_read, bool(data))
         if not data:
             return self._events_only()
@@ -577,19 +751,10 @@ class SerialSource(Source):
         until = min(nxt, self._poll_batch_start + self.batch_s)
         if deadline is not None:
             until = min(until, deadline)
-        # Returns at the first byte of the answer; the rest of what came is read at once.
-        data = self._read_port(1, until - now)
+        # Returns at the first byte of the answer; what came is read at once.
+        data = self._read_now(waited=True) if self._wait(until) else b""
         if data is None:
             return self._flush_poll()
-        if data:
-            port = self._port
-            try:
-                avail = port.in_waiting if port is not None else 0
-                if avail and port is not None:
-                    data += port.read(avail)
-            except (serial.SerialException, OSError) as err:
-                self._port_lost(err)
-                return self._flush_poll()
         t_read = time.monotonic()
         self._check_stall(t_read, bool(data))
         if data:

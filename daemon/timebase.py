@@ -8,7 +8,10 @@ sometimes small (USB polling, scheduler), so the map is the *lower envelope* of
 the points: the ratio is fitted through the lowest-latency point of each
 ``bin_s`` of host time over the last ``window`` bins, and the offset puts the line
 under every point.  ``ratio - 1`` is the drift (a crystal's tens of ppm; 0.1
-for a simulator that runs ten times faster than real time).
+for a simulator that runs ten times faster than real time).  The ratio is
+refitted once per bin (when a bin closes: about once a second), not per point;
+between refits a point only lowers the offset if it lies under the line (one
+subtraction), so stamping a read costs an affine map.
 
 :class:`Stamper` turns a decoder's raw counters and clocks into unwrapped
 sample numbers and device times, finds gaps (lost samples), device restarts
@@ -38,6 +41,7 @@ class ClockMap:
         self._first: tuple[float, float] | None = None
         self.ratio = 1.0
         self.offset = math.nan
+        self.refits = 0  # full refits so far (about one a bin)
 
     def reset(self) -> None:
         self._bins.clear()
@@ -57,15 +61,21 @@ class ClockMap:
         if self._first is None:
             self._first = (t_device, t_host)
         b = math.floor(t_host / self.bin_s)
-        if self._cur is None:
+        cur = self._cur
+        if cur is None:
             self._cur = (b, t_device, t_host)
-        elif self._cur[0] == b:
-            if t_host - self.ratio * t_device < self._cur[2] - self.ratio * self._cur[1]:
+        elif cur[0] == b:
+            if t_host - self.ratio * t_device < cur[2] - self.ratio * cur[1]:
                 self._cur = (b, t_device, t_host)
         else:
-            self._bins.append((self._cur[1], self._cur[2]))
+            self._bins.append((cur[1], cur[2]))
             self._cur = (b, t_device, t_host)
+        if len(self._bins) >= 2 and cur is not None and cur[0] == b and self.ready:
+            # Within a bin, once the ratio comes from a fit: the line only has to stay under the new point.
+            self.offset = min(self.offset, t_host - self.ratio * t_device)
+            return
         self._refit(t_device, t_host)
+        self.refits += 1
 
     def _refit(self, t_device: float, t_host: float) -> None:
         assert self._cur is not None and self._first is not None
@@ -139,6 +149,8 @@ class Stamper:
 
     JUMP_PERIODS = 8.0
     JUMP_FRACTION = 0.05
+    PERIOD_EVERY_S = 1.0
+    fast = True  # the steady-state shortcut (tests compare it with the general path)
 
     def __init__(self, seq_modulus: int | None, clock_wrap_s: float | None, rate_hz: float | None) -> None:
         self.seq_modulus = seq_modulus
@@ -153,6 +165,7 @@ class Stamper:
         self._th = -math.inf  # last host time handed out
         self._th_read = math.nan  # host time of the last read that had samples
         self._clk_period = math.nan  # the device clock's step per counter step (s)
+        self._clk_period_at = -math.inf  # the host time it was last measured
 
     @property
     def last_seq(self) -> int | None:
@@ -163,6 +176,10 @@ class Stamper:
         if n == 0:
             z = np.empty(0)
             return Stamped(np.ones(0, bool), np.empty(0, np.int64), z, z)
+        if self.fast:
+            done = self._stamp_steady(r, t_read)
+            if done is not None:
+                return done
         first = self._seq is None
         restart = np.zeros(n, bool)
         keep = np.ones(n, bool)
@@ -222,7 +239,7 @@ class Stamper:
 
         jump_at: list[tuple[int, float]] = []
         if clk is not None and r.seq is not None and self.seq_modulus is not None:
-            jump_at = self._clock_jumps(d, steps, keep & ~restart, 1 if first else 0)
+            jump_at = self._clock_jumps(d, steps, keep & ~restart, 1 if first else 0, t_read)
 
         if first:
             restart[0] = False
@@ -256,16 +273,51 @@ class Stamper:
         self._th_read = t_read
         return Stamped(keep, seq, td, th, gaps, reset_seqs, jumps)
 
+    def _stamp_steady(self, r: Readings, t_read: float) -> Stamped | None:
+        """The usual read, in a few array operations: a counter that steps by one throughout, a clock that
+        steps by about its period (no wrap, restart, jump, gap or duplicate), a known period that is not
+        due to be measured again, no long outage.  ``None``: anything else, for :meth:`stamp` to sort out
+        (the same result either way, only slower)."""
+        raw, clk = r.seq, r.clock_s
+        per = self._clk_period
+        if (
+            raw is None or clk is None or self.seq_modulus is None or self._seq is None
+            or self._seq_raw is None or self._clk_raw is None or not per > 0
+            or t_read - self._clk_period_at >= self.PERIOD_EVERY_S or not t_read - self._th_read < 1.0
+        ):
+            return None
+        ds = np.diff(raw, prepend=self._seq_raw)
+        if not (ds.min() == 1 and ds.max() == 1):
+            return None
+        dc = np.diff(clk, prepend=self._clk_raw)
+        lo, hi = float(dc.min()), float(dc.max())
+        # no restart (a step back), no jump (beyond JUMP_PERIODS periods from the period)
+        if not (lo > 0.0 and lo - per >= -self.JUMP_PERIODS * per and hi - per <= self.JUMP_PERIODS * per):
+            return None
+        n = raw.shape[0]
+        self._seq_raw = int(raw[-1])
+        self._clk_raw = float(clk[-1])
+        seq = np.arange(self._seq + 1, self._seq + 1 + n, dtype=np.int64)
+        td = clk + self._clk_base
+        th = self._host_times(seq, td, t_read)
+        self._seq = int(seq[-1])
+        self._td = float(td[-1])
+        self._th_read = t_read
+        return Stamped(np.ones(n, bool), seq, td, th)
+
     def _clock_jumps(
-        self, d: NDArray[np.float64], steps: NDArray[np.int64], ok: NDArray[np.bool_], start: int
+        self, d: NDArray[np.float64], steps: NDArray[np.int64], ok: NDArray[np.bool_], start: int, t_read: float
     ) -> list[tuple[int, float]]:
         """``(index, excess s)`` where the clock's step ``d`` exceeds what the counter's ``steps`` explain."""
-        ones = ok & (steps == 1)
-        ones[:start] = False
-        if np.count_nonzero(ones) >= 4:
-            per = float(np.median(d[ones]))
-            if per > 0:
-                self._clk_period = per
+        if not (self._clk_period > 0) or t_read - self._clk_period_at >= self.PERIOD_EVERY_S:
+            # The device's period is its own and steady: measured once a second, not on every read.
+            ones = ok & (steps == 1)
+            ones[:start] = False
+            if np.count_nonzero(ones) >= 4:
+                per = float(np.median(d[ones]))
+                if per > 0:
+                    self._clk_period = per
+                    self._clk_period_at = t_read
         per = self._clk_period
         if not per > 0:
             return []

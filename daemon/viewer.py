@@ -910,6 +910,7 @@ class RerunViewer(Listener):
     """
 
     name = "rerun"
+    batch_period_s = 0.25  # the listener queue hands batches over merged, four a second
 
     def __init__(
         self,

@@ -208,9 +208,12 @@ from ballbar.daemon.mcap_log import McapLogger
 from ballbar.daemon.samples import SampleBatch
 from ballbar.tools.simulator import MachineModel, simulate
 
-state, report = sys.argv[1], sys.argv[2]
+state, report, queued = sys.argv[1], sys.argv[2], sys.argv[3] == "queued"
 r = simulate(TestPlan(), MachineModel(noise_um=0.1), 1000.0, seed=5)
 lg = McapLogger(state, "crash")
+if queued:  # as the daemon feeds it: through its listener queue, which merges batches for 0.25 s
+    from ballbar.daemon.listeners import ListenerQueue
+    q = ListenerQueue(lg, 6000, "drop_newest")
 fd = os.open(report, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
 start = time.monotonic()
 i = 0
@@ -221,15 +224,17 @@ while i < r.t_s.size:
     if j <= i:
         continue
     t = r.t_s[i:j]
-    lg.on_batch(SampleBatch.from_columns(start + t, t, r.length_mm[i:j], np.arange(i, j), np.zeros(j - i)))
+    b = SampleBatch.from_columns(now - (t[-1] - t), t, r.length_mm[i:j], np.arange(i, j), np.zeros(j - i))
+    q.put_batch(b) if queued else lg.on_batch(b)
     os.write(fd, f"{j - 1} {time.monotonic():.6f}\n".encode())  # handed over up to sample j - 1, at this time
     i = j
 """
 
 
-def test_kill_9_loses_nothing_older_than_1_s(state: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("path", ["direct", "queued"])
+def test_kill_9_loses_nothing_older_than_1_s(state: Path, tmp_path: Path, path: str) -> None:
     report = tmp_path / "report.txt"
-    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(state), str(report)])  # a fresh interpreter
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(state), str(report), path])  # a fresh interpreter
     try:
         deadline = time.monotonic() + 30.0
         handed_s = 0.0
@@ -290,6 +295,22 @@ def test_flush_thread_bounds_the_unwritten_tail(state: Path) -> None:
         time.sleep(0.6)
         out = read_log(files(state)[0])  # still open: no footer yet
         assert not out.complete and len(out.samples) == 30 and len(out.status) == 1
+    finally:
+        lg.stop()
+
+
+def test_the_flush_deadline_counts_from_when_samples_were_read(state: Path) -> None:
+    """Samples handed over merged, a quarter second after they were read: their chunk still closes within
+    flush_s of the read (the kill -9 promise), not flush_s after they reached the logger."""
+    lg = McapLogger(state, "m", flush_s=0.5)
+    try:
+        read_at = time.monotonic() - 0.25  # what the listener queue held them for
+        b = make_batch(0, 250, t0=read_at)
+        lg.on_batch(SampleBatch.from_columns(read_at + np.arange(250) / 1000, b.t_device, b.length_mm, b.seq,
+                                             b.status))
+        time.sleep(0.4)  # 0.65 s after the read: closed (flush_s after arrival would be 0.75 s)
+        out = read_log(files(state)[0])
+        assert len(out.samples) == 250
     finally:
         lg.stop()
 

@@ -233,3 +233,22 @@ def test_adversarial_pieces_chunking_invariant(pieces: list[bytes], data: st.Dat
     # No fragment can complete a frame or hide one: the intact frames all survive.
     intact = {F1: (1, 10, 100, 0), F2: (2, 20, -200, 0), F3: (3, 30, 300, 2)}
     assert out == [intact[p] for p in pieces if p in intact]
+
+
+@settings(deadline=None, max_examples=300)
+@given(
+    st.lists(st.sampled_from([F1, F2, F3, F1 + F2 + F3, BAD, SYNC, b"\xa5", b"\x5a", b"\x00", F1[:9]]), max_size=12),
+    st.booleans(),
+)
+def test_the_clean_run_shortcut_decodes_as_the_general_walk(pieces: list[bytes], final: bool) -> None:
+    from ballbar.protocol import binary
+
+    blob = b"".join(pieces)
+    fast = decode(blob, final=final)
+    binary._SHORTCUT = False
+    try:
+        slow = decode(blob, final=final)
+    finally:
+        binary._SHORTCUT = True
+    assert fast.consumed == slow.consumed and fast.dropped == slow.dropped
+    assert fields_of(fast.frames) == fields_of(slow.frames)

@@ -458,6 +458,20 @@ def test_clock_map_finds_drift_under_latency() -> None:
     assert abs(cm.map(np.array([150.0]))[0] - (offset + ratio * 150.0)) < 1e-3
 
 
+def test_clock_map_refits_once_a_second_not_once_a_read() -> None:
+    rng = np.random.default_rng(1)
+    cm = ClockMap()
+    points = [(td, 50.0 + (1 + 30e-6) * td + 2e-4 + rng.exponential(1e-3)) for td in np.arange(0.0, 60.0, 0.02)]
+    for td, th in points[:500]:  # 10 s
+        cm.update(float(td), float(th))
+    before = cm.refits
+    for td, th in points[500:]:  # 50 s more, 2500 reads
+        cm.update(float(td), float(th))
+        assert cm.map(np.array([td]))[0] <= th + 1e-12
+    assert 49 <= cm.refits - before <= 51
+    assert abs(cm.ratio - (1 + 30e-6)) < 5e-6
+
+
 def test_sample_batch_columns_records_and_truthiness() -> None:
     b = SampleBatch.from_columns([1.0, 2.0], [0.1, 0.2], [100.0, 100.1], [5, 6], [0, 2])
     assert len(b) == 2 and b.valid.tolist() == [True, False]
@@ -524,3 +538,122 @@ def test_stamper_tells_a_clock_jump_from_lost_samples_with_the_devices_own_perio
     # a restart: counter and clock from 0, reported with the first sample after it
     out = st.stamp(readings(np.arange(0, 20)), t + 6.0)
     assert out.reset_seqs == [5460] and out.jumps == [] and out.seq[0] == 5460
+
+
+# ----------------------------------------------------------------------------- wake-ups
+
+
+def _paced_writer(dev: FakeDevice, n: int, rate: float, written: list[float]) -> threading.Thread:
+    """A device that writes one frame per sample period, on time (as a real one does at 1 kHz)."""
+
+    def run() -> None:
+        t0 = time.monotonic()
+        for k in range(n):
+            due = t0 + k / rate
+            wait = due - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            written.append(due)  # the sampling instant: the device clock says k / rate
+            dev.frames([k], rate=rate)
+
+    th = threading.Thread(target=run)
+    th.start()
+    return th
+
+
+def test_a_streaming_device_is_read_once_per_batch_period_with_honest_host_times(
+    dev: FakeDevice, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import serial
+
+    reconfigured: list[object] = []
+    original = serial.Serial._reconfigure_port
+
+    def spy(self: serial.Serial, *args: object, **kwargs: object) -> None:
+        reconfigured.append(args)  # termios (and the lock), applied by pyserial at open and at each setting
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(serial.Serial, "_reconfigure_port", spy)
+    n, rate = 2000, 1000.0
+    written: list[float] = []
+    with open_source(f"serial:{dev.link}?rate=1000", cal_mm=0.0) as src:
+        at_open = len(reconfigured)
+        writer = _paced_writer(dev, n, rate, written)
+        t0 = time.monotonic()
+        batch, _ = read_all(src, n, timeout=10.0)
+        elapsed = time.monotonic() - t0
+        writer.join()
+        st = src.stats()
+    assert batch.seq.tolist() == list(range(n))
+    assert at_open == 1 and len(reconfigured) == at_open, "the port's settings were applied again after open"
+    # 2 s of frames, one a millisecond: about one read per 20 ms batch, not one per frame.
+    assert st.reads <= elapsed / 0.02 + 10, (st.reads, elapsed)
+    assert st.batches <= elapsed / 0.02 + 10
+    # Read up to 20 ms late, yet each sample's host time stays close to its sampling instant (the clock
+    # map's lower envelope finds the reads that came right after a write).
+    err = batch.t_host - np.asarray(written)
+    assert np.median(np.abs(err[500:])) < 3e-3, np.percentile(err[500:], [5, 50, 95])
+
+
+def test_a_slow_device_is_read_as_each_sample_comes(dev: FakeDevice) -> None:
+    """Below one sample per batch period the reader waits for bytes: one wake-up per sample, no latency."""
+    written: list[float] = []
+    with open_source(f"serial:{dev.link}?rate=20", cal_mm=0.0) as src:
+        writer = _paced_writer(dev, 10, 20.0, written)
+        got: list[tuple[int, float]] = []
+        deadline = time.monotonic() + 5.0
+        while len(got) < 10 and time.monotonic() < deadline:
+            b = src.read(0.2)
+            if b is not None and len(b):
+                got += [(int(s), time.monotonic()) for s in b.seq]
+        writer.join()
+        st = src.stats()
+    assert [k for k, _ in got] == list(range(10))
+    assert st.reads == 10
+    assert max(t - w for (_, t), w in zip(got, written, strict=True)) < 0.015
+
+
+def test_the_stampers_steady_shortcut_gives_what_the_general_path_gives() -> None:
+    from ballbar.daemon.timebase import Stamper
+    from ballbar.protocol import Readings
+    from ballbar.protocol.binary import CLOCK_WRAP_S
+
+    rng = np.random.default_rng(7)
+    k, clock_us = 1000, 4_294_000_000  # the clock wraps a few seconds in
+    reads = []
+    outage = 0.0
+    for i in range(800):
+        n = int(rng.integers(1, 40))
+        ks = k + np.arange(n)
+        cl = clock_us + 1000 * np.arange(n)
+        what = rng.random()
+        if what < 0.02:
+            ks[n // 2 :] += int(rng.integers(1, 50))  # lost samples
+        elif what < 0.03:
+            ks[n // 2 :] -= 500  # a restart
+            cl[n // 2 :] = 1000 * np.arange(n - n // 2)
+        elif what < 0.04:
+            cl[n // 2 :] += 3_000_000  # a clock jump
+        elif what < 0.05 and n > 1:
+            ks[-1], cl[-1] = ks[-2], cl[-2]  # a duplicate
+        k, clock_us = int(ks[-1]) + 1, int(cl[-1]) + 1000
+        outage += 5.0 if what > 0.995 else 0.0
+        t_read = 50.0 + i * 0.02 + outage + rng.exponential(1e-3)
+        reads.append((Readings(np.zeros(n), np.zeros(n, np.uint8), ks % SEQ_MODULUS, (cl % 2**32) / 1e6), t_read))
+    fast, slow = Stamper(SEQ_MODULUS, CLOCK_WRAP_S, 1000.0), Stamper(SEQ_MODULUS, CLOCK_WRAP_S, 1000.0)
+    slow.fast = False
+    taken: list[bool] = []
+    shortcut = fast._stamp_steady
+
+    def spy(r: Readings, t: float) -> object:
+        out = shortcut(r, t)
+        taken.append(out is not None)
+        return out
+
+    fast._stamp_steady = spy  # type: ignore[method-assign]
+    for r, t in reads:
+        a, b = fast.stamp(r, t), slow.stamp(r, t)
+        assert np.array_equal(a.keep, b.keep) and np.array_equal(a.seq, b.seq)
+        assert np.array_equal(a.t_device, b.t_device) and np.array_equal(a.t_host, b.t_host)
+        assert (a.gaps, a.reset_seqs, a.jumps) == (b.gaps, b.reset_seqs, b.jumps)
+    assert 0.5 * len(reads) < sum(taken) < len(reads) - 50  # both ways were taken, often
