@@ -40,7 +40,7 @@ from .advice import advise
 from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
 from .fit import Factor, FitResult, significance_rule, solve
-from .patterns import Geometry, Pattern, design, select
+from .patterns import Geometry, Pattern, design, select, wrap
 from .physics import MODEL_WORDS, LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import (
@@ -58,6 +58,7 @@ log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
 SEARCH_SAMPLES_PER_CIRCLE = 1000  # thinned samples per circle away from the sharp features
+SEARCH_BATCH_ROWS = 60_000  # the search's timings evaluated together: at most this many samples in all
 # Near each 45 deg point (before, after it; deg) the search keeps samples up to one per spacing (deg): over the
 # whole lag range (which moves the points by up to ~3 deg) coarsely, then where they are finely (at 10 kHz 1 in 4).
 COARSE_NEAR_DEG, COARSE_SPACING_DEG = (1.0, 4.5), 0.03
@@ -72,6 +73,8 @@ LAG_CI_NATS = 2.0  # lags whose full-model likelihood is this close to the best 
 HOLD_REACH_S = (0.01, 0.003)  # the lag's reach (s) either side while holding one arc's start, twice
 COMPASS_S = (0.001, 0.00002)  # the joint refinement of lag and wait: first step, last step at most (s)
 COMPASS_EVALS, COMPASS_GAIN_NATS = 120, 0.5  # at most this many objectives; a step must gain this much
+COMPASS_DIRS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))  # (lag, wait), in this order
+SPECULATE_ROWS = 3000  # a search sample set this small: timings the search may want next are evaluated together
 SMOOTH_MAX_SAMPLE_DEG = 0.025  # samples further apart (deg) are searched as points: no smoothing
 WAIT_MAX_S = 0.3  # no extra wait beyond this (s), either sign
 WAIT_PRIOR_S = 0.1  # prior on it: where the data cannot see it (low rates), it stays near 0
@@ -262,7 +265,7 @@ def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
     out = np.zeros(len(g), dtype=bool)
     for axis, points in ((0, (0.0, math.pi)), (1, (0.5 * math.pi, 1.5 * math.pi))):
         for at in points:
-            du = np.mod(g.d * (g.u - at) - g.onset_rad[axis], 2.0 * math.pi)  # travel past the onset
+            du = wrap(g.d * (g.u - at) - g.onset_rad[axis], 2.0 * math.pi)  # travel past the onset
             out |= du < reach_rad
     return out
 
@@ -791,6 +794,9 @@ def spike_width_bounds(
 class _SampleSet:
     idx: np.ndarray  # into the test's samples
     windows: dict[int, tuple[float, float]]  # per direction: the data arc's samples, whatever the lag tried
+    # per direction, what every timing shares (:meth:`_LagSearch.parts`): the times from the feed-in, the
+    # deviation (um) and the minutes from the drift's origin
+    parts: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
 
 class _LagSearch:
@@ -895,7 +901,19 @@ class _LagSearch:
         shift_s: dict[int, float] | None = None,
     ) -> tuple[float, float]:
         """The residual sums of squares on ``at`` at lag ``c`` and spike width ``w_deg``: of the full model, and
-        of the model without the reversal spikes.
+        of the model without the reversal spikes (:meth:`sse_many` of one timing)."""
+        return self.sse_many(at, [(c, shift_s)], w_deg, offset, lost)[0]
+
+    def sse_many(
+        self,
+        at: _SampleSet,
+        points: Sequence[tuple[float, dict[int, float] | None]],
+        w_deg: float,
+        offset: Offset | None,
+        lost: LostMotion,
+    ) -> list[tuple[float, float]]:
+        """:meth:`sse` at each ``(lag, shifts)`` of ``points``; ``last_x``: the full model's coefficients at the
+        last.
 
         By the normal equations of the column-scaled design, and the sum of
         squares as ``y'y - 2 x'b + x'Gx`` (exact for any ``x``, so second order
@@ -903,48 +921,95 @@ class _LagSearch:
         at the misfits seen): several times cheaper than folding a QR factor or
         forming the residual, and this runs hundreds of times a test.  The
         searches revisit timings: the values are kept, for one sample set,
-        correction and lost-motion model.
+        correction and lost-motion model.  The timings not kept yet are
+        evaluated together, as one stack of samples (``SEARCH_BATCH_ROWS`` at
+        most): at low rates each timing's samples are few and the cost is
+        per call, not per sample.
         """
         context = (at, offset, lost)
         if len(self._memo_for) != 3 or any(a is not b for a, b in zip(context, self._memo_for, strict=True)):
             self._memo, self._memo_for = {}, context
-        key = (c, w_deg, self.aperture_rad, *sorted((shift_s or {}).items()))
-        if key in self._memo:
-            full, bare, self.last_x = self._memo[key]
-            return full, bare
-        timing = self.timing(c, shift_s)
-        G = np.zeros((self.p, self.p))
-        b = np.zeros(self.p)
-        yy = 0.0
-        t, L = self.t[at.idx], self.L[at.idx]
+        keys = [(c, w_deg, self.aperture_rad, *sorted((shift or {}).items())) for c, shift in points]
+        todo: dict[tuple[object, ...], tuple[float, dict[int, float] | None]] = {}
+        for key, point in zip(keys, points, strict=True):
+            if key not in self._memo:
+                todo.setdefault(key, point)
+        if todo:
+            parts = self.parts(at)
+            per = max(1, SEARCH_BATCH_ROWS // max(sum(v[0].size for v in parts.values()), 1))
+            items = list(todo.items())
+            for i in range(0, len(items), per):
+                chunk = items[i : i + per]
+                for (key, _), value in zip(chunk, self._evaluate(parts, [v for _, v in chunk], w_deg, offset, lost),
+                                           strict=True):
+                    self._memo[key] = value
+        out = [self._memo[key] for key in keys]
+        self.last_x = out[-1][2]
+        return [(full, bare) for full, bare, _ in out]
+
+    def parts(self, at: _SampleSet) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per direction, the samples of ``at`` in its window: times from the feed-in (the timings' reference),
+        deviation (um) and minutes from the drift's origin."""
+        if at.parts is None:
+            t, L = self.t[at.idx], self.L[at.idx]
+            at.parts = {}
+            for d in self.by_direction:
+                lo, hi = at.windows[d]
+                m = (t >= lo) & (t <= hi)
+                at.parts[d] = (t[m] - self.fi.t_s, (L[m] - self.plan.radius_mm) * 1000.0,
+                               (t[m] - self.base.t_mid) / 60.0)
+        return at.parts
+
+    def _evaluate(
+        self,
+        parts: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]],
+        points: Sequence[tuple[float, dict[int, float] | None]],
+        w_deg: float,
+        offset: Offset | None,
+        lost: LostMotion,
+    ) -> list[tuple[float, float, np.ndarray]]:
+        """Full and spike-free sums of squares and the full model's coefficients at each timing of ``points``:
+        the timings' samples stacked into one geometry (:attr:`.patterns.Geometry.feeds`), one Gram matrix of
+        ``[A | y]`` per timing."""
+        k = len(points)
+        timings = [self.timing(c, shift) for c, shift in points]
+        feeds = np.array([tm.feed_mm_s for tm in timings]) if k > 1 else None
+        G = np.zeros((k, self.p, self.p))
+        b = np.zeros((k, self.p))
+        yy = np.zeros(k)
+        w = math.radians(w_deg)
+        extra = lost.geometry(self.tau)
         for d, (patterns, cols) in self.by_direction.items():
-            cf = CircleFit(self.plan, self.machine, patterns, d, timing, w_deg, False, offset, self.tau, lost,
-                           self.aperture_rad)
-            lo, hi = at.windows[d]
-            m = (t >= lo) & (t <= hi)
-            if not m.any():
+            t_rel, y0, t_min = parts[d]
+            n = t_rel.size
+            if n == 0:
                 continue
-            g = cf.geometry(t[m])
-            A = design(cf.patterns, g, cf.w)
-            y = (L[m] - self.plan.radius_mm) * 1000.0
+            u = np.concatenate([np.radians(tm.sched.angle_deg(self.plan, d, t_rel)) for tm in timings])
+            g = Geometry(
+                u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
+                R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
+                travel=d * (u - math.radians(arc_start_deg(self.plan, d))), loop_lag_s=self.tau,
+                aperture_rad=self.aperture_rad, feeds=feeds, **extra,
+            )
+            q = cols.size
+            M = np.empty((u.size, q + 1))  # [A | y], stacked by timing
+            design(patterns, g, w, out=M[:, :q])
+            M3 = M.reshape(k, n, q + 1)
+            M3[:, :, q] = y0
             if offset is not None:
-                y = y - offset(g)
-            G[np.ix_(cols, cols)] += A.T @ A
-            b[cols] += A.T @ y
-            yy += float(y @ y)
-        out: list[float] = []
-        for use in (np.ones(self.p, dtype=bool), ~self.spike_cols):
-            x = np.zeros(self.p)
-            Gu, bu = G[np.ix_(use, use)], b[use]
-            x[use] = xu = _normal_solve(Gu, bu)
-            if not out:
-                self.last_x = x
-            out.append(max(yy - 2.0 * float(xu @ bu) + float(xu @ Gu @ xu), 0.0))
-            if not self.spike_cols.any():
-                out.append(out[0])
-                break
-        self._memo[key] = (out[0], out[1], self.last_x)
-        return out[0], out[1]
+                M[:, q] -= offset(g)
+            gram = np.matmul(M3.transpose(0, 2, 1), M3)
+            G[:, cols[:, None], cols] += gram[:, :q, :q]
+            b[:, cols] += gram[:, :q, q]
+            yy += gram[:, q, q]
+        x = _normal_solve_many(G, b)
+        full = _sse_at(x, G, b, yy)
+        bare = full
+        if self.spike_cols.any():
+            use = ~self.spike_cols
+            Gu, bu = G[:, use][:, :, use], b[:, use]
+            bare = _sse_at(_normal_solve_many(Gu, bu), Gu, bu, yy)
+        return [(float(full[i]), float(bare[i]), x[i]) for i in range(k)]
 
     def width_error(self, hyper: _Hyper, offset: Offset | None, lost: LostMotion) -> tuple[float, dict[str, float]]:
         """The spike width's standard error in ``ln w`` and each spike height's change per unit ``ln w``.
@@ -1010,6 +1075,16 @@ class _LagSearch:
             prior = c * c / (2 * LAG_PRIOR_S**2) + wait * wait / (2 * WAIT_PRIOR_S**2)
             return nll(full) + prior, nll(bare) + prior, prior
 
+        # where one timing's samples are few, its cost is per call: timings the search may want next are then
+        # evaluated together beforehand (compass steps, bisections), not only those it wants for sure (grids)
+        def speculate() -> bool:
+            return sum(v[0].size for v in self.parts(idx).values()) <= SPECULATE_ROWS
+
+        def prefetch(points: Sequence[tuple[float, float]]) -> None:
+            """Evaluate the objectives at these ``(lag, wait)`` together (:meth:`sse_many` keeps them)."""
+            if len(points) > 1:
+                self.sse_many(idx, [(c, self.shifts(w)) for c, w in points], hyper.spike_width_deg, offset, lost)
+
         def start_of(d: int, c: float, wait: float) -> float:
             return float(self.timing(c).sched.data_start_s[d]) + self.shifts(wait).get(d, 0.0)
 
@@ -1026,6 +1101,7 @@ class _LagSearch:
             g = np.arange(max(now + lo, b0), min(now + hi, b1) + 0.5 * step, step)
             at = line(wait, hold)
             points = [at(float(x)) for x in g]
+            prefetch(points)
             v = np.array([objs(c, w) for c, w in points])
             return g, v[:, 0], v[:, 1], v[:, 2], np.array(points)
 
@@ -1093,6 +1169,10 @@ class _LagSearch:
             while hi < g.size - 1 and ok[hi + 1] and like[hi + 1] <= level:
                 hi += 1
             # the stair's edges between the grid's points, by bisection
+            if speculate():  # every midpoint either bisection may take
+                ahead = [p for inside, outside in ((lo, lo - 1), (hi, hi + 1)) if 0 <= outside < g.size
+                         for p in _bisections(float(g[inside]), float(g[outside]), STAIR_BISECT)]
+                prefetch([at(x) for x in ahead])
             edges = []
             for inside, outside in ((lo, lo - 1), (hi, hi + 1)):
                 a = float(g[inside])
@@ -1149,10 +1229,11 @@ class _LagSearch:
                 evals = 0
                 while step_c >= min(COMPASS_S[1], 0.02 / self.sample_hz) and evals < COMPASS_EVALS:
                     moved = False
-                    for dc, dw in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
-                        c, w = hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c
-                        if not (lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S):
-                            continue
+                    steps = [(hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c) for dc, dw in COMPASS_DIRS]
+                    steps = [(c, w) for c, w in steps if lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S]
+                    if speculate():
+                        prefetch(steps)
+                    for c, w in steps:
                         f = value(c, w)
                         evals += 1
                         if f < here - gain:
@@ -1252,6 +1333,14 @@ def _width_verdict(w: float, bounds: tuple[float, float], options: AnalysisOptio
     return ""
 
 
+def _bisections(a: float, b: float, depth: int) -> list[float]:
+    """Every midpoint ``depth`` bisections of ``a..b`` may take (``a`` the side that holds)."""
+    if depth == 0:
+        return []
+    mid = 0.5 * (a + b)
+    return [mid, *_bisections(mid, b, depth - 1), *_bisections(a, mid, depth - 1)]
+
+
 def _pick(full: np.ndarray, bare: np.ndarray, best: float, spike_nats: float) -> int:
     """Of the grid's timings the full model cannot tell from its ``best``, or where the spike-free model is
     within ``spike_nats`` of it, the index of the one the spike-free model fits best (the grid's own best where
@@ -1262,13 +1351,46 @@ def _pick(full: np.ndarray, bare: np.ndarray, best: float, spike_nats: float) ->
     return int(ok[np.argmin(bare[ok])])
 
 
-def _normal_solve(G: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Least-squares solution from the normal equations, column-scaled, rank-deficient columns left at 0."""
-    scale = np.sqrt(np.diag(G))
-    scale[scale == 0] = 1.0
-    vals, vecs = np.linalg.eigh(G / np.outer(scale, scale))
-    keep = vals > vals[-1] * 1e-12
-    return np.asarray((vecs[:, keep] @ ((vecs[:, keep].T @ (b / scale)) / vals[keep])) / scale)
+def _normal_solve_many(G: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares solutions from a stack of normal equations ``G`` (k, p, p), ``b`` (k, p), column-scaled,
+    rank-deficient directions left out (eigenvalues below 1e-12 of the largest).
+
+    Where the scaled matrix is well conditioned (its inverse's Frobenius norm at most ``1e5``: every
+    eigenvalue above ``1e-5``, none left out) by its inverse, else by its eigen-decomposition: the same
+    solution, to rounding, several times cheaper for the p ~ 25 of the search.
+    """
+    scale = np.sqrt(np.diagonal(G, axis1=1, axis2=2))
+    empty = scale == 0  # a column of zeros: a row and column of zeros, which the solution leaves at 0
+    scale = np.where(empty, 1.0, scale)
+    Gs, bs = G / (scale[:, :, None] * scale[:, None, :]), b / scale
+    x = np.empty_like(bs)
+    if empty.any():
+        Gs = Gs + np.einsum("ki,ij->kij", empty.astype(float), np.eye(Gs.shape[1]))
+    todo = np.ones(len(G), dtype=bool)
+    with np.errstate(all="ignore"):
+        try:
+            inv = np.linalg.inv(Gs)
+        except np.linalg.LinAlgError:
+            pass
+        else:
+            norm2 = np.einsum("kij,kij->k", inv, inv)
+            good = np.isfinite(norm2) & (norm2 <= 1e10)
+            x[good] = np.matmul(inv[good], bs[good][:, :, None])[:, :, 0]
+            todo = ~good
+    if todo.any():
+        vals, vecs = np.linalg.eigh(G[todo] / (scale[todo][:, :, None] * scale[todo][:, None, :]))
+        keep = vals > vals[:, -1:] * 1e-12
+        inv_vals = np.divide(1.0, vals, out=np.zeros_like(vals), where=keep)
+        z = np.matmul(bs[todo][:, None, :], vecs)[:, 0, :] * inv_vals
+        x[todo] = np.matmul(vecs, z[:, :, None])[:, :, 0]
+    return x / scale
+
+
+def _sse_at(x: np.ndarray, G: np.ndarray, b: np.ndarray, yy: np.ndarray) -> np.ndarray:
+    """``y'y - 2 x'b + x'Gx`` of each of a stack (at least 0)."""
+    xb = np.matmul(x[:, None, :], b[:, :, None])[:, 0, 0]
+    xGx = np.matmul(np.matmul(x[:, None, :], G), x[:, :, None])[:, 0, 0]
+    return np.asarray(np.maximum(yy - 2.0 * xb + xGx, 0.0))
 
 
 def _embed(f: Factor, sub: Sequence[Pattern], full: Sequence[Pattern]) -> Factor:
