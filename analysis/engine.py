@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
@@ -58,6 +58,7 @@ log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
 SEARCH_SAMPLES_PER_CIRCLE = 1000  # thinned samples per circle away from the sharp features
+FOLD_ROWS = 16384  # samples folded into a QR factor at a time: the block's design and factor stay in cache
 SEARCH_BATCH_ROWS = 60_000  # the search's timings evaluated together: at most this many samples in all
 # Near each 45 deg point (before, after it; deg) the search keeps samples up to one per spacing (deg): over the
 # whole lag range (which moves the points by up to ~3 deg) coarsely, then where they are finely (at 10 kHz 1 in 4).
@@ -201,7 +202,7 @@ class CircleFit:
         self.t_start, self.t_end = timing.window(direction)
         self.keep_design = keep_design
         self.offset = offset
-        self.kept: list[tuple[np.ndarray, Geometry, np.ndarray, np.ndarray]] = []  # (t, g, dR, A)
+        self.kept: list[tuple[np.ndarray, np.ndarray]] = []  # (t, dR as measured) of the samples folded in
 
     def geometry(self, t: np.ndarray) -> Geometry:
         u = np.radians(self.timing.sched.angle_deg(self.plan, self.d, t - self.timing.t_ref))
@@ -225,39 +226,54 @@ class CircleFit:
         if not m.any():
             return
         t, L = t[m], L[m]
-        g = self.geometry(t)
         if self.skip_rad > 0:
-            keep = ~_after_onsets(g, self.skip_rad)
+            keep = ~_after_onsets(self.geometry(t), self.skip_rad)
             if not keep.all():
                 t, L = t[keep], L[keep]
-                g = self.geometry(t)
-        A = design(self.patterns, g, self.w)
         dr = (L - self.plan.radius_mm) * 1000.0
-        self.factor.add(A, dr - self.offset(g) if self.offset is not None else dr)
-        np.maximum(self.colmax, np.abs(A).max(axis=0), out=self.colmax)
+        self._fold(t, dr)
         if self.keep_design:
-            self.kept.append((t, g, dr, A))
+            self.kept.append((t, dr))
+
+    def _fold(self, t: np.ndarray, dr: np.ndarray) -> None:
+        """Fold samples into the factor ``FOLD_ROWS`` at a time (no design matrix of a whole circle in memory)."""
+        for g, A, rows in self._blocks(t):
+            self.factor.add(A, dr[rows] - self.offset(g) if self.offset is not None else dr[rows])
+            np.maximum(self.colmax, np.abs(A).max(axis=0), out=self.colmax)
+
+    def _blocks(self, t: np.ndarray) -> Iterator[tuple[Geometry, np.ndarray, slice]]:
+        """The geometry and design of ``t`` in blocks of ``FOLD_ROWS`` samples, with each block's rows."""
+        for i in range(0, t.size, FOLD_ROWS):
+            rows = slice(i, min(i + FOLD_ROWS, t.size))
+            g = self.geometry(t[rows])
+            yield g, design(self.patterns, g, self.w), rows
 
     def refit(self, offset: Offset | None) -> None:
-        """Refold the kept samples with another correction (the design is reused)."""
+        """Refold the kept samples with another correction (the design is made again, block by block)."""
         self.offset = offset
         self.factor = Factor(self.p)
-        for _t, g, dr, A in self.kept:
-            self.factor.add(A, dr - offset(g) if offset is not None else dr)
+        for t, dr in self.kept:
+            self._fold(t, dr)
 
-    def corrected(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Kept ``(t, u, dR, A)`` with ``dR`` as measured minus the correction."""
-        if not self.kept:
-            return np.empty(0), np.empty(0), np.empty(0), np.empty((0, self.p))
-        t = np.concatenate([k[0] for k in self.kept])
-        u = np.concatenate([k[1].u for k in self.kept])
-        dr = np.concatenate([k[2] - (self.offset(k[1]) if self.offset else 0.0) for k in self.kept])
-        A = np.concatenate([k[3] for k in self.kept])
-        return t, u, dr, A
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        """The kept samples' deviation as measured, minus the correction, minus the model at ``x``."""
+        out = []
+        for t, dr in self.kept:
+            for g, A, rows in self._blocks(t):
+                r = dr[rows] - self.offset(g) if self.offset is not None else dr[rows].copy()
+                out.append(r - A @ x)
+        return np.concatenate(out) if out else np.empty(0)
+
+    def times(self) -> np.ndarray:
+        """The kept samples' times."""
+        return np.concatenate([t for t, _ in self.kept]) if self.kept else np.empty(0)
 
     def measured(self) -> tuple[np.ndarray, np.ndarray]:
-        """Kept ``(u, dR)`` as measured, for the ISO figures."""
-        return (np.concatenate([k[1].u for k in self.kept]), np.concatenate([k[2] for k in self.kept]))
+        """Kept ``(u, dR)`` as measured: angles (rad) and deviations (um), for the ISO figures."""
+        if not self.kept:
+            return np.empty(0), np.empty(0)
+        u = [np.radians(self.timing.sched.angle_deg(self.plan, self.d, t - self.timing.t_ref)) for t, _ in self.kept]
+        return np.concatenate(u), np.concatenate([dr for _, dr in self.kept])
 
 
 def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
@@ -627,19 +643,15 @@ class _Joint:
     def residuals(self, x: np.ndarray) -> list[np.ndarray]:
         """Per circle: the corrected deviation minus the model at ``x`` (NaN: left out)."""
         x = np.nan_to_num(x)
-        out = []
-        for c in self.circles:
-            _, _, dr, A = c.corrected()
-            out.append(dr - A @ _take(x, c.patterns, self.patterns))
-        return out
+        return [c.residual(_take(x, c.patterns, self.patterns)) for c in self.circles]
 
     def solve(
         self, options: AnalysisOptions, rho: float = 0.0, exclude: dict[str, str] | None = None,
-        family_dof: dict[str, int] | None = None, family_lr: dict[str, float] | None = None,
+        family_dof: dict[str, int] | None = None, family_lr: dict[str, float] | None = None, rank: bool = True,
     ) -> FitResult:
         return solve(self.factor(), self.patterns, rho=rho, significance=options.significance,
                      min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=self.colmax(),
-                     exclude=exclude, family_dof=family_dof, family_lr=family_lr)
+                     exclude=exclude, family_dof=family_dof, family_lr=family_lr, rank=rank)
 
 
 def _spike_timing_error(res: dict[str, Any], hyper: _Hyper, omega_rad_s: float) -> None:
@@ -992,13 +1004,13 @@ class _LagSearch:
                 aperture_rad=self.aperture_rad, feeds=feeds, **extra,
             )
             q = cols.size
-            M = np.empty((u.size, q + 1))  # [A | y], stacked by timing
-            design(patterns, g, w, out=M[:, :q])
-            M3 = M.reshape(k, n, q + 1)
-            M3[:, :, q] = y0
+            MT = np.empty((q + 1, u.size))  # [A | y] transposed: each column contiguous, stacked by timing
+            design(patterns, g, w, out=MT[:q].T)
+            MT[q].reshape(k, n)[:] = y0
             if offset is not None:
-                M[:, q] -= offset(g)
-            gram = np.matmul(M3.transpose(0, 2, 1), M3)
+                MT[q] -= offset(g)
+            X = MT.reshape(q + 1, k, n).transpose(1, 0, 2)
+            gram = np.matmul(X, X.transpose(0, 2, 1))
             G[:, cols[:, None], cols] += gram[:, :q, :q]
             b[:, cols] += gram[:, :q, q]
             yy += gram[:, q, q]
@@ -1518,24 +1530,24 @@ def _profile_lag(
     of likelihood (the residual's inflation counted, its rms floored at
     ``PROFILE_FLOOR_UM``).
     """
-    runs: dict[float, dict[str, Any]] = {}
+    runs: dict[float, _Fitted] = {}
 
     def run(kv: float) -> float:
         if kv not in runs:
             lag = Lag(1.0 / kv, None, assumed.source, "fitted")
             try:
-                runs[kv] = _analyze_at(plan, machine, options, t, L, fi, fo, curves, lag)
+                runs[kv] = _fit_at(plan, machine, options, t, L, fi, fo, curves, lag)
             except DataError:
                 if kv == DEFAULT_KV_PER_S:
                     raise
                 return math.inf
         # per sample, times the default's count: the runs may keep a few samples more or less
-        return 0.5 * n / inflation * math.log(runs[kv]["residual_rms_um"] ** 2 + PROFILE_FLOOR_UM**2)
+        return 0.5 * n / inflation * math.log(runs[kv].rms_um ** 2 + PROFILE_FLOOR_UM**2)
 
-    default = _analyze_at(plan, machine, options, t, L, fi, fo, curves, assumed)
+    default = _fit_at(plan, machine, options, t, L, fi, fo, curves, assumed)
     runs[DEFAULT_KV_PER_S] = default
-    inflation = max(float(default["fit"].get("variance_inflation") or 1.0), 1.0)
-    n = default["samples"]["in_data_arcs"]
+    inflation = max(default.kappa, 1.0)
+    n = default.n
     grid = sorted({*PROFILE_KV_PER_S, DEFAULT_KV_PER_S})
     for kv in grid:
         run(kv)
@@ -1556,14 +1568,14 @@ def _profile_lag(
     # the data fix the gain only where both ends of the range are clearly worse than the best
     bounded = min(run(min(grid)), run(max(grid))) - run(best) > PROFILE_NATS
     if gain > PROFILE_NATS and bounded:
-        res = runs[best]
+        res = runs[best].report()
         res["timing"]["loop_lag_source"] = (
             f"fitted to the data arcs: {best:g}/s, {gain:.1f} nats better than the default {DEFAULT_KV_PER_S:g}/s "
             f"over {span} (the feed-in's settling is not resolved at this sample rate and no kv_x/kv_y is "
             "configured; a backlash compensation's step and the servo remainder pass through the loop)"
         )
     else:
-        res = default
+        res = default.report()
         why = (f"another gain is at most {gain:.1f} nats better (best {best:g}/s), not more than {PROFILE_NATS:g}"
                if gain <= PROFILE_NATS else
                f"the best, {best:g}/s, is not more than {PROFILE_NATS:g} nats better than both ends of the range")
@@ -1585,6 +1597,31 @@ def _analyze_at(
     lag: Lag,
 ) -> dict[str, Any]:
     """:func:`analyze_test` at a position-loop lag ``(tau, cos2, source)`` (:func:`loop_lag`)."""
+    return _fit_at(plan, machine, options, t, L, fi, fo, curves, lag).report()
+
+
+class _Fitted(NamedTuple):
+    """A test fitted at one loop lag (:func:`_fit_at`): its misfit, and its result when asked for."""
+
+    rms_um: float  # the residual's rms over the data arcs
+    n: int  # samples in the data arcs
+    kappa: float  # the residual's variance inflation (lag-1 correlation)
+    report: Callable[[], dict[str, Any]]  # the result
+
+
+def _fit_at(
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    t: np.ndarray,
+    L: np.ndarray,
+    fi: StepEvent,
+    fo: StepEvent,
+    curves: bool,
+    lag: Lag,
+) -> _Fitted:
+    """The search and the fit of :func:`_analyze_at`; the result is built only when asked for (a loop gain
+    the profile does not take needs only its misfit)."""
     span = fo.t_s - fi.t_s
     patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
     tau, cos2, tau_source, _ = lag
@@ -1617,7 +1654,7 @@ def _analyze_at(
 
     if search.coarse.idx.size > 50:
         pre = search.joint(search.coarse, hyper, None, lost, keep=True)
-        pre_fit = pre.solve(options)
+        pre_fit = pre.solve(options, rank=False)
         search.kappa = _kappa(_lag1(pre.residuals(pre_fit.x)))
         lost = choose(pre_fit)
         offset = make_offset(_values(pre_fit), tau, lost, cos2, frame_cos2)
@@ -1628,7 +1665,7 @@ def _analyze_at(
         for _pass in range(3):
             hyper = search.run(offset, lost, start)
             joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
-            fit_s = joint_s.solve(options)
+            fit_s = joint_s.solve(options, rank=False)
             chosen = choose(fit_s)
             offset = make_offset(_values(fit_s), tau, chosen, cos2, frame_cos2)
             moved = max(abs(a - b) for a, b in zip(chosen.onset_rad, lost.onset_rad, strict=True))
@@ -1668,79 +1705,86 @@ def _analyze_at(
                 f"the {'CCW' if c.d > 0 else 'CW'} data arc ({c.t_start:.2f}..{c.t_end:.2f} s) holds "
                 f"{c.factor.n} samples: too few to fit"
             )
-    fit = joint.solve(options, exclude=exclude)
+    fit = joint.solve(options, exclude=exclude, rank=False)
     for _ in range(2):
         chosen = choose(fit)
         if chosen.models != lost.models:  # the final fit turned a backlash's sign: the other model
             lost = chosen
             offset = make_offset(_values(fit), tau, lost, cos2, frame_cos2)
             joint = full(lost, offset)
-            fit = joint.solve(options, exclude=exclude)
+            fit = joint.solve(options, exclude=exclude, rank=False)
             continue
         offset = make_offset(_values(fit), tau, lost, cos2, frame_cos2)
         if offset is None and all(c.offset is None for c in joint.circles):
             break
         for c in joint.circles:
             c.refit(offset)
-        fit = joint.solve(options, exclude=exclude)
+        fit = joint.solve(options, exclude=exclude, rank=False)
     residuals = joint.residuals(fit.x)
-    # the spikes' width was fitted to these samples: their joint test counts it
-    fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1},
-                      family_lr={"reversal_spike": hyper.spike_lr_nats})
-    res = _result_body(plan, machine, options, fit, patterns)
-    _spike_timing_error(res, hyper, V / plan.radius_mm)
-    res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
-    res["fit"]["servo_model_note"] = tau_source
-    res["fit"]["lost_motion"] = lost.to_dict()
-    res["fit"]["lost_motion_model"] = "; ".join(
-        f"{axis.upper()}: {MODEL_WORDS[m]}" for axis, m in zip("xy", lost.models, strict=True)
-    )
-    res["kind"] = "test"
-    res["timing"] = _timing_dict(plan, fi, fo, timing, hyper, V)
-    if _has_spikes(patterns) and not exclude and search.fine.idx.size > 50:
-        _spike_width_error(res, *search.width_error(hyper, offset, lost))
-    _spike_significance(res)
-    res["advice"] = advise(res["parameters"], plan, machine)  # on the final verdicts
-    res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
-    res["timing"]["loop_lag_source"] = tau_source
-    res["timing"]["loop_lag_origin"] = lag.origin
-    res["timing"]["loop_lag_radial_cos2u"] = cos2
-    res["timing"]["backlash_takeup_deg"] = {
-        axis: math.degrees(o) if m == "deadband" else 0.0
-        for axis, m, o in zip("xy", lost.models, lost.onset_rad, strict=True)
-    }
-    res["timing"]["reversal_onset_deg"] = {axis: math.degrees(o) for axis, o in zip("xy", lost.onset_rad, strict=True)}
-    # The arc-start lag of a trapezoid profile is V / A: a plan whose data arcs begin before the feed is
-    # reached at that acceleration leaves the timing model, and the measured feed and angles with it.
-    if hyper.overhead_s > 0 and math.isfinite(hyper.overhead_s):
-        limits = model_limits(plan.with_(feed_mm_min=V * 60.0), V / hyper.overhead_s)
-        if limits:
-            res["warnings"] = [
-                f"timing model: {why} (acceleration from the measured arc-start lag); the measured feed and the "
-                "angles are biased: lengthen overshoot_deg" for why in limits
-            ]
-    res["iso230_4"] = iso230.figures({c.d: c.measured() for c in joint.circles})
-    res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, sample_hz)
-    res["noise"] = noise.findings(
-        [(c.corrected()[1], r, plan.data_arc_deg, sample_hz) for c, r in zip(joint.circles, residuals, strict=True)],
-        options.vibration_cutoff_cpr,
-    )
-    if curves:
-        res["curves"] = {}
-        for c, r in zip(joint.circles, residuals, strict=True):
-            uc, dr = c.measured()  # not corrected(): that would rebuild the correction and the design
-            res["curves"]["ccw" if c.d > 0 else "cw"] = {
-                "t_s": np.concatenate([k[0] for k in c.kept]), "u_deg": np.degrees(uc), "measured_um": dr,
-                "model_um": dr - r,
-            }
     all_r = np.concatenate(residuals)
-    res["residual_rms_um"] = float(np.sqrt(np.mean(all_r**2)))
-    res["samples"] = {
-        "in_test": int(t.size),
-        "in_data_arcs": int(sum(c.factor.n for c in joint.circles)),
-        "sample_hz": sample_hz,
-    }
-    return res
+    rms = float(np.sqrt(np.mean(all_r**2)))
+
+    def report() -> dict[str, Any]:
+        # the spikes' width was fitted to these samples: their joint test counts it
+        fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1},
+                          family_lr={"reversal_spike": hyper.spike_lr_nats})
+        res = _result_body(plan, machine, options, fit, patterns)
+        _spike_timing_error(res, hyper, V / plan.radius_mm)
+        res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
+        res["fit"]["servo_model_note"] = tau_source
+        res["fit"]["lost_motion"] = lost.to_dict()
+        res["fit"]["lost_motion_model"] = "; ".join(
+            f"{axis.upper()}: {MODEL_WORDS[m]}" for axis, m in zip("xy", lost.models, strict=True)
+        )
+        res["kind"] = "test"
+        res["timing"] = _timing_dict(plan, fi, fo, timing, hyper, V)
+        if _has_spikes(patterns) and not exclude and search.fine.idx.size > 50:
+            _spike_width_error(res, *search.width_error(hyper, offset, lost))
+        _spike_significance(res)
+        res["advice"] = advise(res["parameters"], plan, machine)  # on the final verdicts
+        res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
+        res["timing"]["loop_lag_source"] = tau_source
+        res["timing"]["loop_lag_origin"] = lag.origin
+        res["timing"]["loop_lag_radial_cos2u"] = cos2
+        res["timing"]["backlash_takeup_deg"] = {
+            axis: math.degrees(o) if m == "deadband" else 0.0
+            for axis, m, o in zip("xy", lost.models, lost.onset_rad, strict=True)
+        }
+        res["timing"]["reversal_onset_deg"] = {
+            axis: math.degrees(o) for axis, o in zip("xy", lost.onset_rad, strict=True)
+        }
+        # The arc-start lag of a trapezoid profile is V / A: a plan whose data arcs begin before the feed is
+        # reached at that acceleration leaves the timing model, and the measured feed and angles with it.
+        if hyper.overhead_s > 0 and math.isfinite(hyper.overhead_s):
+            limits = model_limits(plan.with_(feed_mm_min=V * 60.0), V / hyper.overhead_s)
+            if limits:
+                res["warnings"] = [
+                    f"timing model: {why} (acceleration from the measured arc-start lag); the measured feed and the "
+                    "angles are biased: lengthen overshoot_deg" for why in limits
+                ]
+        res["iso230_4"] = iso230.figures({c.d: c.measured() for c in joint.circles})
+        res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, sample_hz)
+        res["noise"] = noise.findings(
+            [(c.measured()[0], r, plan.data_arc_deg, sample_hz) for c, r in zip(joint.circles, residuals, strict=True)],
+            options.vibration_cutoff_cpr,
+        )
+        if curves:
+            res["curves"] = {}
+            for c, r in zip(joint.circles, residuals, strict=True):
+                uc, dr = c.measured()
+                res["curves"]["ccw" if c.d > 0 else "cw"] = {
+                    "t_s": c.times(), "u_deg": np.degrees(uc), "measured_um": dr,
+                    "model_um": dr - r,
+                }
+        res["residual_rms_um"] = rms
+        res["samples"] = {
+            "in_test": int(t.size),
+            "in_data_arcs": int(sum(c.factor.n for c in joint.circles)),
+            "sample_hz": sample_hz,
+        }
+        return res
+
+    return _Fitted(rms, sum(c.factor.n for c in joint.circles), _kappa(_lag1(residuals)), report)
 
 
 def _embed_vec(v: np.ndarray, sub: Sequence[Pattern], full: Sequence[Pattern]) -> np.ndarray:

@@ -27,6 +27,7 @@ from functools import cached_property
 import numpy as np
 
 UM_PER_MM = 1000.0
+SPIKE_REACH = 50.0  # widths past its onset beyond which a spike's exp(-du / w) is taken as 0 (e^-50 = 2e-22)
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,13 @@ class Geometry:
         assert self.loop_lag_s is not None
         mean = self.feed / self.R * self.loop_lag_s
         return mean, mean
+
+    @cached_property
+    def direction(self) -> int:
+        """The direction all samples share (+1, -1); 0 where they do not."""
+        if self.d.size and bool((self.d == self.d[0]).all()):
+            return int(self.d[0])
+        return 0
 
     @cached_property
     def feed(self) -> float | np.ndarray:
@@ -343,6 +351,21 @@ def _decay(g: Geometry, du: np.ndarray, w: float, travel: np.ndarray | None) -> 
     return out
 
 
+def _decay_near(g: Geometry, du: np.ndarray, w: float, travel: np.ndarray | None) -> np.ndarray:
+    """:func:`_decay` where it is not below ``exp(-SPIKE_REACH)`` of its peak (out to ``SPIKE_REACH`` widths
+    past the onset, and the aperture's half before it), 0 elsewhere: a spike acts on a few degrees of the
+    circle, and the exponential costs most of a column."""
+    h = 0.5 * g.aperture_rad
+    near = du <= SPIKE_REACH * w + h
+    if h > 0:
+        near |= du > 2.0 * math.pi - h
+    idx = np.flatnonzero(near)
+    out = np.zeros(du.size)
+    if idx.size:
+        out[idx] = _decay(g, du[idx], w, travel[idx] if travel is not None else None)
+    return out
+
+
 def spike_travel(u: np.ndarray, d: np.ndarray, at_rad: float) -> np.ndarray:
     """Angle travelled (rad, in [0, 2 pi)) since the last pass through ``at_rad``."""
     return wrap(d * (u - at_rad), 2.0 * math.pi)
@@ -356,13 +379,14 @@ def _spike(at_deg: float, direction: int) -> ColumnFn:
     def fn(g: Geometry, w: float) -> np.ndarray:
         # friction acts where the table reverses: the onset moves it off the reversal point
         onset = at + direction * g.onset_rad[axis]
-        mine = g.d == direction
-        if mine.all():  # one circle's samples: no selection to copy
-            return _decay(g, spike_travel(g.u, g.d, onset), w, g.travel)
+        if g.direction == direction:  # one circle's samples: no selection to copy
+            return _decay_near(g, spike_travel(g.u, g.d, onset), w, g.travel)
         out = np.zeros(len(g))
-        if mine.any():
-            out[mine] = _decay(g, spike_travel(g.u[mine], g.d[mine], onset), w,
-                               g.travel[mine] if g.travel is not None else None)
+        if g.direction == 0:
+            mine = g.d == direction
+            if mine.any():
+                out[mine] = _decay_near(g, spike_travel(g.u[mine], g.d[mine], onset), w,
+                                        g.travel[mine] if g.travel is not None else None)
         return out
 
     return fn
