@@ -590,6 +590,15 @@ class _Hyper:
     shift_s: dict[int, float] = field(default_factory=dict)  # per direction: its data arc's delay from that
     # the spikes' likelihood ratio (nats) against the spike-free model at its own best timing (nan: not found)
     spike_lr_nats: float = float("nan")
+    # what finds it, where the search left that to whoever reads it (:meth:`spike_lr`)
+    spike_lr_search: Callable[[], float] | None = field(default=None, repr=False, compare=False)
+
+    def spike_lr(self) -> float:
+        """``spike_lr_nats``, found on first use: of the search's passes only the last one's is read, and of the
+        loop gains a profile tries only the taken one's (it costs a compass search of its own)."""
+        if self.spike_lr_search is not None:
+            self.spike_lr_nats, self.spike_lr_search = self.spike_lr_search(), None
+        return self.spike_lr_nats
 
 
 def _has_spikes(patterns: Sequence[Pattern]) -> bool:
@@ -1278,13 +1287,22 @@ class _LagSearch:
             hyper.lag_stderr_s = max(hyper.lag_stderr_s, spread)
             if spikes:
                 # The spikes' test against the spike-free model at its own best timing: at the timing the full
-                # model chose, free spikes may be taking up a step a sample off that another timing fits.
-                smooth(None)
-                chosen = replace(hyper)
-                full_here, _, prior_here = objs(chosen.overhead_s, chosen.wait_s)
-                bare_best = compass(lambda c, w: float(np.subtract(*objs(c, w)[1:])), gain=STAIR_NATS)
-                hyper.overhead_s, hyper.wait_s = chosen.overhead_s, chosen.wait_s
-                hyper.spike_lr_nats = max(bare_best - (full_here - prior_here), 0.0)
+                # model chose, free spikes may be taking up a step a sample off that another timing fits.  Found
+                # when read (hyper.spike_lr), on this search's objective as it is now.
+                chosen, kappa = replace(hyper), self.kappa
+
+                def spike_lr() -> float:
+                    kept_kappa, self.kappa = self.kappa, kappa
+                    try:
+                        smooth(None)
+                        full_here, _, prior_here = objs(chosen.overhead_s, chosen.wait_s)
+                        bare_best = compass(lambda c, w: float(np.subtract(*objs(c, w)[1:])), gain=STAIR_NATS)
+                    finally:
+                        hyper.overhead_s, hyper.wait_s = chosen.overhead_s, chosen.wait_s
+                        self.kappa, self.aperture_rad = kept_kappa, 0.0
+                    return max(bare_best - (full_here - prior_here), 0.0)
+
+                hyper.spike_lr_search = spike_lr
         elif spikes and start is None:
             self.fine = idx = self.fine_samples(hyper.overhead_s)
             width()
@@ -1727,7 +1745,7 @@ def _fit_at(
     def report() -> dict[str, Any]:
         # the spikes' width was fitted to these samples: their joint test counts it
         fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1},
-                          family_lr={"reversal_spike": hyper.spike_lr_nats})
+                          family_lr={"reversal_spike": hyper.spike_lr()})
         res = _result_body(plan, machine, options, fit, patterns)
         _spike_timing_error(res, hyper, V / plan.radius_mm)
         res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
