@@ -34,6 +34,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from scipy import optimize, stats
+from scipy.linalg.blas import dsymv as _symv
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotri as _potri
 
 from . import iso230, noise
 from .advice import advise
@@ -1386,33 +1389,28 @@ def _normal_solve_many(G: np.ndarray, b: np.ndarray) -> np.ndarray:
     rank-deficient directions left out (eigenvalues below 1e-12 of the largest).
 
     Where the scaled matrix is well conditioned (its inverse's Frobenius norm at most ``1e5``: every
-    eigenvalue above ``1e-5``, none left out) by its inverse, else by its eigen-decomposition: the same
-    solution, to rounding, several times cheaper for the p ~ 25 of the search.
+    eigenvalue above ``1e-5``, none left out) by its inverse from the Cholesky factor, else by its
+    eigen-decomposition: the same solution, to rounding, several times cheaper for the p ~ 25 of the search.
     """
     scale = np.sqrt(np.diagonal(G, axis1=1, axis2=2))
     empty = scale == 0  # a column of zeros: a row and column of zeros, which the solution leaves at 0
     scale = np.where(empty, 1.0, scale)
     Gs, bs = G / (scale[:, :, None] * scale[:, None, :]), b / scale
-    x = np.empty_like(bs)
     if empty.any():
-        Gs = Gs + np.einsum("ki,ij->kij", empty.astype(float), np.eye(Gs.shape[1]))
-    todo = np.ones(len(G), dtype=bool)
-    with np.errstate(all="ignore"):
-        try:
-            inv = np.linalg.inv(Gs)
-        except np.linalg.LinAlgError:
-            pass
-        else:
-            norm2 = np.einsum("kij,kij->k", inv, inv)
-            good = np.isfinite(norm2) & (norm2 <= 1e10)
-            x[good] = np.matmul(inv[good], bs[good][:, :, None])[:, :, 0]
-            todo = ~good
-    if todo.any():
-        vals, vecs = np.linalg.eigh(G[todo] / (scale[todo][:, :, None] * scale[todo][:, None, :]))
-        keep = vals > vals[:, -1:] * 1e-12
-        inv_vals = np.divide(1.0, vals, out=np.zeros_like(vals), where=keep)
-        z = np.matmul(bs[todo][:, None, :], vecs)[:, 0, :] * inv_vals
-        x[todo] = np.matmul(vecs, z[:, :, None])[:, :, 0]
+        Gs[:, np.arange(Gs.shape[1]), np.arange(Gs.shape[1])] += empty
+    x = np.empty_like(bs)
+    for i in range(len(G)):
+        c, info = _potrf(Gs[i], lower=0, clean=1)
+        if info == 0:
+            inv, info = _potri(c, lower=0, overwrite_c=1)  # its upper triangle; the lower is zero
+            diag = np.diagonal(inv)
+            if info == 0 and 2.0 * np.vdot(inv, inv) - np.dot(diag, diag) <= 1e10:
+                x[i] = _symv(1.0, inv, bs[i], lower=0)
+                continue
+        scaled = G[i] / np.outer(scale[i], scale[i])
+        vals, vecs = np.linalg.eigh(scaled)
+        keep = vals > vals[-1] * 1e-12
+        x[i] = vecs[:, keep] @ ((vecs[:, keep].T @ bs[i]) / vals[keep])
     return x / scale
 
 

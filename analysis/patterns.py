@@ -80,6 +80,11 @@ class Geometry:
         return mean, mean
 
     @cached_property
+    def phase(self) -> np.ndarray:
+        """Angle travelled past 0 (rad, in [0, 2 pi)): ``spike_travel(u, d, 0)``."""
+        return wrap(self.d * self.u, 2.0 * math.pi)
+
+    @cached_property
     def direction(self) -> int:
         """The direction all samples share (+1, -1); 0 where they do not."""
         if self.d.size and bool((self.d == self.d[0]).all()):
@@ -390,7 +395,10 @@ def _spike(at_deg: float, direction: int) -> ColumnFn:
         # friction acts where the table reverses: the onset moves it off the reversal point
         onset = at + direction * g.onset_rad[axis]
         if g.direction == direction:  # one circle's samples: no selection to copy
-            return _decay_near(g, spike_travel(g.u, g.d, onset), w, g.travel)
+            # spike_travel(u, d, onset), from the geometry's travel past 0 (shared by the circle's spikes)
+            du = g.phase - (direction * onset) % (2.0 * math.pi)
+            du[du < 0.0] += 2.0 * math.pi
+            return _decay_near(g, du, w, g.travel)
         out = np.zeros(len(g))
         if g.direction == 0:
             mine = g.d == direction
