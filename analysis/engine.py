@@ -1008,7 +1008,11 @@ class _LagSearch:
             n = t_rel.size
             if n == 0:
                 continue
-            u = np.concatenate([np.radians(tm.sched.angle_deg(self.plan, d, t_rel)) for tm in timings])
+            # Schedule.angle_deg of each timing, as one expression over the stack
+            start = np.array([[tm.sched.data_start_s[d]] for tm in timings])
+            feed = np.array([[tm.feed_mm_s] for tm in timings])
+            u_deg = data_start_deg(self.plan, d) + d * np.degrees(feed * (t_rel - start) / self.plan.radius_mm)
+            u = np.radians(u_deg).reshape(-1)
             g = Geometry(
                 u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
                 R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
