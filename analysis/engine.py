@@ -28,19 +28,22 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import numpy as np
 from scipy import optimize
+from scipy.linalg.blas import dsymv as _symv
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotri as _potri
 
 from . import iso230, noise, stats
 from .advice import advise
 from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
 from .fit import Factor, FitResult, significance_rule, solve
-from .patterns import Geometry, Pattern, design, select
+from .patterns import Geometry, Pattern, design, select, wrap
 from .physics import MODEL_WORDS, LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import (
@@ -59,6 +62,8 @@ log = logging.getLogger(__name__)
 SCHEMA_VERSION = 1
 FOLD_SAMPLES = 256  # a live circle folds new samples in blocks of at least this many (or as it completes)
 SEARCH_SAMPLES_PER_CIRCLE = 1000  # thinned samples per circle away from the sharp features
+FOLD_ROWS = 16384  # samples folded into a QR factor at a time: the block's design and factor stay in cache
+SEARCH_BATCH_ROWS = 60_000  # the search's timings evaluated together: at most this many samples in all
 # Near each 45 deg point (before, after it; deg) the search keeps samples up to one per spacing (deg): over the
 # whole lag range (which moves the points by up to ~3 deg) coarsely, then where they are finely (at 10 kHz 1 in 4).
 COARSE_NEAR_DEG, COARSE_SPACING_DEG = (1.0, 4.5), 0.03
@@ -73,6 +78,8 @@ LAG_CI_NATS = 2.0  # lags whose full-model likelihood is this close to the best 
 HOLD_REACH_S = (0.01, 0.003)  # the lag's reach (s) either side while holding one arc's start, twice
 COMPASS_S = (0.001, 0.00002)  # the joint refinement of lag and wait: first step, last step at most (s)
 COMPASS_EVALS, COMPASS_GAIN_NATS = 120, 0.5  # at most this many objectives; a step must gain this much
+COMPASS_DIRS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))  # (lag, wait), in this order
+SPECULATE_ROWS = 3000  # a search sample set this small: timings the search may want next are evaluated together
 SMOOTH_MAX_SAMPLE_DEG = 0.025  # samples further apart (deg) are searched as points: no smoothing
 WAIT_MAX_S = 0.3  # no extra wait beyond this (s), either sign
 WAIT_PRIOR_S = 0.1  # prior on it: where the data cannot see it (low rates), it stays near 0
@@ -199,7 +206,7 @@ class CircleFit:
         self.t_start, self.t_end = timing.window(direction)
         self.keep_design = keep_design
         self.offset = offset
-        self.kept: list[tuple[np.ndarray, Geometry, np.ndarray, np.ndarray]] = []  # (t, g, dR, A)
+        self.kept: list[tuple[np.ndarray, np.ndarray]] = []  # (t, dR as measured) of the samples folded in
 
     def geometry(self, t: np.ndarray) -> Geometry:
         u = np.radians(self.timing.sched.angle_deg(self.plan, self.d, t - self.timing.t_ref))
@@ -223,39 +230,54 @@ class CircleFit:
         if not m.any():
             return
         t, L = t[m], L[m]
-        g = self.geometry(t)
         if self.skip_rad > 0:
-            keep = ~_after_onsets(g, self.skip_rad)
+            keep = ~_after_onsets(self.geometry(t), self.skip_rad)
             if not keep.all():
                 t, L = t[keep], L[keep]
-                g = self.geometry(t)
-        A = design(self.patterns, g, self.w)
         dr = (L - self.plan.radius_mm) * 1000.0
-        self.factor.add(A, dr - self.offset(g) if self.offset is not None else dr)
-        np.maximum(self.colmax, np.abs(A).max(axis=0), out=self.colmax)
+        self._fold(t, dr)
         if self.keep_design:
-            self.kept.append((t, g, dr, A))
+            self.kept.append((t, dr))
+
+    def _fold(self, t: np.ndarray, dr: np.ndarray) -> None:
+        """Fold samples into the factor ``FOLD_ROWS`` at a time (no design matrix of a whole circle in memory)."""
+        for g, A, rows in self._blocks(t):
+            self.factor.add(A, dr[rows] - self.offset(g) if self.offset is not None else dr[rows])
+            np.maximum(self.colmax, np.abs(A).max(axis=0), out=self.colmax)
+
+    def _blocks(self, t: np.ndarray) -> Iterator[tuple[Geometry, np.ndarray, slice]]:
+        """The geometry and design of ``t`` in blocks of ``FOLD_ROWS`` samples, with each block's rows."""
+        for i in range(0, t.size, FOLD_ROWS):
+            rows = slice(i, min(i + FOLD_ROWS, t.size))
+            g = self.geometry(t[rows])
+            yield g, design(self.patterns, g, self.w), rows
 
     def refit(self, offset: Offset | None) -> None:
-        """Refold the kept samples with another correction (the design is reused)."""
+        """Refold the kept samples with another correction (the design is made again, block by block)."""
         self.offset = offset
         self.factor = Factor(self.p)
-        for _t, g, dr, A in self.kept:
-            self.factor.add(A, dr - offset(g) if offset is not None else dr)
+        for t, dr in self.kept:
+            self._fold(t, dr)
 
-    def corrected(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Kept ``(t, u, dR, A)`` with ``dR`` as measured minus the correction."""
-        if not self.kept:
-            return np.empty(0), np.empty(0), np.empty(0), np.empty((0, self.p))
-        t = np.concatenate([k[0] for k in self.kept])
-        u = np.concatenate([k[1].u for k in self.kept])
-        dr = np.concatenate([k[2] - (self.offset(k[1]) if self.offset else 0.0) for k in self.kept])
-        A = np.concatenate([k[3] for k in self.kept])
-        return t, u, dr, A
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        """The kept samples' deviation as measured, minus the correction, minus the model at ``x``."""
+        out = []
+        for t, dr in self.kept:
+            for g, A, rows in self._blocks(t):
+                r = dr[rows] - self.offset(g) if self.offset is not None else dr[rows].copy()
+                out.append(r - A @ x)
+        return np.concatenate(out) if out else np.empty(0)
+
+    def times(self) -> np.ndarray:
+        """The kept samples' times."""
+        return np.concatenate([t for t, _ in self.kept]) if self.kept else np.empty(0)
 
     def measured(self) -> tuple[np.ndarray, np.ndarray]:
-        """Kept ``(u, dR)`` as measured, for the ISO figures."""
-        return (np.concatenate([k[1].u for k in self.kept]), np.concatenate([k[2] for k in self.kept]))
+        """Kept ``(u, dR)`` as measured: angles (rad) and deviations (um), for the ISO figures."""
+        if not self.kept:
+            return np.empty(0), np.empty(0)
+        u = [np.radians(self.timing.sched.angle_deg(self.plan, self.d, t - self.timing.t_ref)) for t, _ in self.kept]
+        return np.concatenate(u), np.concatenate([dr for _, dr in self.kept])
 
 
 def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
@@ -263,7 +285,7 @@ def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
     out = np.zeros(len(g), dtype=bool)
     for axis, points in ((0, (0.0, math.pi)), (1, (0.5 * math.pi, 1.5 * math.pi))):
         for at in points:
-            du = np.mod(g.d * (g.u - at) - g.onset_rad[axis], 2.0 * math.pi)  # travel past the onset
+            du = wrap(g.d * (g.u - at) - g.onset_rad[axis], 2.0 * math.pi)  # travel past the onset
             out |= du < reach_rad
     return out
 
@@ -576,6 +598,15 @@ class _Hyper:
     shift_s: dict[int, float] = field(default_factory=dict)  # per direction: its data arc's delay from that
     # the spikes' likelihood ratio (nats) against the spike-free model at its own best timing (nan: not found)
     spike_lr_nats: float = float("nan")
+    # what finds it, where the search left that to whoever reads it (:meth:`spike_lr`)
+    spike_lr_search: Callable[[], float] | None = field(default=None, repr=False, compare=False)
+
+    def spike_lr(self) -> float:
+        """``spike_lr_nats``, found on first use: of the search's passes only the last one's is read, and of the
+        loop gains a profile tries only the taken one's (it costs a compass search of its own)."""
+        if self.spike_lr_search is not None:
+            self.spike_lr_nats, self.spike_lr_search = self.spike_lr_search(), None
+        return self.spike_lr_nats
 
 
 def _has_spikes(patterns: Sequence[Pattern]) -> bool:
@@ -629,19 +660,15 @@ class _Joint:
     def residuals(self, x: np.ndarray) -> list[np.ndarray]:
         """Per circle: the corrected deviation minus the model at ``x`` (NaN: left out)."""
         x = np.nan_to_num(x)
-        out = []
-        for c in self.circles:
-            _, _, dr, A = c.corrected()
-            out.append(dr - A @ _take(x, c.patterns, self.patterns))
-        return out
+        return [c.residual(_take(x, c.patterns, self.patterns)) for c in self.circles]
 
     def solve(
         self, options: AnalysisOptions, rho: float = 0.0, exclude: dict[str, str] | None = None,
-        family_dof: dict[str, int] | None = None, family_lr: dict[str, float] | None = None,
+        family_dof: dict[str, int] | None = None, family_lr: dict[str, float] | None = None, rank: bool = True,
     ) -> FitResult:
         return solve(self.factor(), self.patterns, rho=rho, significance=options.significance,
                      min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=self.colmax(),
-                     exclude=exclude, family_dof=family_dof, family_lr=family_lr)
+                     exclude=exclude, family_dof=family_dof, family_lr=family_lr, rank=rank)
 
 
 def _spike_timing_error(res: dict[str, Any], hyper: _Hyper, omega_rad_s: float) -> None:
@@ -796,6 +823,9 @@ def spike_width_bounds(
 class _SampleSet:
     idx: np.ndarray  # into the test's samples
     windows: dict[int, tuple[float, float]]  # per direction: the data arc's samples, whatever the lag tried
+    # per direction, what every timing shares (:meth:`_LagSearch.parts`): the times from the feed-in, the
+    # deviation (um) and the minutes from the drift's origin
+    parts: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
 
 class _LagSearch:
@@ -900,7 +930,19 @@ class _LagSearch:
         shift_s: dict[int, float] | None = None,
     ) -> tuple[float, float]:
         """The residual sums of squares on ``at`` at lag ``c`` and spike width ``w_deg``: of the full model, and
-        of the model without the reversal spikes.
+        of the model without the reversal spikes (:meth:`sse_many` of one timing)."""
+        return self.sse_many(at, [(c, shift_s)], w_deg, offset, lost)[0]
+
+    def sse_many(
+        self,
+        at: _SampleSet,
+        points: Sequence[tuple[float, dict[int, float] | None]],
+        w_deg: float,
+        offset: Offset | None,
+        lost: LostMotion,
+    ) -> list[tuple[float, float]]:
+        """:meth:`sse` at each ``(lag, shifts)`` of ``points``; ``last_x``: the full model's coefficients at the
+        last.
 
         By the normal equations of the column-scaled design, and the sum of
         squares as ``y'y - 2 x'b + x'Gx`` (exact for any ``x``, so second order
@@ -908,48 +950,99 @@ class _LagSearch:
         at the misfits seen): several times cheaper than folding a QR factor or
         forming the residual, and this runs hundreds of times a test.  The
         searches revisit timings: the values are kept, for one sample set,
-        correction and lost-motion model.
+        correction and lost-motion model.  The timings not kept yet are
+        evaluated together, as one stack of samples (``SEARCH_BATCH_ROWS`` at
+        most): at low rates each timing's samples are few and the cost is
+        per call, not per sample.
         """
         context = (at, offset, lost)
         if len(self._memo_for) != 3 or any(a is not b for a, b in zip(context, self._memo_for, strict=True)):
             self._memo, self._memo_for = {}, context
-        key = (c, w_deg, self.aperture_rad, *sorted((shift_s or {}).items()))
-        if key in self._memo:
-            full, bare, self.last_x = self._memo[key]
-            return full, bare
-        timing = self.timing(c, shift_s)
-        G = np.zeros((self.p, self.p))
-        b = np.zeros(self.p)
-        yy = 0.0
-        t, L = self.t[at.idx], self.L[at.idx]
+        keys = [(c, w_deg, self.aperture_rad, *sorted((shift or {}).items())) for c, shift in points]
+        todo: dict[tuple[object, ...], tuple[float, dict[int, float] | None]] = {}
+        for key, point in zip(keys, points, strict=True):
+            if key not in self._memo:
+                todo.setdefault(key, point)
+        if todo:
+            parts = self.parts(at)
+            per = max(1, SEARCH_BATCH_ROWS // max(sum(v[0].size for v in parts.values()), 1))
+            items = list(todo.items())
+            for i in range(0, len(items), per):
+                chunk = items[i : i + per]
+                for (key, _), value in zip(chunk, self._evaluate(parts, [v for _, v in chunk], w_deg, offset, lost),
+                                           strict=True):
+                    self._memo[key] = value
+        out = [self._memo[key] for key in keys]
+        self.last_x = out[-1][2]
+        return [(full, bare) for full, bare, _ in out]
+
+    def parts(self, at: _SampleSet) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per direction, the samples of ``at`` in its window: times from the feed-in (the timings' reference),
+        deviation (um) and minutes from the drift's origin."""
+        if at.parts is None:
+            t, L = self.t[at.idx], self.L[at.idx]
+            at.parts = {}
+            for d in self.by_direction:
+                lo, hi = at.windows[d]
+                m = (t >= lo) & (t <= hi)
+                at.parts[d] = (t[m] - self.fi.t_s, (L[m] - self.plan.radius_mm) * 1000.0,
+                               (t[m] - self.base.t_mid) / 60.0)
+        return at.parts
+
+    def _evaluate(
+        self,
+        parts: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]],
+        points: Sequence[tuple[float, dict[int, float] | None]],
+        w_deg: float,
+        offset: Offset | None,
+        lost: LostMotion,
+    ) -> list[tuple[float, float, np.ndarray]]:
+        """Full and spike-free sums of squares and the full model's coefficients at each timing of ``points``:
+        the timings' samples stacked into one geometry (:attr:`.patterns.Geometry.feeds`), one Gram matrix of
+        ``[A | y]`` per timing."""
+        k = len(points)
+        timings = [self.timing(c, shift) for c, shift in points]
+        feeds = np.array([tm.feed_mm_s for tm in timings]) if k > 1 else None
+        G = np.zeros((k, self.p, self.p))
+        b = np.zeros((k, self.p))
+        yy = np.zeros(k)
+        w = math.radians(w_deg)
+        extra = lost.geometry(self.tau)
         for d, (patterns, cols) in self.by_direction.items():
-            cf = CircleFit(self.plan, self.machine, patterns, d, timing, w_deg, False, offset, self.tau, lost,
-                           self.aperture_rad)
-            lo, hi = at.windows[d]
-            m = (t >= lo) & (t <= hi)
-            if not m.any():
+            t_rel, y0, t_min = parts[d]
+            n = t_rel.size
+            if n == 0:
                 continue
-            g = cf.geometry(t[m])
-            A = design(cf.patterns, g, cf.w)
-            y = (L[m] - self.plan.radius_mm) * 1000.0
+            # Schedule.angle_deg of each timing, as one expression over the stack
+            start = np.array([[tm.sched.data_start_s[d]] for tm in timings])
+            feed = np.array([[tm.feed_mm_s] for tm in timings])
+            u_deg = data_start_deg(self.plan, d) + d * np.degrees(feed * (t_rel - start) / self.plan.radius_mm)
+            u = np.radians(u_deg).reshape(-1)
+            g = Geometry(
+                u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
+                R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
+                travel=d * (u - math.radians(arc_start_deg(self.plan, d))), loop_lag_s=self.tau,
+                aperture_rad=self.aperture_rad, feeds=feeds, **extra,
+            )
+            q = cols.size
+            MT = np.empty((q + 1, u.size))  # [A | y] transposed: each column contiguous, stacked by timing
+            design(patterns, g, w, out=MT[:q].T)
+            MT[q].reshape(k, n)[:] = y0
             if offset is not None:
-                y = y - offset(g)
-            G[np.ix_(cols, cols)] += A.T @ A
-            b[cols] += A.T @ y
-            yy += float(y @ y)
-        out: list[float] = []
-        for use in (np.ones(self.p, dtype=bool), ~self.spike_cols):
-            x = np.zeros(self.p)
-            Gu, bu = G[np.ix_(use, use)], b[use]
-            x[use] = xu = _normal_solve(Gu, bu)
-            if not out:
-                self.last_x = x
-            out.append(max(yy - 2.0 * float(xu @ bu) + float(xu @ Gu @ xu), 0.0))
-            if not self.spike_cols.any():
-                out.append(out[0])
-                break
-        self._memo[key] = (out[0], out[1], self.last_x)
-        return out[0], out[1]
+                MT[q] -= offset(g)
+            X = MT.reshape(q + 1, k, n).transpose(1, 0, 2)
+            gram = np.matmul(X, X.transpose(0, 2, 1))
+            G[:, cols[:, None], cols] += gram[:, :q, :q]
+            b[:, cols] += gram[:, :q, q]
+            yy += gram[:, q, q]
+        x = _normal_solve_many(G, b)
+        full = _sse_at(x, G, b, yy)
+        bare = full
+        if self.spike_cols.any():
+            use = ~self.spike_cols
+            Gu, bu = G[:, use][:, :, use], b[:, use]
+            bare = _sse_at(_normal_solve_many(Gu, bu), Gu, bu, yy)
+        return [(float(full[i]), float(bare[i]), x[i]) for i in range(k)]
 
     def width_error(self, hyper: _Hyper, offset: Offset | None, lost: LostMotion) -> tuple[float, dict[str, float]]:
         """The spike width's standard error in ``ln w`` and each spike height's change per unit ``ln w``.
@@ -1015,6 +1108,16 @@ class _LagSearch:
             prior = c * c / (2 * LAG_PRIOR_S**2) + wait * wait / (2 * WAIT_PRIOR_S**2)
             return nll(full) + prior, nll(bare) + prior, prior
 
+        # where one timing's samples are few, its cost is per call: timings the search may want next are then
+        # evaluated together beforehand (compass steps, bisections), not only those it wants for sure (grids)
+        def speculate() -> bool:
+            return sum(v[0].size for v in self.parts(idx).values()) <= SPECULATE_ROWS
+
+        def prefetch(points: Sequence[tuple[float, float]]) -> None:
+            """Evaluate the objectives at these ``(lag, wait)`` together (:meth:`sse_many` keeps them)."""
+            if len(points) > 1:
+                self.sse_many(idx, [(c, self.shifts(w)) for c, w in points], hyper.spike_width_deg, offset, lost)
+
         def start_of(d: int, c: float, wait: float) -> float:
             return float(self.timing(c).sched.data_start_s[d]) + self.shifts(wait).get(d, 0.0)
 
@@ -1031,6 +1134,7 @@ class _LagSearch:
             g = np.arange(max(now + lo, b0), min(now + hi, b1) + 0.5 * step, step)
             at = line(wait, hold)
             points = [at(float(x)) for x in g]
+            prefetch(points)
             v = np.array([objs(c, w) for c, w in points])
             return g, v[:, 0], v[:, 1], v[:, 2], np.array(points)
 
@@ -1098,6 +1202,10 @@ class _LagSearch:
             while hi < g.size - 1 and ok[hi + 1] and like[hi + 1] <= level:
                 hi += 1
             # the stair's edges between the grid's points, by bisection
+            if speculate():  # every midpoint either bisection may take
+                ahead = [p for inside, outside in ((lo, lo - 1), (hi, hi + 1)) if 0 <= outside < g.size
+                         for p in _bisections(float(g[inside]), float(g[outside]), STAIR_BISECT)]
+                prefetch([at(x) for x in ahead])
             edges = []
             for inside, outside in ((lo, lo - 1), (hi, hi + 1)):
                 a = float(g[inside])
@@ -1154,10 +1262,11 @@ class _LagSearch:
                 evals = 0
                 while step_c >= min(COMPASS_S[1], 0.02 / self.sample_hz) and evals < COMPASS_EVALS:
                     moved = False
-                    for dc, dw in ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
-                        c, w = hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c
-                        if not (lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S):
-                            continue
+                    steps = [(hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c) for dc, dw in COMPASS_DIRS]
+                    steps = [(c, w) for c, w in steps if lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S]
+                    if speculate():
+                        prefetch(steps)
+                    for c, w in steps:
                         f = value(c, w)
                         evals += 1
                         if f < here - gain:
@@ -1190,13 +1299,22 @@ class _LagSearch:
             hyper.lag_stderr_s = max(hyper.lag_stderr_s, spread)
             if spikes:
                 # The spikes' test against the spike-free model at its own best timing: at the timing the full
-                # model chose, free spikes may be taking up a step a sample off that another timing fits.
-                smooth(None)
-                chosen = replace(hyper)
-                full_here, _, prior_here = objs(chosen.overhead_s, chosen.wait_s)
-                bare_best = compass(lambda c, w: float(np.subtract(*objs(c, w)[1:])), gain=STAIR_NATS)
-                hyper.overhead_s, hyper.wait_s = chosen.overhead_s, chosen.wait_s
-                hyper.spike_lr_nats = max(bare_best - (full_here - prior_here), 0.0)
+                # model chose, free spikes may be taking up a step a sample off that another timing fits.  Found
+                # when read (hyper.spike_lr), on this search's objective as it is now.
+                chosen, kappa = replace(hyper), self.kappa
+
+                def spike_lr() -> float:
+                    kept_kappa, self.kappa = self.kappa, kappa
+                    try:
+                        smooth(None)
+                        full_here, _, prior_here = objs(chosen.overhead_s, chosen.wait_s)
+                        bare_best = compass(lambda c, w: float(np.subtract(*objs(c, w)[1:])), gain=STAIR_NATS)
+                    finally:
+                        hyper.overhead_s, hyper.wait_s = chosen.overhead_s, chosen.wait_s
+                        self.kappa, self.aperture_rad = kept_kappa, 0.0
+                    return max(bare_best - (full_here - prior_here), 0.0)
+
+                hyper.spike_lr_search = spike_lr
         elif spikes and start is None:
             self.fine = idx = self.fine_samples(hyper.overhead_s)
             width()
@@ -1257,6 +1375,14 @@ def _width_verdict(w: float, bounds: tuple[float, float], options: AnalysisOptio
     return ""
 
 
+def _bisections(a: float, b: float, depth: int) -> list[float]:
+    """Every midpoint ``depth`` bisections of ``a..b`` may take (``a`` the side that holds)."""
+    if depth == 0:
+        return []
+    mid = 0.5 * (a + b)
+    return [mid, *_bisections(mid, b, depth - 1), *_bisections(a, mid, depth - 1)]
+
+
 def _pick(full: np.ndarray, bare: np.ndarray, best: float, spike_nats: float) -> int:
     """Of the grid's timings the full model cannot tell from its ``best``, or where the spike-free model is
     within ``spike_nats`` of it, the index of the one the spike-free model fits best (the grid's own best where
@@ -1267,13 +1393,41 @@ def _pick(full: np.ndarray, bare: np.ndarray, best: float, spike_nats: float) ->
     return int(ok[np.argmin(bare[ok])])
 
 
-def _normal_solve(G: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Least-squares solution from the normal equations, column-scaled, rank-deficient columns left at 0."""
-    scale = np.sqrt(np.diag(G))
-    scale[scale == 0] = 1.0
-    vals, vecs = np.linalg.eigh(G / np.outer(scale, scale))
-    keep = vals > vals[-1] * 1e-12
-    return np.asarray((vecs[:, keep] @ ((vecs[:, keep].T @ (b / scale)) / vals[keep])) / scale)
+def _normal_solve_many(G: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares solutions from a stack of normal equations ``G`` (k, p, p), ``b`` (k, p), column-scaled,
+    rank-deficient directions left out (eigenvalues below 1e-12 of the largest).
+
+    Where the scaled matrix is well conditioned (its inverse's Frobenius norm at most ``1e5``: every
+    eigenvalue above ``1e-5``, none left out) by its inverse from the Cholesky factor, else by its
+    eigen-decomposition: the same solution, to rounding, several times cheaper for the p ~ 25 of the search.
+    """
+    scale = np.sqrt(np.diagonal(G, axis1=1, axis2=2))
+    empty = scale == 0  # a column of zeros: a row and column of zeros, which the solution leaves at 0
+    scale = np.where(empty, 1.0, scale)
+    Gs, bs = G / (scale[:, :, None] * scale[:, None, :]), b / scale
+    if empty.any():
+        Gs[:, np.arange(Gs.shape[1]), np.arange(Gs.shape[1])] += empty
+    x = np.empty_like(bs)
+    for i in range(len(G)):
+        c, info = _potrf(Gs[i], lower=0, clean=1)
+        if info == 0:
+            inv, info = _potri(c, lower=0, overwrite_c=1)  # its upper triangle; the lower is zero
+            diag = np.diagonal(inv)
+            if info == 0 and 2.0 * np.vdot(inv, inv) - np.dot(diag, diag) <= 1e10:
+                x[i] = _symv(1.0, inv, bs[i], lower=0)
+                continue
+        scaled = G[i] / np.outer(scale[i], scale[i])
+        vals, vecs = np.linalg.eigh(scaled)
+        keep = vals > vals[-1] * 1e-12
+        x[i] = vecs[:, keep] @ ((vecs[:, keep].T @ bs[i]) / vals[keep])
+    return x / scale
+
+
+def _sse_at(x: np.ndarray, G: np.ndarray, b: np.ndarray, yy: np.ndarray) -> np.ndarray:
+    """``y'y - 2 x'b + x'Gx`` of each of a stack (at least 0)."""
+    xb = np.matmul(x[:, None, :], b[:, :, None])[:, 0, 0]
+    xGx = np.matmul(np.matmul(x[:, None, :], G), x[:, :, None])[:, 0, 0]
+    return np.asarray(np.maximum(yy - 2.0 * xb + xGx, 0.0))
 
 
 def _embed(f: Factor, sub: Sequence[Pattern], full: Sequence[Pattern]) -> Factor:
@@ -1401,24 +1555,24 @@ def _profile_lag(
     of likelihood (the residual's inflation counted, its rms floored at
     ``PROFILE_FLOOR_UM``).
     """
-    runs: dict[float, dict[str, Any]] = {}
+    runs: dict[float, _Fitted] = {}
 
     def run(kv: float) -> float:
         if kv not in runs:
             lag = Lag(1.0 / kv, None, assumed.source, "fitted")
             try:
-                runs[kv] = _analyze_at(plan, machine, options, t, L, fi, fo, curves, lag)
+                runs[kv] = _fit_at(plan, machine, options, t, L, fi, fo, curves, lag)
             except DataError:
                 if kv == DEFAULT_KV_PER_S:
                     raise
                 return math.inf
         # per sample, times the default's count: the runs may keep a few samples more or less
-        return 0.5 * n / inflation * math.log(runs[kv]["residual_rms_um"] ** 2 + PROFILE_FLOOR_UM**2)
+        return 0.5 * n / inflation * math.log(runs[kv].rms_um ** 2 + PROFILE_FLOOR_UM**2)
 
-    default = _analyze_at(plan, machine, options, t, L, fi, fo, curves, assumed)
+    default = _fit_at(plan, machine, options, t, L, fi, fo, curves, assumed)
     runs[DEFAULT_KV_PER_S] = default
-    inflation = max(float(default["fit"].get("variance_inflation") or 1.0), 1.0)
-    n = default["samples"]["in_data_arcs"]
+    inflation = max(default.kappa, 1.0)
+    n = default.n
     grid = sorted({*PROFILE_KV_PER_S, DEFAULT_KV_PER_S})
     for kv in grid:
         run(kv)
@@ -1439,14 +1593,14 @@ def _profile_lag(
     # the data fix the gain only where both ends of the range are clearly worse than the best
     bounded = min(run(min(grid)), run(max(grid))) - run(best) > PROFILE_NATS
     if gain > PROFILE_NATS and bounded:
-        res = runs[best]
+        res = runs[best].report()
         res["timing"]["loop_lag_source"] = (
             f"fitted to the data arcs: {best:g}/s, {gain:.1f} nats better than the default {DEFAULT_KV_PER_S:g}/s "
             f"over {span} (the feed-in's settling is not resolved at this sample rate and no kv_x/kv_y is "
             "configured; a backlash compensation's step and the servo remainder pass through the loop)"
         )
     else:
-        res = default
+        res = default.report()
         why = (f"another gain is at most {gain:.1f} nats better (best {best:g}/s), not more than {PROFILE_NATS:g}"
                if gain <= PROFILE_NATS else
                f"the best, {best:g}/s, is not more than {PROFILE_NATS:g} nats better than both ends of the range")
@@ -1468,6 +1622,31 @@ def _analyze_at(
     lag: Lag,
 ) -> dict[str, Any]:
     """:func:`analyze_test` at a position-loop lag ``(tau, cos2, source)`` (:func:`loop_lag`)."""
+    return _fit_at(plan, machine, options, t, L, fi, fo, curves, lag).report()
+
+
+class _Fitted(NamedTuple):
+    """A test fitted at one loop lag (:func:`_fit_at`): its misfit, and its result when asked for."""
+
+    rms_um: float  # the residual's rms over the data arcs
+    n: int  # samples in the data arcs
+    kappa: float  # the residual's variance inflation (lag-1 correlation)
+    report: Callable[[], dict[str, Any]]  # the result
+
+
+def _fit_at(
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    t: np.ndarray,
+    L: np.ndarray,
+    fi: StepEvent,
+    fo: StepEvent,
+    curves: bool,
+    lag: Lag,
+) -> _Fitted:
+    """The search and the fit of :func:`_analyze_at`; the result is built only when asked for (a loop gain
+    the profile does not take needs only its misfit)."""
     span = fo.t_s - fi.t_s
     patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
     tau, cos2, tau_source, _ = lag
@@ -1500,7 +1679,7 @@ def _analyze_at(
 
     if search.coarse.idx.size > 50:
         pre = search.joint(search.coarse, hyper, None, lost, keep=True)
-        pre_fit = pre.solve(options)
+        pre_fit = pre.solve(options, rank=False)
         search.kappa = _kappa(_lag1(pre.residuals(pre_fit.x)))
         lost = choose(pre_fit)
         offset = make_offset(_values(pre_fit), tau, lost, cos2, frame_cos2)
@@ -1511,7 +1690,7 @@ def _analyze_at(
         for _pass in range(3):
             hyper = search.run(offset, lost, start)
             joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
-            fit_s = joint_s.solve(options)
+            fit_s = joint_s.solve(options, rank=False)
             chosen = choose(fit_s)
             offset = make_offset(_values(fit_s), tau, chosen, cos2, frame_cos2)
             moved = max(abs(a - b) for a, b in zip(chosen.onset_rad, lost.onset_rad, strict=True))
@@ -1551,79 +1730,86 @@ def _analyze_at(
                 f"the {'CCW' if c.d > 0 else 'CW'} data arc ({c.t_start:.2f}..{c.t_end:.2f} s) holds "
                 f"{c.factor.n} samples: too few to fit"
             )
-    fit = joint.solve(options, exclude=exclude)
+    fit = joint.solve(options, exclude=exclude, rank=False)
     for _ in range(2):
         chosen = choose(fit)
         if chosen.models != lost.models:  # the final fit turned a backlash's sign: the other model
             lost = chosen
             offset = make_offset(_values(fit), tau, lost, cos2, frame_cos2)
             joint = full(lost, offset)
-            fit = joint.solve(options, exclude=exclude)
+            fit = joint.solve(options, exclude=exclude, rank=False)
             continue
         offset = make_offset(_values(fit), tau, lost, cos2, frame_cos2)
         if offset is None and all(c.offset is None for c in joint.circles):
             break
         for c in joint.circles:
             c.refit(offset)
-        fit = joint.solve(options, exclude=exclude)
+        fit = joint.solve(options, exclude=exclude, rank=False)
     residuals = joint.residuals(fit.x)
-    # the spikes' width was fitted to these samples: their joint test counts it
-    fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1},
-                      family_lr={"reversal_spike": hyper.spike_lr_nats})
-    res = _result_body(plan, machine, options, fit, patterns)
-    _spike_timing_error(res, hyper, V / plan.radius_mm)
-    res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
-    res["fit"]["servo_model_note"] = tau_source
-    res["fit"]["lost_motion"] = lost.to_dict()
-    res["fit"]["lost_motion_model"] = "; ".join(
-        f"{axis.upper()}: {MODEL_WORDS[m]}" for axis, m in zip("xy", lost.models, strict=True)
-    )
-    res["kind"] = "test"
-    res["timing"] = _timing_dict(plan, fi, fo, timing, hyper, V)
-    if _has_spikes(patterns) and not exclude and search.fine.idx.size > 50:
-        _spike_width_error(res, *search.width_error(hyper, offset, lost))
-    _spike_significance(res)
-    res["advice"] = advise(res["parameters"], plan, machine)  # on the final verdicts
-    res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
-    res["timing"]["loop_lag_source"] = tau_source
-    res["timing"]["loop_lag_origin"] = lag.origin
-    res["timing"]["loop_lag_radial_cos2u"] = cos2
-    res["timing"]["backlash_takeup_deg"] = {
-        axis: math.degrees(o) if m == "deadband" else 0.0
-        for axis, m, o in zip("xy", lost.models, lost.onset_rad, strict=True)
-    }
-    res["timing"]["reversal_onset_deg"] = {axis: math.degrees(o) for axis, o in zip("xy", lost.onset_rad, strict=True)}
-    # The arc-start lag of a trapezoid profile is V / A: a plan whose data arcs begin before the feed is
-    # reached at that acceleration leaves the timing model, and the measured feed and angles with it.
-    if hyper.overhead_s > 0 and math.isfinite(hyper.overhead_s):
-        limits = model_limits(plan.with_(feed_mm_min=V * 60.0), V / hyper.overhead_s)
-        if limits:
-            res["warnings"] = [
-                f"timing model: {why} (acceleration from the measured arc-start lag); the measured feed and the "
-                "angles are biased: lengthen overshoot_deg" for why in limits
-            ]
-    res["iso230_4"] = iso230.figures({c.d: c.measured() for c in joint.circles})
-    res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, sample_hz)
-    res["noise"] = noise.findings(
-        [(c.corrected()[1], r, plan.data_arc_deg, sample_hz) for c, r in zip(joint.circles, residuals, strict=True)],
-        options.vibration_cutoff_cpr,
-    )
-    if curves:
-        res["curves"] = {}
-        for c, r in zip(joint.circles, residuals, strict=True):
-            uc, dr = c.measured()  # not corrected(): that would rebuild the correction and the design
-            res["curves"]["ccw" if c.d > 0 else "cw"] = {
-                "t_s": np.concatenate([k[0] for k in c.kept]), "u_deg": np.degrees(uc), "measured_um": dr,
-                "model_um": dr - r,
-            }
     all_r = np.concatenate(residuals)
-    res["residual_rms_um"] = float(np.sqrt(np.mean(all_r**2)))
-    res["samples"] = {
-        "in_test": int(t.size),
-        "in_data_arcs": int(sum(c.factor.n for c in joint.circles)),
-        "sample_hz": sample_hz,
-    }
-    return res
+    rms = float(np.sqrt(np.mean(all_r**2)))
+
+    def report() -> dict[str, Any]:
+        # the spikes' width was fitted to these samples: their joint test counts it
+        fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1},
+                          family_lr={"reversal_spike": hyper.spike_lr()})
+        res = _result_body(plan, machine, options, fit, patterns)
+        _spike_timing_error(res, hyper, V / plan.radius_mm)
+        res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
+        res["fit"]["servo_model_note"] = tau_source
+        res["fit"]["lost_motion"] = lost.to_dict()
+        res["fit"]["lost_motion_model"] = "; ".join(
+            f"{axis.upper()}: {MODEL_WORDS[m]}" for axis, m in zip("xy", lost.models, strict=True)
+        )
+        res["kind"] = "test"
+        res["timing"] = _timing_dict(plan, fi, fo, timing, hyper, V)
+        if _has_spikes(patterns) and not exclude and search.fine.idx.size > 50:
+            _spike_width_error(res, *search.width_error(hyper, offset, lost))
+        _spike_significance(res)
+        res["advice"] = advise(res["parameters"], plan, machine)  # on the final verdicts
+        res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
+        res["timing"]["loop_lag_source"] = tau_source
+        res["timing"]["loop_lag_origin"] = lag.origin
+        res["timing"]["loop_lag_radial_cos2u"] = cos2
+        res["timing"]["backlash_takeup_deg"] = {
+            axis: math.degrees(o) if m == "deadband" else 0.0
+            for axis, m, o in zip("xy", lost.models, lost.onset_rad, strict=True)
+        }
+        res["timing"]["reversal_onset_deg"] = {
+            axis: math.degrees(o) for axis, o in zip("xy", lost.onset_rad, strict=True)
+        }
+        # The arc-start lag of a trapezoid profile is V / A: a plan whose data arcs begin before the feed is
+        # reached at that acceleration leaves the timing model, and the measured feed and angles with it.
+        if hyper.overhead_s > 0 and math.isfinite(hyper.overhead_s):
+            limits = model_limits(plan.with_(feed_mm_min=V * 60.0), V / hyper.overhead_s)
+            if limits:
+                res["warnings"] = [
+                    f"timing model: {why} (acceleration from the measured arc-start lag); the measured feed and the "
+                    "angles are biased: lengthen overshoot_deg" for why in limits
+                ]
+        res["iso230_4"] = iso230.figures({c.d: c.measured() for c in joint.circles})
+        res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, sample_hz)
+        res["noise"] = noise.findings(
+            [(c.measured()[0], r, plan.data_arc_deg, sample_hz) for c, r in zip(joint.circles, residuals, strict=True)],
+            options.vibration_cutoff_cpr,
+        )
+        if curves:
+            res["curves"] = {}
+            for c, r in zip(joint.circles, residuals, strict=True):
+                uc, dr = c.measured()
+                res["curves"]["ccw" if c.d > 0 else "cw"] = {
+                    "t_s": c.times(), "u_deg": np.degrees(uc), "measured_um": dr,
+                    "model_um": dr - r,
+                }
+        res["residual_rms_um"] = rms
+        res["samples"] = {
+            "in_test": int(t.size),
+            "in_data_arcs": int(sum(c.factor.n for c in joint.circles)),
+            "sample_hz": sample_hz,
+        }
+        return res
+
+    return _Fitted(rms, sum(c.factor.n for c in joint.circles), _kappa(_lag1(residuals)), report)
 
 
 def _embed_vec(v: np.ndarray, sub: Sequence[Pattern], full: Sequence[Pattern]) -> np.ndarray:

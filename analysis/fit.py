@@ -185,6 +185,7 @@ def solve(
     exclude: dict[str, str] | None = None,
     family_dof: dict[str, int] | None = None,
     family_lr: dict[str, float] | None = None,
+    rank: bool = True,
 ) -> FitResult:
     """Fit ``patterns`` from ``factor``; rank them; say which cannot be identified.
 
@@ -199,6 +200,8 @@ def solve(
     without it at that model's own best search (the spike-free model at its
     own timing): its joint test is also the chi-square test of that ratio,
     and the larger p of the two is the family's.
+    ``rank``: False for the values and covariance alone (no terms: an
+    intermediate fit whose ranking nothing reads).
     """
     patterns = list(patterns)
     R = factor.rows
@@ -262,6 +265,8 @@ def solve(
         x[cols] = xs
         cov[np.ix_(cols, cols)] = cs
     result = FitResult(patterns, used, reasons, x, cov, sse_full, n, p, kappa, rho, condition=condition)
+    if not rank:
+        return result
     # Extra sum of squares (Suh & Lee section 4.2): drop each term in turn.
     ssr: dict[str, float] = {}
     for i, pat in enumerate(patterns):

@@ -56,7 +56,7 @@ from typing import Any
 
 import numpy as np
 
-from .patterns import Geometry
+from .patterns import Geometry, wrap
 
 Offset = Callable[[Geometry], np.ndarray]
 
@@ -78,16 +78,23 @@ def servo_remainder(g: Geometry, m_ms: float, tau_s: float, frame_cos2: float | 
     inv_ky = tau_s - 0.5 * m_ms / 1000.0
     if inv_kx <= 0 or inv_ky <= 0:
         return np.zeros(len(g))
-    omega = g.V / g.R
+    # one timing: scalars; a stack of timings (g.feeds): a column of its blocks' values against their rows
+    V: float | np.ndarray = g.V if g.feeds is None else g.feeds[:, None]
+    shape = (len(g),) if g.feeds is None else (g.feeds.size, -1)
+    cos_u, sin_u, d = g.cos_u.reshape(shape), g.sin_u.reshape(shape), g.d.reshape(shape)
+    omega = V / g.R
     gx2 = 1.0 / (1.0 + (omega * inv_kx) ** 2)
     gy2 = 1.0 / (1.0 + (omega * inv_ky) ** 2)
     ref = omega * (tau_s + 0.5 * m_ms / 1000.0 * (frame_cos2 or 0.0))
-    dx = math.atan(omega * inv_kx) - ref
-    dy = math.atan(omega * inv_ky) - ref
-    L_over_R = np.sqrt(gx2 * np.cos(g.u - g.d * dx) ** 2 + gy2 * np.sin(g.u - g.d * dy) ** 2)
+    dx = np.arctan(omega * inv_kx) - ref
+    dy = np.arctan(omega * inv_ky) - ref
+    # cos(u - d dx) and sin(u - d dy) from the geometry's cos u, sin u (d = +-1)
+    cx = cos_u * np.cos(dx) + d * (sin_u * np.sin(dx))
+    sy = sin_u * np.cos(dy) - d * (cos_u * np.sin(dy))
+    L_over_R = np.sqrt(gx2 * cx**2 + gy2 * sy**2)
     physical = g.R * 1000.0 * (L_over_R - 1.0)
-    mask = 0.5 * g.d * g.V * m_ms * g.sin_2u
-    return np.asarray(physical - mask)
+    mask = 0.5 * d * V * m_ms * g.sin_2u.reshape(shape)
+    return np.asarray(physical - mask).reshape(-1)
 
 
 AXIS_FIELDS = ("backlash_x_um", "backlash_y_um")
@@ -283,7 +290,7 @@ def lost_motion_remainder(g: Geometry) -> np.ndarray:
         if width <= 0:
             continue
         # signed travel from the nearest of the axis' two reversal points (X: 0, 180 deg; Y: 90, 270 deg)
-        du = np.mod(g.d * (g.u - 0.5 * math.pi * axis) + 0.5 * math.pi, math.pi) - 0.5 * math.pi
+        du = wrap(g.d * (g.u - 0.5 * math.pi * axis) + 0.5 * math.pi, math.pi) - 0.5 * math.pi
         e = du - shift  # travel since the axis reversed
         near = np.flatnonzero((e > -h) & (e < width + h))
         if g.travel is not None:
