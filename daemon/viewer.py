@@ -100,6 +100,7 @@ after a second); a daemon killed outright takes it along (``PR_SET_PDEATHSIG``).
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import ipaddress
 import logging
@@ -115,7 +116,7 @@ import time
 import urllib.parse
 import uuid
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Literal
@@ -948,6 +949,7 @@ ROW_BYTES = 24
 REFRESH_FRACTION = 0.5  # serve mode: the history is re-sent after this fraction of the server's limit
 HISTORY_SHARE_WARN = 0.25  # warn when the history needs more than this share of the server's limit
 MAX_PENDING_SAMPLES = 200_000  # samples waiting to be processed: at most this many
+HISTORY_SLICE_BYTES = 512 * 1024  # a periodic sending of the history: at most this much per flush
 
 
 class _Ring:
@@ -1111,6 +1113,7 @@ class RerunViewer(Listener):
         }
         self._sent_bytes = 0  # estimate of what the sink was sent (MSG_BYTES ...), for the refresh
         self._refreshed_at = 0  # _sent_bytes when the history was last sent
+        self._history_steps: deque[Callable[[], None]] = deque()  # the rest of a sliced sending
         # the analysis clock (see ViewerOptions.clock) and the latest sample times seen on each
         self._use_host = self.options.clock == "host"
         self._latest_host = -math.inf
@@ -1207,6 +1210,7 @@ class RerunViewer(Listener):
             "history_length_points": len(self._length_history),
             "trend_points": len(self._trends),
             "sent_mib": round(self._sent_bytes / 2**20, 3),
+            "history_pending": len(self._history_steps),
             **self.counters,
             **({"server": self._server.stats()} if self._server is not None else {}),
         }
@@ -1277,40 +1281,58 @@ class RerunViewer(Listener):
         self._send_history()
         self._redraw_all()
 
-    def _send_history(self) -> None:
+    def _send_history(self, sliced: bool = False) -> None:
         """What a late viewer gets: the last tests whole, the trends, the length decimated; then the present.
 
         Each at its own place on the timelines (a viewer that has it already gets the same again).
         In ``serve`` mode this is sent again whenever half the server's memory limit has been sent
         since (:meth:`_refresh_if_due`), so that the server's bounded buffer, which drops the oldest
-        messages first, always holds it whole.
+        messages first, always holds it whole; ``sliced``: then a slice of at most
+        ``HISTORY_SLICE_BYTES`` at each flush (the SDK's buffers stay small), else all at once.
         """
-        rec = self._rec
-        assert rec is not None
         self.counters["refreshes"] += 1
-        for r in self._history:
-            rec.set_time("test", sequence=r.index)
-            rec.set_time("time", timestamp=r.start_wall)
-            for name in DIRECTIONS.values():
-                self._log(f"polar/{name}", rr.Clear(recursive=True))
-            rec.set_time("time", timestamp=r.wall)
-            self._log_scale(r.scale_um)
-            for path, (pts, colour, width, order) in r.curves.items():
-                self._log_strip(path, pts, colour, width, order)
-            self._log("findings", rr.TextDocument(r.findings, media_type=rr.MediaType.MARKDOWN), len(r.findings))
+        self._refreshed_at = self._sent_bytes
+        steps: list[Callable[[], None]] = [functools.partial(self._send_record, r) for r in self._history]
         if len(self._trends):
-            self._send_trends(self._trends.rows())
+            steps.append(functools.partial(self._send_trends, self._trends.rows()))
         hist = self._length_history.rows()
         if hist.shape[0]:
             hist = hist[hist[:, 0] >= hist[-1, 0] - self.options.history_length_s]
             for i in range(0, hist.shape[0], 20_000):
-                self._send_length(hist[i : i + 20_000, 0], hist[i : i + 20_000, 1])
+                steps.append(functools.partial(self._send_length, hist[i : i + 20_000, 0], hist[i : i + 20_000, 1]))
+        steps.append(functools.partial(self._send_present, sliced))
+        self._history_steps = deque(steps)
+        if not sliced:
+            self._continue_history(math.inf)
+
+    def _continue_history(self, budget: float = HISTORY_SLICE_BYTES) -> None:
+        start = self._sent_bytes
+        while self._history_steps and self._sent_bytes - start < budget:
+            self._history_steps.popleft()()
+
+    def _send_record(self, r: _TestRecord) -> None:
+        rec = self._rec
+        assert rec is not None
+        rec.set_time("test", sequence=r.index)
+        rec.set_time("time", timestamp=r.start_wall)
+        for name in DIRECTIONS.values():
+            self._log(f"polar/{name}", rr.Clear(recursive=True))
+        rec.set_time("time", timestamp=r.wall)
+        self._log_scale(r.scale_um)
+        for path, (pts, colour, width, order) in r.curves.items():
+            self._log_strip(path, pts, colour, width, order)
+        self._log("findings", rr.TextDocument(r.findings, media_type=rr.MediaType.MARKDOWN), len(r.findings))
+        self._set_times()
+
+    def _send_present(self, emit: bool) -> None:
+        """The references and the findings at the current time; ``emit``: the current curves too."""
         self._set_times()
         self._log_scale()
         if self._findings_md:
             self._log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN),
                       len(self._findings_md))
-        self._refreshed_at = self._sent_bytes
+        if emit:
+            self._emit()
 
     def _refresh_if_due(self) -> None:
         if self.options.mode != "serve":
@@ -1319,8 +1341,8 @@ class RerunViewer(Listener):
         if self._sent_bytes - self._refreshed_at >= REFRESH_FRACTION * limit:
             log.debug("rerun viewer: sending the history again (%.1f MiB sent since)",
                       (self._sent_bytes - self._refreshed_at) / 2**20)
-            self._send_history()
-            self._emit()  # the present after the past: the current curves at the current time
+            self._send_history(sliced=True)
+        self._continue_history()
 
     def _log_static(self) -> None:
         ax1, ax2 = self.plan.axes if self.plan else ("X", "Y")
@@ -1477,31 +1499,28 @@ class RerunViewer(Listener):
         if t >= self._next_flush or live or self._n_pending >= MAX_PENDING_SAMPLES:
             self._flush(time.monotonic())
 
-    def _flush(self, now: float, final: bool = False) -> None:
-        """Process the queued samples; send the length series and the live polar curve when due.
-
-        ``final`` (from :meth:`stop`): the samples and the length only.
-        """
+    def _flush(self, now: float) -> None:
+        """Process the queued samples; send the length series and the live polar curve when due."""
         self._next_flush = self._latest_host + self.options.send_interval_s
-        if not final:
-            self._maintain(now)
+        self._maintain(now)
         self._process_pending()
         if not self._sink_live:
             self._len_pending.clear()
             return
         self.counters["flushes"] += 1
-        if self._len_pending:
-            wall = np.concatenate([w for w, _L in self._len_pending])
-            L = np.concatenate([x for _w, x in self._len_pending])
-            self._len_pending.clear()
-            self._send_length(wall, L)
-            self.counters["length_sends"] += 1
-        if final:
-            return
+        self._send_pending_length()
         if self._in_test and self._latest_host >= self._next_polar:
             self._next_polar = self._latest_host + self.options.polar_update_s
             self._redraw_live()
         self._refresh_if_due()
+
+    def _send_pending_length(self, rec: rr.RecordingStream | None = None) -> None:
+        if self._len_pending:
+            wall = np.concatenate([w for w, _L in self._len_pending])
+            L = np.concatenate([x for _w, x in self._len_pending])
+            self._len_pending.clear()
+            self._send_length(wall, L, rec)
+            self.counters["length_sends"] += 1
 
     def _process_pending(self) -> None:
         if not self._pending:
@@ -1539,7 +1558,7 @@ class RerunViewer(Listener):
         rate = self._rate_hz if rate_hz is None else rate_hz
         if not math.isfinite(rate):
             return 1
-        return max(1, int(rate / limit_hz + 1e-6))  # 999.9999 Hz from float times is 1 kHz
+        return max(1, int(rate / limit_hz * (1.0 + 1e-6)))  # 9999.9998 Hz from float times is 10 kHz
 
     def _keep(self, th: FloatArray, td: FloatArray, L: FloatArray, seq: NDArray[np.int64],
               ok: NDArray[np.bool_]) -> None:
@@ -1569,8 +1588,8 @@ class RerunViewer(Listener):
         buf = self._samples
         return (buf.t_host if self._use_host else buf.t_device), buf.length
 
-    def _send_length(self, wall: FloatArray, L: FloatArray) -> None:
-        rec = self._rec
+    def _send_length(self, wall: FloatArray, L: FloatArray, rec: rr.RecordingStream | None = None) -> None:
+        rec = rec or self._rec
         assert rec is not None
         rec.send_columns(
             "length",
@@ -1929,12 +1948,8 @@ class RerunViewer(Listener):
 
     def stop(self) -> None:
         """Close the sink within ``stop_timeout_s``, whatever the viewer does; safe to call twice."""
-        if not self._closed and self._rec is not None:
-            try:
-                self._flush(time.monotonic(), final=True)  # the samples still queued
-            except Exception:
-                self._failed("stop")
         with self._stop_lock:
+            was_open = not self._closed
             self._closed = True
             rec, self._rec = self._rec, None
             prober, self._prober = self._prober, None
@@ -1949,6 +1964,10 @@ class RerunViewer(Listener):
         done = threading.Event()
 
         def close() -> None:
+            if was_open and self._sink_live:
+                with contextlib.suppress(Exception):  # the samples still queued (a frozen viewer may hold this)
+                    self._process_pending()
+                    self._send_pending_length(rec)
             with contextlib.suppress(Exception):  # a lost viewer fails the flush; nothing to do about it
                 rec.flush(timeout_sec=max(0.1, self.options.stop_timeout_s / 2))
             rec.disconnect()

@@ -367,6 +367,10 @@ def measure(
         out["stats"] = {k: v for k, v in listener.stats().items() if k != "server"}
         out["server"] = listener.stats().get("server")
         if late_viewer:
+            deadline = time.monotonic() + 10.0  # idle, as the daemon's queue calls it: a sliced history finishes
+            while listener.stats().get("history_pending") and time.monotonic() < deadline:
+                listener.on_idle()
+                time.sleep(0.05)
             out["late"] = late_view(listener.address, tmp or Path(tempfile.mkdtemp()), port + 1)
     t0 = time.monotonic()
     listener.stop()
