@@ -7,9 +7,10 @@ ways:
 
 ``serve``    (default) a gRPC server on ``bind``:``port`` (127.0.0.1:9880: this PC
              only, and not the viewer's own 9876); viewers connect whenever they
-             like with ``rerun rerun+http://127.0.0.1:9880/proxy`` and receive the
-             buffered history, bounded by ``server_memory_limit`` (oldest data
-             dropped first; static data such as the reference circles is kept).
+             like with ``rerun rerun+http://127.0.0.1:9880/proxy`` and receive what
+             the server holds, bounded by ``server_memory_limit`` (oldest messages
+             dropped first; static data such as the reference circles is kept),
+             which always includes the history chosen for late viewers (below).
              The server is ``rerun --serve-grpc`` in a child process that the
              daemon pushes to (see :class:`_ServerProcess`): Rerun's server takes
              data from any client, and some of it outside its memory limit, so
@@ -21,12 +22,14 @@ ways:
 What is logged (timelines: ``time``, wall clock of the sample or of the
 message; ``test``, the test's sequence number within this daemon run)::
 
-    polar/reference/{nominal,axes,axis_labels}  static: the nominal circle, the plane's axes
-    polar/reference/{band,scale,labels}  the tolerance band, the +-s scale rings and
-                                     their labels (they depend on the scale s; logged
-                                     when it changes)
-    polar/{ccw,cw}/measured    LineStrips2D of the magnified radial deviation, updated
-                               live during the data arc, redrawn with each result's timing
+    polar/reference/{nominal,axes,axis_labels,scale}  static: the nominal circle, the plane's
+                                     axes, the +-s scale rings
+    polar/reference/{band,labels}  the tolerance band and the rings' labels (they depend
+                                     on the scale s; logged when it changes, and with the history)
+    polar/{ccw,cw}/measured    LineStrips2D of the magnified radial deviation: grown live
+                               during the data arc in pieces (the growing tip here, each
+                               completed piece once in measured/<k>), redrawn whole with
+                               each result's timing (the pieces cleared)
     polar/{ccw,cw}/model       the fitted model, rebuilt from the result's parameters
     length                     Scalars: the bar length L (mm), decimated to <= length_hz
     findings                   TextDocument (markdown): ranking, parameters, ISO 230-4, advice
@@ -50,6 +53,23 @@ angle comes from the test program's timing (analysis/README.md): live, from
 the feed-in event and the feed ratio and overhead learnt on the previous test
 (exactly the engine's provisional timing); after each circle and test result,
 from that result's ``timing``.
+
+Bounded, and cheap.  A batch is only queued; the samples are processed
+together, and the length series sent, at most every ``send_interval_s``
+(0.25 s; ``polar_update_s`` while a test is drawn live) on the samples' host
+clock, and at each result or event.  The length series is decimated to
+``length_hz`` (100 points per second of the host clock, whatever the sample
+rate); a live circle gains a piece at a time (never the whole circle again);
+the current test's samples are kept at ``buffer_hz``, at most
+``max_buffer_samples``.  What a viewer that connects late gets is chosen: the
+last ``history_tests`` tests whole (polar plots, models, band, findings) at
+their own times, the trends of the last ``TRENDS_KEPT`` tests, the length at
+``history_length_hz`` over ``history_length_s``, all kept here in fixed-size
+buffers and sent with the scene to every new sink; in ``serve`` mode sent again
+whenever half of ``server_memory_limit`` has been sent since (an estimate on
+the high side, ``MSG_BYTES``...), so that the server's buffer, which drops its
+oldest messages first, always holds them whole, besides the last hours of the
+live stream (everything: full-rate length, live circles, events).
 
 Never blocking the daemon.  The listener's own queue already decouples it;
 beyond that, data is only logged while a sink exists (no unbounded buffering
@@ -80,6 +100,7 @@ after a second); a daemon killed outright takes it along (``PR_SET_PDEATHSIG``).
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import ipaddress
 import logging
@@ -95,7 +116,7 @@ import time
 import urllib.parse
 import uuid
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -182,12 +203,25 @@ class ViewerOptions:
     deviation drawn halfway between the nominal circle and its centre (None:
     automatic, starting at ``AUTO_SCALE_START_UM``);
     ``polar_points``: points per drawn circle; ``polar_update_s``: how often
-    the live circle is redrawn; ``length_hz``: rate of the length series;
-    ``buffer_hz``: rate at which the current test's samples are kept for the
-    polar plot; ``remove_setup``: subtract the latest centre and radius
-    estimates from the curves.  ``clock``: which sample time the analysis runs
-    on (``auto``: the device clock where the source has one, corrected by the
-    times the analysis messages carry).  ``retry_s``: probe/rebind period;
+    the live circle is extended; ``polar_pieces``: how many pieces a live
+    circle is sent in (each update sends the growing piece and those
+    completed since, never the whole circle again); ``length_hz``: the
+    length series' rate, on the host clock, whatever the sample rate;
+    ``send_interval_s``: samples are processed and the length series sent
+    at most this often (and at each result or event); ``buffer_hz``: rate at
+    which the current test's samples are kept for the polar plot, at most
+    ``max_buffer_samples`` of them; ``remove_setup``: subtract the latest
+    centre and radius estimates from the curves.
+
+    What a viewer that connects late is sent, besides what the server still
+    holds of the live stream (see the module docstring): the last
+    ``history_tests`` tests whole (polar plots, models, findings), the trends
+    of the last ``TRENDS_KEPT`` tests, and the length series at
+    ``history_length_hz`` over the last ``history_length_s``.
+
+    ``clock``: which sample time the analysis runs on (``auto``: the device
+    clock where the source has one, corrected by the times the analysis
+    messages carry).  ``retry_s``: probe/rebind period;
     ``health_s``: how often a pushed stream is checked (a flush that fails
     at once: the viewer restarted between two probes); ``stop_timeout_s``:
     bound on :meth:`RerunViewer.stop`.
@@ -205,9 +239,14 @@ class ViewerOptions:
     scale_um: float | None = None
     polar_points: int = 2000
     polar_update_s: float = 0.5
-    length_hz: float = 200.0
+    polar_pieces: int = 16
+    length_hz: float = 100.0
+    send_interval_s: float = 0.25
     buffer_hz: float = 1000.0
-    max_buffer_samples: int = 1_000_000
+    max_buffer_samples: int = 250_000
+    history_tests: int = 50
+    history_length_hz: float = 1.0
+    history_length_s: float = 86_400.0
     remove_setup: bool = True
     clock: Clock = "auto"
     retry_s: float = 2.0
@@ -242,7 +281,10 @@ class ViewerOptions:
             "tolerance_um",
             "polar_update_s",
             "length_hz",
+            "send_interval_s",
             "buffer_hz",
+            "history_length_hz",
+            "history_length_s",
             "retry_s",
             "health_s",
             "stop_timeout_s",
@@ -253,9 +295,11 @@ class ViewerOptions:
         s = self.scale_um
         ok = s is None or (isinstance(s, int | float) and not isinstance(s, bool) and math.isfinite(s) and s > 0)
         checks.append((ok, f"viewer scale_um must be a number > 0 or unset (automatic), not {s!r}"))
-        for name, lo in (("polar_points", 16), ("max_buffer_samples", 10_000)):
+        for name, lo in (("polar_points", 16), ("max_buffer_samples", 10_000), ("polar_pieces", 1),
+                         ("history_tests", 0)):
             v = getattr(self, name)
-            checks.append((isinstance(v, int) and v >= lo, f"rerun.{name} must be an integer >= {lo}, not {v!r}"))
+            ok = isinstance(v, int) and not isinstance(v, bool) and v >= lo
+            checks.append((ok, f"rerun.{name} must be an integer >= {lo}, not {v!r}"))
         for ok, msg in checks:
             if not ok:
                 raise ViewerConfigError(msg)
@@ -900,6 +944,133 @@ class _ServerProcess:
 
 _ABANDONED: list[rr.RecordingStream] = []  # recordings whose disconnect did not finish: never collected
 
+# What the serve mode's server counts of what is sent (its history is bounded by those bytes), estimated
+# on the high side from rerun-sdk 0.41's encoding (LZ4-compressed Arrow chunks, measured in .rrd files):
+# a message costs 1.2-1.6 kB whatever it holds (a styled line strip 2-2.4 kB), a line-strip point 8 B,
+# a scalar row (time, value, row id) about 20 B.
+MSG_BYTES = 2000
+STRIP_BYTES = 800
+POINT_BYTES = 8
+ROW_BYTES = 24
+REFRESH_FRACTION = 0.5  # serve mode: the history is re-sent after this fraction of the server's limit
+HISTORY_SHARE_WARN = 0.25  # warn when the history needs more than this share of the server's limit
+MAX_PENDING_SAMPLES = 200_000  # samples waiting to be processed: at most this many
+HISTORY_SLICE_BYTES = 512 * 1024  # a periodic sending of the history: at most this much per flush
+
+
+class _Ring:
+    """A fixed-capacity FIFO of float64 rows (``width`` columns); the oldest rows are overwritten."""
+
+    def __init__(self, capacity: int, width: int) -> None:
+        self.buf = np.empty((max(1, capacity), width))
+        self.start = 0
+        self.n = 0
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def capacity(self) -> int:
+        return int(self.buf.shape[0])
+
+    def extend(self, rows: FloatArray) -> None:
+        cap = self.capacity
+        rows = rows[-cap:]
+        k = rows.shape[0]
+        if not k:
+            return
+        end = (self.start + self.n) % cap
+        first = min(k, cap - end)
+        self.buf[end : end + first] = rows[:first]
+        self.buf[: k - first] = rows[first:]
+        self.n += k
+        if self.n > cap:
+            self.start = (self.start + self.n - cap) % cap
+            self.n = cap
+
+    def rows(self) -> FloatArray:
+        """The rows, oldest first (a copy)."""
+        end = self.start + self.n
+        if end <= self.capacity:
+            return self.buf[self.start : end].copy()
+        return np.concatenate([self.buf[self.start :], self.buf[: end - self.capacity]])
+
+
+class _Samples:
+    """The current test's samples kept for the polar plot, as growable columns (the caller bounds them).
+
+    Appending is amortised O(new rows); :meth:`keep` gives memory back after a long test.
+    """
+
+    def __init__(self) -> None:
+        self.data = np.empty((3, 1024))  # t_host, t_device, length
+        self.n = 0
+
+    def append(self, th: FloatArray, td: FloatArray, L: FloatArray) -> None:
+        k = th.size
+        if self.n + k > self.data.shape[1]:
+            grown = np.empty((3, max(2 * self.data.shape[1], self.n + k)))
+            grown[:, : self.n] = self.data[:, : self.n]
+            self.data = grown
+        self.data[0, self.n : self.n + k] = th
+        self.data[1, self.n : self.n + k] = td
+        self.data[2, self.n : self.n + k] = L
+        self.n += k
+
+    def keep(self, mask_or_slice: Any) -> None:
+        """Keep only the rows selected (a boolean mask or a slice), in place."""
+        kept = self.data[:, : self.n][:, mask_or_slice]
+        self.n = kept.shape[1]
+        if self.data.shape[1] > 4 * max(self.n, 1024):  # give memory back after a long test
+            self.data = np.empty((3, max(2 * self.n, 1024)))
+        self.data[:, : self.n] = kept
+
+    @property
+    def t_host(self) -> FloatArray:
+        return self.data[0, : self.n]
+
+    @property
+    def t_device(self) -> FloatArray:
+        return self.data[1, : self.n]
+
+    @property
+    def length(self) -> FloatArray:
+        return self.data[2, : self.n]
+
+
+@dataclass
+class _Curve:
+    """A polar curve in micrometres: angles ``u`` (rad) and raw deviations ``dr`` (um), and its style.
+
+    ``live``: a measured curve growing during its data arc, sent in pieces: completed pieces of
+    ``piece`` points go to child entities ``<path>/<k>`` once, the growing tip to ``<path>`` itself.
+    ``key``: what the points so far depend on (first sample time, decimation step): while it holds
+    they are a prefix of the next update's.  ``pieces``: completed pieces logged since the entity was
+    last cleared; ``stale``: the logged pieces no longer match (clear them first).
+    """
+
+    u: FloatArray
+    dr: FloatArray
+    colour: str
+    width: float
+    order: float
+    live: bool = False
+    key: tuple[float, int] | None = None
+    pieces: int = 0
+    stale: bool = False
+
+
+@dataclass
+class _TestRecord:
+    """A finished test as a late viewer is sent it: display points, scale, findings, and when."""
+
+    index: int
+    start_wall: float  # its feed-in (the polar plot was cleared then)
+    wall: float  # its result
+    scale_um: float
+    curves: dict[str, tuple[NDArray[np.float32], str, float, float]]  # path -> (points, colour, width, order)
+    findings: str
+
 
 class RerunViewer(Listener):
     """Streams samples and results to Rerun viewers; see the module docstring.
@@ -939,40 +1110,65 @@ class RerunViewer(Listener):
             "batches": 0,
             "samples": 0,
             "messages": 0,
+            "flushes": 0,
+            "length_sends": 0,
             "polar_draws": 0,
             "sinks": 0,
+            "refreshes": 0,
             "errors": 0,
             "skipped": 0,
         }
+        self._sent_bytes = 0  # estimate of what the sink was sent (MSG_BYTES ...), for the refresh
+        self._refreshed_at = 0  # _sent_bytes when the history was last sent
+        self._history_steps: deque[Callable[[], None]] = deque()  # the rest of a sliced sending
         # the analysis clock (see ViewerOptions.clock) and the latest sample times seen on each
         self._use_host = self.options.clock == "host"
         self._latest_host = -math.inf
         self._latest_device = -math.inf
-        # samples kept for the polar plot: (t_host, t_device, L) chunks
-        self._chunks: list[tuple[FloatArray, FloatArray, FloatArray]] = []
-        self._n_kept = 0
+        # batches not processed yet (sent at most every send_interval_s)
+        self._pending: list[SampleBatch] = []
+        self._n_pending = 0
+        self._next_flush = -math.inf  # on the samples' host clock, as _next_polar
+        self._len_pending: list[tuple[FloatArray, FloatArray]] = []  # (wall, L) for the next length send
+        # samples kept for the polar plot
+        self._samples = _Samples()
         self._keep_every = 1  # extra thinning after the buffer hit max_buffer_samples
         self._rate_hz = float("nan")  # on the analysis clock
         self._host_hz = float("nan")
         # the current test
         self._test_index = 0
         self._in_test = False
+        self._test_start_wall = time.time()
         self._live: dict[int, ArcTiming] = {}  # provisional timing per direction
         self._final: dict[int, Mapping[str, Any]] = {}  # direction -> latest result drawn for it
-        self._next_polar = 0.0
-        # what a (re)connecting viewer is sent again; curves: path -> (u rad, dR um, colour,
-        # line width, draw order), see "polar plot" below
-        self._curves: dict[str, tuple[FloatArray, FloatArray, str, float, float]] = {}
+        self._next_polar = -math.inf
+        # what a (re)connecting viewer is sent again; see "polar plot" below
+        self._curves: dict[str, _Curve] = {}
+        self._piece = max(2, math.ceil(self.options.polar_points / self.options.polar_pieces))
         self._scale_um = self.options.scale_um or AUTO_SCALE_START_UM
         self._setup_result: Mapping[str, Any] | None = None
         self._hints = (1.0, 0.0, 3.0)  # feed ratio, overhead (s), spike width (deg) from the last test
         self._findings_md = ""
-        self._trends: deque[tuple[int, float, dict[str, float]]] = deque(maxlen=TRENDS_KEPT)
+        # the history a late viewer gets (see ViewerOptions): tests whole, trends, the length decimated
+        self._history: deque[_TestRecord] = deque(maxlen=self.options.history_tests)
+        self._trends = _Ring(TRENDS_KEPT, 2 + len(TRENDS))  # test, wall, values (NaN: none)
+        self._length_history = _Ring(
+            math.ceil(self.options.history_length_s * self.options.history_length_hz) + 1, 2
+        )  # wall, L
         self._server: _ServerProcess | None = None
         self._sink_generation = 0
         if self.options.mode == "off":
             self._closed = True
             return
+        if self.options.mode == "serve":
+            need, limit = self.history_bytes_max(), _memory_bytes(self.options.server_memory_limit) or 0
+            if need > HISTORY_SHARE_WARN * limit:
+                log.warning(
+                    "rerun viewer: the history for late viewers (%d tests, %g h of length) needs about %.0f MiB, "
+                    "more than %d %% of server_memory_limit %s: late viewers may get less of it",
+                    self.options.history_tests, self.options.history_length_s / 3600.0, need / 2**20,
+                    round(100 * HISTORY_SHARE_WARN), self.options.server_memory_limit,
+                )
         self._rec = rr.RecordingStream(self.options.application_id, recording_id=self.recording_id)
         if self.options.mode == "serve":
             self._server = _ServerProcess(
@@ -1000,13 +1196,28 @@ class RerunViewer(Listener):
         """A sink exists: serving, or pushing to a viewer that answered the last probe."""
         return self._sink_live
 
+    def history_bytes_max(self) -> int:
+        """Bytes (estimated, on the high side) of the history a late viewer is sent, when full."""
+        o = self.options
+        per_test = 10 * MSG_BYTES + 5 * STRIP_BYTES + POINT_BYTES * (4 * o.polar_points + 2 * 361) + 6000
+        length = len(TRENDS) * MSG_BYTES + ROW_BYTES * (
+            TRENDS_KEPT * len(TRENDS) + self._length_history.capacity
+        )
+        return o.history_tests * per_test + length
+
     def stats(self) -> dict[str, Any]:
         return {
             "mode": self.options.mode,
             "address": self.address,
             "connected": self._sink_live,
             "clock": "host" if self._use_host else "device",
-            "buffered_samples": self._n_kept,
+            "buffered_samples": self._samples.n,
+            "pending_samples": self._n_pending,
+            "history_tests": len(self._history),
+            "history_length_points": len(self._length_history),
+            "trend_points": len(self._trends),
+            "sent_mib": round(self._sent_bytes / 2**20, 3),
+            "history_pending": len(self._history_steps),
             **self.counters,
             **({"server": self._server.stats()} if self._server is not None else {}),
         }
@@ -1058,33 +1269,99 @@ class RerunViewer(Listener):
         log.info("rerun viewer: " + msg, *args)
         self._send_scene()
 
+    def _log(self, path: str, entity: Any, nbytes: int = 0, *, static: bool = False) -> None:
+        """``rec.log``, counting (an estimate of) what it sends: ``nbytes`` besides the message's own."""
+        rec = self._rec
+        assert rec is not None
+        rec.log(path, entity, static=static)
+        self._sent_bytes += MSG_BYTES + nbytes
+
     def _send_scene(self) -> None:
         """Everything a viewer that has just (re)connected needs, besides the live stream."""
         rec = self._rec
         assert rec is not None
+        for c in self._curves.values():  # a new viewer has none of the pieces
+            c.pieces, c.stale = 0, False
         rec.send_blueprint(default_blueprint())
         rec.send_recording_name(self._recording_name)
         self._log_static()
+        self._send_history()
+        self._redraw_all()
+
+    def _send_history(self, sliced: bool = False) -> None:
+        """What a late viewer gets: the last tests whole, the trends, the length decimated; then the present.
+
+        Each at its own place on the timelines (a viewer that has it already gets the same again).
+        In ``serve`` mode this is sent again whenever half the server's memory limit has been sent
+        since (:meth:`_refresh_if_due`), so that the server's bounded buffer, which drops the oldest
+        messages first, always holds it whole; ``sliced``: then a slice of at most
+        ``HISTORY_SLICE_BYTES`` at each flush (the SDK's buffers stay small), else all at once.
+        """
+        self.counters["refreshes"] += 1
+        self._refreshed_at = self._sent_bytes
+        steps: list[Callable[[], None]] = [functools.partial(self._send_record, r) for r in self._history]
+        if len(self._trends):
+            steps.append(functools.partial(self._send_trends, self._trends.rows()))
+        hist = self._length_history.rows()
+        if hist.shape[0]:
+            hist = hist[hist[:, 0] >= hist[-1, 0] - self.options.history_length_s]
+            for i in range(0, hist.shape[0], 20_000):
+                steps.append(functools.partial(self._send_length, hist[i : i + 20_000, 0], hist[i : i + 20_000, 1]))
+        steps.append(functools.partial(self._send_present, sliced))
+        self._history_steps = deque(steps)
+        if not sliced:
+            self._continue_history(math.inf)
+
+    def _continue_history(self, budget: float = HISTORY_SLICE_BYTES) -> None:
+        start = self._sent_bytes
+        while self._history_steps and self._sent_bytes - start < budget:
+            self._history_steps.popleft()()
+
+    def _send_record(self, r: _TestRecord) -> None:
+        rec = self._rec
+        assert rec is not None
+        rec.set_time("test", sequence=r.index)
+        rec.set_time("time", timestamp=r.start_wall)
+        for name in DIRECTIONS.values():
+            self._log(f"polar/{name}", rr.Clear(recursive=True))
+        rec.set_time("time", timestamp=r.wall)
+        self._log_scale(r.scale_um)
+        for path, (pts, colour, width, order) in r.curves.items():
+            self._log_strip(path, pts, colour, width, order)
+        self._log("findings", rr.TextDocument(r.findings, media_type=rr.MediaType.MARKDOWN), len(r.findings))
+        self._set_times()
+
+    def _send_present(self, emit: bool) -> None:
+        """The references and the findings at the current time; ``emit``: the current curves too."""
         self._set_times()
         self._log_scale()
         if self._findings_md:
-            rec.log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN))
-        if self._trends:
-            self._send_trends(list(self._trends))
-        self._redraw_all()
+            self._log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN),
+                      len(self._findings_md))
+        if emit:
+            self._emit()
+
+    def _refresh_if_due(self) -> None:
+        if self.options.mode != "serve":
+            return  # a connected viewer keeps what it got; one that reconnects gets the scene again
+        limit = _memory_bytes(self.options.server_memory_limit) or 0
+        if self._sent_bytes - self._refreshed_at >= REFRESH_FRACTION * limit:
+            log.debug("rerun viewer: sending the history again (%.1f MiB sent since)",
+                      (self._sent_bytes - self._refreshed_at) / 2**20)
+            self._send_history(sliced=True)
+        self._continue_history()
 
     def _log_static(self) -> None:
-        rec = self._rec
-        assert rec is not None
         ax1, ax2 = self.plan.axes if self.plan else ("X", "Y")
         radii = rr.Radius.ui_points(0.75)
-        rec.log(
+        self._log(
             "polar/reference/nominal",
             rr.LineStrips2D([_circle(R0)], colors=[COLOURS["nominal"]], radii=radii, draw_order=1.0),
+            POINT_BYTES * 721,
             static=True,
         )
         e = 1.65 * R0
-        rec.log(
+        self._log(
             "polar/reference/axes",
             rr.LineStrips2D(
                 [[[-e, 0.0], [e, 0.0]], [[0.0, -e], [0.0, e]]],
@@ -1094,7 +1371,7 @@ class RerunViewer(Listener):
             ),
             static=True,
         )
-        rec.log(
+        self._log(
             "polar/reference/axis_labels",
             rr.Points2D(
                 [[e, 0.0], [0.0, -e]],  # +y is down in the view
@@ -1105,31 +1382,8 @@ class RerunViewer(Listener):
             ),
             static=True,
         )
-        rec.log("length", rr.SeriesLines(names="L (mm)", colors=[(90, 90, 90)]), static=True)
-        for path, _field, label in TRENDS:
-            rec.log(
-                f"trends/{path}",
-                rr.SeriesLines(names=label),
-                rr.SeriesPoints(names=label, marker_sizes=4.0),
-                static=True,
-            )
-
-    def _log_scale(self) -> None:
-        """The scale-dependent references, at the current time (the caller sets the timelines)."""
-        rec = self._rec
-        assert rec is not None
-        tol, s = self.options.tolerance_um, self._scale_um
-        k = R0 / (2.0 * s)
-        rec.log(
-            "polar/reference/band",
-            rr.LineStrips2D(
-                [_circle(R0 + k * tol), _circle(max(R0 - k * tol, 0.0))],
-                colors=[COLOURS["band"]],
-                radii=rr.Radius.ui_points(0.75),
-                draw_order=2.0,
-            ),
-        )
-        rec.log(
+        # the scale rings sit at fixed display radii (+-s, whatever s is); their labels change with s
+        self._log(
             "polar/reference/scale",
             rr.LineStrips2D(
                 [_circle(R0 * 1.5), _circle(R0 * 0.5)],
@@ -1137,6 +1391,27 @@ class RerunViewer(Listener):
                 radii=rr.Radius.ui_points(0.5),
                 draw_order=0.5,
             ),
+            POINT_BYTES * 2 * 721,
+            static=True,
+        )
+        self._log("length", rr.SeriesLines(names="L (mm)", colors=[(90, 90, 90)]), static=True)
+        for path, _field, label in TRENDS:
+            self._log(f"trends/{path}", rr.SeriesLines(names=label), static=True)
+            self._log(f"trends/{path}", rr.SeriesPoints(names=label, marker_sizes=4.0), static=True)
+
+    def _log_scale(self, scale_um: float | None = None) -> None:
+        """The scale-dependent references, at the current time (the caller sets the timelines)."""
+        tol, s = self.options.tolerance_um, scale_um or self._scale_um
+        k = R0 / (2.0 * s)
+        self._log(
+            "polar/reference/band",
+            rr.LineStrips2D(
+                [_circle(R0 + k * tol, 361), _circle(max(R0 - k * tol, 0.0), 361)],
+                colors=[COLOURS["band"]],
+                radii=rr.Radius.ui_points(0.75),
+                draw_order=2.0,
+            ),
+            POINT_BYTES * 2 * 361,
         )
         # Labels on points beside the rings: a strip's own label sits at its centroid, the centre.
         a = math.radians(75.0)
@@ -1147,7 +1422,7 @@ class RerunViewer(Listener):
             (1.5 * R0, f"+{s:g} µm", COLOURS["scale"]),
             (0.5 * R0, f"-{s:g} µm", COLOURS["scale"]),
         ]
-        rec.log(
+        self._log(
             "polar/reference/labels",
             rr.Points2D(
                 [[r * math.cos(a), -r * math.sin(a)] for r, _t, _c in rings],
@@ -1157,6 +1432,7 @@ class RerunViewer(Listener):
                 show_labels=True,
                 draw_order=3.0,
             ),
+            200,
         )
 
     # ------------------------------------------------------------------ listener interface
@@ -1181,7 +1457,7 @@ class RerunViewer(Listener):
         if self._closed:
             return
         try:
-            self._maintain(time.monotonic())
+            self._flush(time.monotonic())
         except Exception:
             self._failed("on_idle")
 
@@ -1198,58 +1474,116 @@ class RerunViewer(Listener):
             self._err_next_log = now + 60.0
 
     # ------------------------------------------------------------------ samples
+    #
+    # A batch is only queued here (a few scalar updates); the samples are processed together, and the
+    # length series sent, at most every send_interval_s (polar_update_s while a test is drawn live),
+    # before any message that concerns them (results, events) and when the queue is idle.  Both
+    # periods are on the samples' host clock (when they were taken), which a live source shares with
+    # the wall clock; a backlog or a recorded stream is drawn as it was acquired.
 
     def _on_batch(self, batch: SampleBatch) -> None:
-        now = time.monotonic()
-        self._maintain(now)
         self.counters["batches"] += 1
-        for ev in batch.events:
-            self._source_event(ev)
-        n = len(batch)
-        if n == 0:
-            return
-        ok = batch.valid & np.isfinite(batch.t_host) & np.isfinite(batch.length_mm)
-        if n >= 2:
-            # sample rates on the host clock (the length series) and on the analysis clock (the
-            # polar plot); they differ for a simulator or a replay running faster than real time
-            self._host_hz = _rate(batch.t_host, self._host_hz)
-            self._rate_hz = _rate(batch.t_host if self._use_host else batch.t_device, self._rate_hz)
-        self._latest_host = max(self._latest_host, float(batch.t_host[-1]))
-        if np.isfinite(batch.t_device[-1]):
-            self._latest_device = max(self._latest_device, float(batch.t_device[-1]))
-        elif self.options.clock == "auto":
-            self._use_host = True
-        self.counters["samples"] += n
-        self._keep(batch, ok)
+        if batch.events:
+            self._process_pending()  # the samples before these events first
+            for ev in batch.events:
+                self._source_event(ev)
         if not self._sink_live:
             self.counters["skipped"] += 1
+        n = len(batch)
+        if n:
+            self.counters["samples"] += n
+            th, td = float(batch.t_host[-1]), float(batch.t_device[-1])
+            if math.isfinite(th):
+                self._latest_host = max(self._latest_host, th)
+            if math.isfinite(td):
+                self._latest_device = max(self._latest_device, td)
+            elif self.options.clock == "auto":
+                self._use_host = True
+            self._pending.append(batch)
+            self._n_pending += n
+        t = self._latest_host
+        live = self._in_test and self._sink_live and t >= self._next_polar
+        if t >= self._next_flush or live or self._n_pending >= MAX_PENDING_SAMPLES:
+            self._flush(time.monotonic())
+
+    def _flush(self, now: float) -> None:
+        """Process the queued samples; send the length series and the live polar curve when due."""
+        self._next_flush = self._latest_host + self.options.send_interval_s
+        self._maintain(now)
+        self._process_pending()
+        if not self._sink_live:
+            self._len_pending.clear()
             return
-        self._log_length(batch, ok)
-        if self._in_test and now >= self._next_polar:
-            self._next_polar = now + self.options.polar_update_s
+        self.counters["flushes"] += 1
+        self._send_pending_length()
+        if self._in_test and self._latest_host >= self._next_polar:
+            self._next_polar = self._latest_host + self.options.polar_update_s
             self._redraw_live()
+        self._refresh_if_due()
+
+    def _send_pending_length(self, rec: rr.RecordingStream | None = None) -> None:
+        if self._len_pending:
+            wall = np.concatenate([w for w, _L in self._len_pending])
+            L = np.concatenate([x for _w, x in self._len_pending])
+            self._len_pending.clear()
+            self._send_length(wall, L, rec)
+            self.counters["length_sends"] += 1
+
+    def _process_pending(self) -> None:
+        if not self._pending:
+            return
+        batches, self._pending, self._n_pending = self._pending, [], 0
+        if len(batches) == 1:
+            b = batches[0]
+            th, td, L, seq, ok = b.t_host, b.t_device, b.length_mm, b.seq, b.valid
+        else:
+            th = np.concatenate([b.t_host for b in batches])
+            td = np.concatenate([b.t_device for b in batches])
+            L = np.concatenate([b.length_mm for b in batches])
+            seq = np.concatenate([b.seq for b in batches])
+            ok = np.concatenate([b.valid for b in batches])
+        ok = ok & np.isfinite(th) & np.isfinite(L)
+        if th.size >= 2:
+            # sample rates on the host clock (the length series) and on the analysis clock (the
+            # polar plot); they differ for a simulator or a replay running faster than real time
+            self._host_hz = _rate(th, self._host_hz)
+            self._rate_hz = _rate(th if self._use_host else td, self._rate_hz)
+        self._keep(th, td, L, seq, ok)
+        stride = self._stride(self.options.length_hz, self._host_hz)
+        m = ok & (seq % stride == 0)
+        if m.any():
+            wall = th[m] + (time.time() - time.monotonic())
+            if self._sink_live:
+                self._len_pending.append((wall, L[m]))
+            # the history: a subset of the live points (same times, same values)
+            every = stride * max(1, math.ceil(self.options.length_hz / self.options.history_length_hz - 1e-9))
+            h = seq[m] % every == 0
+            if h.any():
+                self._length_history.extend(np.column_stack([wall[h], L[m][h]]))
 
     def _stride(self, limit_hz: float, rate_hz: float | None = None) -> int:
         rate = self._rate_hz if rate_hz is None else rate_hz
         if not math.isfinite(rate):
             return 1
-        return max(1, int(rate / limit_hz + 1e-6))  # 999.9999 Hz from float times is 1 kHz
+        return max(1, int(rate / limit_hz * (1.0 + 1e-6)))  # 9999.9998 Hz from float times is 10 kHz
 
-    def _keep(self, batch: SampleBatch, ok: NDArray[np.bool_]) -> None:
+    def _keep(self, th: FloatArray, td: FloatArray, L: FloatArray, seq: NDArray[np.int64],
+              ok: NDArray[np.bool_]) -> None:
         """Keep the samples (decimated by sample number) that the polar plot may need."""
         stride = self._stride(self.options.buffer_hz) * self._keep_every
-        m = ok & (batch.seq % stride == 0)
+        m = ok & (seq % stride == 0)
+        buf = self._samples
         if m.any():
-            self._chunks.append((batch.t_host[m], batch.t_device[m], batch.length_mm[m]))
-            self._n_kept += int(m.sum())
+            buf.append(th[m], td[m], L[m])
         if not self._in_test:
-            horizon = self._latest_host - PRE_TEST_S
-            while self._chunks and self._chunks[0][0][-1] < horizon:
-                self._n_kept -= self._chunks.pop(0)[0].size
-        elif self._n_kept > self.options.max_buffer_samples:
-            th, td, L = self._buffer()
-            self._chunks = [(th[::2], td[::2], L[::2])]
-            self._n_kept = int(self._chunks[0][0].size)
+            # only the last PRE_TEST_S seconds; dropped in halves, so that this stays cheap
+            old = int(np.searchsorted(buf.t_host, self._latest_host - PRE_TEST_S))
+            if old > buf.n // 2:
+                buf.keep(slice(old, None))
+            if buf.n > self.options.max_buffer_samples:
+                buf.keep(slice(buf.n - self.options.max_buffer_samples // 2, None))
+        elif buf.n > self.options.max_buffer_samples:
+            buf.keep(slice(None, None, 2))
             self._keep_every *= 2
             log.info(
                 "rerun viewer: test longer than %d samples kept; now keeping every %d-th",
@@ -1257,31 +1591,19 @@ class RerunViewer(Listener):
                 stride * 2,
             )
 
-    def _buffer(self) -> tuple[FloatArray, FloatArray, FloatArray]:
-        if not self._chunks:
-            z = np.empty(0)
-            return z, z, z
-        if len(self._chunks) > 1:
-            th, td, L = (np.concatenate(c) for c in zip(*self._chunks, strict=True))
-            self._chunks = [(th, td, L)]
-        return self._chunks[0]
-
     def _analysis_time(self) -> tuple[FloatArray, FloatArray]:
-        th, td, L = self._buffer()
-        return (th if self._use_host else td), L
+        buf = self._samples
+        return (buf.t_host if self._use_host else buf.t_device), buf.length
 
-    def _log_length(self, batch: SampleBatch, ok: NDArray[np.bool_]) -> None:
-        rec = self._rec
+    def _send_length(self, wall: FloatArray, L: FloatArray, rec: rr.RecordingStream | None = None) -> None:
+        rec = rec or self._rec
         assert rec is not None
-        m = ok & (batch.seq % self._stride(self.options.length_hz, self._host_hz) == 0)
-        if not m.any():
-            return
-        wall = batch.t_host[m] + (time.time() - time.monotonic())
         rec.send_columns(
             "length",
             indexes=[rr.TimeColumn("time", timestamp=wall)],
-            columns=rr.Scalars.columns(scalars=batch.length_mm[m]),
+            columns=rr.Scalars.columns(scalars=L),
         )
+        self._sent_bytes += MSG_BYTES + ROW_BYTES * wall.size
 
     def _source_event(self, ev: SourceEvent) -> None:
         detail = ", ".join(
@@ -1304,14 +1626,16 @@ class RerunViewer(Listener):
         rec = self._rec
         assert rec is not None
         rec.set_time("time", timestamp=wall if wall is not None else time.time())
-        rec.log("events", rr.TextLog(text, level=level))
+        self._log("events", rr.TextLog(text, level=level), len(text))
 
     # ------------------------------------------------------------------ messages
 
     def _on_message(self, msg: Message) -> None:
-        self._maintain(time.monotonic())
         self.counters["messages"] += 1
         kind = msg.get("kind")
+        if kind not in ("config", "circle", "test", "event"):
+            return  # status: nothing to draw
+        self._flush(time.monotonic())  # a boundary: the samples before it are drawn and sent first
         if kind == "config":
             cfg = msg.get("config")
             if isinstance(cfg, Mapping) and isinstance(cfg.get("plan"), Mapping):
@@ -1381,6 +1705,7 @@ class RerunViewer(Listener):
     def _start_test(self, index: int, feed_in_s: float) -> None:
         self._test_index = index
         self._in_test = True
+        self._test_start_wall = time.time()
         self._final = {}
         self._live = {}
         if self.plan is not None:
@@ -1390,19 +1715,13 @@ class RerunViewer(Listener):
             }
         # keep the samples from shortly before the feed-in: the data arc may start right after it
         t, _L = self._analysis_time()
-        if t.size and self._chunks:
-            keep = t >= feed_in_s - 1.0
-            th, td, L = self._chunks[0]
-            self._chunks = [(th[keep], td[keep], L[keep])]
-            self._n_kept = int(keep.sum())
+        if t.size:
+            self._samples.keep(t >= feed_in_s - 1.0)
         self._curves.clear()
         if self._sink_live:
-            rec = self._rec
-            assert rec is not None
             self._set_times()
             for name in DIRECTIONS.values():
-                rec.log(f"polar/{name}", rr.Clear(recursive=True))
-            self._log_scale()  # again each test: the server's bounded buffer drops the oldest data
+                self._log(f"polar/{name}", rr.Clear(recursive=True))
 
     def _end_test(self) -> None:
         self._in_test = False
@@ -1428,18 +1747,33 @@ class RerunViewer(Listener):
             self._setup_result = res
         self._findings_md = findings_markdown(res)
         trend = self._trend_values(res) if res.get("kind") == "test" else {}
+        wall = time.time()
         if trend and isinstance(idx, int):
-            self._trends.append((idx, time.time(), trend))
+            row = np.array([[idx, wall, *(trend.get(p, math.nan) for p, _f, _l in TRENDS)]])
+            self._trends.extend(row)
         if self._sink_live:
-            rec = self._rec
-            assert rec is not None
-            self._set_times()
-            rec.log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN))
+            self._set_times(wall)
+            self._log("findings", rr.TextDocument(self._findings_md, media_type=rr.MediaType.MARKDOWN),
+                      len(self._findings_md))
             if trend and isinstance(idx, int):
-                self._send_trends([self._trends[-1]])
-        self._redraw_all()  # cached even without a viewer: one that connects later gets this test
+                self._send_trends(row)
+        self._redraw_all(wall)  # cached even without a viewer: one that connects later gets this test
         if res.get("kind") == "test":
+            if isinstance(idx, int):
+                self._record(idx, wall)
             self._end_test()
+
+    def _record(self, index: int, wall: float) -> None:
+        """Keep test ``index``'s final state for late viewers (:meth:`_send_history`)."""
+        if self.options.history_tests <= 0:
+            return
+        curves = {}
+        for path, c in self._curves.items():
+            pts = polar_points(c.u, c.dr - setup_deviation_um(self._setup_result, c.u), self._scale_um)
+            curves[path] = (pts.astype(np.float32), c.colour, c.width, c.order)
+        self._history.append(
+            _TestRecord(index, self._test_start_wall, wall, self._scale_um, curves, self._findings_md)
+        )
 
     @staticmethod
     def _trend_values(res: Mapping[str, Any]) -> dict[str, float]:
@@ -1451,27 +1785,31 @@ class RerunViewer(Listener):
                 out[path] = v
         return out
 
-    def _send_trends(self, points: Sequence[tuple[int, float, dict[str, float]]]) -> None:
+    def _send_trends(self, rows: FloatArray) -> None:
+        """Trend points: rows of (test, wall time, one value per TRENDS entry, NaN where none)."""
         rec = self._rec
         assert rec is not None
-        for path, _field, _label in TRENDS:
-            rows = [(i, w, vals[path]) for i, w, vals in points if path in vals]
-            if not rows:
+        for j, (path, _field, _label) in enumerate(TRENDS):
+            m = np.isfinite(rows[:, 2 + j])
+            if not m.any():
                 continue
             rec.send_columns(
                 f"trends/{path}",
                 indexes=[
-                    rr.TimeColumn("test", sequence=[r[0] for r in rows]),
-                    rr.TimeColumn("time", timestamp=[r[1] for r in rows]),
+                    rr.TimeColumn("test", sequence=rows[m, 0].astype(np.int64)),
+                    rr.TimeColumn("time", timestamp=rows[m, 1]),
                 ],
-                columns=rr.Scalars.columns(scalars=[r[2] for r in rows]),
+                columns=rr.Scalars.columns(scalars=rows[m, 2 + j]),
             )
+            self._sent_bytes += MSG_BYTES + ROW_BYTES * int(m.sum())
 
     # ------------------------------------------------------------------ polar plot
     #
     # Curves are kept in micrometres (angle, raw dR = L - R, or the model's dR) and turned into
     # display points when logged: a new scale, a new set-up estimate or a viewer that connects
     # later all re-emit them consistently, even after the samples behind them were let go.
+    # A live curve is sent in pieces (see _Curve): each update sends its growing tip and the
+    # pieces completed since the last one, never the whole curve again.
 
     def _redraw_live(self) -> None:
         t, _L = self._analysis_time()
@@ -1479,31 +1817,31 @@ class RerunViewer(Listener):
             return
         paths = []
         for d, timing in self._live.items():
-            if d not in self._final and t[-1] > timing.start_s and self._update_measured(d, timing):
+            if d not in self._final and t[-1] > timing.start_s and self._update_measured(d, timing, live=True):
                 paths.append(f"polar/{DIRECTIONS[d]}/measured")
         if paths and not self._fit_scale(grow_only=True):
-            self._emit(paths)
+            self._emit(paths, full=False)
 
-    def _redraw_all(self) -> None:
+    def _redraw_all(self, wall: float | None = None) -> None:
         """Recompute every curve of the current test that the kept samples allow, rescale, emit."""
         for d in DIRECTIONS:
             res = self._final.get(d)
             timing = result_timing(res, d) if res is not None else self._live.get(d)
             if timing is not None:
-                self._update_measured(d, timing)
+                self._update_measured(d, timing, live=res is None)
             if res is not None:
                 self._update_model(d, res)
-        self._fit_scale(grow_only=not any(r.get("kind") == "test" for r in self._final.values()))
-        self._emit()
+        self._fit_scale(grow_only=not any(r.get("kind") == "test" for r in self._final.values()), wall=wall)
+        self._emit(wall=wall)
 
-    def _measured(self, d: int, timing: ArcTiming) -> tuple[FloatArray, FloatArray]:
-        """Angles (rad) and raw deviations ``L - R`` (um) of the kept samples of ``d``'s data arc."""
+    def _measured(self, d: int, timing: ArcTiming) -> tuple[FloatArray, FloatArray, tuple[float, int] | None]:
+        """Angles (rad), raw deviations ``L - R`` (um) of the kept samples of ``d``'s data arc, and their key."""
         plan = self.plan
         t, L = self._analysis_time()
         m = (t >= timing.start_s) & (t <= timing.end_s)
-        if plan is None or m.sum() < 2:
+        if plan is None or np.count_nonzero(m) < 2:
             z = np.empty(0)
-            return z, z
+            return z, z, None
         t, L = t[m], L[m]
         # a fixed step over the whole arc, so that a growing live curve keeps its points
         kept_hz = (self._rate_hz if math.isfinite(self._rate_hz) else 1.0) / (
@@ -1511,14 +1849,21 @@ class RerunViewer(Listener):
         )
         step = max(1, math.ceil(min((timing.end_s - timing.start_s) * kept_hz, 1e9) / self.options.polar_points))
         t, L = t[::step], L[::step]
-        return timing.angle_rad(plan, t), (L - plan.radius_mm) * 1000.0
+        return timing.angle_rad(plan, t), (L - plan.radius_mm) * 1000.0, (float(t[0]), step)
 
-    def _update_measured(self, d: int, timing: ArcTiming) -> bool:
-        u, dr = self._measured(d, timing)
+    def _update_measured(self, d: int, timing: ArcTiming, live: bool = False) -> bool:
+        u, dr, key = self._measured(d, timing)
         if not u.size:
             return False
         name = DIRECTIONS[d]
-        self._curves[f"polar/{name}/measured"] = (u, dr, name, 1.5, 10.0)
+        path = f"polar/{name}/measured"
+        old = self._curves.get(path)
+        new = _Curve(u, dr, name, 1.5, 10.0, live=live, key=key if live else None)
+        if old is not None:
+            new.pieces = old.pieces
+            # the pieces sent so far stay valid only for the same live curve, grown
+            new.stale = old.stale or (old.pieces > 0 and (not live or old.key != key))
+        self._curves[path] = new
         return True
 
     def _update_model(self, d: int, res: Mapping[str, Any]) -> None:
@@ -1529,15 +1874,15 @@ class RerunViewer(Listener):
         if dr is None:
             return
         name = DIRECTIONS[d]
-        self._curves[f"polar/{name}/model"] = (u, dr, f"{name}_model", 0.6, 11.0)
+        self._curves[f"polar/{name}/model"] = _Curve(u, dr, f"{name}_model", 0.6, 11.0)
 
-    def _fit_scale(self, grow_only: bool) -> bool:
+    def _fit_scale(self, grow_only: bool, wall: float | None = None) -> bool:
         """The automatic scale for the measured curves; True when it changed (everything re-emitted)."""
         if self.options.scale_um is not None:
             return False
         peaks = [
-            float(np.abs(dr - setup_deviation_um(self._setup_result, u)).max())
-            for path, (u, dr, *_rest) in self._curves.items()
+            float(np.abs(c.dr - setup_deviation_um(self._setup_result, c.u)).max())
+            for path, c in self._curves.items()
             if path.endswith("/measured")
         ]
         if not peaks:
@@ -1548,31 +1893,62 @@ class RerunViewer(Listener):
         log.debug("rerun viewer: polar scale %g -> %g um", self._scale_um, new)
         self._scale_um = new
         if self._sink_live:
-            self._set_times()
+            self._set_times(wall)
             self._log_scale()
-        self._emit()
+        self._emit(wall=wall)
         return True
 
-    def _emit(self, paths: Sequence[str] | None = None) -> None:
-        """Log cached curves at the current scale, set-up removed (all of them by default)."""
+    def _emit(self, paths: Sequence[str] | None = None, full: bool = True, wall: float | None = None) -> None:
+        """Log cached curves at the current scale, set-up removed (all of them by default).
+
+        ``full``: a live curve's pieces all again (a new scale or set-up); else only what it
+        gained since the last update.
+        """
         if not self._sink_live:
             return
-        rec = self._rec
-        assert rec is not None
-        self._set_times()
+        self._set_times(wall)
         for path in paths if paths is not None else list(self._curves):
-            u, dr, colour, width, order = self._curves[path]
-            pts = polar_points(u, dr - setup_deviation_um(self._setup_result, u), self._scale_um)
-            rec.log(
-                path,
-                rr.LineStrips2D([pts], colors=[COLOURS[colour]], radii=rr.Radius.ui_points(width), draw_order=order),
-            )
+            c = self._curves[path]
+            if c.live:
+                self._emit_live(path, c, full)
+                continue
+            if c.pieces or c.stale:  # it was drawn live: its pieces go
+                self._log(path, rr.Clear(recursive=True))
+                c.pieces, c.stale = 0, False
+            self._log_strip(path, self._display(c), c.colour, c.width, c.order)
             self.counters["polar_draws"] += 1
 
-    def _set_times(self) -> None:
+    def _emit_live(self, path: str, c: _Curve, full: bool) -> None:
+        P = self._piece
+        n = c.u.size
+        done = max(0, (n - 1) // P)  # complete pieces: piece k holds points kP .. (k+1)P (shared end point)
+        if c.stale or (full and c.pieces > done):
+            self._log(path, rr.Clear(recursive=True))
+            c.pieces, c.stale = 0, False
+        first = 0 if full else c.pieces
+        for k in range(first, done):
+            self._log_strip(f"{path}/{k}", self._display(c, k * P, (k + 1) * P + 1), c.colour, c.width, c.order)
+            self.counters["polar_draws"] += 1
+        c.pieces = done
+        self._log_strip(path, self._display(c, done * P, n), c.colour, c.width, c.order)
+        self.counters["polar_draws"] += 1
+
+    def _log_strip(self, path: str, points: Any, colour: str, width: float, order: float) -> None:
+        """One polar curve (or a piece of one)."""
+        self._log(
+            path,
+            rr.LineStrips2D([points], colors=[COLOURS[colour]], radii=rr.Radius.ui_points(width), draw_order=order),
+            STRIP_BYTES + POINT_BYTES * len(points),
+        )
+
+    def _display(self, c: _Curve, a: int = 0, b: int | None = None) -> FloatArray:
+        u, dr = c.u[a:b], c.dr[a:b]
+        return polar_points(u, dr - setup_deviation_um(self._setup_result, u), self._scale_um)
+
+    def _set_times(self, wall: float | None = None) -> None:
         rec = self._rec
         assert rec is not None
-        rec.set_time("time", timestamp=time.time())
+        rec.set_time("time", timestamp=wall if wall is not None else time.time())
         rec.set_time("test", sequence=self._test_index)
 
     # ------------------------------------------------------------------ stop
@@ -1580,6 +1956,7 @@ class RerunViewer(Listener):
     def stop(self) -> None:
         """Close the sink within ``stop_timeout_s``, whatever the viewer does; safe to call twice."""
         with self._stop_lock:
+            was_open = not self._closed
             self._closed = True
             rec, self._rec = self._rec, None
             prober, self._prober = self._prober, None
@@ -1594,6 +1971,10 @@ class RerunViewer(Listener):
         done = threading.Event()
 
         def close() -> None:
+            if was_open and self._sink_live:
+                with contextlib.suppress(Exception):  # the samples still queued (a frozen viewer may hold this)
+                    self._process_pending()
+                    self._send_pending_length(rec)
             with contextlib.suppress(Exception):  # a lost viewer fails the flush; nothing to do about it
                 rec.flush(timeout_sec=max(0.1, self.options.stop_timeout_s / 2))
             rec.disconnect()

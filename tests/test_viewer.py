@@ -14,6 +14,7 @@ module and wrapped as the daemon's pipeline wraps its messages.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import os
 import re
@@ -644,3 +645,226 @@ def test_stop_without_any_viewer_is_quick(script: Script) -> None:
     t0 = time.monotonic()
     v.stop()
     assert time.monotonic() - t0 < 0.7
+
+
+# --------------------------------------------------------------------------- bounds: what is kept, sent and served
+
+
+def replayed(script: Script, times: int) -> Iterator[tuple[str, Any]]:
+    """The script's two tests ``times`` over, back to back on one clock (times, numbers, test indices moved on)."""
+    from ballbar.tools.bench_viewer import shifted
+
+    n = script.t.size
+    period = n / PLAN.sample_hz
+    for k in range(times):
+        for kind, x in script.items:
+            if kind == "batch":
+                yield kind, SampleBatch.from_columns(x.t_host + k * period, x.t_device + k * period, x.length_mm,
+                                                     x.seq + k * n, x.status, x.events if k == 0 else (), x.source)
+            else:
+                msg = shifted(x, k, period, tests=2)
+                msg["test_id"] = f"m1-{msg.get('test_index')}"
+                yield kind, msg
+
+
+@dataclass
+class Row:
+    entity: str
+    time: int | None  # ns
+    test: int | None
+    row_id: bytes
+    values: dict[str, Any]
+
+    @property
+    def key(self) -> tuple[int, bytes]:
+        return (self.time if self.time is not None else -1, self.row_id)
+
+
+def read_rows(path: Path) -> list[Row]:
+    """Every row of a saved stream, with its timelines and row id (for latest-at with clears)."""
+    import pyarrow as pa
+    from rerun.chunk import RrdReader
+
+    out = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for ch in RrdReader(path).stream():
+            rb = ch.to_record_batch()
+            names = rb.schema.names
+            cols = {n: (rb.column(n).cast(pa.int64()) if n == "time" else rb.column(n)).to_pylist()
+                    for n in names if n in ("time", "test", "rerun.controls.RowId")
+                    or (":" in n and not n.startswith("rerun."))}
+            for i in range(rb.num_rows):
+                vals = {n: v[i] for n, v in cols.items() if n not in ("time", "test", "rerun.controls.RowId")}
+                out.append(Row(str(ch.entity_path), cols.get("time", [None] * rb.num_rows)[i],
+                               cols.get("test", [None] * rb.num_rows)[i], cols["rerun.controls.RowId"][i], vals))
+    return out
+
+
+def text_of(row: Row) -> str:
+    v = row.values.get("TextDocument:text")
+    return "".join(v) if isinstance(v, list) else str(v or "")
+
+
+def visible_strips(rows: Sequence[Row], prefix: str, t_ns: int) -> dict[str, np.ndarray]:
+    """The line strips under ``prefix`` a viewer shows at time ``t_ns`` (latest-at, clears applied)."""
+    clears = [r for r in rows if r.values.get("Clear:is_recursive") is not None and r.time is not None
+              and r.time <= t_ns]
+    latest: dict[str, Row] = {}
+    for r in rows:
+        if r.entity.startswith(prefix) and r.values.get("LineStrips2D:strips") is not None and (
+                r.time is None or r.time <= t_ns) and (r.entity not in latest or r.key > latest[r.entity].key):
+            latest[r.entity] = r
+    out = {}
+    for ent, r in latest.items():
+        cleared = any(c.key > r.key and (c.entity == ent or (c.values["Clear:is_recursive"]
+                                                                and ent.startswith(c.entity + "/")))
+                      for c in clears)
+        if not cleared:
+            out[ent] = np.asarray(r.values["LineStrips2D:strips"][0], dtype=float)
+    return out
+
+
+def test_live_circle_is_sent_in_pieces(script: Script, receivers: list[Receiver], tmp_path: Path) -> None:
+    """Each update sends the growing tip and the pieces completed since, never the whole circle again."""
+    port = free_port()
+    rx = Receiver(tmp_path, "pieces", port)
+    receivers.append(rx)
+    v = connected_viewer(f"rerun+http://127.0.0.1:{port}/proxy", polar_update_s=0.1)
+    feed(v, script.items[: len(script.items) // 2])  # the first test, the second under way
+    v.stop()
+    rx.finish()
+    rows = read_rows(rx.rrd)
+    piece = v._piece
+    result_1 = min(r.time for r in rows if r.entity == "/findings" and r.time is not None
+                   and "CCW circle" in text_of(r))
+    live = [r for r in rows if r.entity.startswith("/polar/ccw/measured") and r.time is not None
+            and r.time < result_1 and r.values.get("LineStrips2D:strips")]
+    assert len(live) > 20
+    assert max(len(r.values["LineStrips2D:strips"][0]) for r in live) <= piece + 1
+    children = [r.entity for r in live if r.entity != "/polar/ccw/measured"]
+    # each completed piece sent once, and again only when the scale grew (everything is redrawn then)
+    feed_in = min(r.time for r in rows if r.entity == "/polar/ccw" and r.time is not None)
+    rescales = sum(1 for r in rows if r.entity == "/polar/reference/labels" and r.time is not None
+                   and feed_in <= r.time < result_1)
+    assert len(set(children)) >= 3 and len(children) <= len(set(children)) * (1 + rescales)
+    # just before the result, the pieces join up into the circle so far: shared end points, in order
+    shown = visible_strips(rows, "/polar/ccw/measured", result_1 - 1)
+    parts = [shown[f"/polar/ccw/measured/{k}"] for k in range(len(shown) - 1)] + [shown["/polar/ccw/measured"]]
+    for a, b in itertools.pairwise(parts):
+        assert len(a) == piece + 1 and np.allclose(a[-1], b[0])
+    pts = np.concatenate([parts[0]] + [p[1:] for p in parts[1:]])
+    angles = np.unwrap(np.arctan2(-pts[:, 1], pts[:, 0]))
+    assert np.all(np.diff(angles) > 0)  # CCW, each point once, in order
+    # after it, the whole circle alone (the pieces cleared)
+    shown = visible_strips(rows, "/polar/ccw/measured", result_1)
+    assert list(shown) == ["/polar/ccw/measured"] and len(shown["/polar/ccw/measured"]) > 500
+
+
+@pytest.mark.parametrize("rate", [1000.0, 10000.0])
+def test_length_series_is_decimated_and_coalesced(rate: float, receivers: list[Receiver], tmp_path: Path) -> None:
+    """Whatever the sample rate: length_hz points per second of the host clock, sent every send_interval_s."""
+    port = free_port()
+    rx = Receiver(tmp_path, "length", port)
+    receivers.append(rx)
+    v = connected_viewer(f"rerun+http://127.0.0.1:{port}/proxy")
+    seconds, per = 12.0, int(rate * 0.02)
+    t0 = time.monotonic()
+    seq = np.arange(int(seconds * rate))
+    t = t0 + seq / rate
+    L = 100.0 + 0.001 * np.sin(seq / 137.0)
+    for i in range(0, seq.size, per):
+        v.on_batch(SampleBatch.from_columns(t[i : i + per], t[i : i + per], L[i : i + per], seq[i : i + per],
+                                            np.zeros(per)))
+    v.stop()
+    rx.finish()
+    rows = [r for r in read_rows(rx.rrd) if r.entity == "/length" and r.values.get("Scalars:scalars") is not None]
+    values = np.concatenate([np.atleast_1d(r.values["Scalars:scalars"]) for r in rows])
+    stamps = np.array([r.time for r in rows], dtype=float) / 1e9
+    # (a viewer that reconnects is sent the length history again: the same points, counted once)
+    stamps, first = np.unique(stamps, return_index=True)
+    values = values[first]
+    assert values.size == pytest.approx(seconds * v.options.length_hz, abs=2)
+    assert np.allclose(np.diff(stamps), 1.0 / v.options.length_hz, rtol=1e-3)
+    assert np.allclose(values, L[:: int(rate / v.options.length_hz)][: values.size])  # samples, not averages
+    sends = v.stats()["length_sends"]
+    assert seconds / v.options.send_interval_s - 2 <= sends <= seconds / v.options.send_interval_s + 2
+
+
+def test_own_buffers_stay_bounded(script: Script, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After many tests the viewer holds no more than it is configured to."""
+    import ballbar.daemon.viewer as viewer_mod
+
+    monkeypatch.setattr(viewer_mod, "TRENDS_KEPT", 8)
+    opts = ViewerOptions(mode="serve", bind="127.0.0.1", port=free_port(), server_memory_limit="8MiB",
+                         max_buffer_samples=10_000, history_tests=3, history_length_s=60.0, history_length_hz=2.0)
+    v = RerunViewer(opts, plan=PLAN)
+    wait_connected(v)
+    peak: dict[str, int] = {}
+    try:
+        for kind, x in replayed(script, 10):
+            feed(v, [(kind, x)])
+            st = v.stats()
+            for key in ("buffered_samples", "pending_samples", "history_tests", "history_length_points",
+                        "trend_points"):
+                peak[key] = max(peak.get(key, 0), st[key])
+            peak["pending_length"] = max(peak.get("pending_length", 0), sum(w.size for w, _L in v._len_pending))
+            peak["store"] = max(peak.get("store", 0), v._samples.data.shape[1])
+        st = v.stats()
+    finally:
+        v.stop()
+    assert st["errors"] == 0 and st["refreshes"] >= 2  # the history was sent again as the server filled
+    assert peak["buffered_samples"] <= 10_000 and peak["store"] <= 20_000
+    assert peak["pending_samples"] <= 100 * v.options.send_interval_s + 2  # 100 Hz: what 0.25 s brings
+    assert peak["pending_length"] <= 100 * v.options.send_interval_s + 2
+    assert st["history_tests"] == peak["history_tests"] == 3
+    assert st["trend_points"] == peak["trend_points"] == 8
+    assert peak["history_length_points"] <= 60 * 2 + 1
+
+
+def test_late_viewer_gets_the_last_tests_whole(script: Script, receivers: list[Receiver], tmp_path: Path) -> None:
+    """A server far too small for the run: a late viewer still gets the chosen history, whole."""
+    opts = ViewerOptions(mode="serve", bind="127.0.0.1", port=free_port(), server_memory_limit="2MiB",
+                         history_tests=4, history_length_s=3600.0)
+    v = RerunViewer(opts, plan=PLAN)
+    n_tests = 20
+    try:
+        wait_connected(v)
+        feed(v, list(replayed(script, n_tests // 2)))
+        while v.stats()["history_pending"]:  # a sending of the history under way goes on while idle
+            v.on_idle()
+        st = v.stats()
+        time.sleep(0.5)
+        rx = Receiver(tmp_path, "late", free_port(), connect=v.address)
+        receivers.append(rx)
+        rx.finish(timeout=20.0)
+    finally:
+        v.stop()
+    assert st["errors"] == 0 and st["sent_mib"] > 4.0 and st["refreshes"] >= 3  # the server dropped a lot
+    rows = read_rows(rx.rrd)
+    results = {int(text_of(r).split()[2]): r for r in rows if r.entity == "/findings"  # at each test's result
+               and text_of(r).startswith(f"## Test {r.test} ") and "circle" not in text_of(r).split("\n")[0]}
+    whole = []
+    for idx, r in sorted(results.items()):
+        assert r.time is not None
+        shown = visible_strips(rows, "/polar/", r.time)
+        curves = {e: len(p) for e, p in shown.items() if not e.startswith("/polar/reference")}
+        if curves == {"/polar/ccw/measured": curves.get("/polar/ccw/measured"), "/polar/cw/measured":
+                      curves.get("/polar/cw/measured"), "/polar/ccw/model": 2000, "/polar/cw/model": 2000} and min(
+                curves.values()) > 500 and "/polar/reference/band" in shown:
+            whole.append(idx)
+    assert set(range(n_tests - 3, n_tests + 1)) <= set(whole), whole
+    # the trends of every test
+    trend_tests = {r.test for r in rows if r.entity == "/trends/backlash_um/x" and r.test is not None}
+    assert trend_tests == set(range(1, n_tests + 1))
+    # the length: the whole run at history_length_hz, only the recent part at full rate
+    # (distinct times: each sending of the history repeats the same points, which may all still be there)
+    stamps = np.unique(np.concatenate([np.full(np.atleast_1d(r.values["Scalars:scalars"]).size, r.time)
+                                       for r in rows if r.entity == "/length" and r.values.get("Scalars:scalars")
+                                       is not None])).astype(float) / 1e9
+    run = (script.t.size * n_tests / 2) / PLAN.sample_hz
+    assert stamps[-1] - stamps[0] > 0.95 * run
+    early = stamps[stamps < stamps[0] + run / 4]
+    late = stamps[stamps > stamps[-1] - 10.0]
+    assert early.size <= (run / 4) * v.options.history_length_hz * 1.1 + 2
+    assert late.size >= 10.0 * v.options.length_hz * 0.9
