@@ -88,7 +88,8 @@ merged about every 0.25 s, and the time they waited counts), by a small flush
 thread that sleeps until that deadline, whatever the caller does; the kernel
 then has them, so a killed daemon (``kill -9``) loses at most that last half
 second (a power cut can lose more: files are fsync'ed only when closed).
-:func:`read_log` reads such a file up to its last whole chunk.  ``stop()`` (SIGTERM) writes the footer and indexes.
+:func:`read_log` reads such a file up to its last whole chunk.  ``stop()``
+(SIGTERM) writes the footer and indexes.
 
 Write errors
 ------------

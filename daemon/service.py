@@ -11,8 +11,9 @@
 The main loop only reads the source and puts what it read into each queue that
 wants batches; it never waits on a consumer.  The analysis takes every ~20 ms
 batch (its latency budget); the MCAP logger and the viewer take them merged,
-about every 0.25 s; the bus only when it publishes samples; the log none.  Each queue has a bound and a drop policy
-(:mod:`.listeners`); what a queue drops is counted and shown in the status.
+about every 0.25 s; the bus only when it publishes samples; the log none.  Each
+queue has a bound and a drop policy (:mod:`.listeners`); what a queue drops is
+counted and shown in the status.
 The analysis queue and the MCAP queue drop new items when full (a contiguous
 prefix, the gap counted); the bus and the viewer drop the oldest (the newest
 matters).  The main loop also sends ``READY=1`` once the source is open,
