@@ -6,9 +6,10 @@
 
 A :class:`~ballbar.daemon.viewer.RerunViewer` in ``serve`` mode (its own
 ``rerun --serve-grpc`` child, as in the daemon) is fed as the daemon feeds it,
-through its listener interface: :class:`~ballbar.daemon.samples.SampleBatch`
-objects of 20 ms of wall time and the analysis' messages, wrapped as the
-service wraps them.  The stream is one test of the physical simulator
+through the daemon's :class:`~ballbar.daemon.listeners.ListenerQueue` (500
+items, drop oldest; it merges batches for a listener that asks for it):
+:class:`~ballbar.daemon.samples.SampleBatch` objects of 20 ms of wall time and
+the analysis' messages, wrapped as the service wraps them.  The stream is one test of the physical simulator
 (:mod:`ballbar.tools.simulator`, the default plan: 154.5 s a test) analysed by
 :class:`~ballbar.analysis.engine.TestAnalyzer`, replayed back to back on a
 continuous clock (times, sample numbers and test numbers shifted), so an hour
@@ -35,8 +36,8 @@ them).  Reported, for each viewer and rate:
   it back (tests whose polar plots are whole, the length series' span and
   rate, trend points).
 
-The baseline (``--baseline main``, the default) is ``daemon/viewer.py`` of git
-revision ``main``, loaded in place of this one.
+The baseline (``--baseline REV``, default ``455c11f``: before issue 11) is
+``daemon/viewer.py`` of that git revision, loaded in place of this one.
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ import numpy as np
 
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.plan import MachineConfig, TestPlan
-from ballbar.daemon.listeners import Listener, Message, to_json
+from ballbar.daemon.listeners import Listener, ListenerQueue, Message, to_json
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.tools.simulator import MachineModel, iter_tests
 
@@ -158,19 +159,20 @@ def shifted(msg: Message, k: int, period_s: float, tests: int = 1) -> Message:
 
 
 def replay(
-    listener: Listener,
+    put_batch: Callable[[SampleBatch], Any],
+    put_message: Callable[[Message], Any],
     stream: Stream,
     device_s: float,
     speedup: float,
     on_second: Callable[[float], None] | None = None,
-    timed: list[float] | None = None,
 ) -> float:
     """Feed ``device_s`` seconds of ``stream``, repeated, at ``speedup``; the seconds the feed fell behind.
 
-    Batches hold 20 ms of wall time; host times are ``monotonic at the start +
-    device time / speedup``, as a source at that speedup stamps them.
-    ``on_second(device time)``: called about once a wall second.  ``timed``:
-    gets the thread CPU seconds of every listener call appended.
+    ``put_batch``/``put_message``: a :class:`ListenerQueue`'s (as the daemon's
+    source does) or a listener's own ``on_batch``/``on_message``.  Batches
+    hold 20 ms of wall time; host times are ``monotonic at the start + device
+    time / speedup``, as a source at that speedup stamps them.
+    ``on_second(device time)``: called about once a wall second.
     """
     n, per = stream.t.size, max(1, round(stream.rate_hz * BATCH_WALL_S * speedup))
     total = int(device_s * stream.rate_hz)
@@ -196,7 +198,7 @@ def replay(
         first = False
         batch = SampleBatch.from_columns(t_host, t_dev, stream.L[i:j], np.arange(pos, pos + j - i),
                                          np.zeros(j - i, np.uint8), events, "sim:")
-        _call(listener.on_batch, batch, timed)
+        put_batch(batch)
         if i == 0:
             mi = 0
         while mi < len(msg_at) and msg_at[mi][0] <= j:
@@ -206,7 +208,7 @@ def replay(
             msg.update(machine_id="bench", test_id=f"bench-{msg.get('test_index')}", t_host=now,
                        last_sample_t=float(t_dev[-1]), last_sample_t_host=due,
                        latency_ms=1000.0 * (now - due), time_axis="device")
-            _call(listener.on_message, msg, timed)
+            put_message(msg)
         pos += j - i
         if on_second is not None and time.monotonic() >= next_tick:
             next_tick += 1.0
@@ -216,13 +218,39 @@ def replay(
     return behind
 
 
-def _call(fn: Callable[[Any], None], arg: Any, timed: list[float] | None) -> None:
-    if timed is None:
-        fn(arg)
-        return
-    t0 = time.thread_time()
-    fn(arg)
-    timed.append(time.thread_time() - t0)
+class Timed(Listener):
+    """Forwards to ``inner`` (its batch period and idle time too), adding up the thread CPU time of its calls."""
+
+    def __init__(self, inner: Listener) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.batch_period_s = getattr(inner, "batch_period_s", 0.0)
+        self.idle_s = getattr(inner, "idle_s", 1.0)
+        self.cpu_s = 0.0
+
+    def on_batch(self, batch: SampleBatch) -> None:
+        t0 = time.thread_time()
+        try:
+            self.inner.on_batch(batch)
+        finally:
+            self.cpu_s += time.thread_time() - t0
+
+    def on_message(self, msg: Message) -> None:
+        t0 = time.thread_time()
+        try:
+            self.inner.on_message(msg)
+        finally:
+            self.cpu_s += time.thread_time() - t0
+
+    def on_idle(self) -> None:
+        t0 = time.thread_time()
+        try:
+            self.inner.on_idle()
+        finally:
+            self.cpu_s += time.thread_time() - t0
+
+    def stop(self) -> None:
+        self.inner.stop()
 
 
 # --------------------------------------------------------------------------- one measurement
@@ -336,9 +364,11 @@ def measure(
             "server_rss_mib": _rss_mib(spid) if spid else None,
         })
 
-    timed: list[float] = []
+    timed = Timed(listener)
+    queue = ListenerQueue(timed, capacity=500, policy="drop_oldest")  # the daemon's queue for the viewer
     sample(0.0)
-    behind = replay(listener, stream, device_s, speedup, sample, timed)
+    behind = replay(queue.put_batch, queue.put_message, stream, device_s, speedup, sample)
+    queue.wait_idle(30.0)
     wall = time.monotonic() - wall0
     cpu = _self_cpu_s() - cpu0
     spid = server_pid()
@@ -346,7 +376,8 @@ def measure(
     out: dict[str, Any] = {
         "viewer": viewer, "rate_hz": rate_hz, "device_s": device_s, "speedup": speedup, "wall_s": wall,
         "behind_s": behind, "cpu_pct_of_device_s": 100.0 * cpu / device_s,
-        "calls_cpu_pct_of_device_s": 100.0 * sum(timed) / device_s,
+        "calls_cpu_pct_of_device_s": 100.0 * timed.cpu_s / device_s,
+        "queue": queue.stats.to_dict(),
         "server_cpu_pct_of_device_s": 100.0 * scpu / device_s if scpu is not None else None,
         "rows": rows,
     }
@@ -367,13 +398,12 @@ def measure(
         out["stats"] = {k: v for k, v in listener.stats().items() if k != "server"}
         out["server"] = listener.stats().get("server")
         if late_viewer:
-            deadline = time.monotonic() + 10.0  # idle, as the daemon's queue calls it: a sliced history finishes
+            deadline = time.monotonic() + 15.0  # the queue calls on_idle: a history being sent in slices finishes
             while listener.stats().get("history_pending") and time.monotonic() < deadline:
-                listener.on_idle()
-                time.sleep(0.05)
+                time.sleep(0.1)
             out["late"] = late_view(listener.address, tmp or Path(tempfile.mkdtemp()), port + 1)
     t0 = time.monotonic()
-    listener.stop()
+    queue.close()  # and the listener's stop()
     out["stop_s"] = time.monotonic() - t0
     return out
 
@@ -559,7 +589,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="device seconds per CPU run (default 0: one whole test, 154.5 s)")
     p.add_argument("--cpu-speedup", type=float, default=1.0, help="CPU runs: speedup (default 1, real time)")
     p.add_argument("--repeats", type=int, default=1, help="CPU runs per viewer and rate (default 1)")
-    p.add_argument("--baseline", default="main", help="git revision whose viewer is compared, or 'none'")
+    p.add_argument("--baseline", default="455c11f",
+                   help="git revision whose viewer is compared (default 455c11f, before issue 11), or 'none'")
     p.add_argument("--memory-limit", default="128MiB", help="server_memory_limit of the CPU runs (default 128MiB)")
     p.add_argument("--rss-memory-limit", default="16MiB",
                    help="server_memory_limit of the memory runs, small enough to fill (default 16MiB)")
