@@ -138,6 +138,7 @@ from ballbar.analysis.patterns import LIBRARY, Geometry, Pattern, design
 from ballbar.analysis.physics import LostMotion, make_offset
 from ballbar.analysis.plan import MachineConfig, TestPlan
 from ballbar.analysis.program import arc_start_deg, data_start_deg, schedule
+from ballbar.protocol import INVALID
 
 from .listeners import Listener, Message
 from .samples import EventKind, SampleBatch, SourceEvent
@@ -147,6 +148,7 @@ log = logging.getLogger(__name__)
 Mode = Literal["serve", "connect", "off"]
 Clock = Literal["auto", "device", "host"]
 FloatArray = NDArray[np.float64]
+_INVALID = np.uint8(int(INVALID))  # status bits of a sample that is not a measurement
 
 APPLICATION_ID = "ballbar"
 # Not the viewer's own 9876: a user's `rerun some.rrd` on this PC must not stream into the daemon's view.
@@ -601,6 +603,17 @@ def nice_scale_um(max_abs_um: float) -> float:
     return 10.0 * e  # pragma: no cover - the loop always returns
 
 
+def _multiples(seq: NDArray[np.int64], every: int) -> NDArray[np.intp]:
+    """Positions of the samples whose number is a multiple of ``every`` (arithmetic when none is missing)."""
+    n = seq.size
+    if not n:
+        return np.empty(0, np.intp)
+    s0 = int(seq[0])
+    if int(seq[-1]) - s0 == n - 1:
+        return np.arange((-s0) % every, n, every)
+    return np.flatnonzero(seq % every == 0)
+
+
 def _rate(t: FloatArray, previous: float) -> float:
     """Sample rate (Hz) from a batch's times; ``previous`` when they do not tell."""
     d = np.diff(t)
@@ -997,13 +1010,16 @@ class _Ring:
 
 
 class _Samples:
-    """The current test's samples kept for the polar plot, as growable columns (the caller bounds them).
+    """The current test's samples kept for the polar plot: columns of ``capacity`` rows, allocated once.
 
-    Appending is amortised O(new rows); :meth:`keep` gives memory back after a long test.
+    The caller keeps them within ``capacity`` (one block for the daemon's life, its pages used as
+    needed: no reallocations, so no heap fragments); a larger append grows them, and :meth:`keep`
+    returns to ``capacity`` afterwards.
     """
 
-    def __init__(self) -> None:
-        self.data = np.empty((3, 1024))  # t_host, t_device, length
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self.data = np.empty((3, capacity))  # t_host, t_device, length
         self.n = 0
 
     def append(self, th: FloatArray, td: FloatArray, L: FloatArray) -> None:
@@ -1021,8 +1037,8 @@ class _Samples:
         """Keep only the rows selected (a boolean mask or a slice), in place."""
         kept = self.data[:, : self.n][:, mask_or_slice]
         self.n = kept.shape[1]
-        if self.data.shape[1] > 4 * max(self.n, 1024):  # give memory back after a long test
-            self.data = np.empty((3, max(2 * self.n, 1024)))
+        if self.data.shape[1] > self.capacity and self.n <= self.capacity:
+            self.data = np.empty((3, self.capacity))
         self.data[:, : self.n] = kept
 
     @property
@@ -1131,7 +1147,7 @@ class RerunViewer(Listener):
         self._next_flush = -math.inf  # on the samples' host clock, as _next_polar
         self._len_pending: list[tuple[FloatArray, FloatArray]] = []  # (wall, L) for the next length send
         # samples kept for the polar plot
-        self._samples = _Samples()
+        self._samples = _Samples(self.options.max_buffer_samples + MAX_PENDING_SAMPLES)
         self._keep_every = 1  # extra thinning after the buffer hit max_buffer_samples
         self._rate_hz = float("nan")  # on the analysis clock
         self._host_hz = float("nan")
@@ -1530,36 +1546,47 @@ class RerunViewer(Listener):
             self.counters["length_sends"] += 1
 
     def _process_pending(self) -> None:
+        """The queued samples: kept for the polar plot, picked for the length series and its history.
+
+        Only the picked samples are looked at (positions from the sample numbers, checked for
+        validity afterwards): no temporary as large as the batch, whatever the rate.
+        """
         if not self._pending:
             return
         batches, self._pending, self._n_pending = self._pending, [], 0
         if len(batches) == 1:
             b = batches[0]
-            th, td, L, seq, ok = b.t_host, b.t_device, b.length_mm, b.seq, b.valid
+            th, td, L, seq, status = b.t_host, b.t_device, b.length_mm, b.seq, b.status
         else:
             th = np.concatenate([b.t_host for b in batches])
             td = np.concatenate([b.t_device for b in batches])
             L = np.concatenate([b.length_mm for b in batches])
             seq = np.concatenate([b.seq for b in batches])
-            ok = np.concatenate([b.valid for b in batches])
-        ok = ok & np.isfinite(th) & np.isfinite(L)
+            status = np.concatenate([b.status for b in batches])
+
+        def picked(every: int) -> NDArray[np.intp]:
+            i = _multiples(seq, every)
+            return i[((status[i] & _INVALID) == 0) & np.isfinite(th[i]) & np.isfinite(L[i])]
+
         if th.size >= 2:
             # sample rates on the host clock (the length series) and on the analysis clock (the
             # polar plot); they differ for a simulator or a replay running faster than real time
-            self._host_hz = _rate(th, self._host_hz)
-            self._rate_hz = _rate(th if self._use_host else td, self._rate_hz)
-        self._keep(th, td, L, seq, ok)
+            head = slice(0, 4096)
+            self._host_hz = _rate(th[head], self._host_hz)
+            self._rate_hz = _rate((th if self._use_host else td)[head], self._rate_hz)
+        keep = picked(self._stride(self.options.buffer_hz) * self._keep_every)
+        self._keep(th[keep], td[keep], L[keep])
         stride = self._stride(self.options.length_hz, self._host_hz)
-        m = ok & (seq % stride == 0)
-        if m.any():
-            wall = th[m] + (time.time() - time.monotonic())
+        i = picked(stride)
+        if i.size:
+            wall = th[i] + (time.time() - time.monotonic())
             if self._sink_live:
-                self._len_pending.append((wall, L[m]))
+                self._len_pending.append((wall, L[i]))
             # the history: a subset of the live points (same times, same values)
             every = stride * max(1, math.ceil(self.options.length_hz / self.options.history_length_hz - 1e-9))
-            h = seq[m] % every == 0
+            h = seq[i] % every == 0
             if h.any():
-                self._length_history.extend(np.column_stack([wall[h], L[m][h]]))
+                self._length_history.extend(np.column_stack([wall[h], L[i][h]]))
 
     def _stride(self, limit_hz: float, rate_hz: float | None = None) -> int:
         rate = self._rate_hz if rate_hz is None else rate_hz
@@ -1567,14 +1594,11 @@ class RerunViewer(Listener):
             return 1
         return max(1, int(rate / limit_hz * (1.0 + 1e-6)))  # 9999.9998 Hz from float times is 10 kHz
 
-    def _keep(self, th: FloatArray, td: FloatArray, L: FloatArray, seq: NDArray[np.int64],
-              ok: NDArray[np.bool_]) -> None:
-        """Keep the samples (decimated by sample number) that the polar plot may need."""
-        stride = self._stride(self.options.buffer_hz) * self._keep_every
-        m = ok & (seq % stride == 0)
+    def _keep(self, th: FloatArray, td: FloatArray, L: FloatArray) -> None:
+        """Keep samples (picked by sample number) that the polar plot may need, within max_buffer_samples."""
         buf = self._samples
-        if m.any():
-            buf.append(th[m], td[m], L[m])
+        if th.size:
+            buf.append(th, td, L)
         if not self._in_test:
             # only the last PRE_TEST_S seconds; dropped in halves, so that this stays cheap
             old = int(np.searchsorted(buf.t_host, self._latest_host - PRE_TEST_S))
@@ -1588,7 +1612,7 @@ class RerunViewer(Listener):
             log.info(
                 "rerun viewer: test longer than %d samples kept; now keeping every %d-th",
                 self.options.max_buffer_samples,
-                stride * 2,
+                self._stride(self.options.buffer_hz) * self._keep_every,
             )
 
     def _analysis_time(self) -> tuple[FloatArray, FloatArray]:

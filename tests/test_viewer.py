@@ -810,11 +810,26 @@ def test_own_buffers_stay_bounded(script: Script, monkeypatch: pytest.MonkeyPatc
                 peak[key] = max(peak.get(key, 0), st[key])
             peak["pending_length"] = max(peak.get("pending_length", 0), sum(w.size for w, _L in v._len_pending))
             peak["store"] = max(peak.get("store", 0), v._samples.data.shape[1])
+        # a test that never ends: 40 000 samples after its feed-in, four times what may be kept
+        t0 = float(x.t_device[-1]) + 10.0 if kind == "batch" else float(script.t[-1]) * 10 + 10.0
+        seq0 = 10**7
+        feed(v, [("message", {"kind": "event", "event": "feed_in", "test_index": 999, "t_s": t0,
+                              "time_axis": "device"})])
+        host0 = v._latest_host + 2.0
+        for i in range(0, 40_000, 200):
+            t = t0 + np.arange(i, i + 200) / PLAN.sample_hz
+            feed(v, [("batch", SampleBatch.from_columns(host0 + t - t0, t, np.full(200, 50.0),
+                                                          np.arange(seq0 + i, seq0 + i + 200), np.zeros(200)))])
+            peak["buffered_samples"] = max(peak["buffered_samples"], v.stats()["buffered_samples"])
+            peak["store"] = max(peak["store"], v._samples.data.shape[1])
         st = v.stats()
+        thinned = v._keep_every
     finally:
         v.stop()
+    assert thinned >= 2
     assert st["errors"] == 0 and st["refreshes"] >= 2  # the history was sent again as the server filled
-    assert peak["buffered_samples"] <= 10_000 and peak["store"] <= 20_000
+    assert 5_000 <= peak["buffered_samples"] <= 10_000  # filled, then thinned
+    assert peak["store"] == 10_000 + viewer_mod.MAX_PENDING_SAMPLES  # allocated once, never grown
     assert peak["pending_samples"] <= 100 * v.options.send_interval_s + 2  # 100 Hz: what 0.25 s brings
     assert peak["pending_length"] <= 100 * v.options.send_interval_s + 2
     assert st["history_tests"] == peak["history_tests"] == 3

@@ -325,9 +325,15 @@ def measure(
     cache: Path | None,
     late_viewer: bool = False,
     tmp: Path | None = None,
+    idle: bool = False,
 ) -> dict[str, Any]:
-    """One run in this process: ``viewer`` is ``new``, ``null`` or a path to a baseline viewer.py."""
+    """One run in this process: ``viewer`` is ``new``, ``null`` or a path to a baseline viewer.py.
+
+    ``idle``: the machine stands still (the bar at its nominal length, no test, no message).
+    """
     stream = cached_stream(rate_hz, cache)
+    if idle:
+        stream = Stream(stream.rate_hz, stream.t, np.full(stream.t.size, stream.plan.radius_mm), [], stream.plan)
     listener: Listener
     server_pid: Callable[[], int | None] = lambda: None  # noqa: E731
     if viewer == "null":
@@ -513,16 +519,17 @@ def summarize_rrd(path: Path) -> dict[str, Any]:
 def _child(args: argparse.Namespace) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="bench-viewer-"))
     out = measure(args.viewer, args.rate, args.device_s, args.speedup, args.port, args.memory_limit,
-                  Path(args.cache) if args.cache else None, args.late_viewer, tmp)
+                  Path(args.cache) if args.cache else None, args.late_viewer, tmp, args.idle)
     print(json.dumps(out))
     return 0
 
 
 def run_child(viewer: str, rate: float, device_s: float, speedup: float, port: int, memory_limit: str,
-              cache: Path, late_viewer: bool = False) -> dict[str, Any]:
+              cache: Path, late_viewer: bool = False, idle: bool = False) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "ballbar.tools.bench_viewer", "--child", "--viewer", viewer, "--rate", str(rate),
            "--device-s", str(device_s), "--speedup", str(speedup), "--port", str(port),
-           "--memory-limit", memory_limit, "--cache", str(cache)] + (["--late-viewer"] if late_viewer else [])
+           "--memory-limit", memory_limit, "--cache", str(cache)] + (["--late-viewer"] if late_viewer else []) + (
+           ["--idle"] if idle else [])
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"bench child failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
@@ -556,6 +563,12 @@ def report(results: Mapping[str, Any]) -> Iterator[str]:
         yield (f"  {row['rate_hz']:>7g}  {row['viewer']:<10} {_fmt(row['cpu_pct']):>8}  "
                f"{_fmt(row['calls_pct']):>8}  {_fmt(row['server_pct']):>7}  {_fmt(row['behind_s']):>8}  "
                f"{_fmt(rate_h, 1):>12}  {window:>16}")
+    for row in results.get("idle", []):
+        rate_h = row["late_bytes"] / 2**20 / (row["device_s"] / 3600.0)
+        limit = _limit_mib(a["memory_limit"])
+        yield (f"  idle {row['rate_hz']:g} Hz, {row['viewer']}: CPU {_fmt(row['cpu_pct'])} %, stream "
+               f"{rate_h:.1f} MiB/h, window at {a['memory_limit']}: "
+               + (f"{limit / rate_h:.1f} h" if limit else "–"))
     yield (f"Memory, x{a['speedup']:g}, server_memory_limit {a['rss_memory_limit']}: resident MiB, slopes over the "
            "second half (MiB per device hour):")
     yield (f"  {'rate':>7}  {'viewer':<10} {'device h':>8}  {'daemon RSS':>15}  {'slope':>6}  {'CPU %':>6}  "
@@ -605,6 +618,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--viewer", default="new", help=argparse.SUPPRESS)
     p.add_argument("--rate", type=float, default=1000.0, help=argparse.SUPPRESS)
     p.add_argument("--device-s", type=float, default=60.0, help=argparse.SUPPRESS)
+    p.add_argument("--idle", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--idle-seconds", type=float, default=300.0,
+                   help="with --late-viewer: device seconds of a run with no test, at --cpu-speedup (the stream's "
+                        "rate when idle; 0: none)")
     return p
 
 
@@ -650,6 +667,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             port += 2
             r["viewer"] = names[v]
             results["rss"].append(r)
+    if args.late_viewer and args.idle_seconds > 0:
+        rate = rates[0]
+        for v in ["new"]:  # (the baseline streams the same with or without tests: 50 length messages a second)
+            print(f"  idle run: {names[v]} at {rate:g} Hz, {args.idle_seconds:g} device s", file=sys.stderr, flush=True)
+            r = run_child(v, rate, args.idle_seconds, args.cpu_speedup, port, args.memory_limit, cache, True, True)
+            port += 2
+            results.setdefault("idle", []).append({
+                "rate_hz": rate, "viewer": names[v], "device_s": args.idle_seconds,
+                "cpu_pct": r["cpu_pct_of_device_s"], "late_bytes": r["late"]["bytes"],
+            })
     for line in report(results):
         print(line)
     if args.json:
