@@ -78,6 +78,7 @@ LAG_CI_NATS = 2.0  # lags whose full-model likelihood is this close to the best 
 HOLD_REACH_S = (0.01, 0.003)  # the lag's reach (s) either side while holding one arc's start, twice
 COMPASS_S = (0.001, 0.00002)  # the joint refinement of lag and wait: first step, last step at most (s)
 COMPASS_EVALS, COMPASS_GAIN_NATS = 120, 0.5  # at most this many objectives; a step must gain this much
+COMPASS_AHEAD = 4  # compass steps evaluated together where the timings' samples are many
 COMPASS_DIRS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))  # (lag, wait), in this order
 SPECULATE_ROWS = 3000  # a search sample set this small: timings the search may want next are evaluated together
 SMOOTH_MAX_SAMPLE_DEG = 0.025  # samples further apart (deg) are searched as points: no smoothing
@@ -1264,9 +1265,13 @@ class _LagSearch:
                     moved = False
                     steps = [(hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c) for dc, dw in COMPASS_DIRS]
                     steps = [(c, w) for c, w in steps if lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S]
-                    if speculate():
-                        prefetch(steps)
-                    for c, w in steps:
+                    # Evaluated together ahead of need, all at once where one timing's samples are few, else
+                    # COMPASS_AHEAD at a time: a stack of a few timings costs little more than one, and most
+                    # rounds try several directions (every one, at each halving).
+                    ahead = len(steps) if speculate() else COMPASS_AHEAD
+                    for i, (c, w) in enumerate(steps):
+                        if i % ahead == 0:
+                            prefetch(steps[i : i + ahead])
                         f = value(c, w)
                         evals += 1
                         if f < here - gain:
