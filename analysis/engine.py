@@ -1066,8 +1066,11 @@ class _LagSearch:
         slope = {f"{nm}_um": float((xs[2][j] - xs[0][j]) / (2 * d)) for j, nm in enumerate(names) if self.spike_cols[j]}
         return sigma, slope
 
-    def run(self, offset: Offset | None, lost: LostMotion, start: _Hyper | None = None) -> _Hyper:
-        """``start``: refine from there on the fine set (no search over the whole range).
+    def run(
+        self, offset: Offset | None, lost: LostMotion, start: _Hyper | None = None, misfit_only: bool = False
+    ) -> _Hyper:
+        """``start``: refine from there on the fine set (no search over the whole range).  ``misfit_only``:
+        only the best timing is wanted, not its uncertainty (no stairs; a loop gain's profile value).
 
         Spikes and timing trade off: where a reversal carries a step (backlash,
         above all a compensation step filtered by the loop), a lag that puts
@@ -1239,7 +1242,7 @@ class _LagSearch:
                 hyper.lag_stderr_s = 1.0 / math.sqrt(2 * a2) if a2 > 0 else float("inf")
             # the feed-in's extra wait over its whole range (the lag's grids above held it at 0)
             dirs = self.plan.direction_list
-            if start is None:
+            if start is None or misfit_only:  # (from another loop gain's timing: the wait moves with the gain)
                 pick(-WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0], wait=True)
             # each arc's start in turn, the other's held (one direction: its start, then the feed)
             for reach in HOLD_REACH_S:
@@ -1298,11 +1301,12 @@ class _LagSearch:
                 compass(bare_value)
             if spikes:
                 width()
-            spread = stair(wait=True) if len(dirs) == 1 else 0.0
-            for d in dirs:
-                spread = max(spread, stair(hold=-d if len(dirs) > 1 else d))
-            hyper.lag_stderr_s = max(hyper.lag_stderr_s, spread)
-            if spikes:
+            if not misfit_only:
+                spread = stair(wait=True) if len(dirs) == 1 else 0.0
+                for d in dirs:
+                    spread = max(spread, stair(hold=-d if len(dirs) > 1 else d))
+                hyper.lag_stderr_s = max(hyper.lag_stderr_s, spread)
+            if spikes and not misfit_only:
                 # The spikes' test against the spike-free model at its own best timing: at the timing the full
                 # model chose, free spikes may be taking up a step a sample off that another timing fits.  Found
                 # when read (hyper.spike_lr), on this search's objective as it is now.
@@ -1562,17 +1566,27 @@ def _profile_lag(
     """
     runs: dict[float, _Fitted] = {}
 
+    def fit(kv: float, near: _Hyper | None) -> _Fitted | None:
+        try:
+            return _fit_at(plan, machine, options, t, L, fi, fo, curves, Lag(1.0 / kv, None, assumed.source, "fitted"),
+                           near)
+        except DataError:
+            return None
+
+    def misfit(fitted: _Fitted | None) -> float:
+        # per sample, times the default's count: the runs may keep a few samples more or less
+        return math.inf if fitted is None else 0.5 * n / inflation * math.log(fitted.rms_um**2 + PROFILE_FLOOR_UM**2)
+
     def run(kv: float) -> float:
         if kv not in runs:
-            lag = Lag(1.0 / kv, None, assumed.source, "fitted")
-            try:
-                runs[kv] = _fit_at(plan, machine, options, t, L, fi, fo, curves, lag)
-            except DataError:
-                if kv == DEFAULT_KV_PER_S:
-                    raise
+            # refined, in one pass, from the default's timing moved by the change in the loop's lag: what the
+            # data fix is when the table reaches each point, the arc-start lag plus the loop's
+            near = replace(default.hyper, overhead_s=default.hyper.overhead_s + 1.0 / DEFAULT_KV_PER_S - 1.0 / kv)
+            got = fit(kv, near)
+            if got is None:
                 return math.inf
-        # per sample, times the default's count: the runs may keep a few samples more or less
-        return 0.5 * n / inflation * math.log(runs[kv].rms_um ** 2 + PROFILE_FLOOR_UM**2)
+            runs[kv] = got
+        return misfit(runs[kv])
 
     default = _fit_at(plan, machine, options, t, L, fi, fo, curves, assumed)
     runs[DEFAULT_KV_PER_S] = default
@@ -1597,6 +1611,13 @@ def _profile_lag(
     span = f"{min(grid):g}..{max(grid):g}/s"
     # the data fix the gain only where both ends of the range are clearly worse than the best
     bounded = min(run(min(grid)), run(max(grid))) - run(best) > PROFILE_NATS
+    if gain > PROFILE_NATS and bounded:
+        # The profile's values come from searches refined from the default's timing; the gain taken is
+        # searched whole, as the default was, and must still beat it.
+        whole = fit(best, None)
+        if whole is not None and misfit(whole) < misfit(runs[best]):
+            runs[best] = whole
+        gain = run(DEFAULT_KV_PER_S) - run(best)
     if gain > PROFILE_NATS and bounded:
         res = runs[best].report()
         res["timing"]["loop_lag_source"] = (
@@ -1637,6 +1658,7 @@ class _Fitted(NamedTuple):
     n: int  # samples in the data arcs
     kappa: float  # the residual's variance inflation (lag-1 correlation)
     report: Callable[[], dict[str, Any]]  # the result
+    hyper: _Hyper  # the timing and spike width found
 
 
 def _fit_at(
@@ -1649,9 +1671,14 @@ def _fit_at(
     fo: StepEvent,
     curves: bool,
     lag: Lag,
+    near: _Hyper | None = None,
 ) -> _Fitted:
     """The search and the fit of :func:`_analyze_at`; the result is built only when asked for (a loop gain
-    the profile does not take needs only its misfit)."""
+    the profile does not take needs only its misfit).
+
+    ``near``: a timing found at another loop gain: the search refines from it (no search over the whole
+    range), in one pass: a loop gain's profile value, not a result.
+    """
     span = fo.t_s - fi.t_s
     patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
     tau, cos2, tau_source, _ = lag
@@ -1692,8 +1719,11 @@ def _fit_at(
         # lost-motion model or moves a table's reversal by a tenth of a sample (a sample at the onset decides a
         # spike's height), again from there.
         start = None
-        for _pass in range(3):
-            hyper = search.run(offset, lost, start)
+        if near is not None:
+            search.fine = search.fine_samples(near.overhead_s)
+            start = replace(near, spike_lr_search=None)
+        for _pass in range(3 if near is None else 1):
+            hyper = search.run(offset, lost, start, misfit_only=near is not None)
             joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
             fit_s = joint_s.solve(options, rank=False)
             chosen = choose(fit_s)
@@ -1814,7 +1844,7 @@ def _fit_at(
         }
         return res
 
-    return _Fitted(rms, sum(c.factor.n for c in joint.circles), _kappa(_lag1(residuals)), report)
+    return _Fitted(rms, sum(c.factor.n for c in joint.circles), _kappa(_lag1(residuals)), report, hyper)
 
 
 def _embed_vec(v: np.ndarray, sub: Sequence[Pattern], full: Sequence[Pattern]) -> np.ndarray:
