@@ -1559,7 +1559,9 @@ def _profile_lag(
     table through it, and the servo remainder is its size.  With the wrong gain
     that misfit is slow, and the slow patterns (drift above all) take it for
     signal.  The whole fit is run over a grid of gains (``PROFILE_KV_PER_S``)
-    and a parabola through the best three, in the logarithm of the gain; the
+    and a parabola through the best three, in the logarithm of the gain (each
+    other gain's timing refined from the default's, the one taken searched
+    whole again: see ``analysis/README.md``); the
     default gain stays unless another is better by more than ``PROFILE_NATS``
     of likelihood (the residual's inflation counted, its rms floored at
     ``PROFILE_FLOOR_UM``).
