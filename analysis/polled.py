@@ -18,8 +18,9 @@ A parameter that was significant and is within two of its widened standard
 errors of zero is no longer significant, with the reason.  The result's
 ``timing`` says all this: ``time_source``, ``t_uncertainty_ms``,
 ``t_jitter_ms``.  Pure: the caller (the daemon's analysis, ``ballbar
-analyze`` of a recording) says the two figures, from the source's ``timing``
-events.
+analyze`` of a recording) hands the source's ``timing`` events; a test takes
+the largest of the last one before its feed-in and those up to its feed-out
+(host clock: a polled source has no other), live and offline alike.
 """
 
 from __future__ import annotations
@@ -31,20 +32,48 @@ from typing import Any
 Z = 2.0  # standard errors from zero a timing-dependent parameter must stay to remain a finding
 
 
-def from_events(events: Iterable[Mapping[str, Any]]) -> tuple[float, float] | None:
-    """``(t_uncertainty_s, t_jitter_s)``: the largest of the ``timing`` events among ``events``, or None."""
-    unc = jit = -1.0
+Timing = tuple[float, float, float]  # a timing event: (t_host s, t_uncertainty_s, t_jitter_s)
+
+
+def from_events(events: Iterable[Mapping[str, Any]]) -> list[Timing]:
+    """The ``timing`` events among ``events`` (dicts as logged), in order."""
+    out: list[Timing] = []
     for ev in events:
         if str(ev.get("event") or ev.get("kind") or "") != "timing":
             continue
-        u, j = ev.get("t_uncertainty_s"), ev.get("t_jitter_s")
-        if isinstance(u, int | float) and math.isfinite(u):
-            unc = max(unc, float(u))
-        if isinstance(j, int | float) and math.isfinite(j):
-            jit = max(jit, float(j))
-    if unc < 0:
+        t, u, j = ev.get("t_host"), ev.get("t_uncertainty_s"), ev.get("t_jitter_s")
+        if all(isinstance(x, int | float) and math.isfinite(x) for x in (t, u, j)):
+            out.append((float(t), float(u), float(j)))  # type: ignore[arg-type]
+    return out
+
+
+def for_span(timings: Iterable[Timing], t0: float | None, t1: float | None) -> tuple[float, float] | None:
+    """``(t_uncertainty_s, t_jitter_s)`` for a test from ``t0`` to ``t1`` (host clock; None: unbounded): the
+    largest of the last event at or before ``t0`` and those after it up to ``t1``; None if there is none."""
+    lo = -math.inf if t0 is None else t0
+    hi = math.inf if t1 is None else t1
+    before: Timing | None = None
+    chosen: list[Timing] = []
+    for ev in sorted(timings):
+        if ev[0] <= lo:
+            before = ev
+        elif ev[0] <= hi:
+            chosen.append(ev)
+    if before is not None:
+        chosen.append(before)
+    if not chosen:
         return None
-    return unc, max(jit, 0.0)
+    return max(e[1] for e in chosen), max(e[2] for e in chosen)
+
+
+def state_span(result: dict[str, Any], timings: Iterable[Timing]) -> dict[str, Any]:
+    """:func:`state_timing` with the figures :func:`for_span` gives for the result's feed-in to feed-out."""
+    timing = result.get("timing")
+    if not isinstance(timing, dict):
+        return result
+    t0, t1 = timing.get("feed_in_s"), timing.get("feed_out_s")
+    got = for_span(timings, t0 if isinstance(t0, int | float) else None, t1 if isinstance(t1, int | float) else None)
+    return result if got is None else state_timing(result, *got)
 
 
 def state_timing(result: dict[str, Any], t_uncertainty_s: float, t_jitter_s: float) -> dict[str, Any]:
@@ -105,4 +134,4 @@ def _radius(result: Mapping[str, Any]) -> float | None:
     return float(r) if isinstance(r, int | float) and r > 0 else None
 
 
-__all__ = ["Z", "from_events", "state_timing"]
+__all__ = ["Timing", "Z", "for_span", "from_events", "state_span", "state_timing"]

@@ -763,6 +763,9 @@ class SerialSource(Source):
         if self._out is not None and now - self._out[1] > self.poll_timeout_s:
             self._lose(self._out[0], 1, "poll_timeout")
             self._out = None
+            if self._decoder.pending:  # an answer cut short (a line pulled mid-answer): never parsed
+                self._decoder.dropped["cut_line"] = self._decoder.dropped.get("cut_line", 0) + 1
+                self._decoder.discard()
         if self._out is None:
             due = self._tick0 + self._k * period
             if now >= due:
