@@ -76,6 +76,8 @@ instant on the wall clock).
 
 ``/ballbar/config`` (``ballbar.Config``): the effective configuration
 (``kind`` = ``config``), at start and again at the head of every new file.
+A polled source's last ``timing`` event is repeated likewise (``repeated``:
+true), so that a test's file alone says how its samples were stamped.
 
 ``/ballbar/other`` (``ballbar.Message``): any other message kind, as it came.
 
@@ -547,6 +549,7 @@ class McapLogger(Listener):
         self._ring: deque[SampleBatch] = deque()
         self._dirty_since: float | None = None
         self._config: ListenerMessage | None = None
+        self._timing: dict[str, Any] | None = None  # a polled source's last timing event: repeated at each file's head
         self._seen_events: dict[tuple[str, float, str], None] = {}  # recent events, oldest first
         self._in_test = False
         self._stopped = False
@@ -778,6 +781,8 @@ class McapLogger(Listener):
             return
         if name == "feed_in":
             self._test_started(now)
+        if name == "timing":
+            self._timing = d
         if not self._ensure_file(now):
             self._hold_or_lose(TOPIC_EVENTS, d, self._msg_time_ns(d))
             return
@@ -887,6 +892,8 @@ class McapLogger(Listener):
         # At the file's own start: an old log_time would stretch the file's time range to the daemon's start.
         if self._config is not None:
             self._write(TOPIC_CONFIG, self._config, self._wall_ns(now))
+        if self._timing is not None:  # a test's file alone says how its polled samples were stamped
+            self._write(TOPIC_EVENTS, {**self._timing, "repeated": True}, self._wall_ns(now))
         if self._failing:
             gap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
                    "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
@@ -1516,8 +1523,10 @@ def recording(lg: McapLog, name: str) -> Recording:
         else:
             continue
         breaks.append((at, reason))
+    from ballbar.analysis.polled import from_events
+
     return Recording(np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(L, dtype=np.float64),
-                     sorted(breaks), axis, name)
+                     sorted(breaks), axis, name, from_events(lg.events))
 
 
 # ----------------------------------------------------------------------------- after a crash

@@ -46,7 +46,9 @@ class Recording:
     ``(index, reason)``, a discontinuity the times may not show just before
     sample ``index`` (:func:`ballbar.analysis.engine.analyze_recording`);
     ``axis``: which clock ``t`` is (``"device"``, ``"host"``, or ``"t_s"`` for
-    a CSV); ``name``: the file or directory, for messages.
+    a CSV); ``name``: the file or directory, for messages; ``timing``: a
+    polled source's ``timing`` events, ``(t_host, uncertainty, jitter)``
+    (:mod:`ballbar.analysis.polled`), stated on each result.
     """
 
     t: np.ndarray
@@ -54,6 +56,7 @@ class Recording:
     breaks: list[tuple[int, str]] = field(default_factory=list)
     axis: str = "t_s"
     name: str = ""
+    timing: list[tuple[float, float, float]] = field(default_factory=list)
 
 
 def open_recording(name: str) -> BinaryIO:
@@ -450,8 +453,15 @@ def analyze(
 ) -> list[dict[str, Any]]:
     """:func:`~ballbar.analysis.engine.analyze_recording` of a recording; its errors name the recording."""
     try:
-        return analyze_recording(rec.t, rec.L, plan, machine, options, curves=curves, breaks=rec.breaks)
+        out = analyze_recording(rec.t, rec.L, plan, machine, options, curves=curves, breaks=rec.breaks)
     except DataError as err:
         if rec.name and not str(err).startswith(rec.name):
             err.args = (f"{rec.name}: {err}",)
         raise
+    if rec.timing and rec.axis == "host":
+        from ballbar.analysis.polled import state_span
+
+        for r in out:
+            if r.get("kind") in ("circle", "test"):
+                state_span(r, rec.timing)
+    return out

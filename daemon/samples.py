@@ -73,6 +73,12 @@ class EventKind(StrEnum):
                      first sample after the step
     ``end``          a finite source (a replay, a simulator with a repeat count)
                      has nothing more; ``read`` returns ``None`` from then on
+    ``timing``       a polled source's stamps: ``values`` holds ``t_uncertainty_s``
+                     (half the p99 request/answer window: how far a reading's
+                     stamp may be from when it was taken), ``t_jitter_s`` (half
+                     the windows' p1 to p99 spread), ``window_median_s``,
+                     ``window_p99_s`` and ``achieved_hz``; sent when first known
+                     and whenever the uncertainty grows
     """
 
     OPENED = "opened"
@@ -85,6 +91,7 @@ class EventKind(StrEnum):
     DEVICE_RESET = "device_reset"
     CLOCK_JUMP = "clock_jump"
     END = "end"
+    TIMING = "timing"
 
 
 @dataclass(frozen=True)
@@ -99,6 +106,7 @@ class SourceEvent:
     seq: int | None = None
     detail: str = ""
     counts: Mapping[str, int] = field(default_factory=dict)
+    values: Mapping[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict (for logs, MCAP and the bus)."""
@@ -113,6 +121,8 @@ class SourceEvent:
             out["detail"] = self.detail
         if self.counts:
             out["counts"] = dict(self.counts)
+        for key, value in self.values.items():
+            out.setdefault(key, value)
         return out
 
 
@@ -260,7 +270,9 @@ class SourceStats:
     while samples flow); ``decode``
     the decoder's drops by reason; ``clock_ratio`` and ``clock_offset_s`` the
     current device-to-host clock map (``t_host = offset + ratio * t_device``),
-    ``drift_ppm`` its ratio's departure from 1.
+    ``drift_ppm`` its ratio's departure from 1; ``poll`` a polled source's
+    request/answer windows and achieved rate
+    (:meth:`~ballbar.daemon.sources.SerialSource.poll_timing`), else empty.
     """
 
     samples: int = 0
@@ -278,18 +290,21 @@ class SourceStats:
     lost_by_cause: dict[str, int] = field(default_factory=dict)
     clock_ratio: float = float("nan")
     clock_offset_s: float = float("nan")
+    poll: dict[str, float] = field(default_factory=dict)
 
     @property
     def drift_ppm(self) -> float:
         return (self.clock_ratio - 1.0) * 1e6
 
     def copy(self) -> SourceStats:
-        return SourceStats(**{**self.__dict__, "decode": dict(self.decode), "lost_by_cause": dict(self.lost_by_cause)})
+        return SourceStats(**{**self.__dict__, "decode": dict(self.decode), "lost_by_cause": dict(self.lost_by_cause),
+                              "poll": dict(self.poll)})
 
     def to_dict(self) -> dict[str, Any]:
         out = dict(self.__dict__)
         out["decode"] = dict(self.decode)
         out["lost_by_cause"] = dict(self.lost_by_cause)
+        out["poll"] = dict(self.poll)
         out["drift_ppm"] = self.drift_ppm
         return out
 

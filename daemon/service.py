@@ -31,6 +31,7 @@ a result went out).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import datetime as dt
 import logging
@@ -45,11 +46,12 @@ import numpy as np
 from ballbar import SCHEMA_VERSION
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.errors import BallbarError
+from ballbar.analysis.polled import Timing, from_events, state_span
 
 from .config import Config
 from .listeners import Listener, ListenerQueue, Message
 from .mcap_log import scaled_ints
-from .samples import SampleBatch, breaks_in
+from .samples import EventKind, SampleBatch, breaks_in
 from .secrets import redacted
 from .sources import Source
 from .systemd import Notifier
@@ -74,6 +76,10 @@ class AnalysisListener(Listener):
     analysis refuses (a clock that ran back) rejects the test in progress and
     starts the analysis afresh from the offending sample; the timing hints are
     kept (they only ever come from tests that passed).
+
+    A polled source's ``timing`` events (its stamps' uncertainty and jitter)
+    are stated on every result (:func:`ballbar.analysis.polled.state_span`):
+    the largest of the last before the feed-in and those up to the feed-out.
     """
 
     name = "analysis"
@@ -94,6 +100,7 @@ class AnalysisListener(Listener):
         self.errors = 0
         self.fit_latency_ms: float | None = None
         self.invalid = 0
+        self._timings: collections.deque[Timing] = collections.deque(maxlen=256)  # a polled source's timing events
         self._lock = threading.Lock()
 
     def on_batch(self, batch: SampleBatch) -> None:
@@ -101,6 +108,9 @@ class AnalysisListener(Listener):
             self._on_batch(batch)
 
     def _on_batch(self, batch: SampleBatch) -> None:
+        for ev in batch.events:
+            if ev.kind == EventKind.TIMING:
+                self._timings.extend(from_events([ev.to_dict()]))
         valid = batch.valid
         self.invalid += int((~valid).sum())
         if self.use_device_time is None and len(batch):
@@ -108,10 +118,9 @@ class AnalysisListener(Listener):
         t = batch.t_device if self.use_device_time else batch.t_host
         good = valid & np.isfinite(t)
         t, L, seq = t[good], batch.length_mm[good], batch.seq[good]
-        if self.use_device_time:
-            # As the log records them (1 ns, 1 pm): ``ballbar analyze`` of the log then sees these very numbers,
-            # and its result is the one published (the timing search's decisions are discrete).
-            t, L = scaled_ints(t, 10**9) / 1e9, scaled_ints(L, 10**9) / 1e9
+        # As the log records them (1 ns, 1 pm): ``ballbar analyze`` of the log then sees these very numbers,
+        # and its result is the one published (the timing search's decisions are discrete).
+        t, L = scaled_ints(t, 10**9) / 1e9, scaled_ints(L, 10**9) / 1e9
         # A device reset, clock jump or long loss the batch reports: a break before its first sample after it.
         cuts = breaks_in(batch.events, seq)
         if not t.size and not cuts:
@@ -128,6 +137,8 @@ class AnalysisListener(Listener):
         self._feed(t[i:], L[i:], out)
         elapsed_ms = 1000.0 * (time.perf_counter() - t0)
         for msg in out:
+            if msg["kind"] in ("circle", "test") and self._timings and not self.use_device_time:
+                state_span(msg, self._timings)
             if msg["kind"] in ("circle", "test"):
                 self.fit_latency_ms = elapsed_ms
                 self.results += 1

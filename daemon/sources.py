@@ -51,16 +51,25 @@ URL scheme
     ``serial:///dev/ttyUSB0`` is accepted too, and a bare ``/dev/...`` path or
     pyserial URL means ``serial:``.  Options:
 
-    ``protocol``  ``binary`` (default) or ``ascii`` (``protocol/README.md``)
-    ``mode``      ``stream`` (default) or ``poll`` (ascii only: the host sends
-                  ``request`` once per period and reads one answer)
+    ``protocol``  ``binary`` (default), ``ascii``, or a gauge profile:
+                  ``mitutoyo``, ``sylvac``, ``tesa`` (``protocol/README.md``;
+                  a profile sets the framing, request, mode, baud and line
+                  settings, error words and unit, each of which an option
+                  below may override)
+    ``mode``      ``stream`` (default) or ``poll`` (ascii and profiles: the
+                  host sends ``request`` once per period and reads one
+                  answer; a polled profile's default)
     ``cal_mm``    required: the bar's length at zero displacement (its
                   calibration), added to every reading: ``L = cal_mm + x``
     ``rate``      nominal sample rate in Hz, 15.625..10000 (required for
                   ``poll``; for ascii lines with a timestamp it lets lost lines
                   be counted; it sets the stall timeout's default)
     ``baud``      default 2000000 (10 kHz of binary frames needs 1.7 Mbaud;
-                  ptys and USB CDC devices ignore it)
+                  ptys and USB CDC devices ignore it); a profile's own default
+                  (Mitutoyo 9600, Sylvac and TESA 4800).  A profile's rate
+                  beyond what the line carries at this baud is refused
+    ``framing``   data bits, parity, stop bits: ``8N1`` (default), a
+                  profile's own (``7E2`` for Sylvac and TESA)
     ``unit``, ``scale``, ``timestamp`` (``s``, ``ms``, ``us``; absent: none),
     ``max_line``, ``request`` (percent-encoded, default ``%3F%0D`` = ``?\\r``)
                   the ASCII format (:class:`~ballbar.protocol.AsciiFormat`)
@@ -96,7 +105,12 @@ mapped to ``time.monotonic`` by :class:`~ballbar.daemon.timebase.ClockMap`
 (lower envelope of read times, with the drift in ``stats().drift_ppm``).
 Without a device clock, ``t_host`` is the host's estimate: sample numbers at the
 nominal rate mapped the same way, or the read time when no rate is known; in
-poll mode the midpoint between request and answer.  Replays and the simulator
+poll mode the midpoint between request and answer: a polled gauge has no
+clock, and when within that window it took its reading is not known.  The
+windows' median, p99 and the achieved rate are in ``stats().poll``; the
+half-window's p99 (the stamps' uncertainty) goes out as a ``timing`` event
+when first known and whenever it grows by a quarter, and the analysis of such
+samples states it (:mod:`ballbar.analysis.polled`).  Replays and the simulator
 place their own time base on the host clock at their speed.
 
 Losses and faults
@@ -115,7 +129,9 @@ it (``seq``), so that the analysis can place the break exactly.
 from __future__ import annotations
 
 import abc
+import collections
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -132,6 +148,7 @@ from numpy.typing import NDArray
 
 from ballbar.protocol import AsciiDecoder, AsciiFormat, BinaryDecoder, Readings, Status
 from ballbar.protocol._common import add_counts
+from ballbar.protocol.gauges import PROFILES
 
 from .errors import SourceClosed, SourceConfigError, SourceError
 from .samples import EventKind, SampleBatch, SourceEvent, SourceStats
@@ -143,6 +160,10 @@ RATE_MIN_HZ = 15.625
 RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
 WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
+POLL_WINDOWS = 4096  # request/answer windows kept for the status's median and p99
+RATE_SPAN_S = 10.0  # the achieved poll rate: answers over about this long
+TIMING_FIRST = 64  # answers before the first timing event
+TIMING_GROWTH = 1.25  # a timing event again when the stamps' uncertainty grows by this factor
 READ_MAX = 1 << 16
 READ_MORE_AT = 4000  # a read at least this long is followed by another
 READ_BURST_MAX = 1 << 20  # at most this much in one go, however fast the device floods the port
@@ -336,14 +357,17 @@ class SerialSource(Source):
         retry_min_s: float = 0.05,
         retry_max_s: float = 2.0,
         exclusive: bool = True,
+        bytesize: int = 8,
+        parity: str = "N",
+        stopbits: int = 1,
     ) -> None:
         super().__init__(url, rate_hz, batch_s)
-        if protocol not in ("binary", "ascii"):
-            raise SourceConfigError(f"{url}: protocol must be binary or ascii, not {protocol!r}")
+        if protocol not in ("binary", "ascii", *PROFILES):
+            raise SourceConfigError(f"{url}: protocol must be binary, ascii or {', '.join(PROFILES)}, not {protocol!r}")
         if mode not in ("stream", "poll"):
             raise SourceConfigError(f"{url}: mode must be stream or poll, not {mode!r}")
-        if mode == "poll" and protocol != "ascii":
-            raise SourceConfigError(f"{url}: mode=poll needs protocol=ascii")
+        if mode == "poll" and protocol == "binary":
+            raise SourceConfigError(f"{url}: mode=poll needs protocol=ascii or a gauge profile")
         if mode == "poll" and rate_hz is None:
             raise SourceConfigError(f"{url}: mode=poll needs rate (the polling rate in Hz)")
         self.port_url = port
@@ -358,6 +382,7 @@ class SerialSource(Source):
         self.retry_min_s = retry_min_s
         self.retry_max_s = max(retry_max_s, retry_min_s)
         self.exclusive = exclusive
+        self.bytesize, self.parity, self.stopbits = bytesize, parity, stopbits
         self._decoder: BinaryDecoder | AsciiDecoder = (
             BinaryDecoder() if protocol == "binary" else AsciiDecoder(self.fmt)
         )
@@ -393,6 +418,9 @@ class SerialSource(Source):
         self._out: tuple[int, float] | None = None
         self._pending: list[tuple[int, float, float, int]] = []
         self._poll_batch_start = 0.0
+        self._windows: collections.deque[float] = collections.deque(maxlen=POLL_WINDOWS)
+        self._answers: collections.deque[float] = collections.deque(maxlen=POLL_WINDOWS)
+        self._timing_reported = 0.0  # the stamps' uncertainty last sent as a timing event, s
         self._try_open(time.monotonic(), first=True)
 
     # -- port life ----------------------------------------------------------------
@@ -401,7 +429,9 @@ class SerialSource(Source):
         try:
             # The timeout is set here, once: assigning it later re-applies termios (and the lock) each time.
             # 0: a read takes what has arrived; the reader waits for bytes with poll() (see _wait).
-            port = serial.serial_for_url(self.port_url, baudrate=self.baud, timeout=0, exclusive=self.exclusive)
+            port = serial.serial_for_url(self.port_url, baudrate=self.baud, bytesize=self.bytesize,
+                                         parity=self.parity, stopbits=self.stopbits, timeout=0,
+                                         exclusive=self.exclusive)
             try:
                 self._setup_wait(port)
             except (OSError, ValueError) as err:  # as a port that could not be opened: retried
@@ -733,6 +763,9 @@ class SerialSource(Source):
         if self._out is not None and now - self._out[1] > self.poll_timeout_s:
             self._lose(self._out[0], 1, "poll_timeout")
             self._out = None
+            if self._decoder.pending:  # an answer cut short (a line pulled mid-answer): never parsed
+                self._decoder.dropped["cut_line"] = self._decoder.dropped.get("cut_line", 0) + 1
+                self._decoder.discard()
         if self._out is None:
             due = self._tick0 + self._k * period
             if now >= due:
@@ -765,6 +798,8 @@ class SerialSource(Source):
                     continue
                 k, t_sent = self._out
                 self._pending.append((k, 0.5 * (t_sent + t_read), float(r.value_mm[i]), int(r.status[i])))
+                self._windows.append(t_read - t_sent)
+                self._answers.append(t_read)
                 self._out = None
         if t_read - self._poll_batch_start >= self.batch_s or (deadline is not None and t_read >= deadline):
             return self._flush_poll()
@@ -786,9 +821,58 @@ class SerialSource(Source):
             return False
         return True
 
+    def poll_timing(self) -> dict[str, float] | None:
+        """The request/answer windows so far (the last ``POLL_WINDOWS``), or ``None`` before the first answer.
+
+        ``window_median_ms``, ``window_p99_ms``, ``window_max_ms``; ``t_uncertainty_ms``: half the p99
+        window (a reading was taken somewhere within its window; its stamp is the middle); ``t_jitter_ms``:
+        half the windows' p1 to p99 spread (how much the stamps' error may differ between readings); ``achieved_hz``:
+        answers per second over about the last ``RATE_SPAN_S``; ``answers``: how many the figures cover.
+        """
+        windows = np.array(self._windows)  # one C-level copy: the reader may append meanwhile
+        answers = np.array(self._answers)
+        if not windows.size:
+            return None
+        p1, med, p99 = np.percentile(windows, [1.0, 50.0, 99.0])
+        recent = answers[answers >= answers[-1] - RATE_SPAN_S]
+        span = float(recent[-1] - recent[0]) if recent.size > 1 else 0.0
+        return {
+            "window_median_ms": 1e3 * float(med),
+            "window_p99_ms": 1e3 * float(p99),
+            "window_max_ms": 1e3 * float(windows.max()),
+            "t_uncertainty_ms": 0.5e3 * float(p99),
+            "t_jitter_ms": 0.5e3 * float(p99 - p1),
+            "achieved_hz": (recent.size - 1) / span if span > 0 else 0.0,
+            "answers": float(windows.size),
+        }
+
+    def stats(self) -> SourceStats:
+        st = super().stats()
+        if self.mode == "poll":
+            st.poll = self.poll_timing() or {}
+        return st
+
+    def _report_timing(self) -> None:
+        """A ``timing`` event when the stamps' uncertainty is first known, and whenever it grows by a quarter."""
+        if len(self._windows) < TIMING_FIRST:
+            return
+        timing = self.poll_timing()
+        assert timing is not None
+        unc = 1e-3 * timing["t_uncertainty_ms"]
+        if unc > self._timing_reported * TIMING_GROWTH:
+            self._timing_reported = unc
+            self._event(
+                EventKind.TIMING,
+                detail="host clock, polled: each reading stamped at the middle of its request/answer window",
+                values={"t_uncertainty_s": unc, "t_jitter_s": 1e-3 * timing["t_jitter_ms"],
+                        "window_median_s": 1e-3 * timing["window_median_ms"],
+                        "window_p99_s": 1e-3 * timing["window_p99_ms"], "achieved_hz": timing["achieved_hz"]},
+            )
+
     def _flush_poll(self) -> SampleBatch | None:
         self._poll_batch_start = time.monotonic()
         self._report_decode()
+        self._report_timing()
         p, self._pending = self._pending, []
         n = len(p)
         seq = np.fromiter((x[0] for x in p), np.int64, n)
@@ -1066,6 +1150,25 @@ def _choice(*allowed: str) -> Callable[[Any], str]:
     return conv
 
 
+def _pos_int(v: Any) -> int:
+    if isinstance(v, bool):
+        raise ValueError("must be an integer")
+    x = int(v)
+    if x <= 0:
+        raise ValueError("must be > 0")
+    return x
+
+
+def _framing(v: Any) -> tuple[int, str, int]:
+    """``8N1``, ``7E2``, ...: data bits (5..8), parity (N, E, O), stop bits (1, 2)."""
+    if isinstance(v, tuple):
+        return v
+    s = str(v).strip().upper()
+    if len(s) != 3 or s[0] not in "5678" or s[1] not in "NEO" or s[2] not in "12":
+        raise ValueError("must be data bits, parity and stop bits, such as 8N1 or 7E2")
+    return int(s[0]), s[1], int(s[2])
+
+
 def _bytes(v: Any) -> bytes:
     if isinstance(v, bytes):
         return v
@@ -1077,27 +1180,43 @@ def _open_serial(url: str, target: str, opt: _Options) -> Source:
         target = target[2:]
     if not target:
         raise SourceConfigError(f"{url}: no port (serial:/dev/ttyUSB0, serial:socket://host:port, ...)")
-    protocol = opt.get("protocol", _choice("binary", "ascii"), "binary")
-    mode = opt.get("mode", _choice("stream", "poll"), "stream")
+    protocol = opt.get("protocol", _choice("binary", "ascii", *PROFILES), "binary")
+    gauge = PROFILES.get(protocol)
+    base = gauge.fmt if gauge is not None else AsciiFormat()
+    default_mode = "poll" if gauge is not None and gauge.polled else "stream"
+    mode = opt.get("mode", _choice("stream", "poll"), default_mode)
     cal_mm = opt.require("cal_mm", _finite, "the bar's length at zero displacement, from its calibration")
     rate = opt.get("rate", _rate)
-    if mode == "poll" and protocol != "ascii":
-        raise SourceConfigError(f"{url}: mode=poll needs protocol=ascii")
+    if mode == "poll" and protocol == "binary":
+        raise SourceConfigError(f"{url}: mode=poll needs protocol=ascii or a gauge profile")
+    if mode == "stream" and gauge is not None and not gauge.streams:
+        raise SourceConfigError(f"{url}: a {protocol} gauge does not stream: it answers requests (mode=poll)")
     if mode == "poll" and rate is None:
         raise SourceConfigError(f"{url}: mode=poll needs rate (the polling rate in Hz)")
     ts = opt.get("timestamp", _choice("s", "ms", "us", "none"), "none")
     try:
-        fmt = AsciiFormat(
-            unit=opt.get("unit", _choice("mm", "um", "nm", "in"), "mm"),
-            scale=opt.get("scale", _finite, 1.0),
+        fmt = dataclasses.replace(
+            base,
+            unit=opt.get("unit", _choice("mm", "um", "nm", "in"), base.unit),
+            scale=opt.get("scale", _finite, base.scale),
             ts_unit=None if ts == "none" else ts,
-            max_line=opt.get("max_line", int, 64),
-            request=opt.get("request", _bytes, b"?\r"),
+            max_line=opt.get("max_line", int, base.max_line),
+            request=opt.get("request", _bytes, base.request),
         )
     except ValueError as err:
         raise SourceConfigError(f"{url}: {err}") from None
+    baud = opt.get("baud", _pos_int, gauge.baud if gauge is not None else 2_000_000)
+    framing = opt.get("framing", _framing, (gauge.bytesize, gauge.parity, gauge.stopbits) if gauge else (8, "N", 1))
+    if gauge is not None and rate is not None:
+        line = dataclasses.replace(gauge, bytesize=framing[0], parity=framing[1], stopbits=framing[2])
+        why = line.check_rate(rate, baud, mode == "poll", fmt.request)
+        if why is not None:
+            raise SourceConfigError(f"{url}: {why}")
     kwargs = {
-        "baud": opt.get("baud", int, 2_000_000),
+        "baud": baud,
+        "bytesize": framing[0],
+        "parity": framing[1],
+        "stopbits": framing[2],
         "batch_s": opt.get("batch_s", _pos_float, DEFAULT_BATCH_S),
         "stall_s": opt.get("stall_s", _pos_float),
         "poll_timeout_s": opt.get("poll_timeout_s", _pos_float),

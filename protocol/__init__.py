@@ -5,7 +5,8 @@ Two wire formats for the ball-bar's length transducer (``protocol/README.md``):
 - :mod:`.binary`: 17-byte frames with sync word, sample counter, device clock,
   displacement in 10 nm counts, status and CRC-16, for rates up to 10 kHz and more.
 - :mod:`.ascii`: one reading per text line, as plain gauge interfaces send it,
-  streamed or polled.
+  streamed or polled; :mod:`.gauges`: the profiles of real gauge interfaces
+  (Mitutoyo, Sylvac, TESA) as formats of that decoder.
 
 Both decoders take any chunking of the byte stream, skip garbage, resynchronise,
 count what they dropped and why, and never raise for bad bytes.

@@ -2,11 +2,13 @@
 
 Grammar (bytes, see ``protocol/README.md``)::
 
-    line      = [timestamp sep] reading [sp unit] eol
+    line      = [timestamp sep] [header] reading [sp unit] eol
     timestamp = digits ["." digits]               device time, in the format's ts_unit
+    header    = the format's fixed prefix, by its template (a gauge's "01A": code, channel, item)
     reading   = ["+" | "-"] digits ["." digits]   or ["+" | "-"] "." digits
               | fault word                        OVER, OL, +OL, -OL (over range);
-                                                  ERR, ERROR, FAULT (sensor fault)
+                                                  ERR, ERROR, FAULT (sensor fault);
+                                                  the format's own error words (ERR3, ERR0, ...)
     unit      = the configured unit's name: mm, um (also µm in UTF-8 or Latin-1), nm, in
                 (letters in any case); when present it must be the configured one
     sep, sp   = one or more of space, tab, "," or ";"  (sp may be empty before a unit)
@@ -16,7 +18,11 @@ No exponent; the digits of a number, read without its point, must stay below
 2**53 (15 significant digits always do), so that the value is exact.  The
 reading times the format's ``scale`` and unit gives millimetres.  The same
 decoder reads streamed lines and the answers to polled requests; in polled
-mode the host sends :attr:`AsciiFormat.request` once per sample.
+mode the host sends :attr:`AsciiFormat.request` once per sample.  The
+device profiles of :mod:`.gauges` (Mitutoyo, Sylvac, TESA) are formats of this
+decoder: a header template and error words are data, checked with the same
+whole-matrix operations (the header) or on the slow path of lines that are not
+a plain reading (the error words).
 
 Decoding is vectorised: line ends are found with numpy, the lines become the
 columns of a (character position, line) byte matrix, and tokens and numbers are
@@ -60,6 +66,7 @@ _UNIT_SPELLINGS: dict[str, tuple[bytes, ...]] = {
     "nm": (b"nm",),
     "in": (b"in",),
 }
+INVALID_BITS = Status.OVER_RANGE | Status.SENSOR_FAULT
 FAULT_WORDS: dict[str, int] = {
     "OVER": int(Status.OVER_RANGE),
     "OL": int(Status.OVER_RANGE),
@@ -68,6 +75,12 @@ FAULT_WORDS: dict[str, int] = {
     "ERR": int(Status.SENSOR_FAULT),
     "ERROR": int(Status.SENSOR_FAULT),
     "FAULT": int(Status.SENSOR_FAULT),
+}
+#: Header template characters: what each position of a line's fixed prefix may hold.
+HEADER_CLASSES: dict[str, bytes] = {
+    "9": b"0123456789",
+    "A": b"ABCDEFGHIJKLMNOPQRSTUVWXYZ",
+    "X": b"0123456789ABCDEFGHIJKLMNOPQRSTUVWXYZ",
 }
 MAX_DIGITS = 15  # significant digits that always fit a double exactly
 _MAX_MANTISSA = float(2**53)  # digits without the point must stay below this to be exact
@@ -84,6 +97,16 @@ class AsciiFormat:
     ``ts_width`` (minimum field widths, zero-padded: gauges write fixed-width
     lines; 0: no padding), ``unit_suffix``, ``separator`` and ``eol``.
     ``request`` is what the host sends in polled mode.
+
+    Device profiles (:mod:`.gauges`) add: ``header``, a template of the fixed
+    prefix every reading carries (``9`` a digit, ``A`` an upper-case letter, ``X``
+    either; a Mitutoyo ``01A`` is ``99A``), checked and skipped; ``errors``, the
+    device's own error words and the status bits each means (``("ERR3", 1)``);
+    ``error_prefix``, a prefix of error words not listed (``ERR`` followed by
+    digits): such a word is a ``SENSOR_FAULT`` (never a number).  Encoding (the
+    simulated devices) also uses ``plus`` (the sign of a positive reading: ``+``
+    or a space) and ``over_word`` and ``fault_word`` (what an over-range or
+    faulty reading is written as).
     """
 
     unit: Unit = "mm"
@@ -97,6 +120,12 @@ class AsciiFormat:
     separator: str = " "
     eol: bytes = b"\r\n"
     request: bytes = b"?\r"
+    header: str = ""
+    errors: tuple[tuple[str, int], ...] = ()
+    error_prefix: str = ""
+    plus: str = "+"
+    over_word: str = "OVER"
+    fault_word: str = "ERR"
 
     def __post_init__(self) -> None:
         if self.unit not in UNIT_MM:
@@ -115,6 +144,27 @@ class AsciiFormat:
             raise ValueError("request must not be empty")
         if not (0 <= self.width <= 32 and 0 <= self.ts_width <= 32):
             raise ValueError("width and ts_width must be within 0..32")
+        if len(self.header) > 16 or any(c not in HEADER_CLASSES for c in self.header):
+            raise ValueError(f"header must be up to 16 of {', '.join(HEADER_CLASSES)}, not {self.header!r}")
+        if self.header and self.ts_unit is not None:
+            raise ValueError("a format with a header has no timestamp field")
+        if self.plus not in ("+", " "):
+            raise ValueError(f"plus must be '+' or ' ', not {self.plus!r}")
+        for word, bits in self.errors:
+            if not re.fullmatch(r"[A-Za-z]+[0-9]*", word) or bits & ~int(INVALID_BITS) or not bits:
+                raise ValueError(f"error word {word!r}: letters then digits, meaning over range (1) or fault (2)")
+
+    def error_status(self, word: str) -> int | None:
+        """The status bits of a fault or error word (upper case), or ``None`` if it is not one."""
+        for w, bits in self.errors:
+            if w.upper() == word:
+                return bits
+        if word in FAULT_WORDS:
+            return FAULT_WORDS[word]
+        p = self.error_prefix.upper()
+        if p and word.startswith(p) and word[len(p) :].isdigit():
+            return int(Status.SENSOR_FAULT)
+        return None
 
     @property
     def mm_per_count(self) -> float:
@@ -134,11 +184,14 @@ def encode(
     fmt: AsciiFormat = AsciiFormat(),
     t_s: ArrayLike | None = None,
     status: ArrayLike | None = None,
+    prefix: str = "",
 ) -> bytes:
     """Lines for readings in mm (and device times in seconds when the format has them).
 
-    A sample with ``SENSOR_FAULT`` is written ``ERR``, one with ``OVER_RANGE``
-    ``OVER``: gauges do not send a number they cannot vouch for.
+    A sample with ``SENSOR_FAULT`` is written ``fault_word`` (``ERR``), one with
+    ``OVER_RANGE`` ``over_word`` (``OVER``): gauges do not send a number they
+    cannot vouch for.  ``prefix``: what precedes each reading (the header a
+    format's template describes, e.g. ``01A``).
     """
     vals = np.atleast_1d(np.asarray(value_mm, dtype=np.float64)) / fmt.mm_per_count
     n = vals.shape[0]
@@ -148,10 +201,14 @@ def encode(
     eol = fmt.eol.decode("ascii")
     w = fmt.width
     texts = [f"{v:+0{w}.{d}f}{suffix}" for v in vals.tolist()]
+    if fmt.plus != "+":
+        texts = [fmt.plus + x[1:] if x[0] == "+" else x for x in texts]
     for i in np.flatnonzero(st & int(Status.OVER_RANGE) | ~np.isfinite(vals)).tolist():
-        texts[i] = "OVER"
+        texts[i] = fmt.over_word
     for i in np.flatnonzero(st & int(Status.SENSOR_FAULT)).tolist():
-        texts[i] = "ERR"
+        texts[i] = fmt.fault_word
+    if prefix:
+        texts = [prefix + x for x in texts]
     if fmt.ts_unit is not None:
         if t_s is None:
             raise ValueError("this format has timestamps: pass t_s")
@@ -185,7 +242,18 @@ _EOL_RE = re.compile(rb"[\r\n]")
 _ALLOWED_RE = re.compile(rb"[0-9.+\-A-Za-z\xb5\xc2 \t,;]*")
 _TOKEN_RE = re.compile(rb"(?P<num>[0-9.+\-]+)|[A-Za-z\xb5\xc2]+")
 _LINE_RE = re.compile(rb"[^\r\n]+(?=[\r\n])")  # a complete, non-empty line
-_FAULT_RE = re.compile(rb"^[ \t,;]*(?:(?P<ts>\d+(?:\.\d*)?)[ \t,;]+)?(?P<word>[+-]?[A-Za-z]+)[ \t,;]*$")
+_FAULT_RE = re.compile(rb"^[ \t,;]*(?:(?P<ts>\d+(?:\.\d*)?)[ \t,;]+)?(?P<word>[+-]?[A-Za-z]+[0-9]*)[ \t,;]*$")
+_HEADER_TABLE = {c: np.isin(np.arange(256), np.frombuffer(chars, np.uint8)) for c, chars in HEADER_CLASSES.items()}
+
+
+def _strip_header(line: bytes, fmt: AsciiFormat) -> bytes | None:
+    """The line after the format's header, or ``None`` if it does not start with one (and a reading)."""
+    h = len(fmt.header)
+    if not h:
+        return line
+    if len(line) <= h or any(line[j] not in HEADER_CLASSES[c] for j, c in enumerate(fmt.header)):
+        return None
+    return line[h:]
 
 
 class Decoded(NamedTuple):
@@ -370,6 +438,13 @@ def _parse_block(
     pos = np.repeat(col, rows, axis=1)
     mat = padded[starts[None, :] + col]
     cls = _CLASS[mat] * (col < lens[None, :])  # _PAD (0) past the end of each line
+    h = len(fmt.header)
+    header_bad = None
+    if h:  # the fixed prefix: checked position by position, then skipped as if it were separators
+        header_bad = lens <= h
+        for j, kind in enumerate(fmt.header[:width]):
+            header_bad |= ~_HEADER_TABLE[kind][mat[j]]
+        cls[:h] = _SEP
     is_tok = (cls != _PAD) & (cls != _SEP)
     isnum = (cls >= _DIGIT) & (cls <= _SIGN)
     isalpha = cls == _ALPHA
@@ -387,6 +462,8 @@ def _parse_block(
     first_alpha = width - ((width - pos) * astart).max(axis=0)
     any_tok = is_tok.any(axis=0)
     bad = np.any(cls == _OTHER, axis=0) | (first_alpha < last_num)  # no number after letters
+    if header_bad is not None:
+        bad |= header_bad
     if want == 1:
         val, ok = _number(mat, cls, pos, isnum, nstart, signed=True)
         ts = np.zeros(rows)
@@ -418,12 +495,14 @@ def _not_a_reading(line: bytes, number_ok: bool, fmt: AsciiFormat, dropped: dict
     """A line that is not a plain reading: ``(timestamp, status)`` of a fault word, or
     ``None`` after counting why it was dropped (a wrong unit, or not the grammar)."""
     if not number_ok:
-        m = _FAULT_RE.match(line)
-        if m is not None:
-            word = m.group("word").upper().decode()
-            has_ts = m.group("ts") is not None
-            if word in FAULT_WORDS and has_ts == (fmt.ts_unit is not None):
-                return (float(m.group("ts")) if has_ts else 0.0), FAULT_WORDS[word]
+        body = _strip_header(line, fmt)
+        for text in (line,) if body is None or body is line else (body, line):
+            m = _FAULT_RE.match(text)
+            if m is not None:
+                bits = fmt.error_status(m.group("word").upper().decode())
+                has_ts = m.group("ts") is not None
+                if bits is not None and has_ts == (fmt.ts_unit is not None):
+                    return (float(m.group("ts")) if has_ts else 0.0), bits
     dropped[BAD_UNIT if number_ok else BAD_LINE] += 1
     dropped[SKIPPED_BYTES] += len(line)
     return None
@@ -457,7 +536,9 @@ def _parse_lines(
     stats: list[int] = []
     dropped = {BAD_LINE: 0, BAD_UNIT: 0, SKIPPED_BYTES: 0}
     for line in lines:
-        toks = list(_TOKEN_RE.finditer(line)) if _ALLOWED_RE.fullmatch(line) else None
+        body = _strip_header(line, fmt)
+        ok = body is not None and _ALLOWED_RE.fullmatch(body) is not None
+        toks = list(_TOKEN_RE.finditer(body)) if ok and body is not None else None
         if toks is not None and not toks:
             continue  # only separators: not a line
         number_ok = unit_ok = False
@@ -559,6 +640,7 @@ class AsciiDecoder:
 __all__ = [
     "DEFAULT_DECIMALS",
     "FAULT_WORDS",
+    "HEADER_CLASSES",
     "TS_S",
     "UNIT_MM",
     "AsciiDecoder",

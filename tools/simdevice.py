@@ -19,7 +19,14 @@ stdout, one line each:
    ``unplugged``, ``replugged``, ``test``, ``done``).
 
 ASCII lines are fixed width (zero-padded reading and timestamp), as gauges
-write them.  Device time runs ``speedup`` times faster than wall time: at ``--rate 1000
+write them.  ``--protocol mitutoyo|sylvac|tesa`` is a gauge interface of that
+profile (``ballbar.protocol.gauges``): its framing, request and error words;
+polled unless ``--mode stream`` (Sylvac and TESA stream too).  A polled gauge
+converts at ``--rate`` (device time) and answers each request with its latest
+conversion; the URL it prints polls at ``--poll-rate`` (15.625 Hz).  Its line
+is emulated at ``--line-baud`` (default: the profile's baud; 0: as fast as the
+pty): an answer is written when its last byte would have arrived, after the
+request's and its own bytes at that baud.  Device time runs ``speedup`` times faster than wall time: at ``--rate 1000
 --speedup 10`` the device clock and sample counter advance as at 1 kHz and
 10 000 frames leave per wall second.  Samples go out as they fall due, but
 at most one write per ``--burst-ms`` (16 ms, the default latency timer of FTDI
@@ -46,6 +53,13 @@ which :class:`DeviceProcess` passes so that its device ends with its parent; SIG
 ``unplug [S]``      close the pty (and remove the link); replug after S seconds if given
 ``replug``          open a new pty behind the same link
 ``reset``           restart the sample counter and clock at 0 (a device reboot)
+``error over|fault [N]``  a gauge profile: answer the next N requests (or send the
+                    next N lines) with the profile's over-range or sensor-fault
+                    error word (Sylvac ``ERR3``, ``ERR0``; TESA ``ERR<n>``; a
+                    Mitutoyo answer has no error word: refused)
+``late S [N]``      polled: the next N answers come S wall seconds late
+``cut [N]``         polled: the next N answers are cut after half their bytes
+                    (no line end), as by a cable pulled mid-answer
 ``jump S``          the device clock jumps S seconds ahead (S > 0); the counter
                     runs on and no sample is lost
 ``stats``           counters so far
@@ -55,6 +69,7 @@ which :class:`DeviceProcess` passes so that its device ends with its parent; SIG
 from __future__ import annotations
 
 import argparse
+import bisect
 import contextlib
 import json
 import logging
@@ -360,6 +375,15 @@ class Settings:
     fmt: ascii_proto.AsciiFormat = field(default_factory=ascii_proto.AsciiFormat)
     seed: int = 0
     burst_s: float = BURST_S
+    gauge: str | None = None  # a profile of ballbar.protocol.gauges
+    prefix: str = ""  # what the gauge writes before each reading (its header)
+    poll_rate: float = 15.625  # what the printed URL polls at (a gauge profile)
+    line_baud: int = 0  # the emulated line (0: none)
+    bits_per_char: int = 10
+
+    def wire_s(self, n: int) -> float:
+        """Seconds ``n`` characters take on the emulated line."""
+        return n * self.bits_per_char / self.line_baud if self.line_baud else 0.0
 
 
 class SimDevice:
@@ -388,6 +412,10 @@ class SimDevice:
         self._t0 = 0.0  # clock offset since the last reset (minus the jumps since)
         self._req_buf = b""
         self._last_answer: tuple[float, float, int] | None = None
+        self._due: list[tuple[float, bytes]] = []  # polled answers and when their last byte arrives
+        self._errors: list[int] = []  # status bits of the next answers sent as error words
+        self._late: list[float] = []  # delays of the next answers, s
+        self._cut = 0  # answers still to cut
         self._encoder = BlockEncoder(self._encode_block)
         one = self._encode(np.zeros(1), np.full(1, settings.cal_mm), np.zeros(1, np.int64))
         burst = settings.rate * settings.speedup * settings.burst_s * len(one)
@@ -460,6 +488,28 @@ class SimDevice:
             self.stats.resets += 1
             self.stats.next_seq = 0
             return {}
+        if cmd == "error":
+            bits = {"over": int(Status.OVER_RANGE), "fault": int(Status.SENSOR_FAULT)}.get(argv[0] if argv else "")
+            if bits is None:
+                raise ValueError("error over|fault [N]")
+            if self.s.gauge is None or not self._has_error_words():
+                raise ValueError(f"{self.s.gauge or self.s.protocol}: this device has no error words")
+            n = int(argv[1]) if len(argv) > 1 else 1
+            self._errors += [bits] * max(0, n)
+            return {"count": n}
+        if cmd == "late":
+            s = float(argv[0])
+            n = int(argv[1]) if len(argv) > 1 else 1
+            if not (math.isfinite(s) and s >= 0) or self.s.mode != "poll":
+                raise ValueError("late S [N]: polled devices, S >= 0")
+            self._late += [s] * max(0, n)
+            return {"seconds": s, "count": n}
+        if cmd == "cut":
+            if self.s.mode != "poll":
+                raise ValueError("cut [N]: polled devices")
+            n = count()
+            self._cut += n
+            return {"count": n}
         if cmd == "jump":
             s = float(argv[0])
             if not (math.isfinite(s) and s > 0):
@@ -475,10 +525,17 @@ class SimDevice:
             return {}
         raise ValueError(f"unknown command {cmd!r}")
 
+    def _has_error_words(self) -> bool:
+        from ballbar.protocol.gauges import PROFILES
+
+        fmt = PROFILES[self.s.gauge].fmt if self.s.gauge else self.s.fmt
+        return bool(fmt.errors or fmt.error_prefix)
+
     def _unplug(self) -> None:
         if self.port.is_open:
             self.port.close()
             self._pending.clear()  # what the adapter held is gone with it
+            self._due.clear()
             self.emit({"event": "unplugged"})
 
     def _replug(self) -> None:
@@ -499,6 +556,10 @@ class SimDevice:
         disp = length - self.s.cal_mm
         over = np.abs(disp) > self.s.range_mm
         status = np.where(over, int(Status.OVER_RANGE), 0) | int(Status.SIMULATED)
+        if self._errors:  # error words on command: the next samples
+            k = min(len(self._errors), status.shape[0])
+            status[:k] |= np.array(self._errors[:k], np.int64)
+            del self._errors[:k]
         return np.clip(disp, -self.s.range_mm, self.s.range_mm), status.astype(np.int64)
 
     def _garbage_bytes(self) -> bytes:
@@ -523,7 +584,9 @@ class SimDevice:
         disp, status = self._displacement(length)
         if self.s.protocol == "binary":
             return binary_proto.encode_samples(dseq, dt, disp, status)
-        return ascii_proto.encode(disp, self.s.fmt, t_s=dt if self.s.fmt.ts_unit else None, status=status)
+        return ascii_proto.encode(
+            disp, self.s.fmt, t_s=dt if self.s.fmt.ts_unit else None, status=status, prefix=self.s.prefix
+        )
 
     def _encode_block(
         self, t: NDArray[np.float64], length: NDArray[np.float64], seq: NDArray[np.int64]
@@ -593,7 +656,9 @@ class SimDevice:
         if blocked:
             return
         wire: bytes | None = None
-        if self.port.is_open and now > self._stall_until and not (self._drop or self._corrupt or self._garbage):
+        if self.port.is_open and now > self._stall_until and not (
+            self._drop or self._corrupt or self._garbage or self._errors
+        ):
             self._encoder.key = (self._seq0, self._t0)  # nothing to inject: the bytes encoded ahead
             (t, length, seq), wire = self.feed.take_encoded(self.sim_t, self._encoder)
         else:
@@ -645,10 +710,20 @@ class SimDevice:
                 self._corrupt -= 1
                 self.stats.corrupted += 1
                 one = self._corrupt_one(one)
+            elif self._cut:
+                self._cut -= 1
+                self.stats.corrupted += 1
+                self.stats.corrupted_bytes += len(one) // 2
+                one = one[: len(one) // 2]
             else:
                 self.stats.sent += 1
                 self.stats.last_seq = sa - self._seq0
-            self._pending += out + one
+            # The answer's last byte arrives after the request's bytes and its own on the emulated line.
+            delay = self.s.wire_s(len(req) + len(out) + len(one)) + (self._late.pop(0) if self._late else 0.0)
+            if delay > 0:
+                bisect.insort(self._due, (now + delay, out + one))
+            else:
+                self._pending += out + one
 
     def _advance(self, now: float) -> None:
         if not self.started:
@@ -659,6 +734,10 @@ class SimDevice:
             self._poll(now)
 
     def _flush(self) -> None:
+        if self._due:
+            now = time.monotonic()
+            while self._due and self._due[0][0] <= now:
+                self._pending += self._due.pop(0)[1]
         if self._pending and self.port.is_open:
             n = self.port.write(self._pending)
             del self._pending[:n]
@@ -682,7 +761,7 @@ class SimDevice:
         if self.feed.tests != tests_before:
             self.emit({"event": "test", "index": self.feed.tests - 1, "seq": self.stats.next_seq})
         self.stats.tests = self.feed.tests
-        if self.feed.exhausted and not self._pending and not self.done:
+        if self.feed.exhausted and not self._pending and not self._due and not self.done:
             self.done = True
             self.emit({"event": "done", "stats": asdict(self.stats)})
 
@@ -697,6 +776,8 @@ class SimDevice:
         at = now + IDLE_S
         if self._replug_at is not None:
             at = min(at, self._replug_at)
+        if self._due:
+            at = min(at, self._due[0][0])
         if self.started and self.s.mode == "stream" and not self.feed.exhausted:
             # (a microsecond late: device time computed from the wall clock then surely reaches the sample's)
             due = self._last_wall + (self.feed.next_t - self.sim_t) / self.s.speedup + 1e-6
@@ -859,8 +940,14 @@ def _parser() -> argparse.ArgumentParser:
         prog="python -m ballbar.tools.simdevice",
         description="A simulated ball-bar interface on a pty; fault injection on stdin (see the module docstring).",
     )
-    p.add_argument("--protocol", choices=["binary", "ascii"], default="binary")
-    p.add_argument("--mode", choices=["stream", "poll"], default="stream", help="ascii: answer requests (poll)")
+    from ballbar.protocol.gauges import PROFILES
+
+    p.add_argument("--protocol", choices=["binary", "ascii", *PROFILES], default="binary",
+                   help="a wire format, or a gauge interface's profile (protocol/README.md)")
+    p.add_argument("--mode", choices=["stream", "poll"],
+                   help="ascii and gauges: answer requests (poll); default stream, a polled gauge's poll")
+    p.add_argument("--poll-rate", type=float, default=15.625, help="a polled gauge: the rate its printed URL asks")
+    p.add_argument("--line-baud", type=int, help="a gauge: the emulated line's baud (default the profile's; 0: none)")
     p.add_argument("--rate", type=float, default=1000.0, help="device sample rate, Hz (15.625..10000)")
     p.add_argument("--speedup", type=float, default=1.0, help="device time per wall time")
     p.add_argument("--port", help="use this port (path or pyserial URL) instead of a new pty")
@@ -893,6 +980,16 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def source_url(path: str, s: Settings) -> str:
+    if s.gauge is not None:
+        from ballbar.protocol.gauges import PROFILES
+
+        g: dict[str, str] = {"protocol": s.gauge, "rate": f"{s.poll_rate if s.mode == 'poll' else s.rate:g}",
+                             "cal_mm": repr(s.cal_mm)}
+        if s.mode != ("poll" if PROFILES[s.gauge].polled else "stream"):
+            g["mode"] = s.mode
+        if s.line_baud and s.line_baud != PROFILES[s.gauge].baud:
+            g["baud"] = str(s.line_baud)
+        return f"serial:{path}?{urllib.parse.urlencode(g)}"
     q: dict[str, str] = {"protocol": s.protocol, "rate": f"{s.rate:g}", "cal_mm": repr(s.cal_mm)}
     if s.protocol == "ascii":
         q["unit"] = s.fmt.unit
@@ -916,8 +1013,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 15.625 <= args.rate <= 10_000 or not args.speedup > 0 or args.repeat < 0 or not 0 <= args.burst_ms <= 1000:
         log.error("--rate must be within 15.625..10000, --speedup > 0, --repeat >= 0, --burst-ms within 0..1000")
         return 2
-    if args.mode == "poll" and args.protocol != "ascii":
-        log.error("--mode poll needs --protocol ascii")
+    from ballbar.protocol.gauges import PROFILES
+
+    gauge = PROFILES.get(args.protocol)
+    if args.mode is None:
+        args.mode = "poll" if gauge is not None and gauge.polled else "stream"
+    if args.mode == "poll" and args.protocol == "binary":
+        log.error("--mode poll needs --protocol ascii or a gauge profile")
+        return 2
+    if gauge is not None and args.mode == "stream" and not gauge.streams:
+        log.error("a %s gauge does not stream: it answers requests", args.protocol)
         return 2
     try:
         ts_unit = None if args.timestamp == "none" else args.timestamp
@@ -933,7 +1038,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             width=1 + int_digits + 1 + probe.digits if probe.digits else 1 + int_digits,
             ts_width={"s": 13, "ms": 13, "us": 12}.get(args.timestamp, 0),
         )
+        if gauge is not None:
+            fmt = gauge.fmt
         settings = Settings(
+            gauge=gauge.name if gauge is not None else None,
+            prefix=gauge.prefix if gauge is not None else "",
+            poll_rate=args.poll_rate,
+            line_baud=(gauge.baud if args.line_baud is None else args.line_baud) if gauge is not None else 0,
+            bits_per_char=gauge.bits_per_char if gauge is not None else 10,
             protocol=args.protocol,
             mode=args.mode,
             rate=args.rate,

@@ -1,0 +1,87 @@
+"""End to end per gauge profile: the simulated gauge on a pty (its line emulated at the profile's baud),
+``ballbar run --source 'serial:PTY?protocol=NAME'`` polling it at 15.625 Hz, a whole test recorded to MCAP
+and fitted, and ``ballbar analyze`` of the recording giving the live result.
+
+A polled gauge has no clock: the host's stamps are the time axis, so the test runs at x1 (a sped-up
+device would run its machine faster than the host's clock).  To stay short it is a short test: R 50 mm
+at 3000 mm/min with 10 deg overshoots (about 15 s).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_e2e import Daemon, free_port, recordings
+
+from ballbar.analysis.polled import for_span, from_events
+from ballbar.daemon.cli import main as cli_main
+from ballbar.tools.simdevice import DeviceProcess
+
+pytestmark = pytest.mark.usefixtures("no_leaks")
+
+MACHINE = ("backlash_x_um=4", "kv_y_per_s=33", "squareness_urad=15", "centre_x_um=8", "noise_um=0.03",
+           "lead_s=0.5", "tail_s=0.5")
+PLAN = {"radius_mm": 50, "feed_mm_min": 2000, "overshoot_deg": 10, "dwell_s": 0.2}
+
+
+@pytest.mark.parametrize("profile", ["mitutoyo", "sylvac", "tesa"])
+def test_polled_gauge_end_to_end(profile: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--protocol", profile, "--rate", "1000", "--repeat", "1", "--wait",
+            *(f"--{k.replace('_', '-')}={v}" for k, v in PLAN.items())]
+    for item in MACHINE:
+        args += ["--set", item]
+    plan_sets = [x for k, v in {**PLAN, "sample_hz": 15.625}.items() for x in ("--set", f"plan.{k}={v}")]
+    with DeviceProcess(*args) as device:
+        url = f"serial:{device.path}?protocol={profile}&rate=15.625"
+        daemon = Daemon(tmp_path, url, free_port(), *plan_sets)
+        try:
+            daemon.wait_ready()
+            device.send("start")
+            device.wait_event("done", timeout=60)
+            time.sleep(1.5)  # the last answers reach the analysis and the log
+            stats = device.stats()
+            code, _ = daemon.terminate()
+        finally:
+            daemon.close()
+    assert code == 0, daemon.output()[-2000:]
+    log = recordings(tmp_path)
+    tests = [r for r in log.results if r.get("kind") == "test"]
+    assert len(tests) == 1, daemon.output()[-3000:]
+    test = tests[0]
+    p = test["parameters"]
+    assert abs(p["backlash_x_um"]["value"] - 4.0) < 0.1
+    assert abs(p["servo_mismatch_ms"]["value"] - 1000 * (1 / 30 - 1 / 33)) < 0.05
+    assert abs(p["squareness_urad"]["value"] - 15.0) < 0.5
+    assert abs(p["centre_x_um"]["value"] - 8.0) < 0.1
+    # The result says how it was timed: host stamps, polled, with their uncertainty and jitter.
+    timing = test["timing"]
+    assert "polled" in timing["time_source"] and test["time_axis"] == "host"
+    assert timing["t_uncertainty_ms"] > 0 and timing["t_jitter_ms"] >= 0
+    assert p["servo_mismatch_ms"]["stderr"] >= timing["t_jitter_ms"]  # widened by the jitter, in quadrature
+    events = [e for e in log.events if e.get("event") == "timing"]
+    assert events and all(e["t_uncertainty_s"] > 0 for e in events)
+    # ... the largest of the last before the feed-in and those up to the feed-out (the log's own events).
+    expected = for_span(from_events(log.events), timing["feed_in_s"], timing["feed_out_s"])
+    assert expected is not None and timing["t_uncertainty_ms"] == pytest.approx(1e3 * expected[0])
+    # The status reported the request/answer windows and the achieved rate.
+    polls = [s["source"]["poll"] for s in log.status if s.get("source", {}).get("poll")]
+    assert polls and polls[-1]["window_median_ms"] > 0 and polls[-1]["achieved_hz"] > 0
+    # Every answer the gauge sent is a sample of the log, numbered on the host's poll clock, none lost.
+    seq = np.unique(log.samples.seq)
+    assert seq.size >= stats["sent"] > 200
+    assert not any(e.get("event") == "lost" for e in log.events), [e for e in log.events if e.get("event") == "lost"]
+    assert np.isnan(log.samples.t_device).all()
+    # ... and ballbar analyze of the log gives the live result, its timing stated the same way.
+    capsys.readouterr()
+    assert cli_main(["analyze", str(tmp_path / "state" / "recordings"), "--json"]) == 0
+    offline = json.loads(capsys.readouterr().out)
+    assert offline["timing"]["t_uncertainty_ms"] == pytest.approx(timing["t_uncertainty_ms"])
+    for key, value in p.items():
+        a, b = value["value"], offline["parameters"][key]["value"]
+        assert (a is None and b is None) or abs(a - b) <= 1e-6 * max(1.0, abs(a)), key
+        sa, sb = value["stderr"], offline["parameters"][key]["stderr"]
+        assert (sa is None and sb is None) or abs(sa - sb) <= 1e-6 * max(1.0, abs(sa)), key
