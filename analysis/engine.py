@@ -100,6 +100,7 @@ WIDTH_AT_BOUND = 1.03  # a fitted width within 3 % of a bound of its search has 
 WIDTH_STEP_LN = 0.05  # the step in ln w of the width's error estimate
 SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full) standard errors
 SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
+LOCAL_MOVE_SAMPLES = 1.0  # ... and only by a local search where it moved by less (samples), the rest the same
 KAPPA_RESEARCH = 0.5  # the timing is searched again where the residual's correlation has fallen below this share
 ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
 # A measured feed this far from the programmed one is not the machine's habit (controls hold the feed to well
@@ -1067,10 +1068,17 @@ class _LagSearch:
         return sigma, slope
 
     def run(
-        self, offset: Offset | None, lost: LostMotion, start: _Hyper | None = None, misfit_only: bool = False
+        self,
+        offset: Offset | None,
+        lost: LostMotion,
+        start: _Hyper | None = None,
+        misfit_only: bool = False,
+        local: bool = False,
     ) -> _Hyper:
         """``start``: refine from there on the fine set (no search over the whole range).  ``misfit_only``:
         only the best timing is wanted, not its uncertainty (no stairs; a loop gain's profile value).
+        ``local``: ``start`` is near (the corrections moved little since it was found): only the compass
+        searches, the width and the stairs, not the grids along each line.
 
         Spikes and timing trade off: where a reversal carries a step (backlash,
         above all a compensation step filtered by the loop), a lag that puts
@@ -1231,27 +1239,29 @@ class _LagSearch:
             self.fine = idx = self.fine_samples(hyper.overhead_s)
             best[0] = math.inf
             smooth(LAG_GRID_S[1])
-        if spikes:
+        local = local and start is not None
+        if spikes and not local:
             width()
         if options.estimate_lag:
-            reach = LAG_GRID_S[0] if start is None else LAG_GRID_S[0] / 2
-            full = pick(-reach, reach, LAG_GRID_S[1])
-            if full.size >= 5:  # the lag's uncertainty: the full objective's curvature over that grid
-                g = np.arange(full.size) * LAG_GRID_S[1]
-                a2 = np.polyfit(g - g[int(np.argmin(full))], full, 2)[0]
-                hyper.lag_stderr_s = 1.0 / math.sqrt(2 * a2) if a2 > 0 else float("inf")
-            # the feed-in's extra wait over its whole range (the lag's grids above held it at 0)
             dirs = self.plan.direction_list
-            if start is None or misfit_only:  # (from another loop gain's timing: the wait moves with the gain)
-                pick(-WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0], wait=True)
-            # each arc's start in turn, the other's held (one direction: its start, then the feed)
-            for reach in HOLD_REACH_S:
-                if len(dirs) == 1:
-                    pick(-reach * 2, reach * 2, reach / 5, wait=True)
-                    pick(-reach, reach, reach / 10, hold=dirs[0])
-                else:
-                    for d in dirs:
-                        pick(-reach, reach, reach / 10, hold=-d)
+            if not local:
+                reach = LAG_GRID_S[0] if start is None else LAG_GRID_S[0] / 2
+                full = pick(-reach, reach, LAG_GRID_S[1])
+                if full.size >= 5:  # the lag's uncertainty: the full objective's curvature over that grid
+                    g = np.arange(full.size) * LAG_GRID_S[1]
+                    a2 = np.polyfit(g - g[int(np.argmin(full))], full, 2)[0]
+                    hyper.lag_stderr_s = 1.0 / math.sqrt(2 * a2) if a2 > 0 else float("inf")
+                # the feed-in's extra wait over its whole range (the lag's grids above held it at 0)
+                if start is None or misfit_only:  # (from another loop gain's timing: the wait moves with the gain)
+                    pick(-WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0], wait=True)
+                # each arc's start in turn, the other's held (one direction: its start, then the feed)
+                for reach in HOLD_REACH_S:
+                    if len(dirs) == 1:
+                        pick(-reach * 2, reach * 2, reach / 5, wait=True)
+                        pick(-reach, reach, reach / 10, hold=dirs[0])
+                    else:
+                        for d in dirs:
+                            pick(-reach, reach, reach / 10, hold=-d)
             # Then both together, on the full model: the lines above cross the valley the two trade along at a
             # slant (each moves the feed too), and on point samples no gradient leads along it.  A compass
             # search takes the steps (the axes and the diagonals) that gain more than COMPASS_GAIN_NATS,
@@ -1724,8 +1734,9 @@ def _fit_at(
         if near is not None:
             search.fine = search.fine_samples(near.overhead_s)
             start = replace(near, spike_lr_search=None)
+        local = False
         for _pass in range(3 if near is None else 1):
-            hyper = search.run(offset, lost, start, misfit_only=near is not None)
+            hyper = search.run(offset, lost, start, misfit_only=near is not None, local=local)
             joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
             fit_s = joint_s.solve(options, rank=False)
             chosen = choose(fit_s)
@@ -1735,8 +1746,11 @@ def _fit_at(
             # The residual's correlation, judged before the timing was found, may have been the misfit's
             # (a large servo pattern turned by a wrong start): judged again, it can sharpen the likelihood.
             kappa = _kappa(_lag1(joint_s.residuals(fit_s.x)))
-            if kappa < KAPPA_RESEARCH * search.kappa:
+            rejudged = kappa < KAPPA_RESEARCH * search.kappa
+            if rejudged:
                 search.kappa, same = kappa, False
+            # a reversal moved by less than a sample, the rest as it was: the timing moves little, nearby
+            local = chosen.models == lost.models and moved <= LOCAL_MOVE_SAMPLES * spacing_rad and not rejudged
             lost, start = chosen, hyper
             if same:
                 break
