@@ -133,6 +133,7 @@ from ballbar import __version__
 from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID
 
+from . import schemas as _schemas
 from .listeners import Listener, to_json
 from .listeners import Message as ListenerMessage
 from .recordings import Recording, open_recording
@@ -205,6 +206,7 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
                 "length_missing": {**_INTS, "description": "indices of samples without a length (NaN)"},
                 "status": {**_INTS, "description": "n status bytes: 1 over range, 2 sensor fault, 128 simulated"},
             },
+            "additionalProperties": False,
             "required": [
                 "source", "count", "seq_first", "seq_delta", "t_host_first", "t_host_delta_ns",
                 "t_device_first", "t_device_delta_ns", "length_first_pm", "length_delta_pm", "status",
@@ -212,66 +214,12 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
         },
         "ball-bar samples, delta-encoded columns; see the ballbar.Samples schema",
     ),
-    TOPIC_EVENTS: (
-        "ballbar.Event",
-        {
-            "title": "ballbar.Event",
-            "description": "A source, pipeline or logger event.",
-            "type": "object",
-            "properties": {
-                "event": {"type": "string", "description": "what happened (unplugged, lost, feed_in, log_gap, ...)"},
-                "t_host": {"type": "number", "description": "host monotonic clock, s"},
-                "source": {"type": "string"},
-                "count": {"type": "integer", "description": "samples (lost, log_gap)"},
-                "seq": {"type": "integer", "description": "first sample number concerned"},
-                "gap_s": {"type": "number", "description": "duration of an outage or stall, s"},
-                "detail": {"type": "string"},
-                "counts": {"type": "object", "additionalProperties": {"type": "integer"}},
-            },
-            "required": ["event"],
-            "additionalProperties": True,
-        },
-        "source, pipeline and logger events",
-    ),
-    TOPIC_RESULTS: (
-        "ballbar.Result",
-        {
-            "title": "ballbar.Result",
-            "description": "An analysis result: one circle (provisional) or a whole test, as `ballbar analyze --json`.",
-            "type": "object",
-            "properties": {
-                "kind": {"type": "string", "enum": ["circle", "test"]},
-                "machine_id": {"type": "string"},
-                "test_id": {"type": ["string", "integer", "null"]},
-                "test_index": {"type": "integer"},
-                "t_host": {"type": "number", "description": "host monotonic clock, s"},
-            },
-            "required": ["kind"],
-            "additionalProperties": True,
-        },
-        "analysis results (circle, test)",
-    ),
-    TOPIC_STATUS: (
-        "ballbar.Status",
-        {
-            "title": "ballbar.Status",
-            "description": "The daemon's periodic status: rates, losses, queue depths, source state.",
-            "type": "object",
-            "properties": {"kind": {"const": "status"}},
-            "additionalProperties": True,
-        },
-        "daemon status",
-    ),
+    # The payloads' schemas are daemon/schemas.py's, the files shipped in ballbar/schema/.
+    TOPIC_EVENTS: ("ballbar.Event", _schemas.schema("mcap-event"), "source, pipeline and logger events"),
+    TOPIC_RESULTS: ("ballbar.Result", _schemas.schema("result"), "analysis results (circle, test)"),
+    TOPIC_STATUS: ("ballbar.Status", _schemas.schema("status"), "daemon status"),
     TOPIC_CONFIG: (
-        "ballbar.Config",
-        {
-            "title": "ballbar.Config",
-            "description": "The daemon's effective configuration.",
-            "type": "object",
-            "properties": {"kind": {"const": "config"}},
-            "additionalProperties": True,
-        },
-        "effective configuration, at start and at the head of every file",
+        "ballbar.Config", _schemas.schema("config"), "effective configuration, at start and at the head of every file"
     ),
     TOPIC_OTHER: (
         "ballbar.Message",

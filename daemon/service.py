@@ -228,8 +228,12 @@ class Daemon:
         source: Source,
         listeners: Sequence[tuple[Listener, int, str]],
         notifier: Notifier | None = None,
+        speedup: float = 1.0,
     ) -> None:
         self.cfg = cfg
+        # Device time per host time: a simulated device sped up (``--simulate --speedup``) reports its rates and
+        # clock in device terms, so that a 5x speed-up does not read as a 5 kHz rate and a -800000 ppm drift.
+        self.speedup = float(speedup)
         self.source = source
         self.notifier = notifier or Notifier()
         outputs = [*listeners, (LogListener(), 100, "drop_oldest")]
@@ -301,17 +305,21 @@ class Daemon:
         with contextlib.suppress(Exception):
             st = self.source.stats()
             src = st.to_dict() if hasattr(st, "to_dict") else dict(vars(st))
+        if self.speedup != 1.0 and isinstance(src.get("clock_ratio"), float):
+            src["clock_ratio"] *= self.speedup  # host s per device s, as if the device ran at its own speed
+            src["drift_ppm"] = (src["clock_ratio"] - 1.0) * 1e6
         return {
             "kind": "status",
             "schema_version": SCHEMA_VERSION,
             "machine_id": self.cfg.daemon.machine_id,
             "t_wall": utc_now(),
             "uptime_s": now - self.started,
+            "speedup": self.speedup,
             "source_state": self.source_state,
             "source_reason": self.source_reason,
             "source": src,
             "samples": self.samples,
-            "sample_rate_hz": self.rate_hz,
+            "sample_rate_hz": self.rate_hz / self.speedup,  # per second of device time
             "lost_samples": self.lost,
             "queues": queues,
             "outputs": outputs,
