@@ -522,9 +522,39 @@ def test_the_tool_exits_cleanly_on_a_signal(sig: signal.Signals) -> None:
         assert time.monotonic() - t0 < 3.0
 
 
+def test_the_tool_waits_for_a_daemon_that_starts_later() -> None:
+    """Services start in any order: a subscriber started first says it is waiting, then gets the results."""
+    ep = endpoint()
+    p = subprocess.Popen(
+        [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", ep, "--topic", "test", "--count", "1",
+         "--timeout", "60"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        assert p.stderr is not None
+        line = p.stderr.readline()  # said at once, before any daemon exists
+        assert line.startswith("ballbar-subscribe: waiting for a daemon or router (client") and "retrying" in line
+        assert p.poll() is None
+        time.sleep(1.0)  # a retry or two fails meanwhile
+        bus = ZenohBus("m", ZenohConfig(listen=[ep]))
+        try:
+            wait_until(lambda: bus.has_subscribers("test"), timeout=30, what="the waiting subscriber")
+            bus.on_message(result_msg(1))
+            out, err = p.communicate(timeout=20)
+        finally:
+            bus.stop()
+            assert bus.wait_closed(15)
+        assert p.returncode == 0, err
+        assert [g["test_id"] for g in lines(out)] == ["m-1"]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+
+
 def test_the_tool_says_what_went_wrong() -> None:
     r = subprocess.run(
-        [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint()],
+        [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint(), "--no-wait"],
         capture_output=True,
         text=True,
         timeout=20,
