@@ -203,10 +203,32 @@ class LogListener(Listener):
             "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
             "test_incomplete", "analysis_reset",
         ):
-            log.warning("event %s: %s", msg["event"], {k: v for k, v in msg.items() if k not in ("kind", "event")})
+            log.warning("%s", event_sentence(msg))
 
     def stop(self) -> None:
         pass
+
+
+def event_sentence(msg: Message) -> str:
+    """An event as one sentence for the log (the payload itself is on the bus and in the recordings)."""
+    name = str(msg.get("event"))
+    detail = msg.get("detail") or ""
+    gap = msg.get("gap_s")
+    gap_s = f"{gap:.3g} s" if isinstance(gap, int | float) else "an unknown time"
+    test = msg.get("test_id") or "the test"
+    texts = {
+        "unplugged": f"the source was unplugged ({detail}); retrying",
+        "replugged": f"the source is back after {gap_s} ({detail})",
+        "lost": f"{msg.get('count')} samples lost from sample {msg.get('seq')} ({detail})",
+        "stall": f"the source stalled: no bytes for {gap_s}",
+        "resumed": f"the source resumed after {gap_s} without bytes",
+        "device_reset": f"the device restarted at sample {msg.get('seq')} ({detail})",
+        "clock_jump": f"the device clock jumped {gap_s} at sample {msg.get('seq')}",
+        "test_rejected": f"{test} rejected: {msg.get('message')}",
+        "test_incomplete": f"{test} incomplete: {msg.get('message')}",
+        "analysis_reset": f"the analysis restarted: {msg.get('message')}",
+    }
+    return texts.get(name, f"event {name}: {detail or msg.get('message') or ''}".rstrip(": "))
 
 
 def _finding(msg: Message, pattern: str) -> str:
