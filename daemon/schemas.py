@@ -807,7 +807,7 @@ def samples_schema() -> Schema:
 
 
 def history_schema() -> Schema:
-    props = {
+    props: dict[str, Schema] = {
         "schema_version": {"const": SCHEMA_VERSION, "description": "version of these payloads' shapes"},
         "kind": {"const": "history", "description": "a history reply"},
         "topic": string("circle, test or event", enum=["circle", "test", "event"]),
