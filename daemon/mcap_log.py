@@ -406,6 +406,8 @@ class _LogFile:
     first_t: float = math.nan  # host time of the first and newest sample in it
     last_t: float = math.nan
     has_test: bool = False
+    header: int = 0  # the header and metadata
+    overhead: int = 0  # the size with the first chunk (schemas, first records): not counted against rotate_bytes
 
     def close_quietly(self) -> None:
         with contextlib.suppress(OSError, ValueError):
@@ -823,13 +825,15 @@ class McapLogger(Listener):
             for topic, (schema_name, schema, description) in SCHEMAS.items():
                 sid = writer.register_schema(schema_name, "jsonschema", to_json(schema))
                 channels[topic] = writer.register_channel(topic, "json", sid, {"description": description})
+            writer.flush()  # the header and metadata (the schemas wait for the first chunk)
+            header = fh.tell()
         except OSError as err:
             if fh is not None:
                 with contextlib.suppress(OSError, ValueError):
                     fh.close()
             self._failed(err, path, delete=path if fh is not None else None, now=now)
             return False
-        self._file = _LogFile(path, fh, writer, channels, now, self._next_reason)
+        self._file = _LogFile(path, fh, writer, channels, now, self._next_reason, header=header)
         self._c["files"] += 1
         self._next_reason = "recovery"  # a file opened other than by _rotate follows a write error
         # At the file's own start: an old log_time would stretch the file's time range to the daemon's start.
@@ -896,10 +900,12 @@ class McapLogger(Listener):
             return
         self._c["bytes"] += size - f.bytes_counted
         f.bytes_counted = size
+        if not f.overhead and size > f.header:
+            f.overhead = size  # the first chunk holds the schemas (~70 kB before compression): not counted
         f.unflushed_samples = 0
         f.flushed_records += 1
         self._dirty_since = None
-        if size >= self.rotate_bytes * (2 if self._in_test else 1):
+        if size - f.overhead >= self.rotate_bytes * (2 if self._in_test else 1):
             self._rotate("size", time.monotonic())
 
     def _write(self, topic: str, payload: Mapping[str, Any], log_time: int) -> None:
