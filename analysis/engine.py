@@ -38,6 +38,8 @@ from scipy.linalg.blas import dsymv as _symv
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotri as _potri
 
+from ballbar import SCHEMA_VERSION  # the payloads' version, one for all (daemon/schemas.py)
+
 from . import iso230, noise, stats
 from .advice import advise
 from .detect import StepEvent, TestDetector
@@ -59,7 +61,6 @@ from .timeaxis import Break, TimeAxis
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
 FOLD_SAMPLES = 256  # a live circle folds new samples in blocks of at least this many (or as it completes)
 SEARCH_SAMPLES_PER_CIRCLE = 1000  # thinned samples per circle away from the sharp features
 FOLD_ROWS = 16384  # samples folded into a QR factor at a time: the block's design and factor stay in cache

@@ -13,4 +13,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
 
 __version__ = "0.1.0"
-SCHEMA_VERSION = 1
+#: The version of every payload's shape (``schema_version``; the JSON Schemas in ``ballbar/schema/``).
+#: 2: the status' duplicate top-level ``zenoh`` block went (``outputs.zenoh`` stays), its rates and device
+#: clock figures are in device terms with ``speedup``; the schemas were written.
+SCHEMA_VERSION = 2

@@ -24,7 +24,7 @@ key                               how         what
                                               clock_jump, ...
 ``ballbar/<m>/status``            put         ``kind: "status"`` every status interval: rates,
                                               losses, queue depths, source state, fit latency,
-                                              and ``zenoh``: this publisher's own counters
+                                              ``outputs.zenoh``: this publisher's own counters
 ``ballbar/<m>/config``            put         ``kind: "config"``: the effective configuration, at
                                               start
 ``ballbar/<m>/samples``           put         ``kind: "samples"``, decimated samples (off unless
@@ -513,8 +513,8 @@ class ZenohBus(Listener):
         body.setdefault("machine_id", self.machine)
         if not isinstance(body.get("t_wall"), str):
             body["t_wall"] = utc_now()
-        if kind == "status":
-            body.setdefault("zenoh", self.stats())
+        if kind == "status" and isinstance(body.get("outputs"), dict):
+            body["outputs"] = {**body["outputs"], "zenoh": self.stats()}  # this bus' counters as of this put
         payload = dumps(body)
         with self._lock:
             self._last[kind] = payload

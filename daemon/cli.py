@@ -389,6 +389,13 @@ def _safe_name(text: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)[:100] or "test"
 
 
+def log_format(env: dict[str, str] | None = None) -> str:
+    """Log lines with a local timestamp (milliseconds), except under systemd, whose journal stamps its own."""
+    env = dict(os.environ) if env is None else env
+    plain = "%(levelname)s %(name)s: %(message)s"
+    return plain if env.get("JOURNAL_STREAM") else "%(asctime)s " + plain
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -403,7 +410,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _install_stop_handlers(stop)  # first: a SIGTERM from now on is a clean stop, exit 0
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2),
-        format="%(levelname)s %(name)s: %(message)s",
+        format=log_format(),
         stream=sys.stderr,
     )
     from .config import ConfigError

@@ -135,6 +135,7 @@ from ballbar import __version__
 from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID
 
+from . import schemas as _schemas
 from .listeners import Listener, to_json
 from .listeners import Message as ListenerMessage
 from .recordings import Recording, open_recording
@@ -207,6 +208,7 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
                 "length_missing": {**_INTS, "description": "indices of samples without a length (NaN)"},
                 "status": {**_INTS, "description": "n status bytes: 1 over range, 2 sensor fault, 128 simulated"},
             },
+            "additionalProperties": False,
             "required": [
                 "source", "count", "seq_first", "seq_delta", "t_host_first", "t_host_delta_ns",
                 "t_device_first", "t_device_delta_ns", "length_first_pm", "length_delta_pm", "status",
@@ -214,66 +216,12 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
         },
         "ball-bar samples, delta-encoded columns; see the ballbar.Samples schema",
     ),
-    TOPIC_EVENTS: (
-        "ballbar.Event",
-        {
-            "title": "ballbar.Event",
-            "description": "A source, pipeline or logger event.",
-            "type": "object",
-            "properties": {
-                "event": {"type": "string", "description": "what happened (unplugged, lost, feed_in, log_gap, ...)"},
-                "t_host": {"type": "number", "description": "host monotonic clock, s"},
-                "source": {"type": "string"},
-                "count": {"type": "integer", "description": "samples (lost, log_gap)"},
-                "seq": {"type": "integer", "description": "first sample number concerned"},
-                "gap_s": {"type": "number", "description": "duration of an outage or stall, s"},
-                "detail": {"type": "string"},
-                "counts": {"type": "object", "additionalProperties": {"type": "integer"}},
-            },
-            "required": ["event"],
-            "additionalProperties": True,
-        },
-        "source, pipeline and logger events",
-    ),
-    TOPIC_RESULTS: (
-        "ballbar.Result",
-        {
-            "title": "ballbar.Result",
-            "description": "An analysis result: one circle (provisional) or a whole test, as `ballbar analyze --json`.",
-            "type": "object",
-            "properties": {
-                "kind": {"type": "string", "enum": ["circle", "test"]},
-                "machine_id": {"type": "string"},
-                "test_id": {"type": ["string", "integer", "null"]},
-                "test_index": {"type": "integer"},
-                "t_host": {"type": "number", "description": "host monotonic clock, s"},
-            },
-            "required": ["kind"],
-            "additionalProperties": True,
-        },
-        "analysis results (circle, test)",
-    ),
-    TOPIC_STATUS: (
-        "ballbar.Status",
-        {
-            "title": "ballbar.Status",
-            "description": "The daemon's periodic status: rates, losses, queue depths, source state.",
-            "type": "object",
-            "properties": {"kind": {"const": "status"}},
-            "additionalProperties": True,
-        },
-        "daemon status",
-    ),
+    # The payloads' schemas are daemon/schemas.py's, the files shipped in ballbar/schema/.
+    TOPIC_EVENTS: ("ballbar.Event", _schemas.schema("mcap-event"), "source, pipeline and logger events"),
+    TOPIC_RESULTS: ("ballbar.Result", _schemas.schema("result"), "analysis results (circle, test)"),
+    TOPIC_STATUS: ("ballbar.Status", _schemas.schema("status"), "daemon status"),
     TOPIC_CONFIG: (
-        "ballbar.Config",
-        {
-            "title": "ballbar.Config",
-            "description": "The daemon's effective configuration.",
-            "type": "object",
-            "properties": {"kind": {"const": "config"}},
-            "additionalProperties": True,
-        },
-        "effective configuration, at start and at the head of every file",
+        "ballbar.Config", _schemas.schema("config"), "effective configuration, at start and at the head of every file"
     ),
     TOPIC_OTHER: (
         "ballbar.Message",
@@ -460,6 +408,8 @@ class _LogFile:
     first_t: float = math.nan  # host time of the first and newest sample in it
     last_t: float = math.nan
     has_test: bool = False
+    header: int = 0  # the header and metadata
+    overhead: int = 0  # the size with the first chunk (schemas, first records): not counted against rotate_bytes
 
     def close_quietly(self) -> None:
         with contextlib.suppress(OSError, ValueError):
@@ -880,13 +830,15 @@ class McapLogger(Listener):
             for topic, (schema_name, schema, description) in SCHEMAS.items():
                 sid = writer.register_schema(schema_name, "jsonschema", to_json(schema))
                 channels[topic] = writer.register_channel(topic, "json", sid, {"description": description})
+            writer.flush()  # the header and metadata (the schemas wait for the first chunk)
+            header = fh.tell()
         except OSError as err:
             if fh is not None:
                 with contextlib.suppress(OSError, ValueError):
                     fh.close()
             self._failed(err, path, delete=path if fh is not None else None, now=now)
             return False
-        self._file = _LogFile(path, fh, writer, channels, now, self._next_reason)
+        self._file = _LogFile(path, fh, writer, channels, now, self._next_reason, header=header)
         self._c["files"] += 1
         self._next_reason = "recovery"  # a file opened other than by _rotate follows a write error
         # At the file's own start: an old log_time would stretch the file's time range to the daemon's start.
@@ -955,10 +907,12 @@ class McapLogger(Listener):
             return
         self._c["bytes"] += size - f.bytes_counted
         f.bytes_counted = size
+        if not f.overhead and size > f.header:
+            f.overhead = size  # the first chunk holds the schemas (~70 kB before compression): not counted
         f.unflushed_samples = 0
         f.flushed_records += 1
         self._dirty_since = None
-        if size >= self.rotate_bytes * (2 if self._in_test else 1):
+        if size - f.overhead >= self.rotate_bytes * (2 if self._in_test else 1):
             self._rotate("size", time.monotonic())
 
     def _write(self, topic: str, payload: Mapping[str, Any], log_time: int) -> None:

@@ -360,6 +360,7 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         source: Source
         if args.simulate:
             source = stack.enter_context(simulated_device(cfg, args.speedup))
+            cfg.source.url = source.url  # the configuration published says what is read: the device's pty
         else:
             try:
                 source = open_source(url, **_source_options(cfg, url))
@@ -370,6 +371,6 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
             return 0
         cut = _recover(cfg)  # before the bus reads the history from the recordings
         listeners = build_listeners(cfg)
-        daemon = Daemon(cfg, source, listeners)
+        daemon = Daemon(cfg, source, listeners, speedup=args.speedup if args.simulate else 1.0)
         daemon.startup_messages.extend(cut)
         return daemon.run(stop, max_tests=args.tests, duration_s=args.duration_s)

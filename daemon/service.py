@@ -214,10 +214,32 @@ class LogListener(Listener):
             "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
             "test_incomplete", "analysis_reset",
         ):
-            log.warning("event %s: %s", msg["event"], {k: v for k, v in msg.items() if k not in ("kind", "event")})
+            log.warning("%s", event_sentence(msg))
 
     def stop(self) -> None:
         pass
+
+
+def event_sentence(msg: Message) -> str:
+    """An event as one sentence for the log (the payload itself is on the bus and in the recordings)."""
+    name = str(msg.get("event"))
+    detail = msg.get("detail") or ""
+    gap = msg.get("gap_s")
+    gap_s = f"{gap:.3g} s" if isinstance(gap, int | float) else "an unknown time"
+    test = msg.get("test_id") or "the test"
+    texts = {
+        "unplugged": f"the source was unplugged ({detail}); retrying",
+        "replugged": f"the source is back after {gap_s} ({detail})",
+        "lost": f"{msg.get('count')} samples lost from sample {msg.get('seq')} ({detail})",
+        "stall": f"the source stalled: no bytes for {gap_s}",
+        "resumed": f"the source resumed after {gap_s} without bytes",
+        "device_reset": f"the device restarted at sample {msg.get('seq')} ({detail})",
+        "clock_jump": f"the device clock jumped {gap_s} at sample {msg.get('seq')}",
+        "test_rejected": f"{test} rejected: {msg.get('message')}",
+        "test_incomplete": f"{test} incomplete: {msg.get('message')}",
+        "analysis_reset": f"the analysis restarted: {msg.get('message')}",
+    }
+    return texts.get(name, f"event {name}: {detail or msg.get('message') or ''}".rstrip(": "))
 
 
 def _finding(msg: Message, pattern: str) -> str:
@@ -239,8 +261,12 @@ class Daemon:
         source: Source,
         listeners: Sequence[tuple[Listener, int, str]],
         notifier: Notifier | None = None,
+        speedup: float = 1.0,
     ) -> None:
         self.cfg = cfg
+        # Device time per host time: a simulated device sped up (``--simulate --speedup``) reports its rates and
+        # clock in device terms, so that a 5x speed-up does not read as a 5 kHz rate and a -800000 ppm drift.
+        self.speedup = float(speedup)
         self.source = source
         self.notifier = notifier or Notifier()
         outputs = [*listeners, (LogListener(), 100, "drop_oldest")]
@@ -312,17 +338,21 @@ class Daemon:
         with contextlib.suppress(Exception):
             st = self.source.stats()
             src = st.to_dict() if hasattr(st, "to_dict") else dict(vars(st))
+        if self.speedup != 1.0 and isinstance(src.get("clock_ratio"), float):
+            src["clock_ratio"] *= self.speedup  # host s per device s, as if the device ran at its own speed
+            src["drift_ppm"] = (src["clock_ratio"] - 1.0) * 1e6
         return {
             "kind": "status",
             "schema_version": SCHEMA_VERSION,
             "machine_id": self.cfg.daemon.machine_id,
             "t_wall": utc_now(),
             "uptime_s": now - self.started,
+            "speedup": self.speedup,
             "source_state": self.source_state,
             "source_reason": self.source_reason,
             "source": src,
             "samples": self.samples,
-            "sample_rate_hz": self.rate_hz,
+            "sample_rate_hz": self.rate_hz / self.speedup,  # per second of device time
             "lost_samples": self.lost,
             "queues": queues,
             "outputs": outputs,

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from ballbar import SCHEMA_VERSION
 from ballbar.daemon.bus import (
     DEFAULT_LISTEN,
     BusConfigError,
@@ -63,7 +64,7 @@ def iso(seconds: float) -> str:
 def circle(i: int, direction: str = "ccw", pad: int = 0) -> dict[str, Any]:
     return {
         "kind": "circle",
-        "schema_version": 1,
+        "schema_version": SCHEMA_VERSION,
         "direction": direction,
         "test_index": 1,
         "test_id": f"m-{i}",
@@ -78,7 +79,7 @@ def circle(i: int, direction: str = "ccw", pad: int = 0) -> dict[str, Any]:
 def result_msg(i: int) -> dict[str, Any]:
     return {
         "kind": "test",
-        "schema_version": 1,
+        "schema_version": SCHEMA_VERSION,
         "test_index": 1,
         "test_id": f"m-{i}",
         "t_wall": iso(10 * i + 5),
@@ -259,7 +260,7 @@ def test_a_separate_process_receives_each_circle_and_test() -> None:
     got = lines(out)
     assert [(g["kind"], g.get("direction")) for g in got] == [("circle", "ccw"), ("circle", "cw"), ("test", None)]
     for g, s in zip(got, sent, strict=True):
-        assert g["schema_version"] == 1 and g["machine_id"] == "m" and g["t_wall"] == s["t_wall"]
+        assert g["schema_version"] == SCHEMA_VERSION and g["machine_id"] == "m" and g["t_wall"] == s["t_wall"]
     assert got[0]["last_sample_t"] is None  # NaN goes out as null: plain JSON for every plant service
 
 
@@ -271,7 +272,7 @@ def test_topics_encoding_and_payloads() -> None:
         bus.on_message(circle(1))
         bus.on_message(result_msg(1))
         bus.on_message({"kind": "event", "event": "unplugged", "origin": "source", "detail": "EIO"})
-        bus.on_message({"kind": "status", "sample_rate_hz": 1000.0, "queues": {"zenoh": {"depth": 0}}})
+        bus.on_message({"kind": "status", "sample_rate_hz": 1000.0, "queues": {"zenoh": {"depth": 0}}, "outputs": {}})
         bus.on_message({"kind": "config", "config": {"daemon": {"machine_id": "m"}}})
         bus.on_message({"kind": "mystery"})
         wait_until(lambda: len(received) >= 5, what="five samples")
@@ -288,10 +289,11 @@ def test_topics_encoding_and_payloads() -> None:
     for s in received:
         assert s.encoding == zenoh.Encoding.APPLICATION_JSON
         body = json.loads(s.payload.to_bytes())
-        assert body["schema_version"] == 1 and body["machine_id"] == "m"
+        assert body["schema_version"] == SCHEMA_VERSION and body["machine_id"] == "m"
         parse_time_us(body["t_wall"])
     status = json.loads(by_key["ballbar/m/status"].payload.to_bytes())
-    assert status["zenoh"]["connected"] is True and status["zenoh"]["links"]["client"] == 1
+    zs = status["outputs"]["zenoh"]  # the bus' own counters as of the put, once (not also at the top)
+    assert zs["connected"] is True and zs["links"]["client"] == 1 and "zenoh" not in status
     assert json.loads(by_key["ballbar/m/event"].payload.to_bytes())["event"] == "unplugged"
     assert stats["skipped"] == 1 and stats["put_errors"] == 0
     assert stats["published"] == {
@@ -359,7 +361,7 @@ def test_last_and_history_answer_from_the_daemons_records() -> None:
 
         doc = history("ballbar/m/history/test")
         assert doc["ids"] == ["m--2", "m--1", "m-0", "m-1", "m-2"] and doc["more"] is False
-        assert doc["schema_version"] == 1 and doc["kind"] == "history" and doc["topic"] == "test"
+        assert doc["schema_version"] == SCHEMA_VERSION and doc["kind"] == "history" and doc["topic"] == "test"
         doc = history("ballbar/m/history/test?limit=2")
         assert doc["ids"] == ["m-1", "m-2"] and doc["more"] is True
         since = result_msg(-1)["t_wall"]
@@ -520,9 +522,39 @@ def test_the_tool_exits_cleanly_on_a_signal(sig: signal.Signals) -> None:
         assert time.monotonic() - t0 < 3.0
 
 
+def test_the_tool_waits_for_a_daemon_that_starts_later() -> None:
+    """Services start in any order: a subscriber started first says it is waiting, then gets the results."""
+    ep = endpoint()
+    p = subprocess.Popen(
+        [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", ep, "--topic", "test", "--count", "1",
+         "--timeout", "60"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        assert p.stderr is not None
+        line = p.stderr.readline()  # said at once, before any daemon exists
+        assert line.startswith("ballbar-subscribe: waiting for a daemon or router (client") and "retrying" in line
+        assert p.poll() is None
+        time.sleep(1.0)  # a retry or two fails meanwhile
+        bus = ZenohBus("m", ZenohConfig(listen=[ep]))
+        try:
+            wait_until(lambda: bus.has_subscribers("test"), timeout=30, what="the waiting subscriber")
+            bus.on_message(result_msg(1))
+            out, err = p.communicate(timeout=20)
+        finally:
+            bus.stop()
+            assert bus.wait_closed(15)
+        assert p.returncode == 0, err
+        assert [g["test_id"] for g in lines(out)] == ["m-1"]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+
+
 def test_the_tool_says_what_went_wrong() -> None:
     r = subprocess.run(
-        [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint()],
+        [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint(), "--no-wait"],
         capture_output=True,
         text=True,
         timeout=20,

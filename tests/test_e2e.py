@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from schemacheck import validate_all, validate_recordings
 from test_viewer import RERUN, Receiver, last, read_rrd
 
 from ballbar.daemon.cli import main as cli_main
@@ -86,24 +88,33 @@ class Daemon:
 
 
 class Subscriber:
-    """``python -m ballbar.tools.subscribe`` connected to the daemon, collecting JSON lines."""
+    """``python -m ballbar.tools.subscribe`` connected to the daemon, collecting JSON lines (in a file: a pipe
+    nobody reads until the end would hold the subscriber up once 64 kB of payloads fill it)."""
 
     def __init__(self, port: int, *args: str) -> None:
+        self.out = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - closed in close()
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "ballbar.tools.subscribe", "--machine", "e2e", "--connect",
              f"tcp/127.0.0.1:{port}", *args],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            stdout=self.out, stderr=subprocess.PIPE, text=True,
         )
 
     def results(self, timeout: float) -> list[dict[str, Any]]:
-        out, err = self.proc.communicate(timeout=timeout)
+        _, err = self.proc.communicate(timeout=timeout)
         assert self.proc.returncode == 0, err[-2000:]
-        return [json.loads(line) for line in out.splitlines() if line.strip()]
+        self.out.seek(0)
+        return [json.loads(line) for line in self.out.read().splitlines() if line.strip()]
+
+    def stop(self) -> list[dict[str, Any]]:
+        """SIGTERM (a clean exit, 0) and what it printed."""
+        self.proc.send_signal(signal.SIGTERM)
+        return self.results(timeout=10)
 
     def close(self) -> None:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.communicate()
+        self.out.close()
 
 
 @pytest.fixture
@@ -121,23 +132,31 @@ def test_daemon_end_to_end(device: DeviceProcess, tmp_path: Path, capsys: pytest
     viewer = Receiver(tmp_path, "viewer", free_port())  # a headless rerun that saves what it receives
     daemon = Daemon(tmp_path, device.url, port, "--set", f'rerun.url="rerun+http://127.0.0.1:{viewer.port}/proxy"',
                     rerun='rerun.mode="connect"')
-    sub = None
+    sub = everything = None
     try:
         daemon.wait_ready()
+        everything = Subscriber(port, "--topic", "all", "--history")  # every payload, to check against its schema
         sub = Subscriber(port, "--topic", "circle", "--topic", "test", "--count", "3", "--timeout", "120")
         time.sleep(1.0)  # the subscriber's session finds the daemon
         device.send("start")
         lines = sub.results(timeout=150)
         device.wait_event("done", timeout=60)
         time.sleep(1.0)  # the last samples reach the log
+        payloads = everything.stop()
         code, elapsed = daemon.terminate()
         viewer.finish()
     finally:
-        if sub is not None:
-            sub.close()
+        for s in (sub, everything):
+            if s is not None:
+                s.close()
         daemon.close()
         viewer.close()
     assert code == 0 and elapsed < 5.0, daemon.output()[-2000:]
+    # Every payload the daemon sent, and every record it logged, matches its schema.
+    seen = validate_all(payloads + lines)
+    for kind in ("circle", "test", "status", "event:feed_in", "event:feed_out", "event:opened"):
+        assert seen[kind] > 0, (kind, seen)
+    assert validate_recordings(tmp_path / "state" / "recordings")["/ballbar/results"] == 3
     # The live view reached the viewer: both polar plots, the models, the length, findings, trends.
     saved = read_rrd(viewer.rrd)
     for entity in ("/polar/ccw/measured", "/polar/cw/measured", "/polar/ccw/model", "/polar/cw/model", "/length",
@@ -178,8 +197,11 @@ def test_daemon_end_to_end(device: DeviceProcess, tmp_path: Path, capsys: pytest
 def test_unplug_garbage_kill_and_restart(device: DeviceProcess, tmp_path: Path) -> None:
     port = free_port()
     daemon = Daemon(tmp_path, device.url, port)
+    subs: list[Subscriber] = []
     try:
         daemon.wait_ready()
+        subs.append(Subscriber(port, "--topic", "all"))  # every payload, to check against its schema
+        time.sleep(1.0)
         device.send("start")
         time.sleep(2.0)
         device.send("garbage 300")
@@ -195,6 +217,7 @@ def test_unplug_garbage_kill_and_restart(device: DeviceProcess, tmp_path: Path) 
         daemon.proc.send_signal(signal.SIGKILL)
         daemon.proc.wait(10)
         t_kill = time.time()
+        payloads = subs[0].stop()
         log = recordings(tmp_path)
         assert not log.complete  # no footer: it was killed
         t_last = log.t_wall_ns.max() / 1e9 if log.t_wall_ns.size else 0.0
@@ -204,12 +227,22 @@ def test_unplug_garbage_kill_and_restart(device: DeviceProcess, tmp_path: Path) 
         daemon.close()
         daemon = Daemon(tmp_path, device.url, port)
         daemon.wait_ready()
+        subs.append(Subscriber(port, "--topic", "all", "--history"))
         time.sleep(2.0)
+        payloads += subs[1].stop()
         code, elapsed = daemon.terminate()
         assert code == 0 and elapsed < 5.0
         after = recordings(tmp_path)
         assert np.unique(after.samples.seq).size > n_before
         lost = [e for e in after.events if e.get("event") == "lost"]
         assert lost, "the outage and the corrupted frames are counted as lost samples"
+        # Every payload of both runs, the faults' events and the crash's recovery among them, matches its schema;
+        # so does every record of the files, the one the kill cut included.
+        seen = validate_all(payloads)
+        for kind in ("status", "event:unplugged", "event:replugged", "event:decode_errors", "event:lost"):
+            assert seen[kind] > 0, (kind, seen)
+        assert validate_recordings(tmp_path / "state" / "recordings")["/ballbar/events"] > 0
     finally:
+        for s in subs:
+            s.close()
         daemon.close()

@@ -14,9 +14,14 @@ adds a line ``{"kind": "alive", "machine_id": ..., "alive": true|false}`` when
 a daemon appears or goes.
 
 By default the tool is a Zenoh client of ``tcp/127.0.0.1:7447``, where a
-daemon with the default settings listens.  Exit codes: 0 done (SIGINT, SIGTERM,
-``--count`` reached, or ``--timeout`` without ``--count``); 1 no connection, or
-``--timeout`` before ``--count`` lines; 2 a usage error.
+daemon with the default settings listens.  Services start in any order: until
+the daemon (or the plant's router) is there, it says once on stderr that it is
+waiting and retries with backoff (0.5 s doubling to 5 s); ``--no-wait`` gives
+up at once instead.  Once connected, Zenoh reconnects by itself when the
+daemon or router restarts.  Exit codes: 0 done (SIGINT, SIGTERM, ``--count``
+reached, or ``--timeout`` without ``--count``); 1 no connection (``--no-wait``,
+or none within ``--timeout``), or ``--timeout`` before ``--count`` lines; 2 a
+usage error.
 """
 
 from __future__ import annotations
@@ -92,6 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--listen", action="append", metavar="ENDPOINT", help="Zenoh endpoint to listen on (peer mode)")
     p.add_argument("--config", metavar="FILE", help="a Zenoh JSON5 config file (TLS, access control)")
+    p.add_argument("--no-wait", action="store_true",
+                   help="exit 1 at once when nothing answers at the endpoint (default: wait and retry)")
     p.add_argument("--count", type=int, help="exit after printing this many lines")
     p.add_argument("--timeout", type=float, help="exit after this many seconds")
     p.add_argument("--query-timeout", type=float, default=5.0, help="seconds to wait for history replies")
@@ -187,20 +194,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         config_file=args.config,
     )
     try:
-        session = zenoh.open(zc.to_zenoh_config())
+        zconfig = zc.to_zenoh_config()
     except BusConfigError as err:
         print(f"ballbar-subscribe: {err}", file=sys.stderr)
         return 2
-    except zenoh.ZError as err:
-        print(f"ballbar-subscribe: cannot connect ({zc.describe()}): {zenoh_message(err)}", file=sys.stderr)
-        return 1
-
+    deadline = time.monotonic() + args.timeout if args.timeout is not None else None
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    opened = _open(zconfig, zc.describe(), stop, deadline, wait=not args.no_wait)
+    if opened is None:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        return 0 if stop.is_set() else 1
+    session = opened
     inbox: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
 
     def on_sample(sample: zenoh.Sample) -> None:
@@ -223,7 +233,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     code = 0
     printer = _Printer(args.count)
-    deadline = time.monotonic() + args.timeout if args.timeout is not None else None
     try:
         keys = sorted({k for t in topics for k in TOPIC_KEYS[t]})
         subs = [session.declare_subscriber(f"ballbar/{args.machine}/{k}", on_sample) for k in keys]
@@ -264,6 +273,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         for s, handler in previous.items():
             signal.signal(s, handler)
     return code
+
+
+def _open(
+    config: zenoh.Config, where: str, stop: threading.Event, deadline: float | None, wait: bool = True
+) -> zenoh.Session | None:
+    """The session; while nothing answers, say so once and retry with backoff (None: stopped or out of time)."""
+    delay = 0.5
+    said = False
+    while True:
+        try:
+            return zenoh.open(config)
+        except zenoh.ZError as err:
+            why = zenoh_message(err)
+            if not wait:
+                print(f"ballbar-subscribe: cannot connect ({where}): {why}", file=sys.stderr)
+                return None
+            if not said:
+                print(f"ballbar-subscribe: waiting for a daemon or router ({where}): {why}; retrying",
+                      file=sys.stderr, flush=True)
+                said = True
+        left = None if deadline is None else deadline - time.monotonic()
+        if left is not None and left <= 0:
+            print(f"ballbar-subscribe: no connection within the timeout ({where})", file=sys.stderr)
+            return None
+        if stop.wait(delay if left is None else min(delay, left)):
+            return None
+        delay = min(delay * 2, 5.0)
+        if said:
+            log.debug("retrying %s", where)
 
 
 def _close(session: zenoh.Session, timeout: float = 2.0) -> None:

@@ -1,0 +1,154 @@
+"""The payloads' JSON Schemas: shipped, valid draft 2020-12, closed, and matched by real payloads.
+
+The daemon's own payloads are checked where they are made: the end-to-end tests
+(``test_e2e.py``, ``test_plant.py``) validate every message a subscriber receives
+and every MCAP record.  Here: the files, and `ballbar analyze --json` on simulated
+recordings that take the optional paths (null parameters with reasons, the
+controller's parameter names, cyclic errors, a partial arc in one direction, a
+rate warning, the loop gain profile of a slow rate).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from jsonschema import Draft202012Validator
+from schemacheck import problems, validate
+
+from ballbar import SCHEMA_VERSION
+from ballbar.daemon.mcap_log import SCHEMAS, TOPIC_CONFIG, TOPIC_EVENTS, TOPIC_RESULTS, TOPIC_STATUS
+from ballbar.daemon.schemas import NAMES, PARAMETERS, schema, schema_text, shipped_dir
+
+
+def test_shipped_files_are_the_schemas() -> None:
+    d = shipped_dir()
+    assert sorted(p.name for p in d.glob("*.schema.json")) == sorted(f"{n}.schema.json" for n in NAMES)
+    for name in NAMES:
+        text = (d / f"{name}.schema.json").read_text(encoding="utf-8")
+        assert text == schema_text(name), (
+            f"ballbar/schema/{name}.schema.json is stale: python -m ballbar.daemon.schemas --write ballbar/schema"
+        )
+        doc = json.loads(text)
+        Draft202012Validator.check_schema(doc)
+        assert doc["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+        assert doc["$id"] == f"urn:ballbar:schema:{SCHEMA_VERSION}:{name}"
+
+
+def test_mcap_channels_register_the_same_schemas() -> None:
+    for topic, name in ((TOPIC_RESULTS, "result"), (TOPIC_EVENTS, "mcap-event"), (TOPIC_STATUS, "status"),
+                        (TOPIC_CONFIG, "config")):
+        assert SCHEMAS[topic][1] == schema(name), topic
+
+
+def _closed(node: Any, path: str, out: list[str]) -> None:
+    """Every object schema with properties is closed; every leaf says what it is."""
+    if isinstance(node, dict):
+        if "properties" in node and node.get("additionalProperties") is not False:
+            out.append(path)
+        for k, v in node.get("properties", {}).items():
+            if isinstance(v, dict) and "$ref" not in v and not v.get("description"):
+                out.append(f"{path}/{k}: no description")
+        for k, v in node.items():
+            _closed(v, f"{path}/{k}", out)
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            _closed(v, f"{path}/{i}", out)
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if n != "history"])
+def test_objects_are_closed_and_described(name: str) -> None:
+    bad: list[str] = []
+    doc = schema(name)
+    _closed(doc, name, bad)
+    assert not bad, bad
+
+
+def _analyze(tmp: Path, sim: list[str], analyze: list[str]) -> dict[str, Any]:
+    csv = tmp / "rec.csv"
+    subprocess.run([sys.executable, "-m", "ballbar.tools.simulator", "--out", str(csv), *sim], check=True,
+                   capture_output=True)
+    out = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(csv), "--json", *analyze],
+                         check=True, capture_output=True, text=True).stdout
+    res: dict[str, Any] = json.loads(out)
+    return res
+
+
+@pytest.fixture(scope="module")
+def analyses(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
+    out = {}
+    # cyclic error with the pitch configured, gains configured, FANUC's parameter names in the advice
+    t = tmp_path_factory.mktemp("a")
+    out["full"] = _analyze(
+        t, ["--sample-hz", "500", "--set", "backlash_x_um=5", "--set", "pitch_x_mm=10", "--set", "cyclic_x_um=1"],
+        ["--sample-hz", "500", "--pitch-x-mm", "10", "--kv-x", "30", "--kv-y", "30", "--controller", "fanuc"],
+    )
+    # a 220 deg arc in ZX, CCW only, with a plan rate other than the recording's: spikes not reached, a warning
+    t = tmp_path_factory.mktemp("b")
+    plan = ["--plane", "ZX", "--start-deg", "-110", "--overshoot-deg", "5", "--data-arc-deg", "220",
+            "--feed-mm-min", "3000", "--directions", "ccw"]
+    out["partial"] = _analyze(t, ["--sample-hz", "200", *plan], ["--sample-hz", "100", *plan])
+    # 15.625 Hz: the loop's gain from the data arcs (the gain profile), negative backlash (compensation model)
+    t = tmp_path_factory.mktemp("c")
+    out["slow"] = _analyze(t, ["--sample-hz", "15.625", "--set", "backlash_x_um=-3"], ["--sample-hz", "15.625"])
+    return out
+
+
+def test_offline_results_validate(analyses: dict[str, dict[str, Any]]) -> None:
+    full, partial, slow = analyses["full"], analyses["partial"], analyses["slow"]
+    # the optional paths were taken, so the schema was tried on them
+    assert any("controller_parameter" in a for a in full["advice"])
+    assert full["parameters"]["cyclic_x_um"]["value"] is not None
+    nulls = [p for p in partial["parameters"].values() if p["value"] is None]
+    assert nulls and all(p.get("reason") for p in nulls)
+    assert partial.get("warnings") and partial["iso230_4"]["G_cw_um"] is None
+    assert "loop_gain_profile" in slow["timing"]
+    for res in analyses.values():
+        assert res["schema_version"] == SCHEMA_VERSION
+        validate(res, "analysis")
+
+
+def test_a_field_without_a_schema_entry_fails(analyses: dict[str, dict[str, Any]]) -> None:
+    base = analyses["full"]
+    validate(base, "analysis")
+    for where in ([], ["timing"], ["parameters"], ["parameters", "backlash_x_um"], ["iso230_4", "conditions"],
+                  ["fit", "lost_motion", "x"], ["noise"], ["source"]):
+        doc = copy.deepcopy(base)
+        node = doc
+        for k in where:
+            node = node[k]
+        node["surprise_um"] = 1.0
+        assert problems(doc, "analysis"), where
+    doc = copy.deepcopy(base)
+    doc["ranking"][0]["surprise"] = 1
+    assert problems(doc, "analysis")
+    doc = copy.deepcopy(base)
+    doc["parameters"]["backlash_x_um"]["value"] = "4"  # a wrong type
+    assert problems(doc, "analysis")
+    doc = copy.deepcopy(base)
+    del doc["parameters"]["squareness_urad"]  # every parameter is there, fitted or not
+    assert problems(doc, "analysis")
+
+
+def test_every_parameter_has_a_unit_in_its_schema(analyses: dict[str, dict[str, Any]]) -> None:
+    props = schema("result")["$defs"]["parameters"]["properties"]
+    for key, p in analyses["full"]["parameters"].items():
+        assert PARAMETERS[key][0] == p["unit"], key
+        assert props[key]["description"].endswith(p["unit"]), key
+
+
+def test_events_are_checked_per_kind() -> None:
+    ok = {"schema_version": SCHEMA_VERSION, "kind": "event", "event": "lost", "origin": "source",
+          "machine_id": "m", "t_wall": "2026-01-01T00:00:00.000Z", "t_host": 1.0, "source": "serial:x",
+          "count": 3, "seq": 10, "detail": "gap"}
+    validate(ok)
+    assert problems({**ok, "count": "3"})  # a count is an integer
+    assert problems({k: v for k, v in ok.items() if k != "count"})  # lost says how many
+    assert problems({**ok, "message": "x"})  # a lost event has no message
+    assert problems({**ok, "event": "no_such_event"})
+    assert problems({**ok, "schema_version": SCHEMA_VERSION - 1})
