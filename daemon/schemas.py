@@ -286,6 +286,13 @@ def _arc() -> Schema:
     )
 
 
+_POLLED = {  # analysis.polled: a gauge polled by the host, stamped at the middle of each request/answer window
+    "time_source": string("present for a polled gauge: what the time stamps are, in words"),
+    "t_uncertainty_ms": num("polled gauge: the stamps' uncertainty (half the p99 request/answer window), ms"),
+    "t_jitter_ms": num("polled gauge: the stamps' jitter (half the p1..p99 window spread), ms"),
+    "t_jitter_deg": num("polled gauge: that jitter as an angle at the measured feed, deg (null: no feed)", True),
+}
+
 _TIMING_TEST = obj(
     "the test's timing: feed, arc-start lag, spike width, feed-in and feed-out, data arcs, position loops",
     {
@@ -316,6 +323,7 @@ _TIMING_TEST = obj(
             "negative log-likelihood against the best, nats", "number"),
         "backlash_takeup_deg": obj("where each axis' dead band is taken up after a reversal, deg", _AXES),
         "reversal_onset_deg": obj("where friction starts after each reversal point, deg", _AXES),
+        **_POLLED,
     },
     required=["provisional", "programmed_feed_mm_min", "measured_feed_mm_min", "feed_in_s", "feed_out_s",
               "data_arcs", "loop_lag_ms", "loop_lag_origin"],
@@ -331,7 +339,10 @@ _TIMING_CIRCLE = obj(
         "data_start_s": num("the data arc's start, s"),
         "data_end_s": num("the data arc's end, s"),
         "spike_width_deg": num("the spike width assumed, deg"),
+        **_POLLED,
     },
+    required=["provisional", "feed_in_s", "assumed_feed_mm_min", "assumed_overhead_s", "data_start_s", "data_end_s",
+              "spike_width_deg"],
 )
 
 _ISO = obj(
@@ -489,6 +500,15 @@ SOURCE_EVENTS: dict[str, tuple[str, dict[str, Schema], list[str]]] = {
                    {"seq": integer("the first sample after the step"), "gap_s": num("the step, s"),
                     "detail": string("what was seen")}, []),
     "end": ("a finite source (replay, sim: with a repeat count) has ended", {"detail": string("why")}, []),
+    "timing": ("a polled gauge's stamps (no device clock): sent when first known and whenever their uncertainty "
+               "grows by a quarter; the MCAP log repeats the last at the head of each file",
+               {"detail": string("what the stamps are, in words"),
+                "t_uncertainty_s": num("half the p99 request/answer window, s"),
+                "t_jitter_s": num("half the windows' p1..p99 spread, s"),
+                "window_median_s": num("the windows' median, s"),
+                "window_p99_s": num("their 99th percentile, s"),
+                "achieved_hz": num("answers per second, Hz")},
+               ["t_uncertainty_s", "t_jitter_s"]),
 }
 
 _TEST_FIELDS: dict[str, Schema] = {
@@ -688,6 +708,19 @@ def status_schema() -> Schema:
             "clock_offset_s": num("t_host = clock_offset_s + clock_ratio * t_device / speedup, s", True),
             "drift_ppm": num("the device clock's drift against the host's, ppm, in device terms (null: unknown)",
                              True),
+            "poll": obj(
+                "a polled gauge's request/answer windows (the last few thousand; empty: not polled or no answer yet)",
+                {
+                    "window_median_ms": num("the windows' median, ms"),
+                    "window_p99_ms": num("their 99th percentile, ms"),
+                    "window_max_ms": num("the longest, ms"),
+                    "t_uncertainty_ms": num("half the p99 window: how far a stamp may be from its reading, ms"),
+                    "t_jitter_ms": num("half the windows' p1..p99 spread, ms"),
+                    "achieved_hz": num("answers per second over about the last 10 s, Hz"),
+                    "answers": num("how many answers the figures cover"),
+                },
+                required=[],
+            ),
         },
         required=["samples", "lost", "connected", "clock_ratio", "drift_ppm"],
     )
