@@ -209,6 +209,7 @@ def test_trend_with_history_and_without(data: ReportData, tmp_path: Path) -> Non
     table = table[: table.index("</table>")]
     assert table.count("<tr") == 1 + len(data.history) + 1  # header, history, this test
     assert all(h["test_id"] in table for h in data.history)
+    table = " ".join(re.sub(r"<[^>]+>", "", table).split())  # the unit sits on its own line in the header
     assert "Backlash X (µm)" in table and "Servo mismatch (ms)" in table and "Circularity G(b) (µm)" in table
     assert "earlier tests of mill-3 with the same plan" in text
     data.history = []
@@ -354,8 +355,11 @@ PAGE_FACTS = """(() => {
     if (!g) return null;
     const b = g.getBBox(), p = g.querySelector('path');
     return {w: b.width, h: b.height, stroke: p ? getComputedStyle(p).stroke : null,
+            dash: p ? getComputedStyle(p).strokeDasharray : null,
             inSvg: g.closest('svg') ? g.closest('svg').id : null};
   };
+  const legend = id => [...document.querySelectorAll('#' + id + ' path')].map(p => getComputedStyle(p).strokeDasharray);
+  const de = document.documentElement, trend = document.getElementById('trend-table');
   const first = document.querySelector('#findings tbody tr');
   return {
     title: document.title,
@@ -368,6 +372,10 @@ PAGE_FACTS = """(() => {
     resources: performance.getEntriesByType('resource').map(e => e.name),
     scripts: document.scripts.length,
     height: document.documentElement.scrollHeight,
+    page: [de.scrollWidth, de.clientWidth],
+    overflowing: [...document.querySelectorAll('section')].filter(s => s.scrollWidth > s.clientWidth).map(s => s.id),
+    trendTable: trend ? [trend.getBoundingClientRect().width, trend.closest('section').clientWidth] : null,
+    polarLegend: legend('polar-legend_1'), deviationLegend: legend('deviation-legend_1'),
   };
 })()"""
 
@@ -403,6 +411,15 @@ def test_report_in_headless_chromium(
             assert tr is not None and tr["inSvg"] == "polar-svg", (key, tr)
             assert tr["w"] > 100 and tr["h"] > 100, (key, tr)  # a whole circle, not a dot
         assert facts["ccw"]["stroke"] != facts["cw"]["stroke"]
+        # the model is dashed, the measured curve solid, and the legends show which is which
+        for key in ("ccw", "cw"):
+            assert facts[key]["dash"] == "none" and facts[key + "Model"]["dash"] != "none", facts[key]
+        for legend in (facts["polarLegend"], facts["deviationLegend"]):
+            assert len(legend) == 4 and sum(d != "none" for d in legend) == 2, legend
+        # nothing is wider than the page: the trend table (7 columns here) fits its section
+        assert facts["page"][0] <= facts["page"][1], facts["page"]
+        assert facts["overflowing"] == [], facts["overflowing"]
+        assert facts["trendTable"] is not None and facts["trendTable"][0] <= facts["trendTable"][1]
         assert facts["firstPattern"] == res["ranking"][0]["pattern"] == "servo_mismatch"
         assert facts["firstText"].strip() == "Servo mismatch"
         assert facts["gb"] == f"{res['iso230_4']['G_b_um']:.2f}"
