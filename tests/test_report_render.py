@@ -219,6 +219,29 @@ def test_trend_with_history_and_without(data: ReportData, tmp_path: Path) -> Non
     assert not (tmp_path / "n-trend.png").exists() and len(paths) == 3
 
 
+def test_trend_axes_span_the_uncertainty(data: ReportData) -> None:
+    """A figure that moves within its standard error plots flat (the axis spans +-4 of them about the mean);
+    one that moves by many keeps the autoscaled range of its points."""
+    from ballbar.tools.report_render import _trend_figure, _trend_quantities
+
+    tests = [*_history(data.result, 3), data.result]
+    servo = [r["parameters"]["servo_mismatch_ms"] for r in tests]
+    se = servo[-1]["stderr"]
+    for k, p in enumerate(servo):  # a wander of 0.12 standard errors in all
+        p["value"], p["stderr"] = servo[-1]["value"] + 0.04 * se * k, se
+    qs = _trend_quantities(tests, ("X", "Y"))
+    fig = _trend_figure(tests, qs)
+    axes = {ax.get_gid(): ax for ax in fig.axes if ax.get_visible()}
+    lo, hi = axes["trend-servo_mismatch_ms"].get_ylim()
+    mean = sum(p["value"] for p in servo) / len(servo)
+    assert lo <= mean - 4 * se + 1e-12 and hi >= mean + 4 * se - 1e-12
+    assert hi - lo < 10 * se  # and not wider than that needs
+    bx = [r["parameters"]["backlash_x_um"] for r in tests]
+    lo, hi = axes["trend-backlash_x_um"].get_ylim()  # 0.8 .. 1.0 of the value: many standard errors
+    assert hi - lo < 2.0 * (max(p["value"] + p["stderr"] for p in bx) - min(p["value"] - p["stderr"] for p in bx))
+    assert lo <= min(p["value"] for p in bx) and hi >= max(p["value"] for p in bx)
+
+
 def test_text_is_escaped(data: ReportData, tmp_path: Path) -> None:
     data.result["machine_id"] = '<script>alert("x")</script>'
     data.result["test_id"] = "a&b<i>"

@@ -48,6 +48,7 @@ import numpy as np
 
 from ballbar.analysis.patterns import LIBRARY, Pattern
 from ballbar.analysis.plan import PLANE_AXES
+from ballbar.analysis.report import TREND_STDERR_SPAN, trend_limits
 from ballbar.daemon.output import write_atomic
 
 from .report import ReportData
@@ -609,6 +610,9 @@ def _trend_figure(tests: Sequence[Mapping[str, Any]], quantities: Sequence[_Quan
             ax.errorbar([x], [v], yerr=[s] if s is not None else None, fmt="o", ms=5 if current else 4,
                         color=colour, mfc=colour if sig else "white", mec=colour, elinewidth=0.8, capsize=2,
                         zorder=3)
+        lim = trend_limits([v for v, _s, _g in vals], [s for _v, s, _g in vals])
+        if lim is not None and lim[1] > lim[0]:
+            ax.set_ylim(*lim)  # a change within the standard errors looks flat, not like a drift
         ax.set_title(f"{q.label} ({q.unit})" if q.unit else q.label, fontsize=8.5, loc="left")
         ax.grid(True, color="#e3e6ea", lw=0.5)
         ax.tick_params(labelsize=7.5)
@@ -1112,7 +1116,8 @@ def _trend(data: ReportData, qs: Sequence[_Quantity], svg: str | None) -> str:
             f'<div class="wide"><table id="trend-table" class="trend"><thead><tr><th>Test</th><th>Date</th>{head}'
             f"</tr></thead><tbody>{''.join(rows)}</tbody></table></div>"
             '<p class="caption">Bold: significant in that test. Plots: filled markers significant, hollow not; '
-            "bars ± one standard error; blue is this test.</p>")
+            "bars ± one standard error; blue is this test; each axis spans at least ± "
+            f"{TREND_STDERR_SPAN:g} standard errors about the mean, so a change within them looks flat.</p>")
 
 
 # --------------------------------------------------------------------------- render
