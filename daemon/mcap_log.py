@@ -763,10 +763,12 @@ class McapLogger(Listener):
         self._in_test = True
 
     def _write_preroll(self) -> None:
+        """The ring's samples at the head of the new file, one message per ``flush_s`` of them (the size of the
+        messages the flushes write), not one per batch (a 10 s preroll came as hundreds of small messages)."""
         if self._file is None or not self._ring:
             return
-        for b in list(self._ring):
-            self._write_samples([b], preroll=True)
+        for group in _group_by_period(list(self._ring), self.flush_s):
+            self._write_samples(group, preroll=True)
             if self._file is None:
                 return
         self._mark_dirty(time.monotonic())
@@ -1111,6 +1113,23 @@ class McapLogger(Listener):
             self._c["deleted_files"] += 1
             self._c["deleted_bytes"] += sizes[p]
             log.info("mcap log: deleted %s (%s)", p.name, "older than keep_days" if old else "over quota")
+
+
+def _group_by_period(batches: Sequence[SampleBatch], period_s: float) -> list[list[SampleBatch]]:
+    """Consecutive non-empty batches in groups that start at most ``period_s`` (host time) apart: a group takes
+    every batch whose first sample is less than ``period_s`` after the group's first sample."""
+    groups: list[list[SampleBatch]] = []
+    start = math.nan
+    for b in batches:
+        if not len(b):
+            continue
+        t0 = float(b.t_host[0])
+        if groups and t0 - start < period_s:
+            groups[-1].append(b)
+        else:
+            groups.append([b])
+            start = t0
+    return groups
 
 
 def _runs(batches: Sequence[SampleBatch]) -> Iterator[tuple[str, SampleBatch]]:

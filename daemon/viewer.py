@@ -100,6 +100,7 @@ after a second); a daemon killed outright takes it along (``PR_SET_PDEATHSIG``).
 from __future__ import annotations
 
 import contextlib
+import datetime
 import functools
 import importlib.util
 import ipaddress
@@ -138,6 +139,7 @@ from ballbar.analysis.patterns import LIBRARY, Geometry, Pattern, design
 from ballbar.analysis.physics import LostMotion, make_offset
 from ballbar.analysis.plan import MachineConfig, TestPlan
 from ballbar.analysis.program import arc_start_deg, data_start_deg, schedule
+from ballbar.analysis.report import trend_limits
 from ballbar.protocol import INVALID
 
 from .listeners import Listener, Message
@@ -173,6 +175,15 @@ TRENDS: tuple[tuple[str, str, str], ...] = (
     ("servo_mismatch_ms", "servo_mismatch_ms", "1/KX - 1/KY"),
     ("squareness_urad", "squareness_urad", "squareness"),
     ("scale_mismatch_ppm", "scale_mismatch_ppm", "eX - eY"),
+)
+# (origin under trends/, title): short, so that the titles fit a third of the trends panel
+# ("circularity G(b) (µm)" and "servo mismatch (ms)" were cut to "circularity G" and "servo mism")
+TREND_VIEWS: tuple[tuple[str, str], ...] = (
+    ("backlash_um", "backlash µm"),
+    ("circularity_um", "G(b) µm"),
+    ("servo_mismatch_ms", "servo ms"),
+    ("squareness_urad", "square µrad"),
+    ("scale_mismatch_ppm", "scale ppm"),
 )
 WARN_EVENTS = frozenset(
     {"test_rejected", "test_incomplete", "test_aborted", "unplugged", "lost", "stall", "device_reset", "clock_jump",
@@ -721,15 +732,46 @@ def findings_markdown(result: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def default_blueprint() -> rrb.Blueprint:
-    """The layout: polar plot and length on the left; findings, trends and events on the right."""
+def _clock_text(wall: float) -> str:
+    """A wall-clock time as the viewer's events show it: UTC, to the millisecond."""
+    return datetime.datetime.fromtimestamp(wall, datetime.UTC).strftime("%H:%M:%S.%f")[:-3] + " UTC"
+
+
+def trend_ranges(rows: FloatArray) -> dict[str, tuple[float, float]]:
+    """The y range of each trend view (:data:`TREND_VIEWS`) from trend rows (test, wall time, the
+    values of :data:`TRENDS`, then their standard errors; NaN: none): at least
+    ``TREND_STDERR_SPAN`` standard errors either side of the mean (:func:`trend_limits`), so that a
+    change within them looks flat.  A view without standard errors (G(b)) is left out: autoscaled."""
+    out: dict[str, tuple[float, float]] = {}
+    n = len(TRENDS)
+    for origin, _title in TREND_VIEWS:
+        vals: list[float | None] = []
+        errs: list[float | None] = []
+        for j, (path, _f, _l) in enumerate(TRENDS):
+            if path == origin or path.startswith(origin + "/"):
+                vals += [float(v) for v in rows[:, 2 + j]]
+                errs += [float(e) for e in rows[:, 2 + n + j]]
+        lim = trend_limits(vals, errs)
+        if lim is not None and lim[1] > lim[0]:
+            out[origin] = lim
+    return out
+
+
+def default_blueprint(ranges: Mapping[str, tuple[float, float]] | None = None) -> rrb.Blueprint:
+    """The layout: polar plot and length on the left; findings, trends and events on the right.
+
+    ``ranges``: the y range of trend views by origin (:func:`trend_ranges`); the others autoscale.
+    """
     bound = 1.75 * R0
+    ranges = ranges or {}
     trends = rrb.Grid(
-        rrb.TimeSeriesView(name="backlash (µm)", origin="trends/backlash_um"),
-        rrb.TimeSeriesView(name="circularity G(b) (µm)", origin="trends/circularity_um"),
-        rrb.TimeSeriesView(name="servo mismatch (ms)", origin="trends/servo_mismatch_ms"),
-        rrb.TimeSeriesView(name="squareness (µrad)", origin="trends/squareness_urad"),
-        rrb.TimeSeriesView(name="scale mismatch (ppm)", origin="trends/scale_mismatch_ppm"),
+        *(
+            rrb.TimeSeriesView(
+                name=title, origin=f"trends/{origin}",
+                axis_y=rrb.ScalarAxis(range=ranges[origin], zoom_lock=False) if origin in ranges else None,
+            )
+            for origin, title in TREND_VIEWS
+        ),
         grid_columns=3,
         name="Trends across tests",
     )
@@ -1167,7 +1209,8 @@ class RerunViewer(Listener):
         self._findings_md = ""
         # the history a late viewer gets (see ViewerOptions): tests whole, trends, the length decimated
         self._history: deque[_TestRecord] = deque(maxlen=self.options.history_tests)
-        self._trends = _Ring(TRENDS_KEPT, 2 + len(TRENDS))  # test, wall, values (NaN: none)
+        self._trends = _Ring(TRENDS_KEPT, 2 + 2 * len(TRENDS))  # test, wall, values, stderrs (NaN: none)
+        self._trend_ranges: dict[str, tuple[float, float]] = {}  # the y ranges in the blueprint sent last
         self._length_history = _Ring(
             math.ceil(self.options.history_length_s * self.options.history_length_hz) + 1, 2
         )  # wall, L
@@ -1298,7 +1341,8 @@ class RerunViewer(Listener):
         assert rec is not None
         for c in self._curves.values():  # a new viewer has none of the pieces
             c.pieces, c.stale = 0, False
-        rec.send_blueprint(default_blueprint())
+        self._trend_ranges = trend_ranges(self._trends.rows()) if len(self._trends) else {}
+        rec.send_blueprint(default_blueprint(self._trend_ranges))
         rec.send_recording_name(self._recording_name)
         self._log_static()
         self._send_history()
@@ -1717,14 +1761,35 @@ class RerunViewer(Listener):
     def _event(self, msg: Message) -> None:
         ev = str(msg.get("event", ""))
         idx = msg.get("test_index")
-        text = f"test {idx}: {ev}" + (f" at t={msg['t_s']:.3f} s" if _num(msg.get("t_s")) is not None else "")
+        t_s = _num(msg.get("t_s"))
+        wall = self._wall_of(t_s) if t_s is not None else None
+        text = f"test {idx}: {ev}"
+        if wall is not None:
+            text += f" at {_clock_text(wall)}"
+        elif t_s is not None:  # its samples are gone: the analysis clock's time, and which clock
+            text += f" at t={t_s:.3f} s on the {'host' if self._use_host else 'device'} clock"
         if msg.get("message"):
             text += f": {msg['message']}"
         if ev == "feed_in" and isinstance(idx, int) and _num(msg.get("t_s")) is not None:
             self._start_test(idx, float(msg["t_s"]))
         elif ev in ("test_rejected", "test_incomplete", "test_aborted"):
             self._end_test()
-        self._text_event(text, "WARN" if ev in WARN_EVENTS else "INFO")
+        self._text_event(text, "WARN" if ev in WARN_EVENTS else "INFO", wall)
+
+    def _wall_of(self, t_s: float) -> float | None:
+        """The wall-clock time of ``t_s`` on the analysis clock (the device's seconds since it started, or the
+        host's monotonic clock): the host time of the nearest buffered sample, as wall time.  None when no
+        sample lies within a second of it (the buffer has let it go)."""
+        buf = self._samples
+        t = buf.t_host if self._use_host else buf.t_device
+        if not t.size:
+            return None
+        i = int(np.clip(np.searchsorted(t, t_s), 1, t.size - 1)) if t.size > 1 else 0
+        if t.size > 1 and abs(t[i - 1] - t_s) < abs(t[i] - t_s):
+            i -= 1
+        if not abs(float(t[i]) - t_s) <= 1.0:
+            return None
+        return float(buf.t_host[i]) + (time.time() - time.monotonic())
 
     def _start_test(self, index: int, feed_in_s: float) -> None:
         self._test_index = index
@@ -1773,7 +1838,8 @@ class RerunViewer(Listener):
         trend = self._trend_values(res) if res.get("kind") == "test" else {}
         wall = time.time()
         if trend and isinstance(idx, int):
-            row = np.array([[idx, wall, *(trend.get(p, math.nan) for p, _f, _l in TRENDS)]])
+            row = np.array([[idx, wall, *(trend.get(p, (math.nan, math.nan))[0] for p, _f, _l in TRENDS),
+                             *(trend.get(p, (math.nan, math.nan))[1] for p, _f, _l in TRENDS)]])
             self._trends.extend(row)
         if self._sink_live:
             self._set_times(wall)
@@ -1781,6 +1847,7 @@ class RerunViewer(Listener):
                       len(self._findings_md))
             if trend and isinstance(idx, int):
                 self._send_trends(row)
+                self._rescale_trends()
         self._redraw_all(wall)  # cached even without a viewer: one that connects later gets this test
         if res.get("kind") == "test":
             if isinstance(idx, int):
@@ -1800,14 +1867,40 @@ class RerunViewer(Listener):
         )
 
     @staticmethod
-    def _trend_values(res: Mapping[str, Any]) -> dict[str, float]:
-        out: dict[str, float] = {}
+    def _trend_values(res: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
+        """Per trend entity: (value, standard error; NaN: none)."""
+        out: dict[str, tuple[float, float]] = {}
         iso = res.get("iso230_4") or {}
         for path, field, _label in TRENDS:
-            v = _num(iso.get(field)) if field.startswith("G_") else _param(res, field)
+            if field.startswith("G_"):
+                v, se = _num(iso.get(field)), None
+            else:
+                v = _param(res, field)
+                p = res.get("parameters", {}).get(field)
+                se = _num(p.get("stderr")) if isinstance(p, Mapping) else None
             if v is not None:
-                out[path] = v
+                out[path] = (v, math.nan if se is None else se)
         return out
+
+    def _rescale_trends(self) -> None:
+        """A new blueprint when a trend's y range (:func:`trend_ranges`) moved by more than a tenth of itself:
+        once per test at most, and rarely once the trends have settled (the server keeps every blueprint)."""
+        new = trend_ranges(self._trends.rows())
+        old = self._trend_ranges
+
+        def moved(k: str) -> bool:
+            if (k in new) != (k in old):
+                return True
+            if k not in new:
+                return False
+            (a0, a1), (b0, b1) = new[k], old[k]
+            return max(abs(a0 - b0), abs(a1 - b1)) > 0.1 * (b1 - b0)
+
+        if any(moved(k) for k in {*new, *old}):
+            rec = self._rec
+            assert rec is not None
+            self._trend_ranges = new
+            rec.send_blueprint(default_blueprint(new))
 
     def _send_trends(self, rows: FloatArray) -> None:
         """Trend points: rows of (test, wall time, one value per TRENDS entry, NaN where none)."""
@@ -2027,6 +2120,7 @@ class RerunViewer(Listener):
 
 
 __all__ = [
+    "TREND_VIEWS",
     "ArcTiming",
     "RerunViewer",
     "ViewerConfigError",
@@ -2038,5 +2132,6 @@ __all__ = [
     "provisional_timing",
     "result_timing",
     "setup_deviation_um",
+    "trend_ranges",
     "viewer_options",
 ]

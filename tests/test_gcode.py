@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,6 +28,7 @@ from ballbar.tools.gcode import (
     GcodeError,
     generate,
     lowest_point_mm,
+    path_depth,
     pieces_deg,
 )
 from ballbar.tools.ncinterp import NcError, check_against_plan, interpret, model_limits, test_moves
@@ -195,11 +197,98 @@ def test_lowest_point_and_warning() -> None:
     assert lowest_point_mm(above) == pytest.approx(0.0, abs=1e-9)
     assert "WARNING" not in generate(above, "siemens")
     below = TestPlan(plane="YZ", start_deg=-20.0, overshoot_deg=5.0, data_arc_deg=220.0)
-    assert lowest_point_mm(below) == pytest.approx(-101.5 / 2)  # at R + f on 210 deg
+    # both directions: the feed-in and feed-out are at -20 deg, the arcs end at 210 deg (R sin 210 = -50)
+    assert lowest_point_mm(below) == pytest.approx(-50.0)
+    # CCW only: the feed-out runs out to R + f on 210 deg
+    assert lowest_point_mm(TestPlan(plane="YZ", start_deg=-20.0, overshoot_deg=5.0, data_arc_deg=220.0,
+                                    directions="ccw")) == pytest.approx(-101.5 / 2)
     assert "below the pivot" in generate(below, "siemens")
     assert lowest_point_mm(TestPlan(plane="ZX")) == -100.0
+    assert path_depth(TestPlan(plane="ZX")).arc_low_at_deg == (180.0,)
     assert "LOWEST POINT" in generate(TestPlan(plane="ZX"), "fanuc")
     assert "Lowest" not in generate(TestPlan(plane="XY"), "linuxcnc")
+
+
+def _comments(text: str) -> list[str]:
+    return [c for line in text.splitlines() for c in re.findall(r"\(([^)]*)\)", line)]
+
+
+def test_fanuc_header_lines() -> None:
+    """The header is one statement a comment line, no run-on and no stray space before punctuation."""
+    plan = TestPlan(plane="ZX", start_deg=-115.0, overshoot_deg=5.0, data_arc_deg=220.0)
+    comments = _comments(generate(plan, "fanuc"))
+    assert comments[1:6] == [
+        "BALL-BAR CIRCULAR TEST TO ISO 230-4",
+        "WRITTEN BY BALLBAR.TOOLS.GCODE",
+        "PLANE ZX: FIRST AXIS Z, SECOND AXIS X",
+        "RADIUS R 100 MM, FEED F 1000 MM/MIN",
+        "START -115 DEG, OVERSHOOT 5 DEG, DATA ARC 220 DEG, ARC 230 DEG, CCW THEN CW",
+    ]
+    assert "ANGLES COUNTER-CLOCKWISE FROM Z TOWARD X" in comments
+    assert "COORDINATES TO 3 DECIMALS" in comments
+    for c in comments:
+        assert not re.search(r" [,.:]", c), c
+    siemens = generate(plan, "siemens").splitlines()
+    assert "; Angles counter-clockwise from Z toward X" in siemens and "; Coordinates to 4 decimals" in siemens
+
+
+def _readme_recipes() -> list[tuple[str, TestPlan]]:
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    out = []
+    for m in re.finditer(r"ballbar gcode --dialect (\w+) (--plane \w+ [^\n]*)", readme):
+        flags = dict(re.findall(r"--([\w-]+) (\S+)", m.group(2)))
+        plan = TestPlan(plane=flags["plane"], start_deg=float(flags["start-deg"]),
+                        overshoot_deg=float(flags["overshoot-deg"]), data_arc_deg=float(flags["data-arc-deg"]))
+        out.append((m.group(1), plan))
+    return out
+
+
+def test_readme_vertical_recipe_is_symmetric_and_warned_exactly() -> None:
+    """The README's 220 deg recipes: the path the interpreter runs is symmetric about the vertical and goes
+    exactly as deep (mm, and degrees below the pivot's level, and where) as the header warns."""
+    recipes = _readme_recipes()
+    assert {p.plane for _d, p in recipes} == {"YZ", "ZX"}
+    for dialect, plan in recipes:
+        text = generate(plan, dialect)
+        prog = interpret(text, dialect)
+        i, j = {"YZ": (1, 2), "ZX": (2, 0)}[plan.plane]  # the plane's first, second axis in X Y Z
+        zs: list[float] = []
+        arc_z: list[tuple[float, float]] = []  # (Z, angle from the vertical, deg) along the arcs
+        for b in prog.blocks:
+            if b.kind in ("line", "rapid"):
+                zs += [b.start[2], b.end[2]]
+            elif b.kind == "arc":
+                assert b.centre is not None
+                a0 = math.atan2(b.start[j] - b.centre[j], b.start[i] - b.centre[i])
+                r = math.dist(b.start, b.centre)
+                for t in np.linspace(0.0, 1.0, 20001):
+                    a = a0 + t * b.sweep_rad
+                    p = [0.0, 0.0, 0.0]
+                    p[i], p[j] = b.centre[i] + r * math.cos(a), b.centre[j] + r * math.sin(a)
+                    up = math.degrees(a) - (90.0 if plan.plane == "YZ" else 0.0)  # from +Z
+                    arc_z.append((p[2], (up + 180.0) % 360.0 - 180.0))
+        zs = [z for z in zs if math.isfinite(z)]
+        low_arc = min(z for z, _a in arc_z)
+        low = min([*zs, low_arc])
+        extremes = [a for z, a in arc_z if z < low_arc + 1e-6]
+        # symmetric about the vertical: the arcs reach as far on one side as on the other
+        assert min(extremes) == pytest.approx(-max(extremes), abs=1e-3)
+        below_deg = math.degrees(math.asin(-low_arc / plan.radius_mm))
+        assert below_deg == pytest.approx(plan.data_arc_deg / 2 - 90.0 + plan.overshoot_deg, abs=1e-3)
+        comments = _comments(text) if dialect == "fanuc" else text.splitlines()
+        header = "\n".join(comments).upper()
+        m = re.search(r"THE PATH GOES ([\d.]+) MM BELOW THE PIVOT", header)
+        assert m and float(m.group(1)) == pytest.approx(-low, abs=1e-3)
+        m = re.search(r"THE ARCS GO ([\d.]+) DEG BELOW THE PIVOT'S LEVEL, TO Z (-[\d.]+) MM AT (.*) DEG", header)
+        assert m, header
+        assert float(m.group(1)) == pytest.approx(below_deg, abs=0.005)
+        assert float(m.group(2)) == pytest.approx(low_arc, abs=1e-3)
+        at = sorted(float(a) for a in m.group(3).split(" AND "))
+        assert len(at) == 2 and at[1] - at[0] == pytest.approx(plan.arc_deg)
+        # and the README states those figures
+        readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+        assert f"goes {-low:.3f} mm below the pivot" in " ".join(readme.split())
+        assert f"{below_deg:.2f} deg below" in readme
 
 
 # --------------------------------------------------------------------------- the check fails

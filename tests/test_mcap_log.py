@@ -506,6 +506,42 @@ def test_rotation_per_test_gives_each_test_its_own_whole_file(state: Path) -> No
     assert t.size == 1500
 
 
+def test_preroll_is_written_in_messages_of_the_flush_period(state: Path) -> None:
+    """The preroll at the head of a test's file comes one message per ``flush_s`` of samples, as the flushes
+    write them, not one per source batch; and with the file before, every sample exactly once."""
+    lg = McapLogger(state, "m", preroll_s=10.0, flush_s=0.5)
+    batches = [make_batch(k, 23) for k in range(0, 14_000, 23)]  # 14 s at 1 kHz in 23 ms batches
+    feed_ins = (1_000, 12_000)  # the first test's, in the first file; the second's starts the second file
+    for b in batches:
+        if any(int(b.seq[0]) <= k < int(b.seq[0]) + len(b) for k in feed_ins):
+            lg.on_message({"kind": "event", "event": "feed_in", "t_host": float(b.t_host[0])})
+        lg.on_batch(b)
+    lg.stop()
+    f1, f2 = files(state)
+    spans, counts, pre_seq = [], [], []
+    with open(f2, "rb") as fh:
+        for _s, _c, m in make_reader(fh).iter_messages(topics=[TOPIC_SAMPLES]):
+            d = mcap_log.decode_samples(json.loads(m.data))
+            if d.preroll:
+                spans.append((int(d.t_host_ns[-1]) - int(d.t_host_ns[0])) / 1e9)
+                counts.append(d.seq.size)
+                pre_seq.append(d.seq)
+    seq = np.concatenate(pre_seq)
+    # about 10 s of preroll (whole batches) in 20 or 21 messages of at most the flush period, not ~435
+    assert 10.0 <= (seq[-1] - seq[0] + 1) / 1000.0 <= 10.0 + 2 * 0.023
+    assert 20 <= len(counts) <= 21, counts
+    # a message takes the batches that start within 0.5 s of its first sample: it spans 0.5 s, give or take
+    # a batch (23 ms); every message but the last is full
+    assert all(s < 0.5 + 0.023 for s in spans), spans
+    assert all(s > 0.5 - 0.023 for s in spans[:-1]), spans
+    assert np.array_equal(seq, np.arange(seq[0], seq[-1] + 1))  # in order, none lost or repeated
+    b2 = read_log(f2)
+    own = b2.samples.seq[~b2.preroll]
+    assert own[0] == seq[-1] + 1  # the preroll runs up to the file's own samples
+    joined = read_logs([f1, f2])
+    assert_same_samples(joined.samples, SampleBatch.concat(batches))
+
+
 def test_rotation_by_size_and_age(state: Path) -> None:
     lg = McapLogger(state, "m", rotate_bytes=4096, quota_bytes=1 << 30, rotate_per_test=False)
     batches = [make_batch(k, 100) for k in range(0, 20_000, 100)]

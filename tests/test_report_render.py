@@ -209,6 +209,7 @@ def test_trend_with_history_and_without(data: ReportData, tmp_path: Path) -> Non
     table = table[: table.index("</table>")]
     assert table.count("<tr") == 1 + len(data.history) + 1  # header, history, this test
     assert all(h["test_id"] in table for h in data.history)
+    table = " ".join(re.sub(r"<[^>]+>", "", table).split())  # the unit sits on its own line in the header
     assert "Backlash X (µm)" in table and "Servo mismatch (ms)" in table and "Circularity G(b) (µm)" in table
     assert "earlier tests of mill-3 with the same plan" in text
     data.history = []
@@ -216,6 +217,29 @@ def test_trend_with_history_and_without(data: ReportData, tmp_path: Path) -> Non
     text = paths[0].read_text(encoding="utf-8")
     assert 'id="trend-none"' in text and "no trend yet" in text and "trend-svg" not in text
     assert not (tmp_path / "n-trend.png").exists() and len(paths) == 3
+
+
+def test_trend_axes_span_the_uncertainty(data: ReportData) -> None:
+    """A figure that moves within its standard error plots flat (the axis spans +-4 of them about the mean);
+    one that moves by many keeps the autoscaled range of its points."""
+    from ballbar.tools.report_render import _trend_figure, _trend_quantities
+
+    tests = [*_history(data.result, 3), data.result]
+    servo = [r["parameters"]["servo_mismatch_ms"] for r in tests]
+    se = servo[-1]["stderr"]
+    for k, p in enumerate(servo):  # a wander of 0.12 standard errors in all
+        p["value"], p["stderr"] = servo[-1]["value"] + 0.04 * se * k, se
+    qs = _trend_quantities(tests, ("X", "Y"))
+    fig = _trend_figure(tests, qs)
+    axes = {ax.get_gid(): ax for ax in fig.axes if ax.get_visible()}
+    lo, hi = axes["trend-servo_mismatch_ms"].get_ylim()
+    mean = sum(p["value"] for p in servo) / len(servo)
+    assert lo <= mean - 4 * se + 1e-12 and hi >= mean + 4 * se - 1e-12
+    assert hi - lo < 10 * se  # and not wider than that needs
+    bx = [r["parameters"]["backlash_x_um"] for r in tests]
+    lo, hi = axes["trend-backlash_x_um"].get_ylim()  # 0.8 .. 1.0 of the value: many standard errors
+    assert hi - lo < 2.0 * (max(p["value"] + p["stderr"] for p in bx) - min(p["value"] - p["stderr"] for p in bx))
+    assert lo <= min(p["value"] for p in bx) and hi >= max(p["value"] for p in bx)
 
 
 def test_text_is_escaped(data: ReportData, tmp_path: Path) -> None:
@@ -354,8 +378,11 @@ PAGE_FACTS = """(() => {
     if (!g) return null;
     const b = g.getBBox(), p = g.querySelector('path');
     return {w: b.width, h: b.height, stroke: p ? getComputedStyle(p).stroke : null,
+            dash: p ? getComputedStyle(p).strokeDasharray : null,
             inSvg: g.closest('svg') ? g.closest('svg').id : null};
   };
+  const legend = id => [...document.querySelectorAll('#' + id + ' path')].map(p => getComputedStyle(p).strokeDasharray);
+  const de = document.documentElement, trend = document.getElementById('trend-table');
   const first = document.querySelector('#findings tbody tr');
   return {
     title: document.title,
@@ -368,6 +395,10 @@ PAGE_FACTS = """(() => {
     resources: performance.getEntriesByType('resource').map(e => e.name),
     scripts: document.scripts.length,
     height: document.documentElement.scrollHeight,
+    page: [de.scrollWidth, de.clientWidth],
+    overflowing: [...document.querySelectorAll('section')].filter(s => s.scrollWidth > s.clientWidth).map(s => s.id),
+    trendTable: trend ? [trend.getBoundingClientRect().width, trend.closest('section').clientWidth] : null,
+    polarLegend: legend('polar-legend_1'), deviationLegend: legend('deviation-legend_1'),
   };
 })()"""
 
@@ -403,6 +434,15 @@ def test_report_in_headless_chromium(
             assert tr is not None and tr["inSvg"] == "polar-svg", (key, tr)
             assert tr["w"] > 100 and tr["h"] > 100, (key, tr)  # a whole circle, not a dot
         assert facts["ccw"]["stroke"] != facts["cw"]["stroke"]
+        # the model is dashed, the measured curve solid, and the legends show which is which
+        for key in ("ccw", "cw"):
+            assert facts[key]["dash"] == "none" and facts[key + "Model"]["dash"] != "none", facts[key]
+        for legend in (facts["polarLegend"], facts["deviationLegend"]):
+            assert len(legend) == 4 and sum(d != "none" for d in legend) == 2, legend
+        # nothing is wider than the page: the trend table (7 columns here) fits its section
+        assert facts["page"][0] <= facts["page"][1], facts["page"]
+        assert facts["overflowing"] == [], facts["overflowing"]
+        assert facts["trendTable"] is not None and facts["trendTable"][0] <= facts["trendTable"][1]
         assert facts["firstPattern"] == res["ranking"][0]["pattern"] == "servo_mismatch"
         assert facts["firstText"].strip() == "Servo mismatch"
         assert facts["gb"] == f"{res['iso230_4']['G_b_um']:.2f}"

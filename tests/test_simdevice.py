@@ -8,6 +8,7 @@ fault shows up as exactly the losses and decoder drops it must cause.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from collections.abc import Callable
@@ -516,6 +517,62 @@ def test_next_wake_is_the_next_sample_or_the_next_burst() -> None:
 
 
 # ----------------------------------------------------------------------------- the daemon's simulated device
+
+
+def test_the_next_test_is_made_while_the_current_one_streams() -> None:
+    """Feed starts making test 2 as soon as test 1 is loaded, before any of test 1 is taken."""
+    import threading
+
+    from ballbar.tools.simdevice import Feed
+
+    entered, release = threading.Event(), threading.Event()
+    made = list(synthetic_tests(RATE, 500, tests=2))
+
+    def tests() -> Any:
+        yield made[0]
+        entered.set()
+        release.wait(30.0)
+        yield made[1]
+
+    feed = Feed(tests())
+    try:
+        assert entered.wait(10.0), "test 2 is not made until test 1 has been sent"
+        assert feed.tests == 1 and feed.next_t == made[0][0][0]
+    finally:
+        release.set()
+    _t, _length, seq = feed.take_until(math.inf)
+    assert np.array_equal(seq, np.concatenate([made[0][2], made[1][2]])) and feed.tests == 2
+    assert feed.exhausted and feed.take_until(math.inf)[0].size == 0
+
+
+def test_the_demo_device_streams_on_between_tests() -> None:
+    """The demo machine of ``ballbar run --simulate`` (its plan and machine, 5 s between tests) keeps sending
+    across the change of test: the daemon's serial source sees no stall and loses nothing.  Before, the device
+    simulated each next test (about a second) with nothing sent meanwhile: a stall and a resume every test."""
+    from ballbar.daemon.run import simdevice_args
+
+    cfg = cfgmod.load(env={})
+    dev = DeviceProcess(*simdevice_args(cfg, 20.0), "--wait")
+    try:
+        # A stall at half the default 0.5 s: making a test takes the device 0.5 to 0.7 s here (more beside a
+        # busy daemon, where the default caught it), while it writes every 16 ms when it streams.
+        src = open_source(dev.url + "&stall_s=0.25")
+        col = Collector(src)
+        col.until(lambda: "opened" in col.kinds(), 5.0, "opened")
+        dev.send("start")
+        tests: list[dict[str, Any]] = []
+        deadline = time.monotonic() + 60.0
+        # the device's "test" event comes when it starts sending the second test (the first is there at start)
+        while not tests or col.n == 0 or col.merged().seq[-1] < tests[0]["seq"] + 20_000:
+            col.pump()
+            tests += [e for e in dev.poll_events() if e.get("event") == "test"]
+            assert time.monotonic() < deadline, f"the second test did not stream; events {col.kinds()}"
+    finally:
+        col.src.close()
+        assert dev.close() == 0
+    assert "stall" not in col.kinds() and "resumed" not in col.kinds(), col.kinds()
+    seq = col.merged().seq
+    assert np.array_equal(seq, np.arange(seq[0], seq[-1] + 1))  # across the change of test, nothing lost
 
 
 def test_the_daemons_source_opens_the_simulated_device_once_it_is_up() -> None:

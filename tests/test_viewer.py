@@ -38,6 +38,8 @@ from ballbar.analysis.plan import MachineConfig, TestPlan
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.daemon.viewer import (
     R0,
+    TREND_VIEWS,
+    TRENDS,
     RerunViewer,
     ViewerConfigError,
     ViewerOptions,
@@ -47,6 +49,7 @@ from ballbar.daemon.viewer import (
     nice_scale_um,
     polar_points,
     result_timing,
+    trend_ranges,
 )
 from ballbar.tools.simulator import MachineModel, iter_chunks
 
@@ -349,6 +352,21 @@ def check_stream(saved: Saved, script: Script, n_tests: int = 2) -> None:
     events = " ".join(texts(saved, "/events", "TextLog:text"))
     assert "feed_in" in events and "feed_out" in events and "opened" in events
 
+    # a test event shows the wall-clock time of its sample (UTC), not the device's seconds
+    b0 = script.items[0][1]
+    host0 = float(b0.t_host[0] - b0.t_device[0])
+    offset = time.time() - time.monotonic()
+    feed_ins = [m for k, m in script.items if k == "message" and m.get("event") == "feed_in"]
+    lines = [e for e in texts(saved, "/events", "TextLog:text") if ": feed_in" in e]
+    assert len(feed_ins) == n_tests and len(lines) >= n_tests
+    for m in feed_ins:
+        hits = [ln for ln in lines if ln.startswith(f"test {m['test_index']}: feed_in at ")]
+        assert hits and all("t=" not in ln for ln in hits), lines
+        hh, mm, ss = re.search(r"at (\d\d):(\d\d):(\d\d\.\d{3}) UTC", hits[0]).groups()  # type: ignore[union-attr]
+        shown = int(hh) * 3600 + int(mm) * 60 + float(ss)
+        want = (host0 + m["t_s"] + offset) % 86400.0
+        assert abs((shown - want + 43200.0) % 86400.0 - 43200.0) < 0.5, (hits[0], want)
+
 
 # --------------------------------------------------------------------------- streams
 
@@ -636,6 +654,30 @@ def test_polar_geometry_and_layout() -> None:
     assert np.allclose(pts, [[R0, 0.0], [0.0, -1.5 * R0]])
     assert np.allclose(polar_points(np.array([0.0]), np.array([-100.0]), 20.0), [[0.0, 0.0]])  # clamped at 0
     default_blueprint()  # builds against the installed rerun
+
+
+def test_trend_views_scale_to_the_uncertainty_and_titles_fit() -> None:
+    """A trend that moves within its standard errors gets a y range of at least +-4 of them about its mean (flat,
+    not a drift); one that moves far more keeps its points; G(b), without standard errors, autoscales."""
+    n = len(TRENDS)
+    j_servo = [p for p, _f, _l in TRENDS].index("servo_mismatch_ms")
+    j_bx = [p for p, _f, _l in TRENDS].index("backlash_um/x")
+    rows = np.full((3, 2 + 2 * n), np.nan)
+    rows[:, 0], rows[:, 1] = [1, 2, 3], [1000.0, 1100.0, 1200.0]
+    rows[:, 2 + j_servo] = [3.0306, 3.0312, 3.0318]  # autoscaled, this filled the plot like a drift
+    rows[:, 2 + n + j_servo] = 0.01
+    rows[:, 2 + j_bx] = [4.0, 8.0, 12.0]  # a real change: 8 um against 0.1 um standard errors
+    rows[:, 2 + n + j_bx] = 0.1
+    ranges = trend_ranges(rows)
+    lo, hi = ranges["servo_mismatch_ms"]
+    assert lo <= 3.0312 - 0.04 + 1e-12 and hi >= 3.0312 + 0.04 - 1e-12 and hi - lo < 0.1
+    lo, hi = ranges["backlash_um"]
+    assert lo <= 4.0 - 0.1 and hi >= 12.0 + 0.1 and hi - lo < 9.5  # the points, not +-4 stderr, set it
+    assert "circularity_um" not in ranges and "squareness_urad" not in ranges
+    default_blueprint(ranges)  # builds with the ranges
+    # titles short enough for a third of the trends panel (the long ones were cut)
+    assert [t for _o, t in TREND_VIEWS] and all(len(t) <= 12 for _o, t in TREND_VIEWS)
+    assert {o for o, _t in TREND_VIEWS} == {p.split("/")[0] for p, _f, _l in TRENDS}
 
 
 def test_stop_without_any_viewer_is_quick(script: Script) -> None:

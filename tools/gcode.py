@@ -262,45 +262,109 @@ def _test_ops(plan: TestPlan, pts: _Points) -> tuple[Point3, list[_Op], Point3]:
 # --------------------------------------------------------------------------- comments
 
 
-def lowest_point_mm(plan: TestPlan) -> float:
-    """Lowest Z of the path (wait point, arcs, feed-out) relative to the pivot, mm.
+@dataclass(frozen=True)
+class PathDepth:
+    """How far the program's path goes below the pivot, from the program's own rounded points.
 
-    Only meaningful in the vertical planes: Z is the second axis in YZ and the
-    first in ZX.  The arcs of both directions cover ``u0 .. u0 + arc``.
+    ``low_mm``: the lowest Z of the whole path (wait point, feed-in, arcs,
+    feed-out) relative to the pivot, mm.  ``arc_low_mm``: the arcs' lowest Z;
+    ``arc_below_deg``: how far below the pivot's level that is, as an angle
+    about the pivot (0 or less: the arcs stay at or above it);
+    ``arc_low_at_deg``: the plan angles (degrees, counter-clockwise from the
+    plane's first axis) where the arcs reach it.
+    """
+
+    low_mm: float
+    arc_low_mm: float
+    arc_below_deg: float
+    arc_low_at_deg: tuple[float, ...]
+
+
+def _plane_rel(p: Point3, pts: _Points) -> tuple[int, int]:
+    i, j = pts.idx[0], pts.idx[1]
+    return p[i] - pts.origin_u[i], p[j] - pts.origin_u[j]
+
+
+def _depth(plan: TestPlan, pts: _Points, wait: Point3, ops: list[_Op]) -> PathDepth:
+    """:class:`PathDepth` of one test's ops (see :func:`path_depth`)."""
+    s = pts.scale
+    zi = 2  # Z in machine (X, Y, Z)
+
+    def z_mm(p: Point3) -> float:
+        return (p[zi] - pts.origin_u[zi]) / s
+
+    def angle(p: Point3) -> float:
+        a, b = _plane_rel(p, pts)
+        return math.degrees(math.atan2(b, a))
+
+    bottom = 270.0 if plan.plane == "YZ" else 180.0  # the plan angle where Z = -R
+    line_z = [z_mm(wait)] + [z_mm(op.end) for op in ops if op.kind == "line"]
+    arc_pts: list[tuple[float, float]] = []  # (Z mm, plan angle deg) of the arcs' ends and bottoms
+    for op in ops:
+        if op.kind != "arc":
+            continue
+        a0, a1 = angle(op.start), angle(op.end)
+        arc_pts += [(z_mm(op.start), a0), (z_mm(op.end), a1)]
+        lo, hi = (a0, a1) if op.direction > 0 else (a1, a0)
+        sweep = (hi - lo) % 360.0 or 360.0
+        if (bottom - lo) % 360.0 < sweep:
+            r = math.dist(op.start, op.centre) / s
+            arc_pts.append((z_mm(op.centre) - r, bottom))
+    if not arc_pts:
+        return PathDepth(min(line_z), 0.0, 0.0, ())
+    arc_low = min(z for z, _ in arc_pts)
+    def plan_deg(a: float) -> float:
+        """The plan's angle of a rounded point (start .. start + 360), to 0.01 deg (the rounding moves it less)."""
+        d = (a - plan.start_deg) % 360.0
+        return round(plan.start_deg + (d - 360.0 if d > 359.99 else d), 2) + 0.0
+
+    at = sorted({plan_deg(a) for z, a in arc_pts if z <= arc_low + 0.5 / s})
+    radius = plan.radius_mm
+    below = math.degrees(math.asin(max(-1.0, min(1.0, -arc_low / radius))))
+    return PathDepth(min([*line_z, arc_low]), arc_low, below, tuple(at))
+
+
+def path_depth(
+    plan: TestPlan, decimals: int | None = None, origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> PathDepth:
+    """How far the path of the program :func:`generate` writes goes below the pivot (Z).
+
+    Computed from the same rounded points the program moves through (the
+    dialect only sets the default ``decimals``: FANUC's 3).  In ``XY`` nothing
+    moves in Z: all zeros.
     """
     if plan.plane == "XY":
-        return 0.0
-    R, f = plan.radius_mm, plan.feed_in_mm
-    lo_deg, hi_deg = plan.start_deg, plan.start_deg + plan.arc_deg
+        return PathDepth(0.0, 0.0, 0.0, ())
+    dec = DEFAULT_DECIMALS["fanuc"] if decimals is None else decimals
+    pts = _Points(plan, dec, origin)
+    wait, ops, _end = _test_ops(plan, pts)
+    return _depth(plan, pts, wait, ops)
 
-    def z(r: float, deg: float) -> float:
-        u = math.radians(deg)
-        return r * (math.sin(u) if plan.plane == "YZ" else math.cos(u))
 
-    cands = [z(r, a) for r in (R, R + f) for a in (lo_deg, hi_deg)]
-    bottom = 270.0 if plan.plane == "YZ" else 180.0  # where Z = -R
-    k = math.ceil((lo_deg - bottom) / 360.0)
-    if bottom + 360.0 * k <= hi_deg:
-        cands.append(-R)
-    return min(cands)
+def lowest_point_mm(plan: TestPlan) -> float:
+    """Lowest Z of the path (wait point, arcs, feed-out) relative to the pivot, mm (:func:`path_depth`)."""
+    return path_depth(plan).low_mm
 
 
 def _header_lines(
     plan: TestPlan, dialect: str, decimals: int, origin: tuple[float, float, float], work_offset: str | None,
-    repeat: int, mount_stop: bool,
+    repeat: int, mount_stop: bool, depth: PathDepth,
 ) -> list[str]:
     first, second = plan.axes
     third = AXES[PLANE_INDEX[plan.plane][2]]
     dirs = {"both": "CCW then CW", "ccw": "CCW only", "cw": "CW only"}[plan.directions]
     lines = [
-        "Ball-bar circular test (ISO 230-4), written by ballbar.tools.gcode",
-        f"Plane {plan.plane} (first axis {first}, second {second}), radius R {plan.radius_mm:g} mm, "
+        "Ball-bar circular test to ISO 230-4",
+        "Written by ballbar.tools.gcode",
+        f"Plane {plan.plane}: first axis {first}, second axis {second}",
+        f"Radius R {plan.radius_mm:g} mm, "
         f"feed F {plan.feed_mm_min:g} mm/min",
         f"Start {plan.start_deg:g} deg, overshoot {plan.overshoot_deg:g} deg, data arc {plan.data_arc_deg:g} deg, "
         f"arc {plan.arc_deg:g} deg, {dirs}",
         f"Feed-in {plan.feed_in_mm:g} mm, dwell {plan.dwell_s:g} s, {repeat} test{'s' if repeat > 1 else ''}"
         + (f", {REPEAT_DWELL_S:g} s between tests" if repeat > 1 else ""),
-        f"Angles counter-clockwise from {first} toward {second}; coordinates to {decimals} decimals",
+        f"Angles counter-clockwise from {first} toward {second}",
+        f"Coordinates to {decimals} decimals",
     ]
     offset = work_offset or ("the active preset" if dialect == "heidenhain" else "the active work offset")
     if any(origin):
@@ -317,14 +381,16 @@ def _header_lines(
     if mount_stop:
         lines.append("At the program stop: mount the bar, then restart")
     if plan.plane != "XY":
-        low = lowest_point_mm(plan)
-        lines.append(f"Lowest point of the path: Z {low:+.3f} mm relative to the pivot")
-        if low < -1e-9:
-            lines.append(
-                f"WARNING: the path goes {-low:.3f} mm below the pivot: check that the spindle and the bar clear "
-                "the table and the pivot's mount there (a 220 deg arc, YZ from -20 deg or ZX from -110 deg, "
-                "dips 20 deg below the pivot by design)"
-            )
+        lines.append(f"Lowest point of the path: Z {depth.low_mm:+.{decimals}f} mm relative to the pivot")
+        if depth.low_mm < 0.0:
+            lines.append(f"WARNING: the path goes {-depth.low_mm:.{decimals}f} mm below the pivot")
+            if depth.arc_below_deg > 0.0:
+                at = " and ".join(f"{a:+g}" for a in depth.arc_low_at_deg)
+                lines.append(
+                    f"The arcs go {depth.arc_below_deg:.2f} deg below the pivot's level, "
+                    f"to Z {depth.arc_low_mm:+.{decimals}f} mm at {at} deg"
+                )
+            lines.append("Check that the spindle and the bar clear the table and the pivot's mount there")
     return lines
 
 
@@ -580,7 +646,8 @@ _FANUC_COMMENT_OK = re.compile(r"[^A-Z0-9 .,+\-*/=:#']")
 def _fanuc_text(text: str) -> str:
     """Upper case, only characters every FANUC shows in a comment (no %, no nested parentheses, no ;)."""
     t = _ascii(text).upper().replace("%", " PERCENT")
-    return re.sub(r" +", " ", _FANUC_COMMENT_OK.sub(" ", t)).strip()
+    t = re.sub(r" +", " ", _FANUC_COMMENT_OK.sub(" ", t)).strip()
+    return re.sub(r" ([.,:])", r"\1", t)  # a character taken out before punctuation leaves no stray space
 
 
 # --------------------------------------------------------------------------- entry point
@@ -665,7 +732,8 @@ def generate(
     for _ in range(repeat):
         wait, ops, _end = _test_ops(plan, pts)
         tests.append(ops)
-    header = _header_lines(plan, dialect, dec, origin, work_offset, repeat, mount_stop)
+    depth = PathDepth(0.0, 0.0, 0.0, ()) if plan.plane == "XY" else _depth(plan, pts, wait, tests[0])
+    header = _header_lines(plan, dialect, dec, origin, work_offset, repeat, mount_stop, depth)
     writer: _Writer
     if dialect == "heidenhain":
         hw = _Heidenhain(plan, dec)
@@ -684,4 +752,7 @@ def generate(
     return "\n".join(writer.out) + "\n"
 
 
-__all__ = ["DEFAULT_DECIMALS", "DIALECTS", "REPEAT_DWELL_S", "GcodeError", "generate", "lowest_point_mm", "pieces_deg"]
+__all__ = [
+    "DEFAULT_DECIMALS", "DIALECTS", "REPEAT_DWELL_S", "GcodeError", "PathDepth", "generate", "lowest_point_mm",
+    "path_depth", "pieces_deg",
+]

@@ -48,6 +48,7 @@ import numpy as np
 
 from ballbar.analysis.patterns import LIBRARY, Pattern
 from ballbar.analysis.plan import PLANE_AXES
+from ballbar.analysis.report import TREND_STDERR_SPAN, trend_limits
 from ballbar.daemon.output import write_atomic
 
 from .report import ReportData
@@ -63,6 +64,9 @@ __all__ = ["envelope_indices", "polar_scale_um", "render"]
 COLOURS = {"ccw": "#1f5fbf", "cw": "#d0342c"}
 MODEL_COLOURS = {"ccw": "#0a2350", "cw": "#5c0d09"}
 DIRECTION_NAMES = {"ccw": "CCW", "cw": "CW"}
+#: The fitted model's line style in both plots: dashed, so that it is told from the measured curve (solid)
+#: where the two lie on each other, as they do where the fit is good.
+MODEL_DASH = (0, (4, 2))
 #: Drawn points per direction for the measured curves (min/max envelope), the model and the residual.
 MEASURED_POINTS = 2000
 MODEL_POINTS = 1000
@@ -437,7 +441,7 @@ def _polar_figure(curves: Sequence[_Curve], axes: tuple[str, str], g_text: str) 
         idx = envelope_indices(c.model_um, MODEL_POINTS)
         r = 1.0 + k * c.model_um[idx]
         u = c.u_rad[idx]
-        ax.plot(r * np.cos(u), r * np.sin(u), color=MODEL_COLOURS[c.name], lw=0.6, zorder=3,
+        ax.plot(r * np.cos(u), r * np.sin(u), color=MODEL_COLOURS[c.name], lw=0.8, ls=MODEL_DASH, zorder=3,
                 label=f"{DIRECTION_NAMES[c.name]} model", gid=f"polar-{c.name}-model")
     lim = r_out + 0.25
     ax.set_xlim(-lim, lim)
@@ -508,7 +512,7 @@ def _deviation_figure(curves: Sequence[_Curve], axes: tuple[str, str]) -> Figure
             continue
         idx = envelope_indices(c.model_um, MODEL_POINTS)
         x, y = angle.x(c.u_rad[idx], c.model_um[idx])
-        top.plot(x, y, color=MODEL_COLOURS[c.name], lw=0.7, ls=(0, (4, 2)),
+        top.plot(x, y, color=MODEL_COLOURS[c.name], lw=0.7, ls=MODEL_DASH,
                  label=f"{DIRECTION_NAMES[c.name]} model", gid=f"deviation-{c.name}-model")
     top.axhline(0.0, color="#888888", lw=0.6, zorder=0)
     top.set_ylabel("deviation (µm)")
@@ -606,6 +610,9 @@ def _trend_figure(tests: Sequence[Mapping[str, Any]], quantities: Sequence[_Quan
             ax.errorbar([x], [v], yerr=[s] if s is not None else None, fmt="o", ms=5 if current else 4,
                         color=colour, mfc=colour if sig else "white", mec=colour, elinewidth=0.8, capsize=2,
                         zorder=3)
+        lim = trend_limits([v for v, _s, _g in vals], [s for _v, s, _g in vals])
+        if lim is not None and lim[1] > lim[0]:
+            ax.set_ylim(*lim)  # a change within the standard errors looks flat, not like a drift
         ax.set_title(f"{q.label} ({q.unit})" if q.unit else q.label, fontsize=8.5, loc="left")
         ax.grid(True, color="#e3e6ea", lw=0.5)
         ax.tick_params(labelsize=7.5)
@@ -712,6 +719,10 @@ thead th { background: var(--band); border-bottom: 1.5px solid var(--ink); font-
 td.num, th.num { text-align: right; white-space: nowrap; }
 td.date, td.tid { white-space: nowrap; }
 td.rank { color: var(--faint); width: 28px; text-align: right; }
+table.trend thead th { white-space: normal; }
+table.trend td.tid { white-space: normal; overflow-wrap: anywhere; }
+table.trend .u { font-weight: 400; color: var(--muted); }
+.wide { overflow-x: auto; }
 tr.sig td.pat { font-weight: 600; }
 tr.nsig td { color: var(--muted); }
 tr.absent td { color: var(--faint); font-style: italic; }
@@ -1082,7 +1093,9 @@ def _trend(data: ReportData, qs: Sequence[_Quantity], svg: str | None) -> str:
     if not history:
         return f'<p id="trend-none">No earlier comparable test of this machine: no trend yet.</p>{note}'
     tests = [*history, data.result]
-    head = "".join(f'<th class="num">{_e(q.label)} ({_e(q.unit)})</th>' for q in qs)
+    # The unit under the name and the test id wrapping at any character: seven columns fit the page (the
+    # names and ids on one line overflowed it by 42 px at 1200 px); on a narrower screen the table scrolls.
+    head = "".join(f'<th class="num">{_e(q.label)} <br><span class="u">({_e(q.unit)})</span></th>' for q in qs)
     this = ' <span class="pill kind">this test</span>'
     rows = []
     for i, r in enumerate(tests):
@@ -1100,10 +1113,11 @@ def _trend(data: ReportData, qs: Sequence[_Quantity], svg: str | None) -> str:
         )
     figure = f'<figure class="trend">{svg}</figure>' if svg else ""
     return (f"{note}{figure}"
-            f'<table id="trend-table"><thead><tr><th>Test</th><th>Date</th>{head}</tr></thead>'
-            f"<tbody>{''.join(rows)}</tbody></table>"
+            f'<div class="wide"><table id="trend-table" class="trend"><thead><tr><th>Test</th><th>Date</th>{head}'
+            f"</tr></thead><tbody>{''.join(rows)}</tbody></table></div>"
             '<p class="caption">Bold: significant in that test. Plots: filled markers significant, hollow not; '
-            "bars ± one standard error; blue is this test.</p>")
+            "bars ± one standard error; blue is this test; each axis spans at least ± "
+            f"{TREND_STDERR_SPAN:g} standard errors about the mean, so a change within them looks flat.</p>")
 
 
 # --------------------------------------------------------------------------- render
@@ -1175,9 +1189,9 @@ def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]
             f'<span class="sw" style="background:{COLOURS[c.name]}"></span>{DIRECTION_NAMES[c.name]}' for c in curves)
         doc.section("polar", "Polar plot", (
             f'<figure class="polar">{svgs["polar"]}<figcaption class="caption">Radial deviation of {dirs}, '
-            f"magnified about the reference circle: <b>{_e(_um_text(div or 1.0))} µm per division</b>; thin dark "
-            "lines: the fitted model. Set-up terms (pivot offset, bar length) removed. Angles counter-clockwise "
-            f"from +{_e(axes[0])}.</figcaption></figure>"))
+            f"magnified about the reference circle: <b>{_e(_um_text(div or 1.0))} µm per division</b>; dashed dark "
+            "lines: the fitted model (legend under the plot). Set-up terms (pivot offset, bar length) removed. "
+            f"Angles counter-clockwise from +{_e(axes[0])}.</figcaption></figure>"))
         doc.section("deviation", "Deviation against angle", (
             f'<figure>{svgs["deviation"]}<figcaption class="caption">Measured deviation (solid) and fitted model '
             "(dashed) per direction, set-up terms removed; below, the residual (measured − model). Curves drawn "

@@ -81,6 +81,7 @@ import signal
 import stat
 import sys
 import tempfile
+import threading
 import time
 import tty
 import urllib.parse
@@ -108,8 +109,36 @@ GARBAGE_CHARS = b"#$%&@!*=~^|<>"  # none is a digit, letter, sign, point or sepa
 # ----------------------------------------------------------------------------- samples
 
 
+class _NextTest:
+    """The next test of ``tests``, made on a thread of its own while the current one streams."""
+
+    def __init__(self, tests: Iterator[Chunk]) -> None:
+        self.value: Chunk | None = None
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, args=(tests,), name="simdevice-next-test", daemon=True)
+        self.thread.start()
+
+    def _run(self, tests: Iterator[Chunk]) -> None:
+        try:
+            self.value = next(tests, None)
+        except BaseException as err:  # handed to the streaming thread, which raises it
+            self.error = err
+
+    def result(self) -> Chunk | None:
+        self.thread.join()
+        if self.error is not None:
+            raise self.error
+        return self.value
+
+
 class Feed:
-    """Samples of successive tests, taken in device-time order."""
+    """Samples of successive tests, taken in device-time order.
+
+    The first test is made at once; each next one on a thread while the one before streams
+    (simulating a test takes about a second), so the device keeps sending across the gap
+    between tests, as a real ball-bar's LVDT keeps reporting: made on demand, it held the
+    stream up for that second, and the daemon reported a stall and a resume between tests.
+    """
 
     def __init__(self, tests: Iterator[Chunk]) -> None:
         self._tests = tests
@@ -119,11 +148,19 @@ class Feed:
         self._i = 0
         self.exhausted = False
         self.tests = 0
+        self._next: _NextTest | None = None
         self._load()
+
+    def _fetch(self) -> Chunk | None:
+        nxt = next(self._tests, None) if self._next is None else self._next.result()  # the first: at once
+        self._next = _NextTest(self._tests) if nxt is not None else None
+        return nxt
 
     def _load(self) -> bool:
         while self._i >= self._t.shape[0]:
-            nxt = next(self._tests, None)
+            if self.exhausted:
+                return False
+            nxt = self._fetch()
             if nxt is None:
                 self.exhausted = True
                 return False
