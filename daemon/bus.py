@@ -140,12 +140,13 @@ TOPICS: dict[str, str] = {
     "status": "status",
     "config": "config",
     "samples": "samples",
+    "alert": "alert",
 }
-LAST_TOPICS = ("circle", "test", "event", "status", "config")
-HISTORY_TOPICS = ("circle", "test", "event")
+LAST_TOPICS = ("circle", "test", "event", "status", "config", "alert")
+HISTORY_TOPICS = ("circle", "test", "event", "alert")
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
-_RELIABLE = ("circle", "test", "event", "config")
+_RELIABLE = ("circle", "test", "event", "config", "alert")
 _BAD_CHUNK = re.compile(r"[/*$?#\s]")
 
 
