@@ -269,3 +269,67 @@ def test_simulated_drift_changes_the_machine_from_test_to_test() -> None:
         out = analyze_recording(res.t_s - res.t_s[0], res.length_mm, plan)
         fitted.append(next(r for r in out if r.get("kind") == "test")["parameters"]["backlash_x_um"]["value"])
     assert fitted == pytest.approx([2.0, 3.5, 5.0], abs=0.1)
+
+
+# ----------------------------------------------------------------------------- offline: analyze, report, gcode
+
+
+@pytest.fixture(scope="module")
+def simulated_csv(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from ballbar.tools.simulator import write_csv
+
+    plan = alert_survey.PLAN
+    path = tmp_path_factory.mktemp("csv") / "test.csv"
+    sim = simulate(plan, replace(alert_survey.BASE, backlash_x_um=7.0, noise_um=0.2), plan.sample_hz, seed=2)
+    write_csv(path, sim.t_s, sim.length_mm)
+    return path
+
+
+def test_analyze_gives_the_verdict_of_the_plan_files_limits(simulated_csv: Path, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    from ballbar.daemon.cli import main as cli_main
+
+    plan = alert_survey.PLAN
+    cfg = tmp_path / "plan.toml"
+    cfg.write_text(f"[plan]\nfeed_mm_min = {plan.feed_mm_min}\novershoot_deg = {plan.overshoot_deg}\n"
+                   f"sample_hz = {plan.sample_hz}\n[limits]\nenabled = true\nG_b_um = 30.0\n"
+                   "parameters = {backlash_x_um = 8.0}\n")
+    assert cli_main(["analyze", str(simulated_csv), "--plan", str(cfg), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    v = result["verdict"]
+    assert v["status"] == "warning"  # 7 um of backlash against 8 (warning above 6.4)
+    assert [e["name"] for e in v["limits"]] == ["G_b_um", "backlash_x_um"]
+    assert v == mon.evaluate(result, settings(G_b_um=30.0, parameters={"backlash_x_um": 8.0}))
+    validate(v, "verdict")
+    assert cli_main(["analyze", str(simulated_csv), "--plan", str(cfg)]) == 0
+    text = capsys.readouterr().out
+    assert "Verdict: WARNING: backlash_x_um" in text and "G_b_um" in text
+    # without limits: no verdict
+    cfg.write_text(f"[plan]\nfeed_mm_min = {plan.feed_mm_min}\novershoot_deg = {plan.overshoot_deg}\n")
+    assert cli_main(["analyze", str(simulated_csv), "--plan", str(cfg), "--json"]) == 0
+    assert "verdict" not in json.loads(capsys.readouterr().out)
+
+
+def test_the_reports_verdict_box_shows_the_limits(simulated_csv: Path, tmp_path: Path) -> None:
+    from ballbar.daemon.cli import main as cli_main
+
+    plan = alert_survey.PLAN
+    daemon_cfg = tmp_path / "ballbar.toml"
+    daemon_cfg.write_text("[limits]\nenabled = true\nparameters = { backlash_x_um = 6.0 }\n")
+    out = tmp_path / "r.html"
+    assert cli_main(["report", str(simulated_csv), "--config", str(daemon_cfg), "-o", str(out), "--no-png",
+                     "--feed-mm-min", f"{plan.feed_mm_min:g}", "--overshoot-deg", f"{plan.overshoot_deg:g}",
+                     "--sample-hz", f"{plan.sample_hz:g}"]) == 0
+    html = out.read_text()
+    assert '<div class="big" id="verdict-status">FAIL</div>' in html
+    assert "backlash_x_um" in html and "k = 2" in html
+
+
+def test_gcode_says_which_limits_apply(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from ballbar.daemon.cli import main as cli_main
+
+    daemon_cfg = tmp_path / "ballbar.toml"
+    daemon_cfg.write_text("[limits]\nenabled = true\nG_b_um = 25.0\nparameters = { backlash_x_um = 8.0 }\n")
+    assert cli_main(["gcode", "--dialect", "fanuc", "--config", str(daemon_cfg)]) == 0
+    err = capsys.readouterr().err
+    assert "G_b_um <= 25 (warning above 20, 80 %)" in err and "backlash_x_um <= 8" in err
