@@ -247,7 +247,11 @@ class MonitorListener(Listener):
         if msg.get("kind") != "test" or "verdict" in msg:
             return msg
         out = dict(msg)
-        out["verdict"] = self.monitor.verdict(msg)
+        try:
+            out["verdict"] = self.monitor.verdict(msg)
+        except Exception:  # runs on the analysis thread: a bug here must not cost the result itself
+            self.counters["errors"] += 1
+            log.exception("monitor: no verdict for test %s", msg.get("test_id"))
         return out
 
     def alert_history(self) -> list[dict[str, Any]]:

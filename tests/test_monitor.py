@@ -333,3 +333,18 @@ def test_gcode_says_which_limits_apply(tmp_path: Path, capsys: pytest.CaptureFix
     assert cli_main(["gcode", "--dialect", "fanuc", "--config", str(daemon_cfg)]) == 0
     err = capsys.readouterr().err
     assert "G_b_um <= 25 (warning above 20, 80 %)" in err and "backlash_x_um <= 8" in err
+
+
+def test_the_viewers_findings_and_the_subscribers_text_show_the_verdict() -> None:
+    from ballbar.daemon.viewer import findings_markdown
+    from ballbar.tools.subscribe import text_line
+
+    r = fake_result(10.1, 0.1)
+    r["verdict"] = mon.evaluate(r, settings(parameters={"backlash_x_um": 10.0}, G_b_um=4.0))
+    md = findings_markdown(r)
+    assert "### Verdict: **FAIL**" in md  # G(b) 5.0 - 0.28 > 4
+    assert "| backlash_x_um | 10.100 | 0.200 | 10.000 | -0.100 | warning (within uncertainty of the limit) |" in md
+    assert "Verdict" not in findings_markdown(fake_result(1.0, 0.1))  # no limits, no verdict
+    line = text_line({"kind": "alert", "t_wall": "T", "state": "fail", "cleared": False, "message": "m: x"})
+    assert line == "T ALERT FAIL     m: x"
+    assert text_line(r).startswith("2026-01-01T00:00:00Z TEST  m-2026-01-01T00:00:00Z: FAIL: ")
