@@ -384,22 +384,19 @@ def cmd_gcode(args: argparse.Namespace) -> int:
     from .config import monitor_settings
 
     settings = monitor_settings(cfg)
-    if settings.enabled:  # what the daemon will hold this test to
-        print("limits that apply to this test's results ([limits] of the configuration, k = "
-              f"{settings.coverage_k:g}):", file=sys.stderr)
-        for line in settings.describe():
-            print(f"  {line}", file=sys.stderr)
-    else:
-        print("no acceptance limits configured ([limits] enabled = false): no verdict", file=sys.stderr)
     problems = check_against_plan(text, args.dialect, plan, origin=origin)
     if problems and not limits:
         raise BallbarError(f"the {args.dialect} program does not run the plan: {problems[0]}")
     if args.output is None:
         sys.stdout.write(text)
-        return 0
-    write_atomic(args.output, text.encode("utf-8"))
-    print(f"wrote {args.output}: {args.dialect} program, plane {plan.plane}, R {plan.radius_mm:g} mm, "
-          f"F {plan.feed_mm_min:g} mm/min", file=sys.stderr)
+    else:
+        write_atomic(args.output, text.encode("utf-8"))
+        print(f"wrote {args.output}: {args.dialect} program, plane {plan.plane}, R {plan.radius_mm:g} mm, "
+              f"F {plan.feed_mm_min:g} mm/min", file=sys.stderr)
+    if settings.enabled:  # what the daemon will hold this test to
+        print(f"limits that apply to this test's results ([limits], k = {settings.coverage_k:g}):", file=sys.stderr)
+        for line in settings.describe():
+            print(f"  {line}", file=sys.stderr)
     return 0
 
 
