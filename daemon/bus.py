@@ -27,6 +27,9 @@ key                               how         what
                                               ``outputs.zenoh``: this publisher's own counters
 ``ballbar/<m>/config``            put         ``kind: "config"``: the effective configuration, at
                                               start
+``ballbar/<m>/alert``             put         ``kind: "alert"`` (with ``[limits]`` on): a verdict that
+                                              turned to warning or fail or back, a forecast that
+                                              became due or cleared (:mod:`.monitor`)
 ``ballbar/<m>/samples``           put         ``kind: "samples"``, decimated samples (off unless
                                               ``samples_hz`` > 0): one message per max(0.1 s,
                                               1/``samples_hz``) with columns ``t_host``,
@@ -34,12 +37,13 @@ key                               how         what
                                               ``seq``, ``status``; the first sample of each
                                               1/``samples_hz`` slot, unfiltered: for display only
 ``ballbar/<m>/last/<topic>``      queryable   the last payload put on ``circle``, ``test``
-                                              (results), ``event``, ``status``, ``config``; no
+                                              (results), ``event``, ``status``, ``config``,
+                                              ``alert``; no
                                               reply when there is none yet. ``last/*`` gives all.
 ``ballbar/<m>/history/test``      queryable   results (and events) kept by the daemon, one reply:
 ``ballbar/<m>/history/circle``                ``{"kind": "history", "topic", "machine_id",
-``ballbar/<m>/history/event``
-                                              "count", "more", "results": [...]}``, oldest first.
+``ballbar/<m>/history/event``                 "count", "more", "results": [...]}``, oldest first.
+``ballbar/<m>/history/alert``
                                               Parameters (``;``-separated; ``&`` accepted):
                                               ``since=<ISO 8601 or Unix seconds>`` (exclusive,
                                               compared with ``t_wall``), ``limit=N`` (default 100,
@@ -59,7 +63,7 @@ does exactly that.
 
 Delivery
 --------
-Results, events and the configuration are put with ``CongestionControl.BLOCK``
+Results, events, alerts and the configuration are put with ``CongestionControl.BLOCK``
 at ``Priority.DATA_HIGH``: a subscriber that is slow for a moment still gets
 every one.  To a subscriber that stops reading they are best effort (below),
 and Zenoh does not say what it dropped: ``history/test``, ``history/circle``
@@ -140,12 +144,13 @@ TOPICS: dict[str, str] = {
     "status": "status",
     "config": "config",
     "samples": "samples",
+    "alert": "alert",
 }
-LAST_TOPICS = ("circle", "test", "event", "status", "config")
-HISTORY_TOPICS = ("circle", "test", "event")
+LAST_TOPICS = ("circle", "test", "event", "status", "config", "alert")
+HISTORY_TOPICS = ("circle", "test", "event", "alert")
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
-_RELIABLE = ("circle", "test", "event", "config")
+_RELIABLE = ("circle", "test", "event", "config", "alert")
 _BAD_CHUNK = re.compile(r"[/*$?#\s]")
 
 

@@ -17,6 +17,7 @@ import sys
 import threading
 import tomllib
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -85,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("--list", action="store_true", help="list the tests (number, id, start, status, file, "
                     "headline) instead of analysing one; with --json a JSON list")
     an.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
+    an.add_argument("--config", help="the daemon's TOML configuration: its [limits] give the verdict (default: "
+                    "the --plan file's [limits], else those the recording was made with)")
 
     gc = sub.add_parser("gcode", help="write the NC test program that matches the test plan",
                         description="Write the ball-bar test program (feed-in, CCW and CW arcs with overshoots, "
@@ -152,9 +155,9 @@ def load_config_file(path: str) -> dict[str, Any]:
         data = json.loads(text) if p.suffix.lower() == ".json" else tomllib.loads(text)
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as err:
         raise UsageError(f"{path}: not valid {'JSON' if p.suffix.lower() == '.json' else 'TOML'}: {err}") from err
-    unknown = sorted(set(data) - {"plan", "machine", "analysis"})
+    unknown = sorted(set(data) - {"plan", "machine", "analysis", "limits"})
     if unknown:
-        raise UsageError(f"{path}: unknown section {unknown[0]!r} (known: plan, machine, analysis)")
+        raise UsageError(f"{path}: unknown section {unknown[0]!r} (known: plan, machine, analysis, limits)")
     return data
 
 
@@ -219,11 +222,18 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         raise UsageError(f"--test-id picks a test from the daemon's MCAP records; {args.file} is not one")
     if args.list:
         return _list_tests(args, mcap)
+    base: dict[str, Any] = {}
     if mcap and (os.path.isdir(args.file) or args.test_id is not None):
-        result = _analyze_records(args)
+        result = _analyze_records(args, base)
     else:
-        plan, machine, options = configs_from_args(args)
+        from .recordings import recorded_config
+
+        base = recorded_config(args.file)
+        plan, machine, options = configs_from_args(args, base=dict(base))
         result = analyze_file(args.file, plan, machine, options, args.test or 1)
+    limits = limits_table(args, base)
+    if limits is not None:
+        result["verdict"] = verdict_of(result, limits)
     if args.json:
         json.dump(result, sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
@@ -234,11 +244,57 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         print(summary(result))
         for w in result.get("warnings", []):
             print(f"warning: {w}")
+        if "verdict" in result:
+            print(verdict_lines(result["verdict"]))
     return 0
 
 
-def _analyze_records(args: argparse.Namespace) -> dict[str, Any]:
-    """A test from the daemon's records: a directory's newest complete one, or the one asked for."""
+def limits_table(args: argparse.Namespace, base: dict[str, Any]) -> dict[str, Any] | None:
+    """The ``[limits]`` that give an offline verdict: ``--config``'s, else ``--plan``'s, else the recorded ones;
+    None when none of them turns limits on."""
+    from .config import load
+
+    table: dict[str, Any] | None = None
+    if getattr(args, "config", None):
+        table = asdict(load(args.config, env={}).limits)
+    elif getattr(args, "plan_file", None) and "limits" in load_config_file(args.plan_file):
+        table = dict(load_config_file(args.plan_file)["limits"])
+    elif isinstance(base.get("limits"), dict):
+        table = dict(base["limits"])
+    return table if table and table.get("enabled") else None
+
+
+def verdict_of(result: dict[str, Any], table: dict[str, Any]) -> dict[str, Any]:
+    """The verdict of a result against a ``[limits]`` table, as the daemon gives it live."""
+    from ballbar.analysis import monitor
+
+    try:
+        settings = monitor.settings_from_dict(table)
+    except PlanError as err:
+        raise UsageError(str(err)) from err
+    verdict = monitor.evaluate(result, settings)
+    why = monitor.validity(result)
+    if why is not None:
+        verdict["trend_excluded"] = why
+    return verdict
+
+
+def verdict_lines(verdict: dict[str, Any]) -> str:
+    lines = [f"Verdict: {verdict['summary']}", f"  (k = {verdict['coverage_k']:g}; {verdict['rule']})"]
+    for e in verdict["limits"]:
+        if e["status"] == "not_evaluated":
+            lines.append(f"  {e['name']:<28} not evaluated: {e.get('reason')}")
+            continue
+        note = " (within uncertainty of the limit)" if e["within_uncertainty"] else ""
+        lines.append(f"  {e['name']:<28} {e['value']:10.4g} +- {e['uncertainty']:<8.2g} limit {e['limit']:<8g} "
+                     f"margin {e['margin']:+.3g} {e['unit']}: {e['status']}{note}")
+    return "\n".join(lines)
+
+
+def _analyze_records(args: argparse.Namespace, base: dict[str, Any]) -> dict[str, Any]:
+    """A test from the daemon's records: a directory's newest complete one, or the one asked for.
+
+    ``base`` receives the recorded configuration used (its ``limits`` give the verdict)."""
     from .mcap_log import read_logs, recording
     from .recordings import analyze, config_sections, pick_test
     from .testindex import analyze_recorded, index_recordings
@@ -246,14 +302,15 @@ def _analyze_records(args: argparse.Namespace) -> dict[str, Any]:
     index = index_recordings(args.file)
     if index.tests or args.test_id is not None:
         test = index.select(args.test_id, args.test)
-        plan, machine, options = configs_from_args(args, base=index.config_for(test))
+        base.update(index.config_for(test))
+        plan, machine, options = configs_from_args(args, base=dict(base))
         return analyze_recorded(index, test, plan, machine, options)
     # Files without test records (the daemon's analysis off, or not the daemon's): the newest run's samples.
     run = index.runs()[-1]
     log.info("%s: no test recorded; analysing the samples of its newest daemon run (%d file(s))", args.file, len(run))
     files = [index.files[i] for i in run]
-    plan, machine, options = configs_from_args(args, base=next(
-        (config_sections(f.config) for f in reversed(files) if f.config), {}))
+    base.update(next((config_sections(f.config) for f in reversed(files) if f.config), {}))
+    plan, machine, options = configs_from_args(args, base=dict(base))
     rec = recording(read_logs([f.path for f in files]), args.file)
     return pick_test(analyze(rec, plan, machine, options), args.test or 1, args.file, plan)
 
@@ -324,15 +381,22 @@ def cmd_gcode(args: argparse.Namespace) -> int:
     limits = model_limits(plan)
     for why in limits:
         log.warning("the plan is outside the analyzer's timing model: %s", why)
+    from .config import monitor_settings
+
+    settings = monitor_settings(cfg)
     problems = check_against_plan(text, args.dialect, plan, origin=origin)
     if problems and not limits:
         raise BallbarError(f"the {args.dialect} program does not run the plan: {problems[0]}")
     if args.output is None:
         sys.stdout.write(text)
-        return 0
-    write_atomic(args.output, text.encode("utf-8"))
-    print(f"wrote {args.output}: {args.dialect} program, plane {plan.plane}, R {plan.radius_mm:g} mm, "
-          f"F {plan.feed_mm_min:g} mm/min", file=sys.stderr)
+    else:
+        write_atomic(args.output, text.encode("utf-8"))
+        print(f"wrote {args.output}: {args.dialect} program, plane {plan.plane}, R {plan.radius_mm:g} mm, "
+              f"F {plan.feed_mm_min:g} mm/min", file=sys.stderr)
+    if settings.enabled:  # what the daemon will hold this test to
+        print(f"limits that apply to this test's results ([limits], k = {settings.coverage_k:g}):", file=sys.stderr)
+        for line in settings.describe():
+            print(f"  {line}", file=sys.stderr)
     return 0
 
 
@@ -368,6 +432,10 @@ def cmd_report(args: argparse.Namespace) -> int:
             records = os.path.join(load(args.config).daemon.state_dir, "recordings")
         data = from_records(records, args.test_id)
         default_name = str(data.result.get("test_id", "test"))
+    if args.config and args.file is not None:  # the daemon's configuration file: its [limits] give the verdict
+        from ballbar.tools.report import attach_verdict
+
+        attach_verdict(data.result, asdict(load(args.config).limits))
     from ballbar.tools.report_render import render  # matplotlib: only once there is something to draw
 
     out = Path(args.output or f"ballbar-report-{_safe_name(default_name)}.html")

@@ -92,6 +92,26 @@ class RerunSection:
 
 
 @dataclass
+class LimitsSection:
+    """Acceptance limits, verdicts, trends and alerts (:mod:`ballbar.analysis.monitor`); off by default."""
+
+    enabled: bool = False
+    G_um: float | None = None  # ISO 230-4 circular deviation, each direction
+    G_b_um: float | None = None  # bidirectional circular deviation
+    H_um: float | None = None  # circular hysteresis
+    parameters: dict[str, float] = field(default_factory=dict)  # result parameter name -> bound on |value|
+    warn_fraction: float = 0.8
+    warn_fractions: dict[str, float] = field(default_factory=dict)  # per limit, overrides warn_fraction
+    coverage_k: float = 2.0
+    trend_tests: int = 20
+    trend_days: float = 0.0
+    min_tests: int = 6
+    horizon_days: float = 30.0
+    confidence: float = 0.95
+    clear_after: int = 2
+
+
+@dataclass
 class QueueSection:
     analysis: int = 6000  # batches (~20 ms each): two minutes; drop_newest, counted
     mcap: int = 6000  # drop_newest: a contiguous log, the gap counted
@@ -109,6 +129,7 @@ SECTIONS: dict[str, type] = {
     "zenoh": ZenohSection,
     "rerun": RerunSection,
     "queues": QueueSection,
+    "limits": LimitsSection,
 }
 
 
@@ -123,6 +144,7 @@ class Config:
     zenoh: ZenohSection
     rerun: RerunSection
     queues: QueueSection
+    limits: LimitsSection = field(default_factory=LimitsSection)
 
     @property
     def cal_mm(self) -> float:
@@ -341,3 +363,18 @@ def _validate(cfg: Config) -> None:
     for ok, message in checks:
         if not ok:
             raise ConfigError(message)
+    monitor_settings(cfg)
+
+
+def monitor_settings(cfg: Config) -> Any:
+    """The :class:`~ballbar.analysis.monitor.MonitorSettings` of ``[limits]``; a bad value is a ConfigError."""
+    from ballbar.analysis.monitor import check_parameter_names, settings_from_dict
+    from ballbar.analysis.patterns import LIBRARY
+    from ballbar.analysis.report import _report_fields
+
+    try:
+        settings = settings_from_dict(asdict(cfg.limits) | {"enabled": True})
+        check_parameter_names(settings, (f for p in LIBRARY for f, _u in _report_fields(p)))
+        return settings if cfg.limits.enabled else settings_from_dict(asdict(cfg.limits))
+    except PlanError as err:
+        raise ConfigError(str(err)) from None

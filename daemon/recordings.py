@@ -372,9 +372,9 @@ def recorded_config(path: str) -> dict[str, Any]:
 
 
 def config_sections(configs: list[dict[str, Any]]) -> dict[str, Any]:
-    """The ``plan``, ``machine`` and ``analysis`` tables of the newest of a log's config records."""
+    """The ``plan``, ``machine``, ``analysis`` (and ``limits``) tables of the newest of a log's config records."""
     cfg = configs[-1].get("config", {}) if configs else {}
-    return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis") if isinstance(cfg.get(k), dict)}
+    return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis", "limits") if isinstance(cfg.get(k), dict)}
 
 
 def outcomes(results: list[dict[str, Any]]) -> list[dict[str, Any]]:

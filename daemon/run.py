@@ -48,10 +48,17 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
             from .mcap_log import McapLogger
 
             out.append((McapLogger.from_config(cfg), cfg.queues.mcap, "drop_newest"))
+        loader: Callable[[], list[dict[str, Any]]] | None = recorded_results(cfg) if cfg.mcap.enabled else None
+        if cfg.limits.enabled:  # before the bus: its history/alert is seeded from the monitor's store
+            from .monitor import MonitorListener
+
+            monitor = MonitorListener.from_config(cfg, seed=recorded_results(cfg) if cfg.mcap.enabled else None)
+            out.append((monitor, 1000, "drop_newest"))
+            alerts = monitor.alert_history
+            loader = _chain(loader, alerts) if loader is not None else alerts
         if cfg.zenoh.enabled:
             from .bus import ZenohBus
 
-            loader = recorded_results(cfg) if cfg.mcap.enabled else None
             out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
         if cfg.rerun.mode != "off":
             out.append((StartedLater("rerun", lambda: _rerun_viewer(cfg)), cfg.queues.rerun, "drop_oldest"))
@@ -63,6 +70,10 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
                 log.exception("stopping %s after a failed start", listener.name)
         raise
     return out
+
+
+def _chain(*loaders: Callable[[], list[dict[str, Any]]]) -> Callable[[], list[dict[str, Any]]]:
+    return lambda: [m for load in loaders for m in load()]
 
 
 def _rerun_viewer(cfg: Config) -> Listener:

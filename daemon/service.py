@@ -210,6 +210,9 @@ class LogListener(Listener):
                 feed = msg["timing"]["measured_feed_mm_min"]
                 extra = f"; G(b) {iso.get('G_b_um') or float('nan'):.2f} um, feed {feed:.1f} mm/min"
             log.info("%s %s: %s%s", msg.get("test_id"), what, top, extra)
+            verdict = msg.get("verdict")
+            if kind == "test" and isinstance(verdict, dict) and verdict.get("limits"):
+                log.info("%s verdict: %s", msg.get("test_id"), verdict.get("summary"))
         elif kind == "event" and msg.get("event") in (
             "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
             "test_incomplete", "analysis_reset",
@@ -270,6 +273,11 @@ class Daemon:
         self.source = source
         self.notifier = notifier or Notifier()
         outputs = [*listeners, (LogListener(), 100, "drop_oldest")]
+        # Outputs that add to a test result before it fans out (the monitor's verdict), and may send messages
+        # of their own through broadcast (its alerts).
+        self.annotators = [lst for lst, _c, _p in listeners if callable(getattr(lst, "annotate", None))]
+        for lst in self.annotators:
+            lst.bind(self.broadcast)  # type: ignore[attr-defined]
         self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]
         self.analysis = AnalysisListener(cfg, self.broadcast)
         self.analysis_queue = ListenerQueue(self.analysis, cfg.queues.analysis, "drop_newest")
@@ -292,6 +300,9 @@ class Daemon:
 
     def broadcast(self, msg: Message) -> None:
         """Hand a message to every output (never blocks: each queue has its policy)."""
+        if msg.get("kind") == "test":
+            for lst in self.annotators:
+                msg = lst.annotate(msg)  # type: ignore[attr-defined]
         if msg.get("kind") in ("circle", "test"):
             with self._count_lock:
                 self.results_seen += 1

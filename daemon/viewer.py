@@ -722,6 +722,7 @@ def findings_markdown(result: Mapping[str, Any]) -> str:
         ]
     for w in result.get("warnings") or []:
         lines += ["", f"**Warning:** {w}"]
+    lines += verdict_markdown(result.get("verdict"))
     lines += ["", "### Advice", ""]
     advice = list(result.get("advice") or [])
     if not advice:
@@ -735,6 +736,25 @@ def findings_markdown(result: Mapping[str, Any]) -> str:
 def _clock_text(wall: float) -> str:
     """A wall-clock time as the viewer's events show it: UTC, to the millisecond."""
     return datetime.datetime.fromtimestamp(wall, datetime.UTC).strftime("%H:%M:%S.%f")[:-3] + " UTC"
+
+
+def verdict_markdown(verdict: Any) -> list[str]:
+    """The verdict against the configured limits (``[limits]``) as markdown lines; none without limits."""
+    if not isinstance(verdict, Mapping) or not verdict.get("limits"):
+        return []
+    status = str(verdict.get("status", "?"))
+    lines = ["", f"### Verdict: **{status.upper()}**", "",
+             f"limits with k = {_fmt(verdict.get('coverage_k'), 1)} (fail only beyond the uncertainty)", "",
+             "| quantity | value | ± (k u) | limit | margin | status |", "|---|---:|---:|---:|---:|---|"]
+    for e in verdict["limits"]:
+        st = str(e.get("status", ""))
+        if e.get("within_uncertainty"):
+            st += " (within uncertainty of the limit)"
+        elif st == "not_evaluated":
+            st += f": {e.get('reason', '')}"
+        lines.append(f"| {e.get('name')} | {_fmt(e.get('value'), 3)} | {_fmt(e.get('uncertainty'), 3)} | "
+                     f"{_fmt(e.get('limit'), 3)} | {_fmt(e.get('margin'), 3)} | {st} |")
+    return lines
 
 
 def trend_ranges(rows: FloatArray) -> dict[str, tuple[float, float]]:
@@ -1701,6 +1721,10 @@ class RerunViewer(Listener):
     def _on_message(self, msg: Message) -> None:
         self.counters["messages"] += 1
         kind = msg.get("kind")
+        if kind == "alert":  # the monitor's alerts: one line in the events
+            self._text_event(f"alert: {msg.get('message', msg.get('state'))}",
+                             "INFO" if msg.get("cleared") else "WARN")
+            return
         if kind not in ("config", "circle", "test", "event"):
             return  # status: nothing to draw
         self._flush(time.monotonic())  # a boundary: the samples before it are drawn and sent first

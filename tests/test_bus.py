@@ -303,6 +303,7 @@ def test_topics_encoding_and_payloads() -> None:
         "status": 1,
         "config": 1,
         "samples": 0,
+        "alert": 0,
     }
 
 
@@ -374,7 +375,8 @@ def test_last_and_history_answer_from_the_daemons_records() -> None:
         assert history("ballbar/m/history/circle")["ids"] == ["m-0", "m-1", "m-2"]
         ok, _ = get(c, "ballbar/m/history/*?limit=1")
         assert sorted(str(s.key_expr) for s in ok) == [
-            "ballbar/m/history/circle", "ballbar/m/history/event", "ballbar/m/history/test"
+            "ballbar/m/history/alert", "ballbar/m/history/circle", "ballbar/m/history/event",
+            "ballbar/m/history/test"
         ]
         for bad, says in [
             ("since=yesterday", "since"),

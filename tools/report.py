@@ -128,7 +128,29 @@ def from_recording(
     if records is not None:
         candidates += read_results(_records_files(records))
     history, note = select_history(result, _unique(candidates))
+    attach_verdict(result, recorded_limits(path))
     return ReportData(result, curves, history, note, source=os.path.abspath(path))
+
+
+def recorded_limits(path: str) -> dict[str, Any] | None:
+    """The ``[limits]`` a daemon recording was made with (None for a CSV or a recording without them)."""
+    from ballbar.daemon.recordings import recorded_config
+
+    table = recorded_config(path).get("limits")
+    return dict(table) if isinstance(table, dict) else None
+
+
+def attach_verdict(result: dict[str, Any], limits: dict[str, Any] | None) -> None:
+    """The verdict against ``limits`` (a ``[limits]`` table) into ``result``, as the daemon gives it live;
+    nothing when the limits are off.  The report's verdict box draws it."""
+    from ballbar.analysis import monitor
+
+    if not limits or not limits.get("enabled"):
+        return
+    result["verdict"] = monitor.evaluate(result, monitor.settings_from_dict(limits))
+    why = monitor.validity(result)
+    if why is not None:
+        result["verdict"]["trend_excluded"] = why
 
 
 def _records_files(records: str) -> list[Path]:
@@ -209,6 +231,8 @@ def from_recorded_test(
     if records is not None and os.path.abspath(records) != os.path.abspath(index.path):
         candidates += read_results(_records_files(records))
     history, note = select_history(result, _unique(candidates))
+    limits = index.config_for(test).get("limits")
+    attach_verdict(result, dict(limits) if isinstance(limits, dict) else None)
     return ReportData(result, curves, history, note, source=f"{os.path.abspath(index.path)} test {result['test_id']}")
 
 

@@ -857,9 +857,33 @@ def _verdict(result: Mapping[str, Any], curves: Sequence[_Curve]) -> str:
         '<div class="verdict"><div>'
         f'<div class="lbl">Circularity {_e(gname)}</div>'
         f'<div class="big" id="verdict-g">{_e(_fmt(g, 1))} <small>µm</small></div>'
-        f'<div class="fig2">{_e(" · ".join(others))}</div></div>'
+        f'<div class="fig2">{_e(" · ".join(others))}</div>{_limits_verdict(result)}</div>'
         f'<div><div class="lbl">Main findings</div>{found}{setup_txt}{prov}{no_curves}{warn}</div></div>'
     )
+
+
+def _limits_verdict(result: Mapping[str, Any]) -> str:
+    """The verdict against the configured limits ([limits]), under the circularity: status and each limit."""
+    v = result.get("verdict")
+    if not isinstance(v, Mapping) or not v.get("limits"):
+        return '<p class="note" id="verdict-limits">No acceptance limits configured: no pass/fail verdict.</p>'
+    status = str(v.get("status", ""))
+    rows = []
+    for e in v["limits"]:
+        if not isinstance(e, Mapping):
+            continue
+        st = str(e.get("status", ""))
+        if e.get("within_uncertainty"):
+            st = f"{st}: within uncertainty of the limit"
+        elif st == "not_evaluated":
+            st = f"not evaluated: {e.get('reason', '')}"
+        value = "–" if e.get("value") is None else f"{_fmt(e.get('value'), 3)} ± {_fmt(e.get('uncertainty'), 2)}"
+        rows.append(f"<li><b>{_e(e.get('name'))}</b> {_e(value)} / {_e(_fmt(e.get('limit'), 3))} "
+                    f"{_e(_unit(e.get('unit')))} <span class='note'>({_e(st)})</span></li>")
+    return (f'<div class="lbl" style="margin-top:10px">Limits</div>'
+            f'<div class="big" id="verdict-status">{_e(status.upper())}</div>'
+            f'<ul id="verdict-limits">{"".join(rows)}</ul>'
+            f'<p class="note">Fail only beyond the uncertainty (k = {_e(_fmt(v.get("coverage_k"), 1))}).</p>')
 
 
 def _findings(result: Mapping[str, Any]) -> str:

@@ -247,7 +247,9 @@ def simulator_tests(args: argparse.Namespace) -> Iterator[Chunk]:
 
     plan = plan_from_args(args, args.rate)
     machine = MachineModel(**parse_set(args.set))
-    for res in iter_tests(plan, machine, args.rate, args.seed, None if args.repeat == 0 else args.repeat, args.gap_s):
+    drift = {k: float(v) for k, v in parse_set(getattr(args, "drift", None) or []).items()}
+    for res in iter_tests(plan, machine, args.rate, args.seed, None if args.repeat == 0 else args.repeat, args.gap_s,
+                          drift=drift):
         yield res.t_s, res.length_mm, np.rint(res.t_s * args.rate).astype(np.int64)
 
 
@@ -992,6 +994,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--link", help="stable path to the pty (a symbolic link); default in a temporary directory")
     p.add_argument("--csv", help="stream this recording (t_s,length_mm) instead of the simulator")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--drift", action="append", default=[], metavar="KEY=RATE",
+                   help="a machine key that changes by RATE from one test to the next, e.g. backlash_x_um=0.5 "
+                   "(a machine that wears; repeatable)")
     p.add_argument("--repeat", type=int, default=1, help="tests in a row (0: forever)")
     p.add_argument("--gap-s", type=float, default=0.0, help="device seconds between tests")
     p.add_argument("--cal-mm", type=float, help="bar length at zero displacement (default: the plan's radius)")

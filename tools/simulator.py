@@ -106,7 +106,7 @@ import json
 import logging
 import math
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
@@ -875,8 +875,12 @@ def iter_tests(
     gap_s: float = 0.0,
     *,
     step_s: float = 1.0e-4,
+    drift: Mapping[str, float] | None = None,
 ) -> Iterator[SimResult]:
     """Successive tests on one continuous sample clock, forever if ``repeat`` is None.
+
+    ``drift``: machine keys and how much each changes from one test to the next
+    (test ``i`` runs ``machine`` with ``key + i * rate``): a machine that wears.
 
     Between tests the machine stands at ``R + f`` for ``tail_s + gap_s + lead_s``; the
     samples of that wait belong to the test before (its tail) and after (its lead).
@@ -888,8 +892,15 @@ def iter_tests(
     if not gap_s >= 0:
         raise PlanError(f"gap_s must be >= 0, not {gap_s!r}")
     k0, i = 0, 0
+    names = {f.name for f in fields(MachineModel)}
+    for key in drift or {}:
+        if key not in names or key in ("jitter_stamped", "drop_indices"):
+            raise PlanError(f"drift: {key!r} is not a numeric machine key")
     while repeat is None or i < repeat:
-        res = _run(plan, machine, fs, seed, i, k0, gap_s, step_s)
+        m = machine
+        if drift:
+            m = replace(machine, **{k: getattr(machine, k) + i * float(r) for k, r in drift.items()})
+        res = _run(plan, m, fs, seed, i, k0, gap_s, step_s)
         k0 += res.n_slots
         i += 1
         yield res

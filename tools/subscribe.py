@@ -5,11 +5,13 @@
     python -m ballbar.tools.subscribe                      # every machine's results, as they come
     python -m ballbar.tools.subscribe --machine mill-3 --history --topic result --topic event
     python -m ballbar.tools.subscribe --connect tcp/10.0.0.5:7447 --topic all
+    python -m ballbar.tools.subscribe --machine mill-3 --history --topic alert   # the monitor's alerts
 
 Each line is a payload exactly as published (``kind`` says what it is;
 ``machine_id`` whose).  With ``--history`` the results the daemons still hold
 come first (oldest first, ``--since`` bounding them), then live ones, without
-duplicates: the pattern for a plant service that starts late.  ``--alive``
+duplicates: the pattern for a plant service that starts late.  On a terminal
+(``--format text``) alerts and test verdicts are printed as readable lines.  ``--alive``
 adds a line ``{"kind": "alive", "machine_id": ..., "alive": true|false}`` when
 a daemon appears or goes.
 
@@ -62,10 +64,11 @@ TOPIC_KEYS = {
     "status": ("status",),
     "config": ("config",),
     "samples": ("samples",),
+    "alert": ("alert",),
     "all": ("**",),
 }
 HISTORY_FOR = {"result": ("circle", "test"), "circle": ("circle",), "test": ("test",), "event": ("event",),
-               "all": HISTORY_TOPICS}
+               "alert": ("alert",), "all": HISTORY_TOPICS}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -102,8 +105,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, help="exit after printing this many lines")
     p.add_argument("--timeout", type=float, help="exit after this many seconds")
     p.add_argument("--query-timeout", type=float, default=5.0, help="seconds to wait for history replies")
+    p.add_argument("--format", choices=("auto", "json", "text"), default="auto",
+                   help="json: each payload as one JSON line; text: alerts (and verdicts of test results) as "
+                   "readable lines, the rest as JSON; auto (default): text on a terminal, else json")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more logging on stderr")
     return p
+
+
+def text_line(obj: dict[str, Any]) -> str:
+    """A readable line for an alert or a test result with a verdict; JSON for anything else."""
+    kind = obj.get("kind")
+    if kind == "alert":
+        level = "CLEARED" if obj.get("cleared") else str(obj.get("state", "")).upper()
+        return f"{obj.get('t_wall')} ALERT {level:8} {obj.get('message', '')}"
+    verdict = obj.get("verdict")
+    if kind == "test" and isinstance(verdict, dict) and verdict.get("limits"):
+        return f"{obj.get('t_wall')} TEST  {obj.get('test_id')}: {verdict.get('summary', '')}"
+    return json.dumps(obj, separators=(",", ":"))
 
 
 def _identity(obj: dict[str, Any]) -> tuple[Any, ...]:
@@ -112,8 +130,9 @@ def _identity(obj: dict[str, Any]) -> tuple[Any, ...]:
 
 
 class _Printer:
-    def __init__(self, count: int | None) -> None:
+    def __init__(self, count: int | None, text: bool = False) -> None:
         self.count = count
+        self.text = text
         self.printed = 0
         self.seen: set[tuple[Any, ...]] = set()
 
@@ -124,7 +143,7 @@ class _Printer:
             if ident in self.seen:
                 return True
             self.seen.add(ident)
-        sys.stdout.write(json.dumps(obj, separators=(",", ":")) + "\n")
+        sys.stdout.write((text_line(obj) if self.text else json.dumps(obj, separators=(",", ":"))) + "\n")
         sys.stdout.flush()
         self.printed += 1
         return self.count is None or self.printed < self.count
@@ -232,7 +251,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
 
     code = 0
-    printer = _Printer(args.count)
+    printer = _Printer(args.count, args.format == "text" or (args.format == "auto" and sys.stdout.isatty()))
     try:
         keys = sorted({k for t in topics for k in TOPIC_KEYS[t]})
         subs = [session.declare_subscriber(f"ballbar/{args.machine}/{k}", on_sample) for k in keys]

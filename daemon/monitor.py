@@ -1,0 +1,284 @@
+"""The monitor: verdicts on test results, the trend history on disk, forecasts and alerts.
+
+The pure parts (limits, verdict, Theil-Sen trend, forecast, alert states) are
+:mod:`ballbar.analysis.monitor`; this is the daemon's side.
+
+- :meth:`MonitorListener.annotate` puts the verdict into each test result before
+  it fans out (the daemon calls it on the analysis thread; it is a few dozen
+  comparisons), so the published result, the MCAP record, the viewer's findings
+  and the log line all carry the same verdict.
+- :meth:`MonitorListener.on_message` (its own queue's thread) appends the test
+  to the history, fits the trends of the limited quantities under the test's
+  conditions, and sends the alerts (``kind: "alert"``) through the daemon's
+  broadcast: the bus publishes them on ``ballbar/<m>/alert`` reliably, the MCAP
+  log keeps them, the log says them in one line.
+
+State on disk, under ``<state_dir>/monitor/`` (one daemon per state directory):
+
+- ``<machine>-history.jsonl``: one line per test result (identity, ``t_wall``,
+  conditions, why it is invalid for a trend if it is, the limited values with
+  their standard uncertainties, the verdict's status);
+- ``<machine>-alerts.jsonl``: every alert sent, which seeds ``history/alert``
+  and ``last/alert`` after a restart;
+- ``<machine>-state.json``: the alert states (replaced atomically), so a
+  restart neither repeats an alert nor forgets one.
+
+On the first start with limits (no history file yet) the history is seeded from
+the test results in the daemon's MCAP records, if a loader is given: the trend
+then starts from the machine's past.  Seeding sends no alerts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import threading
+from collections.abc import Callable, Iterable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from ballbar import SCHEMA_VERSION
+from ballbar.analysis import monitor as mon
+
+from .listeners import Listener, Message, to_json
+from .output import write_atomic
+
+log = logging.getLogger(__name__)
+
+HISTORY_KEEP = 5000  # history lines read back at start (the trend needs the last trend_tests of them)
+ALERTS_KEEP = 1000  # alerts read back at start (history/alert answers at most this many)
+
+
+class MonitorStore:
+    """The monitor's files in ``directory`` (see the module docstring)."""
+
+    def __init__(self, directory: str | os.PathLike[str], machine: str) -> None:
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.history_path = self.dir / f"{machine}-history.jsonl"
+        self.alerts_path = self.dir / f"{machine}-alerts.jsonl"
+        self.state_path = self.dir / f"{machine}-state.json"
+
+    @staticmethod
+    def _read_lines(path: Path, keep: int) -> list[dict[str, Any]]:
+        out: list[dict[str, Any]] = []
+        try:
+            with path.open(encoding="utf-8") as fh:
+                for n, line in enumerate(fh, 1):
+                    if not line.strip():
+                        continue
+                    try:
+                        out.append(json.loads(line))
+                    except json.JSONDecodeError:  # a line a crash cut short: the rest is good
+                        log.warning("monitor: %s:%d is not JSON; skipped", path, n)
+        except FileNotFoundError:
+            return []
+        return out[-keep:]
+
+    @staticmethod
+    def _append(path: Path, obj: Any) -> None:
+        with path.open("ab") as fh:
+            fh.write(to_json(obj) + b"\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    def has_history(self) -> bool:
+        return self.history_path.exists()
+
+    def history(self) -> list[dict[str, Any]]:
+        return self._read_lines(self.history_path, HISTORY_KEEP)
+
+    def append_history(self, entry: dict[str, Any]) -> None:
+        self._append(self.history_path, entry)
+
+    def alerts(self) -> list[dict[str, Any]]:
+        return self._read_lines(self.alerts_path, ALERTS_KEEP)
+
+    def append_alert(self, alert: dict[str, Any]) -> None:
+        self._append(self.alerts_path, alert)
+
+    def state(self) -> dict[str, Any] | None:
+        try:
+            data = json.loads(self.state_path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            return None
+        except (OSError, json.JSONDecodeError) as err:
+            log.warning("monitor: cannot read %s (%s); alert states start afresh", self.state_path, err)
+            return None
+        return data if isinstance(data, dict) else None
+
+    def save_state(self, state: dict[str, Any]) -> None:
+        write_atomic(str(self.state_path), to_json(state))
+
+
+class Monitor:
+    """Verdicts, history, trends and alert states of one machine, without threads (the listener drives it)."""
+
+    def __init__(self, settings: mon.MonitorSettings, machine: str, store: MonitorStore | None = None) -> None:
+        self.settings = settings
+        self.machine = machine
+        self.store = store
+        self.history: list[dict[str, Any]] = store.history() if store is not None else []
+        self.tracker = mon.AlertTracker(settings.clear_after)
+        saved = store.state() if store is not None else None
+        if saved is not None and isinstance(saved.get("tracker"), dict):
+            self.tracker.state = saved["tracker"]
+        self.alert_count = int(saved.get("alerts", 0)) if saved else 0
+
+    def seed(self, results: Iterable[Message]) -> int:
+        """Earlier test results (oldest first) into an empty history; no alerts.  Returns how many."""
+        n = 0
+        for r in results:
+            if r.get("kind") != "test" or not r.get("t_wall") or r.get("machine_id") not in (None, self.machine):
+                continue
+            entry = mon.history_entry(r, r.get("verdict") or mon.evaluate(r, self.settings), str(r["t_wall"]))
+            self.history.append(entry)
+            if self.store is not None:
+                self.store.append_history(entry)
+            n += 1
+        return n
+
+    def verdict(self, result: Message) -> dict[str, Any]:
+        v = mon.evaluate(result, self.settings)
+        why = mon.validity(result)
+        if why is not None:
+            v["trend_excluded"] = why
+        return v
+
+    def forecasts(self, result: Message) -> list[dict[str, Any]]:
+        cond = mon.conditions(result)
+        out = []
+        for lim, name in self.settings.quantities():
+            pts = mon.points(self.history, name, cond, self.settings)
+            out.append(mon.forecast(pts, lim, name, self.settings))
+        return out
+
+    def on_test(self, result: Message) -> list[dict[str, Any]]:
+        """A test result (with its verdict, or one is computed): history, forecasts, and the alerts to send."""
+        verdict = result.get("verdict") or self.verdict(result)
+        t_wall = str(result.get("t_wall") or mon.time_text(datetime.now(UTC)))
+        entry = mon.history_entry(result, verdict, t_wall)
+        self.history.append(entry)
+        del self.history[:-mon_history_keep(self.settings)]
+        if self.store is not None:
+            self.store.append_history(entry)
+        # An invalid test gives a verdict but changes no trend: its forecasts would be the previous test's.
+        forecasts = self.forecasts(result) if entry["invalid"] is None else []
+        changes = self.tracker.update(verdict, forecasts)
+        by_name = {f["name"]: f for f in forecasts}
+        alerts = []
+        for ch in changes:
+            self.alert_count += 1
+            a: dict[str, Any] = {
+                "kind": "alert",
+                "schema_version": SCHEMA_VERSION,
+                "machine_id": self.machine,
+                "t_wall": datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z"),
+                "alert_id": f"{self.machine}-alert-{self.alert_count}",
+                **ch,
+                "test_id": result.get("test_id"),
+                "t_test": t_wall,
+                "conditions": entry["conditions"],
+            }
+            if ch["alert"] == "verdict":
+                a["verdict"] = verdict
+            else:
+                a["forecast"] = by_name[ch["limit"]]
+            a["message"] = mon.alert_text(a)
+            alerts.append(a)
+            if self.store is not None:
+                self.store.append_alert(a)
+        if self.store is not None:
+            self.store.save_state({"tracker": self.tracker.state, "alerts": self.alert_count})
+        return alerts
+
+
+def mon_history_keep(settings: mon.MonitorSettings) -> int:
+    return max(HISTORY_KEEP, 10 * settings.trend_tests)
+
+
+class MonitorListener(Listener):
+    """The monitor as a daemon output: annotates test results, keeps the history, sends alerts.
+
+    ``emit`` (the daemon's broadcast) is bound by the daemon (:meth:`bind`);
+    until then alerts only go to the log and the store.
+    """
+
+    name = "monitor"
+    batch_period_s = None
+    idle_s = None
+
+    def __init__(self, monitor: Monitor, emit: Callable[[Message], None] | None = None) -> None:
+        self.monitor = monitor
+        self.emit = emit
+        self.counters = {"tests": 0, "alerts": 0, "errors": 0}
+        self._lock = threading.Lock()
+
+    @classmethod
+    def from_config(cls, cfg: Any, seed: Callable[[], Iterable[Message]] | None = None) -> MonitorListener:
+        from .config import monitor_settings
+
+        settings = monitor_settings(cfg)
+        store = MonitorStore(os.path.join(cfg.daemon.state_dir, "monitor"), cfg.daemon.machine_id)
+        fresh = not store.has_history()
+        monitor = Monitor(settings, cfg.daemon.machine_id, store)
+        if fresh and seed is not None:
+            try:
+                n = monitor.seed(seed())
+            except Exception as err:  # a damaged recording must not keep the daemon from starting
+                log.warning("monitor: seeding the history from the records failed: %s", err)
+            else:
+                if n:
+                    log.info("monitor: history seeded with %d earlier test results", n)
+        with contextlib.suppress(OSError):
+            store.history_path.touch()
+        log.info("monitor: limits %s; %d tests in the history", "; ".join(settings.describe()),
+                 len(monitor.history))
+        return cls(monitor, None)
+
+    def bind(self, emit: Callable[[Message], None]) -> None:
+        self.emit = emit
+
+    def annotate(self, msg: Message) -> Message:
+        """The test result with its ``verdict`` (other messages as they are)."""
+        if msg.get("kind") != "test" or "verdict" in msg:
+            return msg
+        out = dict(msg)
+        try:
+            out["verdict"] = self.monitor.verdict(msg)
+        except Exception:  # runs on the analysis thread: a bug here must not cost the result itself
+            self.counters["errors"] += 1
+            log.exception("monitor: no verdict for test %s", msg.get("test_id"))
+        return out
+
+    def alert_history(self) -> list[dict[str, Any]]:
+        return self.monitor.store.alerts() if self.monitor.store is not None else []
+
+    def on_message(self, msg: Message) -> None:
+        if msg.get("kind") != "test":
+            return
+        with self._lock:
+            self.counters["tests"] += 1
+            try:
+                alerts = self.monitor.on_test(msg)
+            except OSError as err:
+                self.counters["errors"] += 1
+                log.error("monitor: cannot write its state: %s", err)
+                return
+        for a in alerts:
+            self.counters["alerts"] += 1
+            log.warning("alert: %s", a["message"])
+            if self.emit is not None:
+                self.emit(a)
+
+    def stats(self) -> dict[str, Any]:
+        return dict(self.counters, history=len(self.monitor.history))
+
+    def stop(self) -> None:
+        pass
+
+
+__all__ = ["Monitor", "MonitorListener", "MonitorStore"]
