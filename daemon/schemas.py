@@ -47,7 +47,7 @@ from typing import Any
 from ballbar import SCHEMA_VERSION
 
 DRAFT = "https://json-schema.org/draft/2020-12/schema"
-NAMES = ("result", "analysis", "event", "mcap-event", "status", "config", "samples", "history")
+NAMES = ("result", "analysis", "event", "mcap-event", "status", "config", "samples", "history", "alert")
 
 Schema = dict[str, Any]
 
@@ -418,7 +418,9 @@ def _analysis_props(kind: str) -> dict[str, Schema]:
         "warnings": _WARNINGS,
     }
     if kind == "test":
-        props |= {"iso230_4": _ISO, "noise": _NOISE, "samples": _SAMPLES}
+        props |= {"iso230_4": _ISO, "noise": _NOISE, "samples": _SAMPLES,
+                  "verdict": {"$ref": "#/$defs/verdict",
+                              "description": "with [limits] on: pass, warning or fail against each limit"}}
     else:
         props["direction"] = string("ccw or cw", enum=["ccw", "cw"])
     return props
@@ -440,6 +442,25 @@ def _daemon_result(kind: str) -> Schema:
     return obj(f"a {kind} result as the daemon publishes it", props, required)
 
 
+def _monitor_source() -> Schema:
+    """``daemon/schemas/alert.json``: the monitor's shapes (alert, verdict, forecast), written beside its code."""
+    doc: Schema = json.loads((Path(__file__).parent / "schemas" / "alert.json").read_text(encoding="utf-8"))
+    return doc
+
+
+def _monitor_defs() -> dict[str, Schema]:
+    """The verdict a test result carries with ``[limits]`` on, and what it refers to."""
+    return dict(_monitor_source()["$defs"])
+
+
+def alert_schema() -> Schema:
+    src = _monitor_source()
+    body = {k: v for k, v in src.items() if k not in ("$schema", "$id", "title", "description", "$defs")}
+    body["properties"] = dict(body["properties"]) | {
+        "schema_version": {"const": SCHEMA_VERSION, "description": "version of these payloads' shapes"}}
+    return _document("alert", src["description"], body, _monitor_defs())
+
+
 def result_schema() -> Schema:
     return _document(
         "result",
@@ -448,7 +469,7 @@ def result_schema() -> Schema:
         "t_host, last_sample_t, last_sample_t_host, latency_ms and time_axis.",
         {"oneOf": [{"$ref": "#/$defs/circle"}, {"$ref": "#/$defs/test"}]},
         {"circle": _daemon_result("circle"), "test": _daemon_result("test"),
-         "parameter": _PARAMETER, "parameters": _parameters()},
+         "parameter": _PARAMETER, "parameters": _parameters(), **_monitor_defs()},
     )
 
 
@@ -472,7 +493,7 @@ def analysis_schema() -> Schema:
         "`ballbar analyze --json`: one test's result (the daemon's result/test payload has the same fields "
         "without source, plus its own).",
         obj("a test's result", props, [*_REQUIRED_ANALYSIS, "iso230_4", "noise", "samples", "source"]),
-        {"parameter": _PARAMETER, "parameters": _parameters()},
+        {"parameter": _PARAMETER, "parameters": _parameters(), **_monitor_defs()},
     )
 
 
@@ -808,6 +829,21 @@ def config_schema() -> Schema:
                 "mode": string("serve, connect or off"), "bind": string("address"), "port": integer("TCP port"),
                 "url": string("with mode connect"), "memory_limit_mb": num("MB"),
                 "tolerance_um": num("um"), "magnification": num("0: automatic")}),
+            "limits": obj("[limits]: acceptance limits, verdicts, trends and alerts (off by default)", {
+                "enabled": boolean("limits, verdicts and alerts on"),
+                "G_um": num("ISO 230-4 circular deviation G, each direction, um (null: no limit)", True),
+                "G_b_um": num("bidirectional circular deviation G(b), um (null: no limit)", True),
+                "H_um": num("circular hysteresis H, um (null: no limit)", True),
+                "parameters": counts("result parameter name -> bound on its absolute value, in its unit", "number"),
+                "warn_fraction": num("a warning from this fraction of a limit"),
+                "warn_fractions": counts("per limit, its own warning fraction", "number"),
+                "coverage_k": num("coverage factor of the uncertainty a limit must be exceeded beyond"),
+                "trend_tests": integer("the trend over at most this many tests"),
+                "trend_days": num("... or over this many days (0: by count)"),
+                "min_tests": integer("no trend from fewer tests"),
+                "horizon_days": num("a forecast crossing within this many days is due, days"),
+                "confidence": num("the forecast interval's confidence"),
+                "clear_after": integer("a due forecast clears after this many tests not due")}),
             "queues": obj("[queues]: bounds, items", {
                 "analysis": integer("items"), "mcap": integer("items"), "zenoh": integer("items"),
                 "rerun": integer("items")}),
@@ -875,7 +911,7 @@ def _built(name: str) -> str:
     makers = {
         "result": result_schema, "analysis": analysis_schema, "event": event_schema,
         "mcap-event": lambda: event_schema(mcap=True), "status": status_schema, "config": config_schema,
-        "samples": samples_schema, "history": history_schema,
+        "samples": samples_schema, "history": history_schema, "alert": alert_schema,
     }
     if name not in makers:
         raise KeyError(f"no schema {name!r} (one of {', '.join(NAMES)})")

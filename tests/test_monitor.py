@@ -17,12 +17,13 @@ import pytest
 
 from ballbar.analysis import monitor as mon
 from ballbar.analysis.engine import analyze_recording
+from ballbar.daemon import schemas
 from ballbar.daemon.config import ConfigError, load, monitor_settings
 from ballbar.daemon.monitor import Monitor, MonitorStore
 from ballbar.tools import alert_survey
 from ballbar.tools.simulator import MachineModel, simulate
 
-SCHEMA = json.loads((Path(mon.__file__).parents[1] / "daemon" / "schemas" / "alert.json").read_text())
+SCHEMA = schemas.schema("alert")  # the shipped one: daemon/schemas/alert.json with schema_version pinned
 try:
     import jsonschema
 except ImportError:  # pragma: no cover - the test extras install it
