@@ -72,7 +72,9 @@ one alert when the verdict worsens (``warning``, ``fail``), at once; when it
 improves, only after ``clear_after`` tests in a row at the better state (a value
 hovering at the warning level alerts once, not at every test); a forecast alert
 per limit when it becomes due, and a ``clear`` one after ``clear_after`` tests
-in a row without it.  Its state is a plain dict, kept across restarts by the
+in a row that are clearly not due: the slope no longer significant, or even the
+crossing's earlier bound beyond the horizon (a later bound wavering about the
+horizon clears nothing).  Its state is a plain dict, kept across restarts by the
 daemon.
 """
 
@@ -595,11 +597,23 @@ class AlertTracker:
             return None
         if not s["due"]:
             return None
+        if not _clearly_not_due(f):
+            s["quiet"] = 0  # the later bound wavers about the horizon: still possibly due, no clear
+            return None
         s["quiet"] += 1
         if s["quiet"] < self.clear_after:
             return None
         s["due"], s["quiet"] = False, 0
         return {"alert": "forecast", "state": "clear", "previous": "due", "cleared": True, "limit": f["name"]}
+
+
+def _clearly_not_due(f: Mapping[str, Any]) -> bool:
+    """A due forecast's clearing rule, stricter than the due rule's negation (hysteresis): the slope is no
+    longer significant, or even the crossing's earlier bound lies beyond the horizon."""
+    if not f.get("significant"):
+        return True
+    lo, horizon = f.get("days_to_crossing_lo"), f.get("horizon_days")
+    return lo is None or (isinstance(horizon, int | float) and lo > horizon)
 
 
 def alert_text(alert: Mapping[str, Any]) -> str:

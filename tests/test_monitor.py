@@ -210,6 +210,28 @@ def test_alert_tracker_sends_each_change_once_with_hysteresis() -> None:
     assert step("pass") == [("verdict", "pass")]
 
 
+def test_a_due_forecast_clears_only_when_clearly_not_due() -> None:
+    """The later bound wavering about the horizon (due, not due, due) alerts once; it clears when the slope is
+    no longer significant, or when even the earlier bound is beyond the horizon."""
+    tr = mon.AlertTracker(clear_after=2)
+
+    def step(due: bool, significant: bool = True, lo_days: float | None = 10.0) -> list[str]:
+        f = {"name": "b", "due": due, "significant": significant, "days_to_crossing_lo": lo_days,
+             "horizon_days": 30.0}
+        return [a["state"] for a in tr.update(None, [f])]
+
+    assert step(True) == ["due"]
+    assert step(False) == [] and step(False) == [] and step(False) == []  # the early bound still within 30 days
+    assert step(True) == []  # due again: no second alert
+    assert step(False, lo_days=45.0) == []
+    assert step(False, lo_days=45.0) == ["clear"]  # twice clearly beyond the horizon
+    assert step(True) == ["due"]
+    assert step(False, significant=False) == [] and step(False, significant=False) == ["clear"]
+    assert step(True) == ["due"]
+    assert step(False, lo_days=None) == [] and step(False, lo_days=12.0) == []  # the count restarts
+    assert step(False, lo_days=None) == [] and step(False, lo_days=None) == ["clear"]  # unbounded: beyond
+
+
 def test_the_store_keeps_trend_and_alert_states_across_a_restart(tmp_path: Path) -> None:
     s = settings(parameters={"backlash_x_um": 10.0}, min_tests=5)
     t0 = datetime(2026, 1, 1, tzinfo=UTC)
