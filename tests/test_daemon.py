@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import shutil
@@ -306,3 +307,68 @@ def test_a_finite_sources_end_lets_the_analysis_take_all_it_was_given() -> None:
         assert q.wait_idle(5.0) and slow.got == 10
     finally:
         q.close(1.0)
+
+
+def test_simulate_states_what_it_reads_and_its_figures_in_device_terms(tmp_path: Path) -> None:
+    """``ballbar run --simulate`` as a new user runs it (sped up): it reads and names the pty of its
+    simulated device, the status states the speed-up and its rate, clock and drift in device terms (a
+    healthy clock, not the speed-up's artefacts) and carries the bus's block once, and the log lines in a
+    terminal are timestamped."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    log = tmp_path / "daemon.log"
+    env = {k: v for k, v in os.environ.items() if k != "JOURNAL_STREAM"}
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--speedup", "5",
+             "--state-dir", str(tmp_path / "state"), "--set", f'zenoh.listen=["{endpoint}"]',
+             "--set", "mcap.enabled=false", "--set", 'rerun.mode="off"'],
+            stdout=out, stderr=subprocess.STDOUT, env=env,
+        )
+    try:
+        sub = subprocess.run(
+            [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint, "--topic", "status",
+             "--count", "5", "--timeout", "60", "--format", "json"],
+            capture_output=True, text=True, timeout=90,
+        )
+        assert sub.returncode == 0, (sub.stderr, log.read_text()[-2000:])
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(15)
+    msgs = [json.loads(line) for line in sub.stdout.splitlines() if line.startswith("{")]
+    status = [m for m in msgs if m.get("kind") == "status"]
+    assert status, msgs
+    late = status[-1]
+    assert late["speedup"] == 5 and "zenoh" not in late and "zenoh" in late["outputs"], late
+    assert 800 < late["sample_rate_hz"] < 1200, late["sample_rate_hz"]  # 1 kHz of device time, not 5 kHz
+    src = late["source"]
+    # (the speed-up's artefact was a ratio of 1/5, drift -800000 ppm; a few seconds' clock fit is good to ~0.3 %)
+    assert src["clock_ratio"] is None or abs(src["clock_ratio"] - 1) < 0.01, src
+    assert src["drift_ppm"] is None or abs(src["drift_ppm"]) < 10000, src
+    text = log.read_text()
+    pty = re.search(r"simulated ball-bar on (\S+) ", text)
+    url = re.search(r"ready: reading (\S+)", text)
+    assert pty and url and url.group(1).startswith(f"serial:{pty.group(1)}?"), text[-2000:]
+    ready = next(line for line in text.splitlines() if "ready: reading" in line)
+    assert re.match(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} INFO ", ready), ready  # timestamped off journald
+
+
+def test_events_are_logged_as_sentences() -> None:
+    from ballbar.daemon.service import event_sentence
+
+    stall = {"kind": "event", "event": "stall", "origin": "source", "schema_version": 2, "gap_s": 0.61}
+    lost = {"kind": "event", "event": "lost", "count": 12, "seq": 3400, "detail": "gap"}
+    rejected = {"kind": "event", "event": "test_rejected", "test_id": "m-20261123T010203Z",
+                "message": "device reset at t=12.000 s"}
+    assert event_sentence(stall) == "the source stalled: no bytes for 0.61 s"
+    assert event_sentence(lost) == "12 samples lost from sample 3400 (gap)"
+    assert event_sentence(rejected) == "m-20261123T010203Z rejected: device reset at t=12.000 s"
+    assert "{" not in event_sentence({"kind": "event", "event": "something_new", "detail": "what"})
+
+
+def test_log_lines_are_timestamped_except_under_journald() -> None:
+    from ballbar.daemon.cli import log_format
+
+    assert log_format({}).startswith("%(asctime)s ")
+    assert "asctime" not in log_format({"JOURNAL_STREAM": "8:12345"})  # the journal stamps its own
