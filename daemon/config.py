@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from ballbar.analysis.errors import BallbarError, PlanError
+from ballbar.analysis.monitor import MonitorSettings
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 
 from .secrets import REDACTED, is_secret_key
@@ -102,13 +103,14 @@ class LimitsSection:
     parameters: dict[str, float] = field(default_factory=dict)  # result parameter name -> bound on |value|
     warn_fraction: float = 0.8
     warn_fractions: dict[str, float] = field(default_factory=dict)  # per limit, overrides warn_fraction
-    coverage_k: float = 2.0
-    trend_tests: int = 20
-    trend_days: float = 0.0
-    min_tests: int = 6
-    horizon_days: float = 30.0
-    confidence: float = 0.95
-    clear_after: int = 2
+    # the monitor's own defaults (one place for them)
+    coverage_k: float = MonitorSettings.coverage_k
+    trend_tests: int = MonitorSettings.trend_tests
+    trend_days: float = MonitorSettings.trend_days
+    min_tests: int = MonitorSettings.min_tests
+    horizon_days: float = MonitorSettings.horizon_days
+    confidence: float = MonitorSettings.confidence
+    clear_after: int = MonitorSettings.clear_after
 
 
 @dataclass
