@@ -1625,12 +1625,15 @@ def _profile_lag(
     # the data fix the gain only where both ends of the range are clearly worse than the best
     bounded = min(run(min(grid)), run(max(grid))) - run(best) > PROFILE_NATS
     if gain > PROFILE_NATS and bounded:
-        # The profile's values come from searches refined from the default's timing; the gain taken is
-        # searched whole, as the default was, and must still beat it.
+        # The profile's values come from searches refined from the default's timing, without the lag's
+        # uncertainty or the spikes' test; the gain taken is searched whole, as the default was, its result is
+        # that search's, and it must still beat the default.
         whole = fit(best, None)
-        if whole is not None and misfit(whole) < misfit(runs[best]):
+        if whole is None:
+            gain = -math.inf
+        else:
             runs[best] = whole
-        gain = run(DEFAULT_KV_PER_S) - run(best)
+            gain = run(DEFAULT_KV_PER_S) - run(best)
     if gain > PROFILE_NATS and bounded:
         res = runs[best].report()
         res["timing"]["loop_lag_source"] = (
