@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_protocol_ascii import feed_chunked, same
+from test_protocol_ascii import assert_parsers_agree, feed_chunked, same
 
 from ballbar.protocol import Status
-from ballbar.protocol.ascii import AsciiDecoder, AsciiFormat, _parse_block, _parse_lines, decode, encode
+from ballbar.protocol.ascii import AsciiDecoder, AsciiFormat, decode, encode
 from ballbar.protocol.gauges import PROFILES
 
 MIT = PROFILES["mitutoyo"].fmt
@@ -165,13 +165,4 @@ def test_any_bytes_never_raise_and_chunking_does_not_matter(fmt_prefix: tuple[As
 @given(PROFILE_FMTS, st.lists(st.lists(st.sampled_from(PIECES), max_size=6).map(b"".join), min_size=1, max_size=12))
 def test_the_few_line_parser_agrees_with_the_vectorised_one(fmt_prefix: tuple[AsciiFormat, str],
                                                             lines: list[bytes]) -> None:
-    fmt = fmt_prefix[0]
-    lines = [ln for ln in lines if ln] or [b"1"]
-    buf = b"".join(ln + b"\n" for ln in lines)
-    lens = np.array([len(ln) for ln in lines])
-    starts = np.concatenate(([0], np.cumsum(lens + 1)[:-1]))
-    padded = np.frombuffer(buf + bytes(int(lens.max())), np.uint8)
-    a = _parse_block(padded, starts, lens, fmt)
-    b = _parse_lines(lines, fmt)
-    assert same(a[0].tolist(), b[0].tolist())
-    assert a[2].tolist() == b[2].tolist() and a[3] == b[3]
+    assert_parsers_agree(fmt_prefix[0], lines)
