@@ -1150,6 +1150,68 @@ class _TestRecord:
     findings: str
 
 
+LAYOUT_NAMESPACE = uuid.UUID("5f0c3a7e-6b1d-4c2a-9e57-b0a11ba40001")  # the layout's view and container ids
+
+
+class _Blueprints:
+    """The viewer's layouts, sent on one blueprint stream for the viewer's whole life.
+
+    rerun 0.41's ``send_blueprint`` (and ``set_sinks(..., default_blueprint=)``)
+    makes a new blueprint stream for every call, and a dropped stream is never
+    freed: two threads and about 0.3 MB each (measured; neither ``flush``,
+    ``disconnect`` nor ``flush_and_cleanup_orphaned_recordings`` frees it).  A
+    daemon that sends a layout at every viewer's connection and whenever a
+    trend's range moves grows by that much each time, for months.  Here each
+    layout is logged to the one stream, at the next step of its ``blueprint``
+    timeline (a viewer takes the latest), and what the stream collected is
+    sent to the recording's sinks as rerun's own ``send_blueprint`` does.  A new
+    sink gets the stream's store info again (:meth:`new_sink`: a fresh memory
+    sink starts with it).
+    """
+
+    def __init__(self, rec: rr.RecordingStream, application_id: str) -> None:
+        from rerun.recording_stream import RecordingStream
+        from rerun_bindings import new_blueprint
+
+        self._rec = rec
+        self._stream = RecordingStream._from_native(
+            new_blueprint(application_id=application_id, make_default=False, make_thread_default=False,
+                          default_enabled=True))
+        self._storage = self._stream.memory_recording()
+        self._step = 0
+        self._paths: set[str] = set()  # the views and containers of the last layout sent
+
+    def new_sink(self) -> None:
+        """The recording's sinks changed: the next layout goes out with the store's info."""
+        self._storage = self._stream.memory_recording()
+
+    def send(self, blueprint: rrb.Blueprint) -> None:
+        from rerun_bindings import send_blueprint
+
+        bp = blueprint.to_blueprint()
+        # Each view and container keeps its place's id from layout to layout (rerun draws a new one for every
+        # object), so that a new layout overwrites the last instead of leaving it in the store unreachable (a
+        # viewer warns of each such entity); one that is no longer in the layout is cleared.
+        paths = _stable_ids(bp.root_container, "root")
+        self._stream.set_time("blueprint", sequence=self._step)
+        self._step += 1
+        bp._log_to_stream(self._stream)
+        for path in sorted(self._paths - paths):
+            self._stream.log(path, rr.Clear(recursive=True))
+        self._paths = paths
+        send_blueprint(self._storage.storage, True, True, recording=self._rec.to_native())
+
+
+def _stable_ids(item: rrb.Container | rrb.View, place: str) -> set[str]:
+    """Give a container and everything in it ids from their places in the layout; return their blueprint paths."""
+    item.id = uuid.uuid5(LAYOUT_NAMESPACE, place)
+    out = {item.blueprint_path()}
+    if isinstance(item, rrb.Container):
+        for i, sub in enumerate(item.contents):
+            out |= _stable_ids(sub, f"{place}/{i}")
+    return out
+
+
 class RerunViewer(Listener):
     """Streams samples and results to Rerun viewers; see the module docstring.
 
@@ -1249,6 +1311,7 @@ class RerunViewer(Listener):
                     round(100 * HISTORY_SHARE_WARN), self.options.server_memory_limit,
                 )
         self._rec = rr.RecordingStream(self.options.application_id, recording_id=self.recording_id)
+        self._blueprints = _Blueprints(self._rec, self.options.application_id)
         if self.options.mode == "serve":
             self._server = _ServerProcess(
                 self.options.bind, self.options.port, self.options.server_memory_limit, self.options.server_rss_cap
@@ -1317,7 +1380,7 @@ class RerunViewer(Listener):
             if not self._sink_live and srv.listening and now >= self._next_retry:
                 self._next_retry = now + min(self.options.retry_s, 0.5)
                 self._sink_generation = srv.generation
-                rec.set_sinks(rr.GrpcSink(srv.url), default_blueprint=default_blueprint())
+                rec.set_sinks(rr.GrpcSink(srv.url))
                 self._on_new_sink(
                     "serving on %s:%d (viewers: rerun %s)", self.options.bind, self.options.port, self.address
                 )
@@ -1338,7 +1401,7 @@ class RerunViewer(Listener):
         if not self._sink_live and pr.up and now >= self._next_retry:
             self._next_retry = now + self.options.retry_s
             self._sink_failures = pr.failures
-            rec.set_sinks(rr.GrpcSink(self.options.url), default_blueprint=default_blueprint())
+            rec.set_sinks(rr.GrpcSink(self.options.url))
             self._next_health = now + self.options.health_s
             self._on_new_sink("pushing to %s", self.options.url)
 
@@ -1362,7 +1425,8 @@ class RerunViewer(Listener):
         for c in self._curves.values():  # a new viewer has none of the pieces
             c.pieces, c.stale = 0, False
         self._trend_ranges = trend_ranges(self._trends.rows()) if len(self._trends) else {}
-        rec.send_blueprint(default_blueprint(self._trend_ranges))
+        self._blueprints.new_sink()
+        self._blueprints.send(default_blueprint(self._trend_ranges))
         rec.send_recording_name(self._recording_name)
         self._log_static()
         self._send_history()
@@ -1921,10 +1985,8 @@ class RerunViewer(Listener):
             return max(abs(a0 - b0), abs(a1 - b1)) > 0.1 * (b1 - b0)
 
         if any(moved(k) for k in {*new, *old}):
-            rec = self._rec
-            assert rec is not None
             self._trend_ranges = new
-            rec.send_blueprint(default_blueprint(new))
+            self._blueprints.send(default_blueprint(new))
 
     def _send_trends(self, rows: FloatArray) -> None:
         """Trend points: rows of (test, wall time, one value per TRENDS entry, NaN where none)."""

@@ -680,6 +680,39 @@ def test_trend_views_scale_to_the_uncertainty_and_titles_fit() -> None:
     assert {o for o, _t in TREND_VIEWS} == {p.split("/")[0] for p, _f, _l in TRENDS}
 
 
+def test_layouts_sent_again_and_again_cost_no_thread_and_overwrite_each_other(tmp_path: Path) -> None:
+    """rerun 0.41 makes (and never frees) a blueprint stream with two threads per send_blueprint: the viewer sends
+    every layout on its one stream, each view and container keeping its id, so a new layout replaces the last."""
+    import rerun as rr
+
+    from ballbar.daemon.viewer import _Blueprints
+
+    def native_threads() -> int:
+        return len(os.listdir("/proc/self/task"))
+
+    rec = rr.RecordingStream("ballbar")
+    sink = rec.memory_recording()
+    blueprints = _Blueprints(rec, "ballbar")
+    before = native_threads()
+    for i in range(40):
+        if i == 20:
+            blueprints.new_sink()  # a viewer (re)connected
+        blueprints.send(default_blueprint({"squareness_urad": (10.0, 20.0 + i)}))
+    assert native_threads() == before  # (rec.send_blueprint: 80 more)
+    rrd = tmp_path / "layouts.rrd"
+    rrd.write_bytes(sink.drain_as_bytes())
+    printed = subprocess.run([str(RERUN), "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=60)
+    assert printed.returncode == 0, printed.stderr[-2000:]
+    out = printed.stdout
+    stores = set(re.findall(r'StoreId\(\s*Blueprint,\s*"ballbar",\s*"(\w+)"', out))
+    assert len(stores) == 1  # one blueprint store, its info sent again to the new sink
+    assert len(re.findall(r"BlueprintActivationCommand", out)) == 40
+    views = set(re.findall(r" - (/view/[0-9a-f-]+) - ", out))
+    n_views = len(TREND_VIEWS) + 4  # the trends, the polar plot, the length, the findings and the events
+    assert len(views) == n_views, sorted(views)  # the same views, overwritten: not 40 layouts' worth
+    rec.disconnect()
+
+
 def test_stop_without_any_viewer_is_quick(script: Script) -> None:
     v = RerunViewer(ViewerOptions(mode="connect", url=f"rerun+http://127.0.0.1:{free_port()}/proxy"), plan=PLAN)
     costs = feed(v, script.items[:2000])
