@@ -32,3 +32,20 @@ def test_a_short_soak_accounts_for_every_sample(tmp_path: Path) -> None:
     else:
         assert "skipped" in r["faults"][-1]
     assert r["daemon"]["exit_code"] == 0
+
+
+def test_the_verdict_passes_a_merging_queue_and_flags_growth() -> None:
+    from ballbar.tools.soak import QUEUE_DEPTH_MAX, verdict
+
+    def fig(first: float, median: float, last: float, trend: float) -> dict[str, float | None]:
+        return {"first_quiet": first, "median": median, "last_quiet": last, "trend_per_min": trend}
+
+    flat = {"rss_mb": fig(230, 231, 232, 0.02), "threads": fig(32, 32, 32, 0.0), "fds": fig(42, 42, 42, 0.0),
+            "queue_mcap_depth": fig(9, 9, 9, -0.01), "queue_analysis_depth": fig(1, 1, 1, 0.0)}
+    assert verdict(flat, 25.0) == []  # the MCAP queue holds a quarter second of batches by design
+    deep = {**flat, "queue_analysis_depth": fig(QUEUE_DEPTH_MAX + 5, QUEUE_DEPTH_MAX + 5, QUEUE_DEPTH_MAX + 5, 0.0)}
+    assert [b.split(":")[0] for b in verdict(deep, 25.0)] == ["queue_analysis_depth"]
+    growing = {**flat, "queue_zenoh_depth": fig(1, 4, 8, 0.3)}  # 7.5 batches over 25 minutes
+    assert [b.split(":")[0] for b in verdict(growing, 25.0)] == ["queue_zenoh_depth"]
+    leak = {**flat, "rss_mb": fig(206, 236, 253, 1.34), "threads": fig(28, 32, 32, 0.108)}
+    assert verdict(leak, 25.0) == ["daemon RSS grows 33.5 MiB over the run", "threads grow 2.7 over the run (28 -> 32)"]

@@ -372,10 +372,16 @@ def status_figures(st: dict[str, Any]) -> dict[str, float]:
     return out
 
 
+QUEUE_DEPTH_MAX = 20  # batches: the MCAP and Rerun queues hold about 0.25 s of 20 ms batches by design (merged)
+QUEUE_GROWTH_MAX = 5  # batches a queue's depth may grow by over the run
+
+
 def verdict(summary: dict[str, dict[str, float | None]], minutes_span: float) -> list[str]:
     """What is not flat.  Over the quiet samples after the warm-up (the trend times the span): resident
     memory may grow by less than max(4 MiB, 3 % of its median), descriptors and threads by less than
-    one; every queue's median depth, and its depth at the last quiet sample, is at most 5 items."""
+    one; every queue's median depth, and its depth at the last quiet sample, is at most
+    ``QUEUE_DEPTH_MAX`` items (the outputs that take batches merged, MCAP and Rerun, hold a quarter
+    second of them, about 12 at 20 ms), and it grows by less than ``QUEUE_GROWTH_MAX``."""
     bad: list[str] = []
 
     def drift(name: str) -> float | None:
@@ -394,9 +400,13 @@ def verdict(summary: dict[str, dict[str, float | None]], minutes_span: float) ->
         if d is not None and d >= 1.0 and s is not None and (s["last_quiet"] or 0) > (s["first_quiet"] or 0):
             bad.append(f"{name} grow {d:.1f} over the run ({s['first_quiet']:.0f} -> {s['last_quiet']:.0f})")
     for name, s in summary.items():
-        deep = (s["last_quiet"] or 0) > 5 or (s["median"] or 0) > 5
-        if name.startswith("queue_") and name.endswith("_depth") and deep:
-            bad.append(f"{name}: median {s['median']:.0f}, last quiet {s['last_quiet']}")
+        if not (name.startswith("queue_") and name.endswith("_depth")):
+            continue
+        deep = (s["last_quiet"] or 0) > QUEUE_DEPTH_MAX or (s["median"] or 0) > QUEUE_DEPTH_MAX
+        d = drift(name)
+        if deep or (d is not None and d >= QUEUE_GROWTH_MAX):
+            bad.append(f"{name}: median {s['median']:.0f}, last quiet {s['last_quiet']}, "
+                       f"trend {0.0 if d is None else d:+.1f} over the run")
     return bad
 
 
@@ -443,7 +453,7 @@ class Soak:
             f'[rerun]\nmode = "serve"\nbind = "127.0.0.1"\nport = {self.rport}\n'
         )
         env = {k: v for k, v in os.environ.items() if not k.startswith("BALLBAR")}
-        cfg = load(str(conf), env=env)
+        cfg = load(str(conf), list(a.sets), env=env)
         self.dev = DeviceProcess(*simdevice_args(cfg, a.speedup), "--wait", "--seed", str(a.seed))
         self.stack.callback(self.dev.close)
         self.notify = Notify(self.workdir / "notify.sock")
@@ -453,7 +463,8 @@ class Soak:
         self.daemon_log = open(self.workdir / "daemon.log", "wb")  # noqa: SIM115 - closed by the stack
         self.stack.callback(self.daemon_log.close)
         self.daemon = subprocess.Popen(
-            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--config", str(conf), "--source", self.dev.url],
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--config", str(conf), "--source", self.dev.url,
+             *(x for item in a.sets for x in ("--set", item))],
             env=env, stdin=subprocess.DEVNULL, stdout=self.daemon_log, stderr=subprocess.STDOUT,
         )
         self.stack.callback(self._kill_daemon)
@@ -752,6 +763,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--disk-full-s", type=float, default=20.0)
     p.add_argument("--disk-mb", type=int, default=256, help="size of the state directory's tmpfs")
     p.add_argument("--samples-hz", type=float, default=1000.0, help="zenoh.samples_hz (load for the subscribers)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="a configuration key for the daemon (repeatable), e.g. smaller buffers that fill within the run")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workdir", help="logs, the configuration, the report (default: a new temporary directory)")
     p.add_argument("--json", help="write the full report (with every sample of the figures) here")
