@@ -90,6 +90,7 @@ class RerunSection:
     memory_limit_mb: float = 128.0
     tolerance_um: float = 10.0
     magnification: float = 0.0  # 0: automatic
+    history_tests: int = 50  # the last tests a viewer that connects later is sent whole
 
 
 @dataclass

@@ -69,6 +69,7 @@ def _one_line_exit_2(proc: subprocess.CompletedProcess[str], needle: str) -> Non
         (["--set", 'rerun.mode="connect"', "--set", 'rerun.url="garbage://x"'], "rerun.url"),
         (["--set", "rerun.tolerance_um=-5"], "rerun.tolerance_um"),
         (["--set", "rerun.port=0"], "rerun.port"),
+        (["--set", "rerun.history_tests=-1"], "rerun.history_tests"),
     ],
 )
 def test_a_bad_value_is_one_line_exit_2_before_anything_opens(tmp_path: Path, args: list[str], needle: str) -> None:
