@@ -764,7 +764,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--disk-mb", type=int, default=256, help="size of the state directory's tmpfs")
     p.add_argument("--samples-hz", type=float, default=1000.0, help="zenoh.samples_hz (load for the subscribers)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                   help="a configuration key for the daemon (repeatable), e.g. smaller buffers that fill within the run")
+                   help="a configuration key for the daemon (repeatable), e.g. buffers small enough to fill")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workdir", help="logs, the configuration, the report (default: a new temporary directory)")
     p.add_argument("--json", help="write the full report (with every sample of the figures) here")
