@@ -49,3 +49,15 @@ def test_the_verdict_passes_a_merging_queue_and_flags_growth() -> None:
     assert [b.split(":")[0] for b in verdict(growing, 25.0)] == ["queue_zenoh_depth"]
     leak = {**flat, "rss_mb": fig(206, 236, 253, 1.34), "threads": fig(28, 32, 32, 0.108)}
     assert verdict(leak, 25.0) == ["daemon RSS grows 33.5 MiB over the run", "threads grow 2.7 over the run (28 -> 32)"]
+
+
+def test_the_trend_is_not_moved_by_one_sample_in_a_backlog() -> None:
+    import numpy as np
+
+    from ballbar.tools.soak import theil_sen
+
+    t = np.arange(20.0)
+    flat = np.full(20, 1.0)
+    flat[15] = 110.0  # one quiet sample taken while a test's analysis held the queue
+    assert theil_sen(t, flat) == 0.0 and np.polyfit(t, flat, 1)[0] > 0.5  # (least squares: 17 over the run)
+    assert theil_sen(t, 230.0 + 0.5 * t) == 0.5  # a steady climb is still seen

@@ -24,7 +24,7 @@ Every ``--sample-s`` it records the daemon's resident memory, open descriptors a
 between ``WATCHDOG=1`` pings (the daemon gets a ``NOTIFY_SOCKET``).  The report gives each
 figure's min, median and max, and its trend per minute over the samples taken just before
 each fault (the previous fault over, the next not begun; after ``--warmup-min``): the trend
-of a leak, not of the faults.
+of a leak, not of the faults (Theil-Sen: the median of the slopes between every two samples).
 
 At the end the device stops sending (a stall) and, once the daemon has read everything, the
 samples are accounted for:
@@ -334,7 +334,7 @@ class Series:
             if not ok.any():
                 continue
             q = np.array([i for i in self.quiet if t[i] >= warmup_min and np.isfinite(v[i])], int)
-            slope = float(np.polyfit(t[q], v[q], 1)[0]) if q.size >= 3 else None
+            slope = theil_sen(t[q], v[q]) if q.size >= 3 else None
             out[name] = {
                 "min": float(v[ok].min()), "median": float(np.median(v[ok])), "max": float(v[ok].max()),
                 "first_quiet": float(v[q[0]]) if q.size else None, "last_quiet": float(v[q[-1]]) if q.size else None,
@@ -370,6 +370,15 @@ def status_figures(st: dict[str, Any]) -> dict[str, float]:
         if key in server:
             out[f"rerun_server_{key}"] = server[key]
     return out
+
+
+def theil_sen(t: np.ndarray, v: np.ndarray) -> float:
+    """The median of the slopes between every two samples: a trend that one sample taken during a test's
+    analysis (a queue's backlog, a heap not yet trimmed) does not move, as it moves a least-squares line."""
+    i, j = np.triu_indices(t.size, 1)
+    dt = t[j] - t[i]
+    ok = dt > 0
+    return float(np.median((v[j] - v[i])[ok] / dt[ok]))
 
 
 QUEUE_DEPTH_MAX = 20  # batches: the MCAP and Rerun queues hold about 0.25 s of 20 ms batches by design (merged)
