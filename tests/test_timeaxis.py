@@ -228,6 +228,25 @@ def test_the_listener_places_a_device_reset_on_its_sample_and_rejects_the_test()
     assert [m["kind"] for m in got if m["kind"] == "test"] == ["test"]  # the second test passed
 
 
+def test_the_listener_gives_freed_memory_back_after_each_test_it_ends(monkeypatch: pytest.MonkeyPatch) -> None:
+    from ballbar.daemon import service
+
+    t, L, starts = stream(MACHINE, MACHINE.with_(tail_s=2.0))
+    back = int(np.searchsorted(t, starts[0] + 6.0)) + 37
+    t2 = t.copy()
+    t2[back:] -= 100.0  # the first test is rejected, the second gets its result
+    an, got = _listener()
+    seen: list[list[str]] = []  # what had been emitted at each release
+    monkeypatch.setattr(service, "release_freed_memory",
+                        lambda: seen.append([str(m.get("event") or m["kind"]) for m in got]))
+    for b in _batches(t2, L, np.arange(t.size)):
+        an.on_batch(b)
+    an.stop()
+    assert len(seen) == 2  # once per test ended, after its messages went out, never per batch
+    assert seen[0][-2:] == ["test_rejected", "analysis_reset"] and seen[1][-1] == "test"
+    assert service.release_freed_memory is not None and service._malloc_trim() is not None  # glibc here
+
+
 def test_the_listener_rejects_the_test_in_progress_when_the_clock_runs_back() -> None:
     t, L, starts = stream(MACHINE, MACHINE.with_(tail_s=2.0))
     back = int(np.searchsorted(t, starts[0] + 6.0)) + 37
