@@ -828,7 +828,8 @@ def config_schema() -> Schema:
             "rerun": obj("[rerun]", {
                 "mode": string("serve, connect or off"), "bind": string("address"), "port": integer("TCP port"),
                 "url": string("with mode connect"), "memory_limit_mb": num("MB"),
-                "tolerance_um": num("um"), "magnification": num("0: automatic")}),
+                "tolerance_um": num("um"), "magnification": num("0: automatic"),
+                "history_tests": integer("the last tests a viewer that connects later is sent whole")}),
             "limits": obj("[limits]: acceptance limits, verdicts, trends and alerts (off by default)", {
                 "enabled": boolean("limits, verdicts and alerts on"),
                 "G_um": num("ISO 230-4 circular deviation G, each direction, um (null: no limit)", True),
