@@ -10,8 +10,8 @@ Files
 -----
 ``STATE_DIR/recordings/<machine>_<UTC start, YYYYmmddTHHMMSSZ>_<seq>.mcap``; the
 names sort in time order.  A file starts with a metadata record ``ballbar``
-(``format`` = ``ballbar-mcap/1``, ``machine_id``, ``host_clock_offset_ns``,
-``created_utc``, ``reason`` = start, test, size, age or recovery, ``software``).
+(``format`` = ``ballbar-mcap/1``, ``machine_id``, ``host_clock_offset_ns``, ``run_id`` (one per
+daemon start), ``created_utc``, ``reason`` = start, test, size, age or recovery, ``software``).
 A new file begins at each test (the analysis's ``feed_in`` event), when a file
 reaches ``rotate_bytes`` or ``rotate_s``, and after a write error.  Size and
 age rotations wait for a test in progress to end (up to twice the limit), so
@@ -115,6 +115,7 @@ import re
 import struct
 import threading
 import time
+import uuid
 from collections import deque
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -492,6 +493,9 @@ class McapLogger(Listener):
         self._held: deque[tuple[str, Mapping[str, Any], int]] = deque()
         # Host monotonic -> wall clock, once: log times stay monotonic if the wall clock steps.
         self.host_clock_offset_ns = time.time_ns() - time.monotonic_ns()
+        # This daemon run's files share it; the offset above cannot tell runs apart (it is the same number
+        # for every start of one boot but for the nanoseconds between two clock readings).
+        self.run_id = uuid.uuid4().hex
 
         self._lock = threading.RLock()
         self._file: _LogFile | None = None
@@ -823,6 +827,7 @@ class McapLogger(Listener):
                     "format": FORMAT,
                     "machine_id": self.machine_id,
                     "host_clock_offset_ns": str(self.host_clock_offset_ns),
+                    "run_id": self.run_id,
                     "created_utc": datetime.now(UTC).isoformat(timespec="milliseconds"),
                     "reason": "recovery" if self._failing else self._next_reason,
                     "software": f"ballbar {__version__}",

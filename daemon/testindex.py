@@ -18,8 +18,8 @@ clock starts afresh, so no single time axis spans them.  Instead:
   lacks the test's start) and analyses them, with the breaks their events
   report, exactly as :func:`~.recordings.analyze_file` does.
 
-A daemon run is the files that share the logger's ``host_clock_offset_ns``
-(measured once per start).  ``ballbar analyze DIR`` and ``ballbar report
+A daemon run is the files that share the logger's ``run_id`` (drawn once per
+start; older files: ``host_clock_offset_ns``, measured once per start).  ``ballbar analyze DIR`` and ``ballbar report
 --test-id`` both go through here.
 """
 
@@ -182,7 +182,8 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
                 raise
             log.warning("%s", err)
             continue
-        run = lg.metadata.get("host_clock_offset_ns") or f"file {p.name}"
+        # (files of an older version carry no run_id: their clock offset, which two starts rarely share)
+        run = lg.metadata.get("run_id") or lg.metadata.get("host_clock_offset_ns") or f"file {p.name}"
         if not runs or runs[-1] != run:
             runs.append(run)
         files.append(LogFile(p, len(runs) - 1, lg.metadata, lg.config, lg.events, lg.results))

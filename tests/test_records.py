@@ -186,3 +186,21 @@ def test_a_report_of_the_directory_is_its_newest_complete_test(records: Path, tm
     assert main(["report", str(records), "-o", str(out), "--no-png"]) == 0
     newest = published(records)[-1]["test_id"]
     assert newest in out.read_text()
+
+
+def test_two_runs_stay_two_when_their_clock_offsets_are_the_same(
+    records: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """time_ns - monotonic_ns is one number for every start in a boot but for the nanoseconds between the two
+    readings: two runs once shared it here and were taken as one. Each start draws its own run_id."""
+    ids = {read_log(p, samples=False).metadata["run_id"] for p in list_recordings(records)}
+    assert len(ids) == 2
+
+    def same_offset(path: Path, samples: bool = True) -> Any:
+        lg = read_log(path, samples=samples)
+        lg.metadata["host_clock_offset_ns"] = "1700000000000000000"
+        return lg
+
+    monkeypatch.setattr(testindex, "read_log", same_offset)
+    index = testindex.index_recordings(records)
+    assert len(index.runs()) == 2
