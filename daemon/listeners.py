@@ -56,6 +56,8 @@ from .samples import SampleBatch
 log = logging.getLogger(__name__)
 
 Message = dict[str, Any]
+# Events that end a test without a result (test_aborted: an older name, still read back from recordings).
+TEST_END_EVENTS = frozenset({"test_rejected", "test_incomplete", "test_aborted"})
 DropPolicy = Literal["drop_oldest", "drop_newest"]
 
 

@@ -137,7 +137,7 @@ from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID
 
 from . import schemas as _schemas
-from .listeners import Listener, to_json
+from .listeners import TEST_END_EVENTS, Listener, to_json
 from .listeners import Message as ListenerMessage
 from .recordings import Recording, open_recording
 from .samples import SampleBatch, SourceEvent, break_reason, break_seq
@@ -238,7 +238,6 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
 }
 
 _RESULT_KINDS = frozenset({"circle", "test"})
-_TEST_END_EVENTS = frozenset({"test_rejected", "test_incomplete", "test_aborted"})
 
 
 # ----------------------------------------------------------------------------- exact scaling
@@ -743,7 +742,7 @@ class McapLogger(Listener):
         self._write(TOPIC_EVENTS, d, self._msg_time_ns(d))
         if name == "feed_in" and self._file is not None:
             self._file.has_test = True
-        if name in _TEST_END_EVENTS:
+        if name in TEST_END_EVENTS:
             self._in_test = False
 
     def _first_sighting(self, name: str, t_host: float, source: str) -> bool:
@@ -1520,9 +1519,6 @@ class Recovered:
     problem: str
 
 
-_TEST_VERDICTS = ("test_rejected", "test_incomplete", "test_aborted")
-
-
 def _has_footer(path: Path) -> bool:
     try:
         with open(path, "rb") as fh:
@@ -1570,7 +1566,7 @@ def recover_file(path: Path) -> Recovered:
                             if isinstance(obj, dict):
                                 if obj.get("event") == "feed_in":
                                     feed_in = obj
-                                elif obj.get("kind") == "test" or obj.get("event") in _TEST_VERDICTS:
+                                elif obj.get("kind") == "test" or obj.get("event") in TEST_END_EVENTS:
                                     feed_in = None
         except (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError) as err:
             problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__

@@ -51,7 +51,7 @@ from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.polled import Timing, from_events, state_span
 
 from .config import Config
-from .listeners import Listener, ListenerQueue, Message
+from .listeners import TEST_END_EVENTS, Listener, ListenerQueue, Message
 from .mcap_log import scaled_ints
 from .samples import EventKind, SampleBatch, breaks_in
 from .secrets import redacted
@@ -61,7 +61,6 @@ from .systemd import Notifier
 log = logging.getLogger(__name__)
 
 FINISH_ANALYSIS_S = 120.0  # after a finite source's end, at most this for the analysis to catch up
-TEST_ENDS = ("test_rejected", "test_incomplete")  # events that end a test without a result
 
 
 @functools.cache
@@ -172,7 +171,7 @@ class AnalysisListener(Listener):
                 self.results += 1
                 self.tests += msg["kind"] == "test"
             self.emit(self._wrap(msg))
-        if any(m["kind"] == "test" or m.get("event") in TEST_ENDS for m in out):
+        if any(m["kind"] == "test" or m.get("event") in TEST_END_EVENTS for m in out):
             release_freed_memory()
 
     def _feed(self, t: np.ndarray, L: np.ndarray, out: list[Message]) -> None:
@@ -216,7 +215,7 @@ class AnalysisListener(Listener):
     def stop(self) -> None:
         with self._lock, contextlib.suppress(BallbarError):
             for msg in self.analyzer.finish():
-                if msg.get("event") in ("test_incomplete", "test_rejected"):
+                if msg.get("event") in TEST_END_EVENTS:
                     self.emit(self._wrap(msg))
 
 

@@ -19,8 +19,8 @@ clock starts afresh, so no single time axis spans them.  Instead:
   report, exactly as :func:`~.recordings.analyze_file` does.
 
 A daemon run is the files that share the logger's ``run_id`` (drawn once per
-start; older files: ``host_clock_offset_ns``, measured once per start).  ``ballbar analyze DIR`` and ``ballbar report
---test-id`` both go through here.
+start; older files: ``host_clock_offset_ns``, measured once per start).
+``ballbar analyze DIR`` and ``ballbar report --test-id`` both go through here.
 """
 
 from __future__ import annotations

@@ -142,7 +142,7 @@ from ballbar.analysis.program import arc_start_deg, data_start_deg, schedule
 from ballbar.analysis.report import trend_limits
 from ballbar.protocol import INVALID
 
-from .listeners import Listener, Message
+from .listeners import TEST_END_EVENTS, Listener, Message
 from .samples import EventKind, SampleBatch, SourceEvent
 
 log = logging.getLogger(__name__)
@@ -1860,7 +1860,7 @@ class RerunViewer(Listener):
             text += f": {msg['message']}"
         if ev == "feed_in" and isinstance(idx, int) and _num(msg.get("t_s")) is not None:
             self._start_test(idx, float(msg["t_s"]))
-        elif ev in ("test_rejected", "test_incomplete", "test_aborted"):
+        elif ev in TEST_END_EVENTS:
             self._end_test()
         self._text_event(text, "WARN" if ev in WARN_EVENTS else "INFO", wall)
 

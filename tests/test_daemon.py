@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from test_e2e import free_port
 
 from ballbar.daemon import config as cfgmod
 
@@ -314,9 +315,7 @@ def test_simulate_states_what_it_reads_and_its_figures_in_device_terms(tmp_path:
     simulated device, the status states the speed-up and its rate, clock and drift in device terms (a
     healthy clock, not the speed-up's artefacts) and carries the bus's block once, and the log lines in a
     terminal are timestamped."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     log = tmp_path / "daemon.log"
     env = {k: v for k, v in os.environ.items() if k != "JOURNAL_STREAM"}
     with open(log, "wb") as out:
