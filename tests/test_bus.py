@@ -554,6 +554,35 @@ def test_the_tool_waits_for_a_daemon_that_starts_later() -> None:
             p.communicate()
 
 
+def test_sigterm_and_the_timeout_are_kept_while_zenoh_waits_on_a_peer_that_does_not_answer() -> None:
+    """A listener that accepts TCP and never speaks (a frozen daemon): Zenoh's open waits ~10 s for its
+    handshake, and Python runs signal handlers only in the main thread between bytecodes. It held SIGTERM
+    ~9 s, and once a subscriber whose daemon was killed took over 10 s to exit."""
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen()
+    ep = endpoint(silent.getsockname()[1])
+    try:
+        with subscriber("--connect", ep, "--timeout", "60") as p:
+            time.sleep(1.5)  # mid-handshake
+            assert p.poll() is None
+            t0 = time.monotonic()
+            p.send_signal(signal.SIGTERM)
+            p.wait(10)
+            took = time.monotonic() - t0
+            assert p.returncode == 0 and took < 1.0, (p.returncode, took)
+        t0 = time.monotonic()
+        r = subprocess.run(
+            [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", ep, "--timeout", "1.5"],
+            capture_output=True, text=True, timeout=30,
+        )
+        took = time.monotonic() - t0
+        assert r.returncode == 1 and "no connection within the timeout" in r.stderr, r.stderr
+        assert took < 1.5 + 3.0, took  # the interpreter's start and exit on a busy machine
+    finally:
+        silent.close()
+
+
 def test_the_tool_says_what_went_wrong() -> None:
     r = subprocess.run(
         [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint(), "--no-wait"],

@@ -20,7 +20,9 @@ daemon with the default settings listens.  Services start in any order: until
 the daemon (or the plant's router) is there, it says once on stderr that it is
 waiting and retries with backoff (0.5 s doubling to 5 s); ``--no-wait`` gives
 up at once instead.  Once connected, Zenoh reconnects by itself when the
-daemon or router restarts.  Exit codes: 0 done (SIGINT, SIGTERM, ``--count``
+daemon or router restarts.  SIGINT and SIGTERM are answered at once, even while
+Zenoh waits on a peer that does not answer (a handshake, a history query, a
+close); what was printed is flushed before the exit.  Exit codes: 0 done (SIGINT, SIGTERM, ``--count``
 reached, or ``--timeout`` without ``--count``); 1 no connection (``--no-wait``,
 or none within ``--timeout``), or ``--timeout`` before ``--count`` lines; 2 a
 usage error.
@@ -38,9 +40,9 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from types import FrameType
-from typing import Any
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -55,6 +57,7 @@ from ballbar.daemon.bus import (
 )
 
 log = logging.getLogger("ballbar.subscribe")
+T = TypeVar("T")
 
 TOPIC_KEYS = {
     "result": ("result/*",),
@@ -189,6 +192,47 @@ def _time_key(t: Any) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    pending: list[threading.Thread] = []
+    code = _main(argv, pending)
+    if any(th.is_alive() for th in pending):
+        # A Zenoh call that did not end (a peer that does not answer): the interpreter's exit would wait for it,
+        # or deadlock with it as the session's objects are freed. Everything printed is out: end here.
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def _in_background(
+    fn: Callable[[], T], pending: list[threading.Thread], name: str, stop: threading.Event | None = None,
+    timeout: float | None = None,
+) -> tuple[bool, T | None]:
+    """``fn()`` in a thread, waited for until it returns (True, its value; its exception raised here), ``stop`` is
+    set or ``timeout`` passes (False, None; the thread is left in ``pending``).  Python runs signal handlers only in
+    the main thread between bytecodes: a ``zenoh.open`` waiting on a handshake held SIGTERM for ten seconds."""
+    box: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            box["value"] = fn()
+        except BaseException as err:  # raised again in the caller's thread
+            box["error"] = err
+
+    th = threading.Thread(target=run, name=name, daemon=True)
+    th.start()
+    end = None if timeout is None else time.monotonic() + timeout
+    while th.is_alive():
+        if (stop is not None and stop.is_set()) or (end is not None and time.monotonic() >= end):
+            pending.append(th)
+            return False, None
+        th.join(0.05)
+    if "error" in box:
+        raise box["error"]
+    return True, box.get("value")
+
+
+def _main(argv: Sequence[str] | None, pending: list[threading.Thread]) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose, 2), stream=sys.stderr, format="%(name)s: %(message)s"
@@ -224,7 +268,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    opened = _open(zconfig, zc.describe(), stop, deadline, wait=not args.no_wait)
+    opened = _open(zconfig, zc.describe(), stop, deadline, pending, wait=not args.no_wait)
     if opened is None:
         for s, handler in previous.items():
             signal.signal(s, handler)
@@ -251,10 +295,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
 
     code = 0
+    subs: list[Any] = []
     printer = _Printer(args.count, args.format == "text" or (args.format == "auto" and sys.stdout.isatty()))
     try:
         keys = sorted({k for t in topics for k in TOPIC_KEYS[t]})
-        subs = [session.declare_subscriber(f"ballbar/{args.machine}/{k}", on_sample) for k in keys]
+        subs.extend(session.declare_subscriber(f"ballbar/{args.machine}/{k}", on_sample) for k in keys)
         if args.alive:
             subs.append(
                 session.liveliness().declare_subscriber(f"ballbar/{args.machine}/alive", on_alive, history=True)
@@ -263,7 +308,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         dedupe = False
         if args.history:
             kinds = sorted({k for t in topics for k in HISTORY_FOR.get(t, ())})
-            for obj in _history(session, args.machine, kinds, args.since, args.limit, args.query_timeout):
+            _, held = _in_background(
+                lambda: _history(session, args.machine, kinds, args.since, args.limit, args.query_timeout),
+                pending, "zenoh-history", stop=stop,
+            )
+            for obj in held or ():
                 dedupe = True
                 going = printer.emit(obj, dedupe=True)
                 if not going or stop.is_set():
@@ -288,21 +337,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     finally:
-        _close(session)
+        _close(session, subs, pending)
         for s, handler in previous.items():
             signal.signal(s, handler)
     return code
 
 
 def _open(
-    config: zenoh.Config, where: str, stop: threading.Event, deadline: float | None, wait: bool = True
+    config: zenoh.Config, where: str, stop: threading.Event, deadline: float | None, pending: list[threading.Thread],
+    wait: bool = True,
 ) -> zenoh.Session | None:
     """The session; while nothing answers, say so once and retry with backoff (None: stopped or out of time)."""
     delay = 0.5
     said = False
     while True:
         try:
-            return zenoh.open(config)
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            done, session = _in_background(lambda: zenoh.open(config), pending, "zenoh-open", stop=stop, timeout=left)
+            if done:
+                return session
+            if not stop.is_set():
+                print(f"ballbar-subscribe: no connection within the timeout ({where})", file=sys.stderr)
+            return None
         except zenoh.ZError as err:
             why = zenoh_message(err)
             if not wait:
@@ -323,16 +379,17 @@ def _open(
             log.debug("retrying %s", where)
 
 
-def _close(session: zenoh.Session, timeout: float = 2.0) -> None:
-    """Close, but never hang on a peer that stopped reading (then the process exit ends it)."""
+def _close(session: zenoh.Session, subs: list[Any], pending: list[threading.Thread], timeout: float = 2.0) -> None:
+    """Undeclare and close, in the background: never hang on a peer that stopped reading or is gone."""
 
     def run() -> None:
         with contextlib.suppress(zenoh.ZError):
+            for sub in subs:
+                sub.undeclare()
             session.close()
 
-    th = threading.Thread(target=run, name="zenoh-close", daemon=True)
-    th.start()
-    th.join(timeout)
+    if not _in_background(run, pending, "zenoh-close", timeout=timeout)[0]:
+        log.warning("the Zenoh session did not close within %.1f s; exiting without it", timeout)
 
 
 if __name__ == "__main__":
