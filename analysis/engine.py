@@ -22,10 +22,18 @@ a gap longer than a few sample periods, and any break the caller tells it of
 test it falls in (``test_rejected``, with the break's time and size), from the
 feed-in step's first sample to the feed-out step's last.  Only a test that
 passed, with a plausible feed, teaches the next one its timing hints.
+
+In the background.  Given an ``executor`` (the daemon's child process), the
+test's fit runs there while the next test's samples come in: :meth:`TestAnalyzer.collect`
+returns its result once done.  The analyzer waits for it before the next
+feed-in (and at :meth:`~TestAnalyzer.finish` and :meth:`~TestAnalyzer.abort`),
+so the hints it teaches reach the next test exactly as inline: the results
+are the same either way.
 """
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import logging
 import math
 from collections.abc import Callable, Iterator, Sequence
@@ -313,6 +321,10 @@ class TestAnalyzer:
     ``test_rejected``, ``test_incomplete``).  A test is rejected as soon as a
     break in its time axis is seen (live: at once, not at its feed-out); its
     feed-out is still reported, and no result follows.
+
+    ``executor``: where each test's fit runs (see the module docstring;
+    ``None``: inline, its result returned with the feed-out); ``on_submit``
+    is handed each background job's future (to be told when it is done).
     """
 
     __test__ = False
@@ -324,8 +336,13 @@ class TestAnalyzer:
         options: AnalysisOptions | None = None,
         hints: TimingHints | None = None,
         curves: bool = False,
+        executor: cf.Executor | None = None,
+        on_submit: Callable[[cf.Future[dict[str, Any]]], None] | None = None,
     ) -> None:
         self.plan = plan
+        self.executor = executor
+        self.on_submit = on_submit
+        self._pending: tuple[int, StepEvent, cf.Future[dict[str, Any]]] | None = None
         self.curves = curves
         self.machine = machine or MachineConfig()
         self.options = options or AnalysisOptions()
@@ -373,17 +390,20 @@ class TestAnalyzer:
         self.axis.mark(reason)
 
     def abort(self, reason: str) -> list[dict[str, Any]]:
-        """The stream cannot go on as it is (the caller starts afresh): reject the test in progress, if any."""
+        """The stream cannot go on as it is (the caller starts afresh): the result of the test in the
+        background, if any; reject the test in progress, if any."""
+        out = self.collect(wait=True)
         if self._fi is None or self._rejected:
-            return []
+            return out
         fi = self._fi
-        return [self._reject(self.last_t, None, f"{reason}, {self.last_t - fi.t_s:.1f} s after the feed-in at "
+        return [*out, self._reject(self.last_t, None, f"{reason}, {self.last_t - fi.t_s:.1f} s after the feed-in at "
                              f"t={fi.t_s:.3f} s: the test in progress is abandoned")]
 
     def finish(self) -> list[dict[str, Any]]:
-        """End of the stream: settle the last step; report a test left unfinished."""
+        """End of the stream: settle the last step; the last result; report a test left unfinished."""
         self.detector.finish()
         out = self._drain()
+        out.extend(self.collect(wait=True))
         if self._fi is not None and not self._rejected:
             out.append(
                 {
@@ -397,8 +417,34 @@ class TestAnalyzer:
             )
         return out
 
+    @property
+    def pending(self) -> bool:
+        """A test's fit is running in the background."""
+        return self._pending is not None
+
+    def collect(self, wait: bool = False, timeout: float | None = None) -> list[dict[str, Any]]:
+        """The result of the test analysed in the background, once its fit is done (``wait``: wait for it, up
+        to ``timeout``); ``[]`` while it runs, or when there is none.  A fit that raised is raised here; a child
+        process that died rejects its test."""
+        if self._pending is None:
+            return []
+        index, fo, fut = self._pending
+        if not fut.done():
+            if not wait:
+                return []
+            cf.wait([fut], timeout=timeout)
+            if not fut.done():
+                return []
+        self._pending = None
+        try:
+            return self._settle(index, fo, fut.result)
+        except cf.BrokenExecutor as err:
+            return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
+                     "message": f"the process analysing the test ended before its result ({err}); "
+                     "ballbar analyze of its recording gives it"}]
+
     def _drain(self) -> list[dict[str, Any]]:
-        out: list[dict[str, Any]] = []
+        out = self.collect()
         while True:
             ev = self.detector.poll()
             if ev is None:
@@ -408,6 +454,7 @@ class TestAnalyzer:
                     f"the time does not advance: all {self.axis.n} samples so far have t={self.axis.first_t:g} s"
                 )
             if ev.kind == "feed_in":
+                out.extend(self.collect(wait=True))  # its hints are the next test's
                 self._start(ev)
                 out.append(_event(ev, self.test_index))
                 continue
@@ -524,16 +571,27 @@ class TestAnalyzer:
         fi, self._fi = self._fi, None
         tb, Lb = self.detector.samples()
         m = (tb >= fi.t_begin_s) & (tb <= fo.t_end_s)
+        args = (self.plan, self.machine, self.options, tb[m], Lb[m], fi, fo, self.curves)
+        if self.executor is None:
+            return self._settle(self.test_index, fo, lambda: analyze_test(*args))
+        fut = self.executor.submit(analyze_test, *args)
+        self._pending = (self.test_index, fo, fut)
+        if self.on_submit is not None:
+            self.on_submit(fut)
+        return []
+
+    def _settle(self, index: int, fo: StepEvent, fit: Callable[[], dict[str, Any]]) -> list[dict[str, Any]]:
+        """A test's fit, done: its result, and the hints it teaches; or its rejection."""
         try:
-            result = analyze_test(self.plan, self.machine, self.options, tb[m], Lb[m], fi, fo, curves=self.curves)
+            result = fit()
         except DataError as err:
-            return [{"kind": "event", "event": "test_rejected", "test_index": self.test_index,
-                     "t_s": fo.t_s, "message": str(err)}]
-        result["test_index"] = self.test_index
+            return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
+                     "message": str(err)}]
+        result["test_index"] = index
         hints = TimingHints.learnt(result["timing"], self.hints)
         if hints is None:
             log.warning("test %d: a measured feed of %.1f mm/min (programmed %g) is no timing hint for the next "
-                        "test's provisional circles", self.test_index, result["timing"]["measured_feed_mm_min"],
+                        "test's provisional circles", index, result["timing"]["measured_feed_mm_min"],
                         self.plan.feed_mm_min)
         else:
             self.hints = hints

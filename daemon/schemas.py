@@ -771,7 +771,12 @@ def status_schema() -> Schema:
              "fit_latency_ms": num("how long the last result's fit took, ms (null: none yet)", True),
              "invalid_samples": integer("samples flagged over range or sensor fault (left out)"),
              "errors": integer("times the analysis started afresh"),
-             "test_id": string("the current or last test's id (null: none yet)", True)},
+             "test_id": string("the current or last test's id (null: none yet)", True),
+             "worker": obj("the child process that fits each test (absent: daemon.analysis_worker is off)", {
+                 "pid": integer("its process id (null: starting)", True),
+                 "started": integer("processes started: 1, one more each time one died"),
+                 "busy": boolean("a test's fit is running in it")})},
+            required=["results", "tests", "fit_latency_ms", "invalid_samples", "errors", "test_id"],
         ),
     }
     return _document("status", "ballbar.Status: the daemon's periodic status (ballbar/<m>/status, every "
@@ -804,7 +809,8 @@ def config_schema() -> Schema:
         {
             "daemon": obj("[daemon]", {
                 "machine_id": string("the key chunk <m>"), "state_dir": string("recordings, history"),
-                "status_interval_s": num("s"), "log_level": string("debug, info, warning or error")}),
+                "status_interval_s": num("s"), "log_level": string("debug, info, warning or error"),
+                "analysis_worker": boolean("each test's fit in a child process")}),
             "source": obj("[source]", {
                 "url": string("the source actually read: with --simulate, the simulated device's pty"),
                 "cal_mm": num("the bar's length at zero displacement, mm (null: the plan's radius)", True)}),

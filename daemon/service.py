@@ -2,7 +2,7 @@
 
 ::
 
-    source --read()--> main loop --> [queue] analysis (detector + incremental fit)
+    source --read()--> main loop --> [queue] analysis (detector + incremental fit) <--> child: each test's fit
                            |                   \\--> results/events --> the queues below
                            +-------------> [queue] MCAP logger
                            +-------------> [queue] Zenoh bus
@@ -32,8 +32,8 @@ a result went out).
 from __future__ import annotations
 
 import collections
+import concurrent.futures as cf
 import contextlib
-import ctypes
 import datetime as dt
 import functools
 import logging
@@ -46,10 +46,11 @@ from typing import Any
 import numpy as np
 
 from ballbar import SCHEMA_VERSION
-from ballbar.analysis.engine import TestAnalyzer
+from ballbar.analysis.engine import TestAnalyzer, TimingHints
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.polled import Timing, from_events, state_span
 
+from .analysis_worker import AnalysisWorker, release_freed_memory
 from .config import Config
 from .listeners import TEST_END_EVENTS, Listener, ListenerQueue, Message
 from .mcap_log import scaled_ints
@@ -61,31 +62,8 @@ from .systemd import Notifier
 log = logging.getLogger(__name__)
 
 FINISH_ANALYSIS_S = 120.0  # after a finite source's end, at most this for the analysis to catch up
-
-
-@functools.cache
-def _malloc_trim() -> Callable[[int], int] | None:
-    """glibc's ``malloc_trim``, None elsewhere (musl has none)."""
-    try:
-        return getattr(ctypes.CDLL(None), "malloc_trim", None)
-    except OSError:  # pragma: no cover - a libc that cannot be loaded
-        return None
-
-
-def release_freed_memory() -> None:
-    """Hand the heap's free pages back to the system, after a test's analysis.
-
-    A test's analysis allocates and frees some 100 MB of arrays (1 kHz) in
-    the analysis thread's arena; glibc keeps what it freed, and the next
-    analyses reuse it in pieces that no longer fit together, so the resident
-    size of the daemon creeps up to a plateau some 90 MB above what it holds.
-    Trimming after each test keeps it to what is used (measured on 24
-    analyses of a 1 kHz test: 218 -> 242 MiB without, 136 -> 140 with), for
-    about 1 ms.
-    """
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
+STOP_RESULT_S = 1.0  # at a stop, at most this for a test's fit still running in the worker
+WAKE = "analysis_done"  # the message the worker's callback posts to the analysis queue
 
 
 def utc_now() -> str:
@@ -107,16 +85,25 @@ class AnalysisListener(Listener):
     A polled source's ``timing`` events (its stamps' uncertainty and jitter)
     are stated on every result (:func:`ballbar.analysis.polled.state_span`):
     the largest of the last before the feed-in and those up to the feed-out.
+
+    ``executor``: where each test's fit runs (the daemon's
+    :class:`~.analysis_worker.AnalysisWorker`; ``None``: in this thread).  Its
+    result is emitted when it is done (``wake``, set by the daemon, posts a
+    message to this listener's queue then) or at the next batch; it carries the
+    ``last_sample_t`` of the batch that ended the test, as inline.
     """
 
     name = "analysis"
     batch_period_s = 0.0  # every batch as read: the results' latency budget
     idle_s = None
 
-    def __init__(self, cfg: Config, emit: Callable[[Message], None]) -> None:
+    def __init__(self, cfg: Config, emit: Callable[[Message], None], executor: cf.Executor | None = None) -> None:
         self.cfg = cfg
         self.emit = emit
-        self.analyzer = TestAnalyzer(cfg.plan, cfg.machine, cfg.analysis)
+        self.executor = executor
+        self.wake: Callable[[], object] | None = None
+        self.analyzer = self._new_analyzer()
+        self._test_end: tuple[float, float, float] | None = None  # last_t, last_t_host, perf time at feed-out
         self.use_device_time: bool | None = None
         self.test_id: str | None = None
         self._id_base, self._same_second = "", 0
@@ -130,9 +117,30 @@ class AnalysisListener(Listener):
         self._timings: collections.deque[Timing] = collections.deque(maxlen=256)  # a polled source's timing events
         self._lock = threading.Lock()
 
+    def _new_analyzer(self, hints: TimingHints | None = None) -> TestAnalyzer:
+        return TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, hints, executor=self.executor,
+                            on_submit=self._submitted)
+
+    def _submitted(self, fut: cf.Future[dict[str, Any]]) -> None:
+        fut.add_done_callback(lambda _f: self.wake() if self.wake is not None else None)
+
+    @property
+    def pending(self) -> bool:
+        """A test's fit is running in the worker."""
+        return self.analyzer.pending
+
     def on_batch(self, batch: SampleBatch) -> None:
         with self._lock:  # stop() may run on another thread at shutdown
             self._on_batch(batch)
+
+    def on_message(self, msg: Message) -> None:
+        if msg.get("kind") == WAKE:
+            self.settle()
+
+    def settle(self, timeout: float = 0.0) -> None:
+        """Emit the result of the test fitted in the worker, if it is done (waiting up to ``timeout``)."""
+        with self._lock:
+            self._emit_all(self.analyzer.collect(wait=timeout > 0, timeout=timeout))
 
     def _on_batch(self, batch: SampleBatch) -> None:
         for ev in batch.events:
@@ -162,17 +170,25 @@ class AnalysisListener(Listener):
             self.analyzer.mark_break(reason)
             i = j
         self._feed(t[i:], L[i:], out)
-        elapsed_ms = 1000.0 * (time.perf_counter() - t0)
+        self._emit_all(out, t0)
+
+    def _emit_all(self, out: list[Message], t0: float | None = None) -> None:
+        """Wrap and emit what the analyzer returned for a batch started at ``t0`` (perf time; None: a result
+        from the worker)."""
+        now = time.perf_counter()
         for msg in out:
+            if msg.get("event") == "feed_out":
+                self._test_end = (self.last_t, self.last_t_host, now if t0 is None else t0)
             if msg["kind"] in ("circle", "test") and self._timings and not self.use_device_time:
                 state_span(msg, self._timings)
             if msg["kind"] in ("circle", "test"):
-                self.fit_latency_ms = elapsed_ms
+                began = self._test_end[2] if msg["kind"] == "test" and self._test_end else (t0 or now)
+                self.fit_latency_ms = 1000.0 * (now - began)
                 self.results += 1
                 self.tests += msg["kind"] == "test"
             self.emit(self._wrap(msg))
-        if any(m["kind"] == "test" or m.get("event") in TEST_END_EVENTS for m in out):
-            release_freed_memory()
+        if self.executor is None and any(m["kind"] == "test" or m.get("event") in TEST_END_EVENTS for m in out):
+            release_freed_memory()  # the worker gives back its own
 
     def _feed(self, t: np.ndarray, L: np.ndarray, out: list[Message]) -> None:
         """Feed a piece; on an error, reject the test in progress and start afresh from the offending sample."""
@@ -188,7 +204,7 @@ class AnalysisListener(Listener):
             log.warning("analysis: %s; restarting test detection", err)
             out.extend(self.analyzer.abort(f"the analysis restarted: {err}"))
             out.append({"kind": "event", "event": "analysis_reset", "message": str(err)})
-            self.analyzer = TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, self.analyzer.hints)
+            self.analyzer = self._new_analyzer(self.analyzer.hints)
         if start < t.size:
             self._feed(t[start:], L[start:], out)
 
@@ -206,14 +222,23 @@ class AnalysisListener(Listener):
         msg["test_id"] = self.test_id
         msg["t_wall"] = utc_now()
         msg["t_host"] = now = time.monotonic()
-        msg["last_sample_t"] = self.last_t
-        msg["last_sample_t_host"] = self.last_t_host
-        msg["latency_ms"] = 1000.0 * (now - self.last_t_host)
+        last_t, last_t_host = self.last_t, self.last_t_host
+        if msg["kind"] == "test" and self._test_end is not None:  # the batch that ended the test
+            last_t, last_t_host, _ = self._test_end
+        msg["last_sample_t"] = last_t
+        msg["last_sample_t_host"] = last_t_host
+        msg["latency_ms"] = 1000.0 * (now - last_t_host)
         msg["time_axis"] = "device" if self.use_device_time else "host"
         return msg
 
     def stop(self) -> None:
         with self._lock, contextlib.suppress(BallbarError):
+            if self.analyzer.pending:  # a test's fit in the worker: its result, if it comes within STOP_RESULT_S
+                self._emit_all(self.analyzer.collect(wait=True, timeout=STOP_RESULT_S))
+                if self.analyzer.pending:
+                    log.warning("analysis: test %d was still being fitted at the stop; its result is not published "
+                                "(ballbar analyze of its recording gives it)", self.analyzer.test_index)
+                    return
             for msg in self.analyzer.finish():
                 if msg.get("event") in TEST_END_EVENTS:
                     self.emit(self._wrap(msg))
@@ -308,8 +333,11 @@ class Daemon:
         for lst in self.annotators:
             lst.bind(self.broadcast)  # type: ignore[attr-defined]
         self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]
-        self.analysis = AnalysisListener(cfg, self.broadcast)
+        # Each test's fit in a child process, beside the next test's circles (``daemon.analysis_worker``)
+        self.worker = AnalysisWorker() if cfg.daemon.analysis_worker else None
+        self.analysis = AnalysisListener(cfg, self.broadcast, self.worker)
         self.analysis_queue = ListenerQueue(self.analysis, cfg.queues.analysis, "drop_newest")
+        self.analysis.wake = functools.partial(self.analysis_queue.put_message, {"kind": WAKE})
         # Batches go only where they are wanted (the log and, without samples_hz, the bus take none).  The
         # analysis last: its thread wakes at once, and the reader is then about to sleep, not to contend for
         # the GIL with it (the merging queues before it only append).
@@ -381,7 +409,7 @@ class Daemon:
         if self.speedup != 1.0 and isinstance(src.get("clock_ratio"), float):
             src["clock_ratio"] *= self.speedup  # host s per device s, as if the device ran at its own speed
             src["drift_ppm"] = (src["clock_ratio"] - 1.0) * 1e6
-        return {
+        out: Message = {
             "kind": "status",
             "schema_version": SCHEMA_VERSION,
             "machine_id": self.cfg.daemon.machine_id,
@@ -405,6 +433,10 @@ class Daemon:
                 "test_id": self.analysis.test_id,
             },
         }
+        if self.worker is not None:
+            out["analysis"]["worker"] = {"pid": self.worker.pid, "started": self.worker.started,
+                                         "busy": self.analysis.pending}
+        return out
 
     def run(self, stop: threading.Event, max_tests: int | None = None, duration_s: float | None = None) -> int:
         """Read, fan out, report, until ``stop`` (or the limits) say so; then shut down cleanly."""
@@ -473,7 +505,9 @@ class Daemon:
             if max_tests is not None and self.tests_seen >= max_tests:
                 return
             if self.analysis_queue.wait_idle(min(1.0, deadline - time.monotonic()), stop):
-                return
+                if not self.analysis.pending:
+                    return
+                self.analysis.settle(min(1.0, max(0.0, deadline - time.monotonic())))  # a test's fit in the worker
             self.notifier.watchdog()
         if not stop.is_set():
             log.warning("the analysis did not finish within %.0f s of the source's end", limit_s)
@@ -485,6 +519,8 @@ class Daemon:
         with contextlib.suppress(Exception):
             self.source.close()
         self.analysis_queue.close(timeout=budget_s * 0.4)
+        if self.worker is not None:
+            self.worker.shutdown(wait=False)
         left = max(0.5, budget_s - (time.monotonic() - t0))
         threads = [threading.Thread(target=q.close, args=(left * 0.9,), daemon=True) for q in self.outputs]
         for th in threads:

@@ -17,9 +17,14 @@ import pytest
 
 
 def _fds() -> dict[int, str]:
+    from multiprocessing import resource_tracker
+
+    tracker = getattr(resource_tracker._resource_tracker, "_fd", None)  # its pipe: see _children
     out: dict[int, str] = {}
     for name in os.listdir("/proc/self/fd"):
         fd = int(name)
+        if fd == tracker:
+            continue
         try:
             out[fd] = os.readlink(f"/proc/self/fd/{name}")
         except OSError:
@@ -28,6 +33,11 @@ def _fds() -> dict[int, str]:
 
 
 def _children() -> set[int]:
+    """This process's children, but for multiprocessing's resource tracker: one per interpreter once the
+    daemon's analysis worker started a process, kept for the interpreter's life (not a test's leak)."""
+    from multiprocessing import resource_tracker
+
+    tracker = getattr(resource_tracker._resource_tracker, "_pid", None)
     kids: set[int] = set()
     for tid in os.listdir("/proc/self/task"):
         try:
@@ -35,7 +45,7 @@ def _children() -> set[int]:
                 kids.update(int(p) for p in fh.read().split())
         except OSError:
             pass
-    return kids
+    return kids - {tracker}
 
 
 @pytest.fixture

@@ -185,7 +185,8 @@ def _children(pid: int) -> list[str]:
 @pytest.mark.skipif(_seccomp_missing() is not None, reason=str(_seccomp_missing()))
 def test_the_daemon_lives_under_the_units_seccomp_filters(tmp_path: Path) -> None:
     """The unit's system call filter, address families, W^X and namespace settings, applied as systemd does
-    (tests/unitsandbox.py): the simulated device's pty, numpy/scipy, Zenoh and the Rerun child all work."""
+    (tests/unitsandbox.py): the simulated device's pty, numpy/scipy, Zenoh, the Rerun child and the analysis
+    worker (a spawned child, killed with the daemon by prctl) all work."""
     sandbox = [sys.executable, str(Path(__file__).with_name("unitsandbox.py")), str(UNIT), "--"]
     probe = subprocess.run([*sandbox, sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=60)
     assert probe.returncode == 0, probe.stderr
@@ -201,7 +202,7 @@ def test_the_daemon_lives_under_the_units_seccomp_filters(tmp_path: Path) -> Non
     log = tmp_path / "daemon.log"
     with open(log, "wb") as out:
         proc = subprocess.Popen(
-            [*sandbox, sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--speedup", "5",
+            [*sandbox, sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--speedup", "20",
              "--state-dir", str(tmp_path / "state"), "--set", f'zenoh.listen=["{endpoint}"]',
              "--set", f"rerun.port={ports[1]}"],
             stdout=out, stderr=subprocess.STDOUT,
@@ -212,10 +213,11 @@ def test_the_daemon_lives_under_the_units_seccomp_filters(tmp_path: Path) -> Non
             time.sleep(0.2)
         sub = subprocess.run(
             [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint, "--topic", "circle",
-             "--count", "1", "--timeout", "120"],
+             "--topic", "test", "--count", "3", "--timeout", "120"],
             capture_output=True, text=True, timeout=150,
         )
         assert sub.returncode == 0 and '"kind":"circle"' in sub.stdout, (sub.stderr, log.read_text()[-2000:])
+        assert '"kind":"test"' in sub.stdout, (sub.stdout[-1000:], log.read_text()[-2000:])  # fitted in the worker
         assert "rerun" in _children(proc.pid), _children(proc.pid)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(15) == 0

@@ -246,3 +246,58 @@ def test_unplug_garbage_kill_and_restart(device: DeviceProcess, tmp_path: Path) 
         for s in subs:
             s.close()
         daemon.close()
+
+
+def _lines_so_far(sub: Subscriber) -> list[dict[str, Any]]:
+    sub.out.flush()
+    sub.out.seek(0)
+    return [json.loads(line) for line in sub.out.read().splitlines() if line.strip()]
+
+
+def _wait_lines(sub: Subscriber, ok: Any, timeout: float, what: str) -> list[dict[str, Any]]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        lines = _lines_so_far(sub)
+        if ok(lines):
+            return lines
+        time.sleep(0.2)
+    raise AssertionError(f"no {what} within {timeout} s")
+
+
+def test_the_analysis_worker_killed_is_replaced_and_the_daemon_goes_on(tmp_path: Path) -> None:
+    """kill -9 of the child that fits each test: the daemon keeps measuring, says so, and the next test is fitted
+    by a new child (the status counts the children started)."""
+    args = ["--rate", "1000", "--speedup", f"{SPEEDUP:g}", "--repeat", "2", "--gap-s", "20", "--wait"]
+    for item in MACHINE:
+        args += ["--set", item]
+    port = free_port()
+    with DeviceProcess(*args) as device:
+        daemon = Daemon(tmp_path, device.url, port)
+        sub = None
+        try:
+            daemon.wait_ready()
+            sub = Subscriber(port, "--topic", "test", "--topic", "status", "--topic", "event")
+            time.sleep(1.0)
+            device.send("start")
+            lines = _wait_lines(sub, lambda ls: any(m["kind"] == "test" for m in ls), 120, "first test result")
+            worker = next(m for m in reversed(lines) if m["kind"] == "status")["analysis"]["worker"]
+            assert worker["started"] == 1 and isinstance(worker["pid"], int)
+            os.kill(worker["pid"], signal.SIGKILL)
+            lines = _wait_lines(sub, lambda ls: sum(m["kind"] == "test" for m in ls) == 2, 120, "second test result")
+            time.sleep(1.5)  # a status after it
+            assert daemon.proc.poll() is None
+            code, _ = daemon.terminate()
+            payloads = sub.stop()
+            output = daemon.output()
+        finally:
+            if sub is not None:
+                sub.close()
+            daemon.close()
+    assert code == 0
+    tests = [m for m in payloads if m["kind"] == "test"]
+    assert [t["test_index"] for t in tests] == [1, 2]
+    assert abs(tests[1]["parameters"]["backlash_x_um"]["value"] - 4.0) < 0.1
+    worker = [m for m in payloads if m["kind"] == "status"][-1]["analysis"]["worker"]
+    assert worker["started"] == 2 and worker["pid"] not in (None, os.getpid())
+    assert "analysis worker: process" in output and "starting another" in output
+    validate_all(payloads)

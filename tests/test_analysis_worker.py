@@ -1,0 +1,162 @@
+"""Each test's fit in the daemon's child process (:mod:`ballbar.daemon.analysis_worker`): the same results as
+inline, in the same order, and a child that dies or hangs costs one test's result at most, never the daemon."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+import os
+import signal
+import time
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+import numpy as np
+import pytest
+from test_timeaxis import MACHINE, PLAN, _batches, _listener, stream
+
+from ballbar.analysis.engine import TestAnalyzer
+from ballbar.daemon.analysis_worker import AnalysisWorker
+from ballbar.daemon.service import WAKE
+
+# the second test runs 3 % fast: the hints the first teaches move its provisional circles
+TESTS = (MACHINE, MACHINE.with_(feed_override=1.03, backlash_x_um=5.0), MACHINE.with_(tail_s=2.0))
+
+HOST_FIELDS = {"t_wall", "t_host", "latency_ms"}  # when it went out: differ between any two runs
+
+
+@pytest.fixture
+def worker() -> Any:
+    w = AnalysisWorker()
+    try:
+        yield w
+    finally:
+        w.shutdown(wait=False)
+
+
+def _feed_all(an: TestAnalyzer, t: np.ndarray, L: np.ndarray, n: int = 250) -> list[dict[str, Any]]:
+    out = []
+    for i in range(0, t.size, n):
+        out += an.feed(t[i : i + n], L[i : i + n])
+    return out + an.finish()
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal, NaN equal to NaN."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return bool(a == b)
+
+
+def test_the_worker_gives_the_inline_results_in_the_inline_order(worker: AnalysisWorker) -> None:
+    t, L, _ = stream(*TESTS)
+    inline = _feed_all(TestAnalyzer(PLAN), t, L)
+    background = _feed_all(TestAnalyzer(PLAN, executor=worker), t, L)
+    assert [m["kind"] for m in inline].count("test") == 3
+    assert [(m["kind"], m.get("event"), m.get("test_index")) for m in background] == \
+        [(m["kind"], m.get("event"), m.get("test_index")) for m in inline]
+    for a, b in zip(inline, background, strict=True):
+        assert _same(a, b), (a.get("kind"), a.get("event"))
+    # the second test's provisional circles were made with the first test's hints, as inline
+    circles = [m for m in background if m["kind"] == "circle" and m["test_index"] == 2]
+    assert circles and all(c["timing"]["assumed_feed_mm_min"] != PLAN.feed_mm_min for c in circles)
+    assert worker.pid is not None and worker.pid != os.getpid() and worker.started == 1
+
+
+def test_the_listener_sends_the_workers_result_when_woken_with_the_test_end_s_last_sample(
+    worker: AnalysisWorker,
+) -> None:
+    t, L, _ = stream(TESTS[0], TESTS[2])  # the second settles its feed-out before the stream ends
+    seq = np.arange(t.size)
+    inline, got_inline = _listener()
+    for b in _batches(t, L, seq):
+        inline.on_batch(b)
+    an, got = _listener()
+    an.executor = worker
+    an.analyzer = an._new_analyzer()
+    wakes: list[float] = []
+    an.wake = lambda: wakes.append(time.monotonic())
+    batches = _batches(t, L, seq)
+    for batch in batches:
+        an.on_batch(batch)
+        if an.pending and an.analyzer.test_index == 2:
+            break  # the last test's feed-out: its fit is in the worker; no batch follows
+    assert an.pending and not [m for m in got if m["kind"] == "test" and m["test_index"] == 2]
+    deadline = time.monotonic() + 60
+    while len(wakes) < 2 and time.monotonic() < deadline:  # one wake per test fitted
+        time.sleep(0.01)
+    assert len(wakes) == 2, "the worker's result never woke the listener"
+    an.on_message({"kind": WAKE})
+    assert not an.pending
+    tests = [m for m in got if m["kind"] == "test"]
+    tests_inline = [m for m in got_inline if m["kind"] == "test"]
+    assert len(tests) == len(tests_inline) == 2
+    for x, y in zip(tests_inline, tests, strict=True):
+        assert _same({k: v for k, v in x.items() if k not in HOST_FIELDS and k != "test_id"},
+                     {k: v for k, v in y.items() if k not in HOST_FIELDS and k != "test_id"})
+    assert tests[-1]["last_sample_t"] == pytest.approx(float(batch.t_device[-1]), abs=1e-6)  # the batch that ended it
+    assert an.fit_latency_ms is not None and an.fit_latency_ms > 0
+
+
+def test_a_worker_killed_mid_fit_costs_its_test_and_the_next_is_fitted_by_another(worker: AnalysisWorker) -> None:
+    t, L, _ = stream(*TESTS)
+    an = TestAnalyzer(PLAN, executor=worker)
+    assert worker.pid is None or worker.pid > 0
+    out: list[dict[str, Any]] = []
+    i = 0
+    while not an.pending:
+        out += an.feed(t[i : i + 250], L[i : i + 250])
+        i += 250
+    deadline = time.monotonic() + 30
+    while worker.pid is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    first = worker.pid
+    assert first is not None
+    os.kill(first, signal.SIGKILL)
+    out += _feed_all_from(an, t, L, i)
+    rejected = [m for m in out if m.get("event") == "test_rejected"]
+    assert len(rejected) == 1 and rejected[0]["test_index"] == 1
+    assert "ended before its result" in rejected[0]["message"]
+    assert [m["test_index"] for m in out if m["kind"] == "test"] == [2, 3]
+    assert worker.started == 2 and worker.pid != first
+
+
+def _feed_all_from(an: TestAnalyzer, t: np.ndarray, L: np.ndarray, i: int, n: int = 250) -> list[dict[str, Any]]:
+    out = []
+    for j in range(i, t.size, n):
+        out += an.feed(t[j : j + n], L[j : j + n])
+    return out + an.finish()
+
+
+def test_a_stop_does_not_wait_for_a_fit_and_leaves_no_process() -> None:
+    worker = AnalysisWorker()
+    fut = worker.submit(time.sleep, 30)  # a fit that would hold the stop
+    deadline = time.monotonic() + 30
+    while worker.pid is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    pid = worker.pid
+    assert pid is not None
+    t0 = time.monotonic()
+    worker.shutdown(wait=False)
+    assert time.monotonic() - t0 < 2.0
+    with pytest.raises((BrokenProcessPool, cf.CancelledError)):  # not a result
+        fut.result(timeout=10)
+    deadline = time.monotonic() + 10
+    while not _gone(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _gone(pid)
+    with pytest.raises(RuntimeError):
+        worker.submit(time.sleep, 0)
+
+
+def _gone(pid: int) -> bool:
+    """Exited (or a zombie its parent has not reaped yet)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
