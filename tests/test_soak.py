@@ -49,6 +49,8 @@ def test_the_verdict_passes_a_merging_queue_and_flags_growth() -> None:
     assert [b.split(":")[0] for b in verdict(growing, 25.0)] == ["queue_zenoh_depth"]
     leak = {**flat, "rss_mb": fig(206, 236, 253, 1.34), "threads": fig(28, 32, 32, 0.108)}
     assert verdict(leak, 25.0) == ["daemon RSS grows 33.5 MiB over the run", "threads grow 2.7 over the run (28 -> 32)"]
+    worker = {**flat, "worker_rss_mb": fig(80, 84, 95, 0.5)}  # the test's fit moved out: its memory still counts
+    assert verdict(worker, 25.0) == ["analysis worker RSS grows 12.5 MiB over the run"]
 
 
 def test_the_trend_is_not_moved_by_one_sample_in_a_backlog() -> None:

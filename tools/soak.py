@@ -387,10 +387,11 @@ QUEUE_GROWTH_MAX = 5  # batches a queue's depth may grow by over the run
 
 def verdict(summary: dict[str, dict[str, float | None]], minutes_span: float) -> list[str]:
     """What is not flat.  Over the quiet samples after the warm-up (the trend times the span): resident
-    memory may grow by less than max(4 MiB, 3 % of its median), descriptors and threads by less than
-    one; every queue's median depth, and its depth at the last quiet sample, is at most
-    ``QUEUE_DEPTH_MAX`` items (the outputs that take batches merged, MCAP and Rerun, hold a quarter
-    second of them, about 12 at 20 ms), and it grows by less than ``QUEUE_GROWTH_MAX``."""
+    memory (the daemon's, and its analysis worker's) may grow by less than max(4 MiB, 3 % of its
+    median), descriptors and threads by less than one; every queue's median depth, and its depth at
+    the last quiet sample, is at most ``QUEUE_DEPTH_MAX`` items (the outputs that take batches merged,
+    MCAP and Rerun, hold a quarter second of them, about 12 at 20 ms), and it grows by less than
+    ``QUEUE_GROWTH_MAX``."""
     bad: list[str] = []
 
     def drift(name: str) -> float | None:
@@ -399,10 +400,11 @@ def verdict(summary: dict[str, dict[str, float | None]], minutes_span: float) ->
             return None
         return float(s["trend_per_min"]) * minutes_span
 
-    d = drift("rss_mb")
-    rss = summary.get("rss_mb")
-    if d is not None and rss is not None and d > max(4.0, 0.03 * float(rss["median"] or 0)):
-        bad.append(f"daemon RSS grows {d:.1f} MiB over the run")
+    for name, who in (("rss_mb", "daemon"), ("worker_rss_mb", "analysis worker")):
+        d = drift(name)
+        rss = summary.get(name)
+        if d is not None and rss is not None and d > max(4.0, 0.03 * float(rss["median"] or 0)):
+            bad.append(f"{who} RSS grows {d:.1f} MiB over the run")
     for name in ("fds", "threads"):
         d = drift(name)
         s = summary.get(name)
@@ -524,7 +526,11 @@ class Soak:
             row.update(proc_figures(self.daemon.pid))
         for kid in children(self.daemon.pid):
             with contextlib.suppress(OSError, ValueError):
-                row["child_rss_mb"] = row.get("child_rss_mb", 0.0) + proc_figures(kid)["rss_mb"]
+                rss = proc_figures(kid)["rss_mb"]
+                row["child_rss_mb"] = row.get("child_rss_mb", 0.0) + rss
+                with open(f"/proc/{kid}/cmdline", "rb") as fh:
+                    if b"spawn_main" in fh.read():  # the analysis worker: the test's fit, its memory the daemon's
+                        row["worker_rss_mb"] = rss
         st, at = self.bus.latest()
         if st is not None:
             row.update(status_figures(st))
