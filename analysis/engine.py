@@ -417,6 +417,15 @@ class TestAnalyzer:
             )
         return out
 
+    def next_due(self) -> float | None:
+        """When, on the samples' clock, the next result may be due: the end of the first circle not yet
+        fitted; after the last one, now (the feed-out may come with any sample); None between tests and in
+        a rejected test (nothing is due until the next feed-in)."""
+        if self._fi is None or self._rejected:
+            return None
+        ends = [c.t_end for c in self._circles if c.d not in self._emitted]
+        return min(ends) if ends else self.last_t
+
     @property
     def pending(self) -> bool:
         """A test's fit is running in the background."""

@@ -18,7 +18,10 @@ events still come as ``event`` messages), ``0`` (every batch as it is read: the
 analysis, whose latency budget the batches set) or a period in seconds (the
 batches are held and handed over merged, one :class:`SampleBatch` of all their
 samples and events in order, about once per period, or at once before a
-message so that the order holds: the MCAP log, the viewer).  ``idle_s`` is how
+message so that the order holds: the MCAP log, the viewer).  A listener whose
+need changes as it goes says so with ``batch_period_now()``, asked at each
+batch (the analysis: merged while no result can be due, each batch as one
+nears).  ``idle_s`` is how
 long without deliveries before :meth:`Listener.on_idle` (``None``: never).  A
 merged batch still counts as the items it was made of, delivered or dropped.
 
@@ -106,8 +109,10 @@ class Listener(abc.ABC):
     """Receives samples and messages on its own thread; ``stop()`` flushes and closes.
 
     ``batch_period_s``: ``None`` for no batches, ``0`` for every batch, a period
-    to receive them merged about that often; ``idle_s``: how long without
-    deliveries before ``on_idle`` (``None``: never).  See the module docstring.
+    to receive them merged about that often (a method ``batch_period_now()``,
+    where there is one, gives the period of the moment); ``idle_s``: how long
+    without deliveries before ``on_idle`` (``None``: never).  See the module
+    docstring.
     """
 
     name: str = "listener"
@@ -160,6 +165,7 @@ class ListenerQueue:
         self.policy: DropPolicy = policy
         period = getattr(listener, "batch_period_s", 0.0)
         self.batch_period_s: float | None = None if period is None else max(0.0, float(period))
+        self._period_now = getattr(listener, "batch_period_now", None) if period is not None else None
         idle = getattr(listener, "idle_s", 1.0)
         self.idle_s: float | None = None if idle is None else max(0.001, float(idle))
         self._items: deque[tuple[str, Any]] = deque()
@@ -200,7 +206,7 @@ class ListenerQueue:
                 self._ready = max(0, self._ready - 1)
             self._items.append(item)
             self.stats.depth = len(self._items)
-            period = self.batch_period_s
+            period = self._period()
             if item[0] == "message" or not period:
                 self._release()
                 self._cv.notify()
@@ -215,6 +221,12 @@ class ListenerQueue:
                     self._cv.notify()
         return True
 
+    def _period(self) -> float:
+        """The batch period of the moment (0: each batch at once)."""
+        if self._period_now is not None:
+            return max(0.0, float(self._period_now()))
+        return self.batch_period_s or 0.0
+
     def _release(self) -> None:
         """Everything queued is due (under the lock)."""
         self._ready = len(self._items)
@@ -222,7 +234,7 @@ class ListenerQueue:
 
     def _take(self) -> list[tuple[str, Any]] | None:
         """Under the lock: wait for what is due; ``[]`` for ``on_idle``, ``None`` when closed and drained."""
-        period = self.batch_period_s or 0.0
+        period = self._period()
         next_idle = time.monotonic() + self.idle_s if self.idle_s is not None else math.inf
         while True:
             now = time.monotonic()

@@ -160,6 +160,39 @@ def test_listener_threads_sleep_until_there_is_work() -> None:
         qe.close(1.0)
 
 
+class Shifting(Recorder):
+    """Wants batches merged, or each one, as it says from one batch to the next."""
+
+    def __init__(self) -> None:
+        super().__init__(0.0)
+        self.period = 0.25
+
+    def batch_period_now(self) -> float:
+        return self.period
+
+
+def test_a_listener_can_change_its_period_as_it_goes() -> None:
+    rec = Shifting()
+    q = ListenerQueue(rec, 1000)
+    try:
+        for i in range(25):  # 0.5 s of 20 ms batches, merged
+            q.put_batch(batch(i * 20, 20))
+            time.sleep(0.02)
+        assert q.wait_idle(2.0)
+        merged = len(rec.calls)
+        assert 1 <= merged <= 4, merged
+        rec.period = 0.0  # a result nears: each batch as it comes
+        for i in range(25, 35):
+            q.put_batch(batch(i * 20, 20))
+            time.sleep(0.02)
+        assert q.wait_idle(2.0)
+        assert len(rec.calls) - merged == 10
+        seq = np.concatenate([b.seq for _, b in rec.calls])
+        assert np.array_equal(seq, np.arange(35 * 20))  # every sample once, in order
+    finally:
+        q.close(1.0)
+
+
 def test_on_idle_runs_on_its_own_timer() -> None:
     rec = Recorder(0.0, idle_s=0.1)
     q = ListenerQueue(rec, 10)

@@ -263,3 +263,32 @@ def test_the_listener_rejects_the_test_in_progress_when_the_clock_runs_back() ->
     # the new analysis takes the stream on from the offending sample and finds the second test
     assert [m["kind"] for m in got if m["kind"] == "test"] == ["test"]
     assert an.errors == 1
+
+
+def test_the_listener_takes_batches_merged_until_a_result_nears_and_is_as_quick() -> None:
+    """Merged every MERGE_S between tests and mid-circle, each batch as a circle's end or the feed-out nears:
+    the same results at the same samples as with every 20 ms batch, from a fraction of the deliveries."""
+    from ballbar.daemon.service import MERGE_S
+
+    t, L, _ = stream(MACHINE, MACHINE.with_(tail_s=2.0))
+    seq = np.arange(t.size)
+    each, got_each = _listener()
+    for b in _batches(t, L, seq, n=10):  # 20 ms at 500 Hz
+        each.on_batch(b)
+    merged, got = _listener()
+    periods, pend, deliveries = [], [], 0
+    for b in _batches(t, L, seq, n=10):
+        pend.append(b)
+        period = merged.batch_period_now()
+        periods.append(period)
+        if period == 0 or b.t_host[-1] - pend[0].t_host[0] >= period:  # as the queue does
+            merged.on_batch(SampleBatch.concat(pend) if len(pend) > 1 else pend[0])
+            deliveries += 1
+            pend = []
+    assert set(periods) == {0.0, MERGE_S}
+    assert deliveries < 0.5 * len(periods), (deliveries, len(periods))
+    results = [m for m in got if m["kind"] in ("circle", "test")]
+    results_each = [m for m in got_each if m["kind"] in ("circle", "test")]
+    assert [m["kind"] for m in results] == ["circle", "circle", "test", "circle", "circle", "test"]
+    for a, b in zip(results_each, results, strict=True):  # emitted with the same last sample
+        assert a["last_sample_t"] == b["last_sample_t"], (a["kind"], a.get("direction"))
