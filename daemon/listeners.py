@@ -206,7 +206,7 @@ class ListenerQueue:
                 self._ready = max(0, self._ready - 1)
             self._items.append(item)
             self.stats.depth = len(self._items)
-            period = self._period()
+            period = self.period()
             if item[0] == "message" or not period:
                 self._release()
                 self._cv.notify()
@@ -221,7 +221,7 @@ class ListenerQueue:
                     self._cv.notify()
         return True
 
-    def _period(self) -> float:
+    def period(self) -> float:
         """The batch period of the moment (0: each batch at once)."""
         if self._period_now is not None:
             return max(0.0, float(self._period_now()))
@@ -234,7 +234,7 @@ class ListenerQueue:
 
     def _take(self) -> list[tuple[str, Any]] | None:
         """Under the lock: wait for what is due; ``[]`` for ``on_idle``, ``None`` when closed and drained."""
-        period = self._period()
+        period = self.period()
         next_idle = time.monotonic() + self.idle_s if self.idle_s is not None else math.inf
         while True:
             now = time.monotonic()

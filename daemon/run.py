@@ -61,7 +61,8 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
 
             out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
         if cfg.rerun.mode != "off":
-            out.append((StartedLater("rerun", lambda: _rerun_viewer(cfg)), cfg.queues.rerun, "drop_oldest"))
+            out.append((StartedLater("rerun", lambda: _rerun_viewer(cfg), batch_period_s=VIEWER_BATCH_PERIOD_S),
+                        cfg.queues.rerun, "drop_oldest"))
     except BaseException:
         for listener, _cap, _policy in reversed(out):
             try:
@@ -82,17 +83,25 @@ def _rerun_viewer(cfg: Config) -> Listener:
     return RerunViewer.from_config(cfg)
 
 
+VIEWER_BATCH_PERIOD_S = 0.25  # RerunViewer.batch_period_s, known before Rerun is imported
+
+
 class StartedLater(Listener):
     """A listener made on its own queue's thread when the first item (or idle tick) reaches it.
 
     For the Rerun viewer: importing Rerun and starting its recording take about half a
     second, which READY=1 does not wait for; what arrives meanwhile waits in the queue.
     If it cannot be made, that is logged once and everything sent to it is dropped
-    (the daemon's other outputs run on).
+    (the daemon's other outputs run on).  ``batch_period_s`` and ``idle_s`` are
+    the made listener's, which its queue needs before it exists (without them
+    the viewer was woken for every 20 ms batch instead of four times a second).
     """
 
-    def __init__(self, name: str, make: Callable[[], Listener]) -> None:
+    def __init__(self, name: str, make: Callable[[], Listener], batch_period_s: float | None = 0.0,
+                 idle_s: float | None = 1.0) -> None:
         self.name = name
+        self.batch_period_s = batch_period_s
+        self.idle_s = idle_s
         self._make = make
         self._inner: Listener | None = None
         self._failed = False
@@ -262,6 +271,7 @@ class SimulatedDeviceSource(Source):
         if self.device.url != self.url:
             log.warning("the simulated device reads as %s, not %s", self.device.url, self.url)
         inner = open_source(self.device.url)
+        inner.pace(self.read_s)
         with self._lock:
             if self._closed:
                 inner.close()
@@ -271,6 +281,11 @@ class SimulatedDeviceSource(Source):
 
     def _read(self, deadline: float | None) -> SampleBatch | None:
         raise NotImplementedError  # read() hands over to the serial source
+
+    def pace(self, period_s: float) -> None:
+        super().pace(period_s)
+        if self._inner is not None:
+            self._inner.pace(period_s)
 
     @property
     def finished(self) -> bool:

@@ -490,6 +490,8 @@ class Daemon:
                     self.samples += len(batch)
                     for q in self.batch_queues:
                         q.put_batch(batch)
+                    # read as often as the most pressed output wants batches: 20 ms as a result nears
+                    self.source.pace(min((q.period() for q in self.batch_queues), default=0.0))
                     if self.source_state == "starting" and len(batch):
                         self.source_state = "connected"
                 elif self.source.finished:

@@ -29,6 +29,13 @@ The interface (:class:`Source`)
     Safe twice and from another thread (it interrupts a blocked ``read``).
     Sources are context managers.
 ``stats() -> SourceStats``, ``finished``, ``rate_hz``, ``url``.
+``pace(period_s)``
+    The consumers can take batches ``period_s`` apart for now: the source reads
+    that often (never more often than ``batch_s``, never less than every
+    ``RELAXED_BATCH_S``) until told otherwise.  The daemon relaxes it while no
+    result can be due (between tests, mid-circle) and tightens it back to
+    ``batch_s`` as one nears: the 20 ms batches where latency counts, a
+    wake-up every 0.1 s where it does not.
 
 A serial source wakes at most once per batch period while samples flow: it
 sleeps to the next boundary of a ``batch_s`` grid on the monotonic clock and
@@ -159,6 +166,7 @@ log = logging.getLogger(__name__)
 RATE_MIN_HZ = 15.625
 RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
+RELAXED_BATCH_S = 0.1  # pace()'s longest: at 10 kHz 17 kB a read, well inside a tty's buffers
 WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 POLL_WINDOWS = 4096  # request/answer windows kept for the status's median and p99
 RATE_SPAN_S = 10.0  # the achieved poll rate: answers over about this long
@@ -183,6 +191,7 @@ class Source(abc.ABC):
         self.url = url
         self.rate_hz = rate_hz
         self.batch_s = batch_s
+        self.read_s = batch_s  # the batching period of the moment (pace())
         self._closed = False
         self._finished = False
         self._stats = SourceStats()
@@ -193,6 +202,10 @@ class Source(abc.ABC):
         self._lost_unlogged = 0
 
     # -- public -------------------------------------------------------------------
+
+    def pace(self, period_s: float) -> None:
+        """Batches may come ``period_s`` apart for now (see the module docstring)."""
+        self.read_s = min(max(self.batch_s, period_s), max(self.batch_s, RELAXED_BATCH_S))
 
     def read(self, timeout: float | None = None) -> SampleBatch | None:
         """The next batch of samples and events, or ``None`` after ``timeout`` seconds."""
@@ -398,8 +411,6 @@ class SerialSource(Source):
         self._napper: select.poll | None = None
         self._io = threading.RLock()  # held by the reader inside read(); close() takes it to release the port
         self._held = b""  # a port without a descriptor: the byte its wait read
-        # Stream mode reads at most once per batch period when more than one sample comes per period.
-        self._pace = not (rate_hz is not None and 1.0 / rate_hz >= batch_s)
         self._flowing = False  # the last read found bytes: the next one waits for the batch boundary
         self._ever_open = False
         self._retry_s = retry_min_s
@@ -696,8 +707,9 @@ class SerialSource(Source):
         meanwhile.  Otherwise (idle, or a slow device) wait for the first bytes and take them at once.
         """
         data: bytes | None = b""
-        if self._flowing and self._pace:
-            b = self.batch_s
+        b = self.read_s
+        # at most one read per batch period while more than one sample comes per period
+        if self._flowing and not (self.rate_hz is not None and 1.0 / self.rate_hz >= b):
             self._nap((math.floor(time.monotonic() / b) + 1.0) * b)
             if self._closed:
                 return None
@@ -781,7 +793,7 @@ class SerialSource(Source):
         # Wait for the answer, the next tick, the end of the batch or the deadline.
         now = time.monotonic()
         nxt = self._out[1] + self.poll_timeout_s if self._out is not None else self._tick0 + self._k * period
-        until = min(nxt, self._poll_batch_start + self.batch_s)
+        until = min(nxt, self._poll_batch_start + self.read_s)
         if deadline is not None:
             until = min(until, deadline)
         # Returns at the first byte of the answer; what came is read at once.
@@ -801,7 +813,7 @@ class SerialSource(Source):
                 self._windows.append(t_read - t_sent)
                 self._answers.append(t_read)
                 self._out = None
-        if t_read - self._poll_batch_start >= self.batch_s or (deadline is not None and t_read >= deadline):
+        if t_read - self._poll_batch_start >= self.read_s or (deadline is not None and t_read >= deadline):
             return self._flush_poll()
         return None
 
@@ -938,7 +950,7 @@ class _PacedSource(Source):
                 return self._take(self._i + self.MAX_BATCH, now)
             t_now = self._t0 + (now - self._start) * self.speed
             due = float(self._t[self._i])
-            wake = max(self._start + (due - self._t0) / self.speed, self._last_return + self.batch_s)
+            wake = max(self._start + (due - self._t0) / self.speed, self._last_return + self.read_s)
             if now >= wake:
                 end = int(np.searchsorted(self._t, t_now, side="right"))
                 return self._take(min(max(end, self._i + 1), self._i + self.MAX_BATCH), now)

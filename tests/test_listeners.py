@@ -217,3 +217,35 @@ def test_the_daemon_puts_batches_only_where_they_are_wanted() -> None:
         assert [q.listener.name for q in d.batch_queues] == ["merged", "analysis"]  # not "recorder", not "log"
     finally:
         d.shutdown(1.0)
+
+
+def test_the_built_outputs_take_batches_as_their_listeners_say_and_the_reader_follows(tmp_path: Any) -> None:
+    """The daemon's own outputs, as `ballbar run` builds them: the viewer (made later, on its queue's thread)
+    merged four times a second like the log, not woken for every batch; and the source read as often as the most
+    pressed of them wants: every 0.1 s while the analysis merges too, every 20 ms once it wants each batch."""
+    from ballbar.daemon.config import load
+    from ballbar.daemon.run import build_listeners
+    from ballbar.daemon.service import MERGE_S, Daemon
+    from ballbar.daemon.sources import DEFAULT_BATCH_S, RELAXED_BATCH_S, open_source
+    from ballbar.daemon.viewer import RerunViewer
+
+    sets = ["zenoh.enabled=false", f'daemon.state_dir="{tmp_path}"', "daemon.analysis_worker=false"]
+    cfg = load(None, [*sets, 'rerun.mode="connect"', 'rerun.url="rerun+http://127.0.0.1:9/proxy"'], env={})
+    d = Daemon(cfg, open_source("sim:?speedup=1&rate=100"), build_listeners(cfg))
+    try:  # not run: the viewer is made at its first item (its runtime would outlive the test)
+        periods = {q.listener.name: q.period() for q in d.batch_queues}
+        assert periods == {"mcap": 0.25, "rerun": RerunViewer.batch_period_s, "analysis": 0.0}
+        assert next(q for q in d.outputs if q.listener.name == "rerun").idle_s == RerunViewer.idle_s
+    finally:
+        d.shutdown(1.0)
+    cfg = load(None, [*sets, 'rerun.mode="off"'], env={})
+    src = open_source("sim:?speedup=1&rate=100")
+    d = Daemon(cfg, src, build_listeners(cfg))
+    try:
+        d.run(threading.Event(), duration_s=1.5)
+        assert d.analysis.batch_period_now() == MERGE_S  # no test in progress: nothing due
+        assert src.read_s == RELAXED_BATCH_S
+        src.pace(0.0)
+        assert src.read_s == DEFAULT_BATCH_S
+    finally:
+        d.shutdown(1.0)
