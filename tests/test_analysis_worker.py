@@ -160,3 +160,26 @@ def _gone(pid: int) -> bool:
             return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
     except OSError:
         return True
+
+
+def _cycle(mb: int) -> int:
+    """A job that leaves ``mb`` MB in a reference cycle behind, as the search's nested functions do."""
+    a: dict[str, Any] = {"data": np.ones(mb * 2**20 // 8)}
+    a["self"] = a
+    return mb
+
+
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as fh:
+        return next(int(line.split()[1]) for line in fh if line.startswith("VmRSS")) / 1024
+
+
+def test_what_a_fit_leaves_in_cycles_is_given_back_after_each(worker: AnalysisWorker) -> None:
+    worker.submit(_cycle, 1).result(60)
+    assert worker.pid is not None
+    worker.submit(int).result(10)  # the collection queued after the job is done too
+    base = _rss_mb(worker.pid)
+    for _ in range(5):
+        assert worker.submit(_cycle, 40).result(60) == 40
+    worker.submit(int).result(10)
+    assert _rss_mb(worker.pid) - base < 20, (base, _rss_mb(worker.pid))  # 200 MB in cycles, none kept
