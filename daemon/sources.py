@@ -35,7 +35,12 @@ The interface (:class:`Source`)
     ``RELAXED_BATCH_S``) until told otherwise.  The daemon relaxes it while no
     result can be due (between tests, mid-circle) and tightens it back to
     ``batch_s`` as one nears: the 20 ms batches where latency counts, a
-    wake-up every 0.1 s where it does not.
+    wake-up every 0.1 s where it does not.  A serial port is never left to hold
+    more than ``TTY_READ_BYTES`` between reads (at the byte rate it has been
+    seen to run): past the line discipline's 4 KiB buffer the kernel throttles
+    the adapter, and a device without flow control overruns.  At 1 kHz
+    (binary, 17 kB/s) that is every 0.1 s; at 10 kHz, or 1 kHz sped up 20
+    times, every 20 ms as before.
 
 A serial source wakes at most once per batch period while samples flow: it
 sleeps to the next boundary of a ``batch_s`` grid on the monotonic clock and
@@ -166,7 +171,8 @@ log = logging.getLogger(__name__)
 RATE_MIN_HZ = 15.625
 RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
-RELAXED_BATCH_S = 0.1  # pace()'s longest: at 10 kHz 17 kB a read, well inside a tty's buffers
+RELAXED_BATCH_S = 0.1  # pace()'s longest
+TTY_READ_BYTES = 3000  # a relaxed read of a serial port takes at most about this much (a tty buffers 4 KiB)
 WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 POLL_WINDOWS = 4096  # request/answer windows kept for the status's median and p99
 RATE_SPAN_S = 10.0  # the achieved poll rate: answers over about this long
@@ -205,7 +211,10 @@ class Source(abc.ABC):
 
     def pace(self, period_s: float) -> None:
         """Batches may come ``period_s`` apart for now (see the module docstring)."""
-        self.read_s = min(max(self.batch_s, period_s), max(self.batch_s, RELAXED_BATCH_S))
+        self.read_s = min(max(self.batch_s, period_s), max(self.batch_s, self._relaxed_s()))
+
+    def _relaxed_s(self) -> float:
+        return RELAXED_BATCH_S
 
     def read(self, timeout: float | None = None) -> SampleBatch | None:
         """The next batch of samples and events, or ``None`` after ``timeout`` seconds."""
@@ -412,6 +421,7 @@ class SerialSource(Source):
         self._io = threading.RLock()  # held by the reader inside read(); close() takes it to release the port
         self._held = b""  # a port without a descriptor: the byte its wait read
         self._flowing = False  # the last read found bytes: the next one waits for the batch boundary
+        self._bytes_per_s = 0.0  # the port's byte rate lately (pace() keeps a read under TTY_READ_BYTES)
         self._ever_open = False
         self._retry_s = retry_min_s
         self._next_retry = 0.0
@@ -723,6 +733,9 @@ class SerialSource(Source):
             self._flowing = False
             return self._events_only()
         t_read = time.monotonic()
+        if data and self._flowing and t_read > self._last_rx:
+            rate = len(data) / (t_read - self._last_rx)  # bytes/s since the last read that had bytes
+            self._bytes_per_s = rate if not self._bytes_per_s else 0.8 * self._bytes_per_s + 0.2 * rate
         self._flowing = bool(data)
         self._check_stall(t_read, bool(data))
         if not data:
@@ -748,6 +761,11 @@ class SerialSource(Source):
         keep = st.keep
         status = r.status[keep]
         return self._batch(st.t_host, st.t_device, self.cal_mm + r.value_mm[keep], st.seq, status)
+
+    def _relaxed_s(self) -> float:
+        if not self._bytes_per_s > 0:
+            return self.batch_s  # its rate not seen yet: no longer reads than asked
+        return min(RELAXED_BATCH_S, TTY_READ_BYTES / self._bytes_per_s)
 
     def _report_decode(self) -> None:
         now = dict(self._decoder.dropped)

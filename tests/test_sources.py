@@ -658,3 +658,31 @@ def test_the_stampers_steady_shortcut_gives_what_the_general_path_gives() -> Non
         assert np.array_equal(a.t_device, b.t_device) and np.array_equal(a.t_host, b.t_host)
         assert (a.gaps, a.reset_seqs, a.jumps) == (b.gaps, b.reset_seqs, b.jumps)
     assert 0.5 * len(reads) < sum(taken) < len(reads) - 50  # both ways were taken, often
+
+
+@pytest.mark.parametrize(("rate", "relaxed_s"), [(1000, 0.1), (10000, 0.02)])
+def test_a_relaxed_serial_read_never_leaves_a_tty_more_than_it_buffers(rate: int, relaxed_s: float) -> None:
+    """pace() lengthens the reads to 0.1 s, but not past TTY_READ_BYTES at the port's byte rate: beyond a
+    tty's 4 KiB the kernel throttles the adapter (a device without flow control overruns; the simulated
+    device's writes block, and its samples arrive late)."""
+    from ballbar.daemon.sources import DEFAULT_BATCH_S, TTY_READ_BYTES
+    from ballbar.tools.simdevice import DeviceProcess
+
+    with DeviceProcess("--rate", str(rate)) as dev, open_source(dev.url) as src:
+        assert src.read_s == DEFAULT_BATCH_S
+        src.pace(0.25)
+        assert src.read_s == DEFAULT_BATCH_S  # its byte rate not seen yet: no longer reads
+        sizes, got, late = [], 0, []
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end:
+            before = src.stats().bytes_read
+            b = src.read(timeout=1.0)
+            src.pace(0.25)
+            if b is not None and len(b):
+                got += len(b)
+                sizes.append(src.stats().bytes_read - before)
+                late.append(time.monotonic() - float(b.t_host[-1]))
+        assert src.read_s == pytest.approx(relaxed_s, rel=0.25)
+        # at most what the tty holds, or what one 20 ms batch brings where that is more (10 kHz: 3.4 kB)
+        assert np.median(sizes[5:]) <= max(TTY_READ_BYTES, 17 * rate * DEFAULT_BATCH_S) * 1.2, sizes
+        assert got > 1.5 * rate and np.median(late[5:]) < 0.05, (got, late)
