@@ -17,6 +17,10 @@ The results are the same as in-process: the job is
 :class:`~ballbar.analysis.engine.TestAnalyzer` waits for a test's result
 before the next feed-in, so that the timing hints it teaches are applied
 exactly as when the analysis ran inline.
+
+A program that makes a :class:`~ballbar.daemon.service.Daemon` must guard
+its main module (``if __name__ == "__main__":``), as for any ``spawn``
+child: the child imports it.  ``ballbar run`` does.
 """
 
 from __future__ import annotations

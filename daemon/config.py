@@ -48,7 +48,7 @@ class DaemonSection:
     state_dir: str = "/var/lib/ballbar"
     status_interval_s: float = 1.0
     log_level: str = "info"
-    analysis_worker: bool = True  # each test's fit in a child process, beside the next test's circles
+    analysis_worker: bool = True  # each test's fit in a child process, off the daemon's reading and circles
 
 
 @dataclass

@@ -185,7 +185,7 @@ class AnalysisListener(Listener):
             th = batch.t_host[good]
             if t.size > 1 and th[-1] > th[0]:
                 rate = float(t[-1] - t[0]) / float(th[-1] - th[0])
-                self._clock_rate = max(rate, 0.5 * self._clock_rate)  # quick to rise, slow to fall
+                self._clock_rate = max(rate, 0.5 * self._clock_rate)  # rises at once, falls by half a batch at most
             self.last_t, self.last_t_host = float(t[-1]), float(th[-1])
         t0 = time.perf_counter()
         out: list[Message] = []
@@ -358,7 +358,7 @@ class Daemon:
         for lst in self.annotators:
             lst.bind(self.broadcast)  # type: ignore[attr-defined]
         self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]
-        # Each test's fit in a child process, beside the next test's circles (``daemon.analysis_worker``)
+        # Each test's fit in a child process, off the daemon's reading and circles (``daemon.analysis_worker``)
         self.worker = AnalysisWorker() if cfg.daemon.analysis_worker else None
         self.analysis = AnalysisListener(cfg, self.broadcast, self.worker)
         self.analysis_queue = ListenerQueue(self.analysis, cfg.queues.analysis, "drop_newest")
