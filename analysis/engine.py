@@ -447,10 +447,10 @@ class TestAnalyzer:
         self._pending = None
         try:
             return self._settle(index, fo, fut.result)
-        except cf.BrokenExecutor as err:
+        except (cf.BrokenExecutor, cf.CancelledError) as err:
+            why = f"ended before its result ({err})" if str(err) else "was stopped before its result"
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
-                     "message": f"the process analysing the test ended before its result ({err}); "
-                     "ballbar analyze of its recording gives it"}]
+                     "message": f"the process analysing the test {why}; ballbar analyze of its recording gives it"}]
 
     def _drain(self) -> list[dict[str, Any]]:
         out = self.collect()
