@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -49,6 +50,20 @@ def children(pid: int) -> set[int]:
     return kids
 
 
+def rerun_servers(pid: int) -> list[int]:
+    """The daemon's Rerun server children (not its analysis worker)."""
+    out = []
+    for k in children(pid):
+        try:
+            with open(f"/proc/{k}/cmdline", "rb") as fh:
+                cmdline = fh.read()
+        except OSError:
+            continue
+        if b"spawn_main" not in cmdline and b"resource_tracker" not in cmdline:
+            out.append(k)
+    return out
+
+
 def listeners(port: int) -> list[str]:
     """Local addresses (hex, as /proc/net/tcp shows them) listening on ``port``."""
     out = []
@@ -82,6 +97,7 @@ def test_a_client_pushing_hundreds_of_mb_cannot_grow_the_daemon(tmp_path: Path) 
         )
     url = f"rerun+http://127.0.0.1:{port}/proxy"
     samples: list[tuple[float, float]] = []
+    pusher: subprocess.Popen[bytes] | None = None
     try:
         deadline = time.monotonic() + 30
         while not listeners(port):
@@ -94,7 +110,7 @@ def test_a_client_pushing_hundreds_of_mb_cannot_grow_the_daemon(tmp_path: Path) 
             pusher = subprocess.Popen([sys.executable, str(HERE / "pusher.py"), url, kind, str(mb)],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             while pusher.poll() is None:
-                servers = [k for k in children(daemon.pid) if k != pusher.pid]
+                servers = rerun_servers(daemon.pid)
                 samples.append((rss_mb(daemon.pid), max([rss_mb(k) for k in servers], default=0.0)))
                 time.sleep(0.1)
                 assert time.monotonic() - deadline < 300
@@ -124,11 +140,16 @@ def test_a_client_pushing_hundreds_of_mb_cannot_grow_the_daemon(tmp_path: Path) 
         assert daemon.wait(10) == 0
         assert not listeners(port)
     finally:
+        if pusher is not None and pusher.poll() is None:  # a failure mid-push must not leave it pushing
+            pusher.kill()
+            pusher.wait()
+        kids = children(daemon.pid)  # before the daemon goes: its children are then someone else's
         if daemon.poll() is None:
             daemon.kill()
             daemon.wait()
-        for k in children(daemon.pid):
-            os.kill(k, signal.SIGKILL)
+        for k in kids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(k, signal.SIGKILL)
 
 
 def test_the_server_goes_with_a_killed_daemon(tmp_path: Path) -> None:

@@ -311,6 +311,7 @@ def _main(argv: Sequence[str] | None, pending: list[threading.Thread]) -> int:
             _, held = _in_background(
                 lambda: _history(session, args.machine, kinds, args.since, args.limit, args.query_timeout),
                 pending, "zenoh-history", stop=stop,
+                timeout=None if deadline is None else max(0.0, deadline - time.monotonic()),
             )
             for obj in held or ():
                 dedupe = True
