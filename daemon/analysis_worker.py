@@ -76,7 +76,8 @@ PR_SET_PDEATHSIG = 1
 
 def _die_with(parent: int) -> None:
     """In the child: be killed when the daemon dies, even by kill -9 (Linux's parent-death signal), so that
-    no worker is left behind; the daemon gone already, go now."""
+    no worker is left behind; the daemon gone already, go now.  The signal follows the thread that started
+    the child: the daemon's main thread, or for a replacement its analysis thread; both live as long as it."""
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent:
@@ -132,8 +133,8 @@ class AnalysisWorker(cf.Executor):
                 pool.shutdown(wait=False, cancel_futures=True)
                 pool = self._start()
                 fut = pool.submit(fn, *args, **kwargs)
-            # glibc keeps what a fit freed (its arrays, then the job's own arguments and result once sent):
-            # handed back after each, not left to the next fits to reuse in pieces
+            # the fit's garbage collected and its freed heap handed back once the job's own arguments and
+            # result are gone too (release_freed_memory)
             pool.submit(_released)
             return fut
 
