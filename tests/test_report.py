@@ -147,3 +147,19 @@ def test_reading_records_without_samples_gives_the_same_messages(records: Path) 
         full, light = read_log(p), read_log(p, samples=False)
         assert len(full.samples) > 0 and len(light.samples) == 0
         assert light.results == full.results and light.events == full.events and light.config == full.config
+
+
+def test_results_published_in_the_same_millisecond_keep_their_order_in_the_history() -> None:
+    """A replay at full speed publishes several results in one batch, within one millisecond of wall time:
+    the host time of the samples that ended each test orders them."""
+    from ballbar.tools.report import select_history
+
+    def res(i: int, host: float) -> dict:
+        return {"kind": "test", "machine_id": "m", "test_id": f"m-{i}", "t_wall": "2026-11-23T08:00:55.255Z",
+                "last_sample_t_host": host, "plan": {}}
+
+    first, second, third = res(1, 10.0), res(2, 20.0), res(3, 30.0)
+    history, note = select_history(dict(second), [third, second, first])
+    assert [h["test_id"] for h in history] == ["m-1"], note
+    history, _ = select_history(dict(third), [third, second, first])
+    assert [h["test_id"] for h in history] == ["m-1", "m-2"]

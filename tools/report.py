@@ -60,6 +60,13 @@ def comparable(a: dict[str, Any], b: dict[str, Any]) -> bool:
     return all(pa.get(k) == pb.get(k) for k in COMPARABLE_PLAN_KEYS)
 
 
+def _published_order(r: dict[str, Any]) -> tuple[str, float]:
+    """When a result was published: its wall time, then (within a millisecond: the same daemon) its last
+    sample's host time."""
+    host = r.get("last_sample_t_host")
+    return str(r["t_wall"]), float(host) if isinstance(host, int | float) else 0.0
+
+
 def select_history(result: dict[str, Any], candidates: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], str]:
     """The same machine's earlier comparable test results, oldest first, and a sentence saying how they were chosen.
 
@@ -72,10 +79,16 @@ def select_history(result: dict[str, Any], candidates: list[dict[str, Any]]) -> 
              and r.get("test_id") != result.get("test_id")]
     if machine is not None:
         tests = [r for r in tests if r.get("machine_id") == machine]
-    if t_wall:
+    # Its own published record places it among results published within the same millisecond (a replay
+    # at full speed publishes several in one batch), by the host time of the samples that ended each test.
+    me = next((r for r in candidates if r.get("kind") == "test" and r.get("t_wall")
+               and r.get("test_id") == result.get("test_id")), None)
+    if me is not None:
+        tests = [r for r in tests if _published_order(r) < _published_order(me)]
+    elif t_wall:
         tests = [r for r in tests if str(r["t_wall"]) < str(t_wall)]
     same = [r for r in tests if comparable(result, r)]
-    same.sort(key=lambda r: str(r["t_wall"]))
+    same.sort(key=_published_order)
     what = f"machine {machine}" if machine is not None else "this machine"
     cond = ", ".join(f"{k} {result.get('plan', {}).get(k)}" for k in COMPARABLE_PLAN_KEYS)
     if not tests:
