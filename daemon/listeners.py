@@ -59,6 +59,9 @@ from .samples import SampleBatch
 log = logging.getLogger(__name__)
 
 Message = dict[str, Any]
+# How often the outputs that take batches merged get them (the MCAP log, the viewer, the analysis while no
+# result can be due): four times a second, not once per 20 ms batch.
+MERGE_S = 0.25
 # Events that end a test without a result (test_aborted: an older name, still read back from recordings).
 TEST_END_EVENTS = frozenset({"test_rejected", "test_incomplete", "test_aborted"})
 DropPolicy = Literal["drop_oldest", "drop_newest"]

@@ -137,7 +137,7 @@ from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID
 
 from . import schemas as _schemas
-from .listeners import TEST_END_EVENTS, Listener, to_json
+from .listeners import MERGE_S, TEST_END_EVENTS, Listener, to_json
 from .listeners import Message as ListenerMessage
 from .recordings import Recording, open_recording
 from .samples import SampleBatch, SourceEvent, break_reason, break_seq
@@ -436,7 +436,7 @@ class McapLogger(Listener):
     """
 
     name = "mcap"
-    batch_period_s = 0.25  # samples merged: a write a quarter second, not one per 20 ms batch
+    batch_period_s = MERGE_S  # samples merged: a write a quarter second, not one per 20 ms batch
     idle_s = None  # the flush thread keeps the time
 
     def __init__(

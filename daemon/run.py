@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from .config import Config, ConfigError, load
 from .errors import SourceClosed, SourceConfigError, SourceError
-from .listeners import Listener, Message
+from .listeners import MERGE_S, Listener, Message
 from .lock import StateLock
 from .samples import SampleBatch, SourceStats
 from .service import Daemon
@@ -61,7 +61,8 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
 
             out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
         if cfg.rerun.mode != "off":
-            out.append((StartedLater("rerun", lambda: _rerun_viewer(cfg), batch_period_s=VIEWER_BATCH_PERIOD_S),
+            # the viewer's own period (MERGE_S), which its queue needs before Rerun is imported
+            out.append((StartedLater("rerun", lambda: _rerun_viewer(cfg), batch_period_s=MERGE_S),
                         cfg.queues.rerun, "drop_oldest"))
     except BaseException:
         for listener, _cap, _policy in reversed(out):
@@ -81,9 +82,6 @@ def _rerun_viewer(cfg: Config) -> Listener:
     from .viewer import RerunViewer
 
     return RerunViewer.from_config(cfg)
-
-
-VIEWER_BATCH_PERIOD_S = 0.25  # RerunViewer.batch_period_s, known before Rerun is imported
 
 
 class StartedLater(Listener):

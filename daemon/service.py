@@ -52,7 +52,7 @@ from ballbar.analysis.polled import Timing, from_events, state_span
 
 from .analysis_worker import AnalysisWorker, release_freed_memory
 from .config import Config
-from .listeners import TEST_END_EVENTS, Listener, ListenerQueue, Message
+from .listeners import MERGE_S, TEST_END_EVENTS, Listener, ListenerQueue, Message
 from .mcap_log import scaled_ints
 from .samples import EventKind, SampleBatch, breaks_in
 from .secrets import redacted
@@ -63,7 +63,6 @@ log = logging.getLogger(__name__)
 
 FINISH_ANALYSIS_S = 120.0  # after a finite source's end, at most this for the analysis to catch up
 STOP_RESULT_S = 1.0  # at a stop, at most this for a test's fit still running in the worker
-MERGE_S = 0.25  # the analysis takes batches merged this often while no result can be due
 WAKE = "analysis_done"  # the message the worker's callback posts to the analysis queue
 
 

@@ -142,7 +142,7 @@ from ballbar.analysis.program import arc_start_deg, data_start_deg, schedule
 from ballbar.analysis.report import trend_limits
 from ballbar.protocol import INVALID
 
-from .listeners import TEST_END_EVENTS, Listener, Message
+from .listeners import MERGE_S, TEST_END_EVENTS, Listener, Message
 from .samples import EventKind, SampleBatch, SourceEvent
 
 log = logging.getLogger(__name__)
@@ -1221,7 +1221,7 @@ class RerunViewer(Listener):
     """
 
     name = "rerun"
-    batch_period_s = 0.25  # the listener queue hands batches over merged, four a second
+    batch_period_s = MERGE_S  # the listener queue hands batches over merged, four a second
 
     def __init__(
         self,
