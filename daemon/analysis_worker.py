@@ -41,6 +41,9 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
+WORKER = "analysis worker"
+TRACKER = "resource tracker"
+
 
 @functools.cache
 def _malloc_trim() -> Callable[[int], int] | None:
@@ -91,9 +94,20 @@ def _warm_up() -> int:
     return os.getpid()
 
 
-def _released() -> None:
-    """The job queued after each one: once its arguments and result are freed, :func:`release_freed_memory`."""
-    release_freed_memory()
+def child_role(pid: int) -> str | None:
+    """What a child of the daemon is, if this module started it: ``WORKER`` (the fit) or ``TRACKER``
+    (multiprocessing's resource tracker, one per daemon); None for any other (the Rerun server) or a
+    process that is gone.  For the benchmarks and the soak, which tell the daemon's children apart."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            cmdline = fh.read()
+    except OSError:
+        return None
+    if b"spawn_main" in cmdline:
+        return WORKER
+    if b"resource_tracker" in cmdline:
+        return TRACKER
+    return None
 
 
 class AnalysisWorker(cf.Executor):
@@ -134,8 +148,8 @@ class AnalysisWorker(cf.Executor):
                 pool = self._start()
                 fut = pool.submit(fn, *args, **kwargs)
             # the fit's garbage collected and its freed heap handed back once the job's own arguments and
-            # result are gone too (release_freed_memory)
-            pool.submit(_released)
+            # result are gone too: a job of its own, after it
+            pool.submit(release_freed_memory)
             return fut
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:

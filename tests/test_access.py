@@ -18,6 +18,8 @@ from pathlib import Path
 import pytest
 from test_viewer import RERUN, Receiver, read_rrd
 
+from ballbar.daemon.analysis_worker import child_role
+
 HERE = Path(__file__).resolve().parent
 pytestmark = pytest.mark.skipif(RERUN is None, reason="the rerun CLI binary is not installed")
 
@@ -52,16 +54,7 @@ def children(pid: int) -> set[int]:
 
 def rerun_servers(pid: int) -> list[int]:
     """The daemon's Rerun server children (not its analysis worker)."""
-    out = []
-    for k in children(pid):
-        try:
-            with open(f"/proc/{k}/cmdline", "rb") as fh:
-                cmdline = fh.read()
-        except OSError:
-            continue
-        if b"spawn_main" not in cmdline and b"resource_tracker" not in cmdline:
-            out.append(k)
-    return out
+    return [k for k in children(pid) if child_role(k) is None]
 
 
 def listeners(port: int) -> list[str]:

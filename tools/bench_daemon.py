@@ -69,6 +69,8 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any
 
+from ballbar.daemon.analysis_worker import WORKER, child_role
+
 log = logging.getLogger("ballbar.bench_daemon")
 
 MACHINE = "bench"
@@ -79,7 +81,7 @@ PORTS = range(7700, 7800)
 CPU_GOAL_PCT = {15.625: 2.0, 1000.0: 5.0, 10000.0: 8.0}
 LATENCY_GOAL_P99_MS = {"circle": 50.0, "test": 250.0}
 FALLBACK_TEST_PERIOD_S = 160.0
-ANALYSIS_WORKER = "analysis worker"  # the daemon's child that fits each test: its CPU is the daemon's too
+ANALYSIS_WORKER = f"daemon child {WORKER}"  # the daemon's child that fits each test: its CPU is the daemon's too
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
@@ -663,13 +665,7 @@ class Measurement:
             name = str(kid)
             with contextlib.suppress(OSError, ValueError, IndexError):
                 name = parse_stat(_read(f"/proc/{kid}/stat"))[0]
-            role = f"daemon child {name}"
-            with contextlib.suppress(OSError):
-                cmdline = _read(f"/proc/{kid}/cmdline")
-                if "spawn_main" in cmdline:
-                    role = ANALYSIS_WORKER  # the test's fit (daemon/analysis_worker.py)
-                elif "resource_tracker" in cmdline:
-                    role = "daemon child resource tracker"
+            role = f"daemon child {child_role(kid) or name}"
             out[role if role not in out else f"{role} [{kid}]"] = kid
         if self.reader is not None and self.base_dev is not None:
             out["baseline reader"] = self.reader.proc.pid

@@ -69,6 +69,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from ballbar.daemon.analysis_worker import WORKER, child_role
 from ballbar.protocol.binary import FRAME_SIZE
 
 log = logging.getLogger(__name__)
@@ -528,9 +529,8 @@ class Soak:
             with contextlib.suppress(OSError, ValueError):
                 rss = proc_figures(kid)["rss_mb"]
                 row["child_rss_mb"] = row.get("child_rss_mb", 0.0) + rss
-                with open(f"/proc/{kid}/cmdline", "rb") as fh:
-                    if b"spawn_main" in fh.read():  # the analysis worker: the test's fit, its memory the daemon's
-                        row["worker_rss_mb"] = rss
+                if child_role(kid) == WORKER:  # the test's fit: its memory is the daemon's
+                    row["worker_rss_mb"] = rss
         st, at = self.bus.latest()
         if st is not None:
             row.update(status_figures(st))
