@@ -34,9 +34,10 @@ def worker() -> Any:
         w.shutdown(wait=False)
 
 
-def _feed_all(an: TestAnalyzer, t: np.ndarray, L: np.ndarray, n: int = 250) -> list[dict[str, Any]]:
+def _feed_all(an: TestAnalyzer, t: np.ndarray, L: np.ndarray, start: int = 0, n: int = 250) -> list[dict[str, Any]]:
+    """Feed from sample ``start`` to the end, ``n`` at a time, then finish."""
     out = []
-    for i in range(0, t.size, n):
+    for i in range(start, t.size, n):
         out += an.feed(t[i : i + n], L[i : i + n])
     return out + an.finish()
 
@@ -117,19 +118,12 @@ def test_a_worker_killed_mid_fit_costs_its_test_and_the_next_is_fitted_by_anothe
     first = worker.pid
     assert first is not None
     os.kill(first, signal.SIGKILL)
-    out += _feed_all_from(an, t, L, i)
+    out += _feed_all(an, t, L, start=i)
     rejected = [m for m in out if m.get("event") == "test_rejected"]
     assert len(rejected) == 1 and rejected[0]["test_index"] == 1
     assert "ended before its result" in rejected[0]["message"]
     assert [m["test_index"] for m in out if m["kind"] == "test"] == [2, 3]
     assert worker.started == 2 and worker.pid != first
-
-
-def _feed_all_from(an: TestAnalyzer, t: np.ndarray, L: np.ndarray, i: int, n: int = 250) -> list[dict[str, Any]]:
-    out = []
-    for j in range(i, t.size, n):
-        out += an.feed(t[j : j + n], L[j : j + n])
-    return out + an.finish()
 
 
 def test_a_stop_does_not_wait_for_a_fit_and_leaves_no_process() -> None:
