@@ -112,6 +112,7 @@ SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes ar
 LOCAL_MOVE_SAMPLES = 1.0  # ... and only by a local search where it moved by less (samples), the rest the same
 KAPPA_RESEARCH = 0.5  # the timing is searched again where the residual's correlation has fallen below this share
 ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
+OFFSET_SETTLED_UM = 1e-4  # the final fit is not refolded for a correction that would move by less (um)
 # A measured feed this far from the programmed one is not the machine's habit (controls hold the feed to well
 # under 1 % at 100 % override): something else went wrong, and the next test must not assume it.
 HINT_MAX_FEED_DEVIATION = 0.1
@@ -1779,6 +1780,7 @@ def _fit_at(
     search = _LagSearch(plan, machine, options, patterns, t, L, fi, span, base, windows, tau, widths, accel)
     hyper = _Hyper(spike_width_deg=min(max(DEFAULT_SPIKE_WIDTH_DEG, widths[0]), widths[1]))
     offset = None
+    offset_m = 0.0  # the servo mismatch (ms) the correction was made with: it depends on no other value
     lost = LostMotion()
     spacing_rad = base.feed_mm_s / plan.radius_mm / sample_hz if sample_hz > 0 else 0.0
     u_in = arc_start_deg(plan, plan.direction_list[0])
@@ -1797,7 +1799,7 @@ def _fit_at(
         pre_fit = pre.solve(options, rank=False)
         search.kappa = _kappa(_lag1(pre.residuals(pre_fit.x)))
         lost = choose(pre_fit)
-        offset = make_offset(_values(pre_fit), tau, lost, cos2, frame_cos2)
+        offset, offset_m = make_offset(_values(pre_fit), tau, lost, cos2, frame_cos2), _servo_ms(pre_fit)
         # 2. Lag and spike width with the corrections applied; then, where the fit at that timing changes a
         # lost-motion model or moves a table's reversal by a tenth of a sample (a sample at the onset decides a
         # spike's height), again from there.
@@ -1811,7 +1813,7 @@ def _fit_at(
             joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
             fit_s = joint_s.solve(options, rank=False)
             chosen = choose(fit_s)
-            offset = make_offset(_values(fit_s), tau, chosen, cos2, frame_cos2)
+            offset, offset_m = make_offset(_values(fit_s), tau, chosen, cos2, frame_cos2), _servo_ms(fit_s)
             moved = max(abs(a - b) for a, b in zip(chosen.onset_rad, lost.onset_rad, strict=True))
             same = chosen.models == lost.models and moved <= ONSET_MOVE_SAMPLES * spacing_rad
             # The residual's correlation, judged before the timing was found, may have been the misfit's
@@ -1857,11 +1859,15 @@ def _fit_at(
         chosen = choose(fit)
         if chosen.models != lost.models:  # the final fit turned a backlash's sign: the other model
             lost = chosen
-            offset = make_offset(_values(fit), tau, lost, cos2, frame_cos2)
+            offset, offset_m = make_offset(_values(fit), tau, lost, cos2, frame_cos2), _servo_ms(fit)
             joint = full(lost, offset)
             fit = joint.solve(options, exclude=exclude, rank=False)
             continue
-        offset = make_offset(_values(fit), tau, lost, cos2, frame_cos2)
+        # The correction moves by at most |dm| V (um; the servo's linear mask moves by half that) where the fit's
+        # mismatch moved by dm: below OFFSET_SETTLED_UM the fold is already at its fixed point.
+        if offset is not None and abs(_servo_ms(fit) - offset_m) * V < OFFSET_SETTLED_UM:
+            break
+        offset, offset_m = make_offset(_values(fit), tau, lost, cos2, frame_cos2), _servo_ms(fit)
         if offset is None and all(c.offset is None for c in joint.circles):
             break
         for c in joint.circles:
@@ -1932,6 +1938,11 @@ def _fit_at(
         return res
 
     return _Fitted(rms, sum(c.factor.n for c in joint.circles), _kappa(_lag1(residuals)), report, hyper)
+
+
+def _servo_ms(fit: FitResult) -> float:
+    """The fitted servo mismatch (ms; 0 where it is not fitted): all a correction takes from the fit."""
+    return _values(fit).get("servo_mismatch_ms") or 0.0
 
 
 def _embed_vec(v: np.ndarray, sub: Sequence[Pattern], full: Sequence[Pattern]) -> np.ndarray:

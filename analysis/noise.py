@@ -13,6 +13,11 @@
   Within ``+-window`` of each reversal (axis speed below ``sin(window)`` of the
   feed) the high-passed residual's RMS is compared with that elsewhere:
   ``sqrt(max(0, rms_near^2 - rms_far^2))`` per axis.
+
+Each arc's residual is taken up to the longest length whose FFT is fast (its
+factors 2, 3, 5, 7 and 11; the few samples after it, about 0.2 % at 10 kHz,
+are left out, and the arc shortened to match): a length with a large prime
+factor costs an FFT many times slower (10 kHz: 0.24 s against 0.01 s per arc).
 """
 
 from __future__ import annotations
@@ -39,6 +44,14 @@ def _highpass(r: np.ndarray, arc_deg: float, cutoff_cpr: float) -> tuple[np.ndar
     return np.fft.irfft(spec, n), np.abs(spec), int(np.searchsorted(cpr, cutoff_cpr))
 
 
+def _fast_length(u: np.ndarray, r: np.ndarray, arc_deg: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The arc's first samples up to the longest length with a fast FFT, and the arc they span."""
+    from scipy.fft import prev_fast_len  # here: only a test's fit needs it, not the daemon's start
+
+    m = prev_fast_len(r.size)
+    return u[:m], r[:m], arc_deg * m / r.size
+
+
 def _line(mag: np.ndarray, lo: int, n: int) -> tuple[int, float, bool]:
     """The strongest bin above the cut-off, its line's RMS (um) and whether it stands out of the noise."""
     p = mag[lo:] ** 2
@@ -62,6 +75,7 @@ def findings(
     for u, r, arc_deg, fs in circles:
         if r.size < 16:
             continue
+        u, r, arc_deg = _fast_length(u, r, arc_deg)
         hp, mag, lo = _highpass(r, arc_deg, cutoff_cpr)
         hp_sq += float(np.sum(hp**2))
         hp_n += hp.size
