@@ -35,12 +35,14 @@ The interface (:class:`Source`)
     ``RELAXED_BATCH_S``) until told otherwise.  The daemon relaxes it while no
     result can be due (between tests, mid-circle) and tightens it back to
     ``batch_s`` as one nears: the 20 ms batches where latency counts, a
-    wake-up every 0.1 s where it does not.  A serial port is never left to hold
-    more than ``TTY_READ_BYTES`` between reads (at the byte rate it has been
-    seen to run): past the line discipline's 4 KiB buffer the kernel throttles
-    the adapter, and a device without flow control overruns.  At 1 kHz
-    (binary, 17 kB/s) that is every 0.1 s; at 10 kHz, or 1 kHz sped up 20
-    times, every 20 ms as before.
+    wake-up as seldom as the outputs merge (every 0.25 s) where it does not:
+    each wake-up costs a read's fixed part again (about 0.7 ms of a CPU whose
+    caches went cold meanwhile), however few samples it brings.  A serial port
+    is never left to hold more than ``TTY_READ_BYTES`` between reads (at the
+    byte rate it has been seen to run): past the line discipline's 4 KiB buffer
+    the kernel throttles the adapter, and a device without flow control
+    overruns.  At 1 kHz (binary, 17 kB/s) that is every 0.18 s; at 10 kHz, or
+    1 kHz sped up 20 times, every 20 ms as before; at 15.625 Hz every 0.25 s.
 
 A serial source wakes at most once per batch period while samples flow: it
 sleeps to the next boundary of a ``batch_s`` grid on the monotonic clock and
@@ -171,7 +173,7 @@ log = logging.getLogger(__name__)
 RATE_MIN_HZ = 15.625
 RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
-RELAXED_BATCH_S = 0.1  # pace()'s longest
+RELAXED_BATCH_S = 0.25  # pace()'s longest: the outputs' merge period (listeners.MERGE_S)
 TTY_READ_BYTES = 3000  # a relaxed read of a serial port takes at most about this much (a tty buffers 4 KiB)
 WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 POLL_WINDOWS = 4096  # request/answer windows kept for the status's median and p99

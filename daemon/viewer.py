@@ -901,8 +901,13 @@ class _ServerProcess:
     In its own process, whatever clients push never touches the daemon's memory; this supervisor
     restarts the server when it exits and kills it when its resident memory passes ``rss_cap``
     (the daemon then sends the scene again).  ``generation`` counts the starts: a new one needs a
-    new sink.
+    new sink.  It looks every ``period_s`` while the server starts, or while its memory grows fast
+    enough to reach half its headroom to the cap within ``IDLE_PERIOD_S``; else every
+    ``IDLE_PERIOD_S``: four looks a second cost more than the rest of the viewer at the lowest
+    sample rates.
     """
+
+    IDLE_PERIOD_S = 1.0
 
     def __init__(self, bind: str, port: int, memory_limit: str, rss_cap: int, period_s: float = 0.25) -> None:
         exe = rerun_binary()
@@ -919,6 +924,8 @@ class _ServerProcess:
         self.rss_kills = 0
         self.max_rss = 0
         self.last_rss = 0
+        self._looked = 0.0  # when last_rss was read
+        self._growth_bps = 0.0  # its growth since the look before (bytes/s)
         self.proc: subprocess.Popen[bytes] | None = None
         self._backoff = 0.5
         self._next_start = 0.0
@@ -934,8 +941,13 @@ class _ServerProcess:
                 self._step(time.monotonic())
             except Exception:  # the supervisor must outlive any surprise
                 log.exception("rerun server: supervisor error")
-            self._stop.wait(self.period_s)
+            self._stop.wait(self.IDLE_PERIOD_S if self._calm() else self.period_s)
         self._terminate()
+
+    def _calm(self) -> bool:
+        """Listening, and at the growth of the last look not within half its headroom of the cap in IDLE_PERIOD_S."""
+        return (self.listening and self.proc is not None
+                and self._growth_bps * self.IDLE_PERIOD_S < 0.5 * (self.rss_cap - self.last_rss))
 
     def _step(self, now: float) -> None:
         proc = self.proc
@@ -951,7 +963,9 @@ class _ServerProcess:
                 self._start(now)
             return
         rss = _rss_bytes(proc.pid) or 0
-        self.last_rss = rss
+        if self.last_rss and now > self._looked:
+            self._growth_bps = max(0.0, (rss - self.last_rss) / (now - self._looked))
+        self.last_rss, self._looked = rss, now
         self.max_rss = max(self.max_rss, rss)
         if rss > self.rss_cap:
             log.warning(

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import signal
@@ -168,3 +169,31 @@ def test_the_server_goes_with_a_killed_daemon(tmp_path: Path) -> None:
         if daemon.poll() is None:
             daemon.kill()
             daemon.wait()
+
+
+def test_the_supervisor_looks_once_a_second_at_a_calm_server_and_often_at_a_growing_one() -> None:
+    """A server whose memory holds still is looked at every IDLE_PERIOD_S (its RSS, its exit); one that grows
+    fast enough to reach half its headroom to the cap within that is looked at every period_s again."""
+    from ballbar.daemon.viewer import _ServerProcess
+
+    server = _ServerProcess("127.0.0.1", free_port(), "64MiB", 512 << 20)
+    try:
+        deadline = time.monotonic() + 20
+        while not server.listening:
+            assert time.monotonic() < deadline, "the rerun server did not start"
+            time.sleep(0.05)
+        looks = []
+        while len(looks) < 4 and time.monotonic() < deadline + 10:
+            if not looks or server._looked != looks[-1]:
+                looks.append(server._looked)
+            time.sleep(0.02)
+        gaps = [b - a for a, b in itertools.pairwise(looks[1:])]  # the first look may still be the start's
+        assert gaps and all(0.9 < g < 1.3 for g in gaps), gaps
+        assert server._calm()
+        # growing by half its headroom within IDLE_PERIOD_S: not calm; by less: calm
+        server._growth_bps = 0.5 * (server.rss_cap - server.last_rss) / server.IDLE_PERIOD_S
+        assert not server._calm()
+        server._growth_bps = 0.4 * (server.rss_cap - server.last_rss) / server.IDLE_PERIOD_S
+        assert server._calm()
+    finally:
+        server.close()

@@ -222,7 +222,7 @@ def test_the_daemon_puts_batches_only_where_they_are_wanted() -> None:
 def test_the_built_outputs_take_batches_as_their_listeners_say_and_the_reader_follows(tmp_path: Any) -> None:
     """The daemon's own outputs, as `ballbar run` builds them: the viewer (made later, on its queue's thread)
     merged four times a second like the log, not woken for every batch; and the source read as often as the most
-    pressed of them wants: every 0.1 s while the analysis merges too, every 20 ms once it wants each batch."""
+    pressed of them wants: every RELAXED_BATCH_S while the analysis merges too, every 20 ms once it wants each batch."""
     from ballbar.daemon.config import load
     from ballbar.daemon.run import build_listeners
     from ballbar.daemon.service import MERGE_S, Daemon
