@@ -423,7 +423,7 @@ class SerialSource(Source):
         self._held = b""  # a port without a descriptor: the byte its wait read
         self._flowing = False  # the last read found bytes: the next one waits for the batch boundary
         self._lost: BaseException | None = None  # the port went away after bytes not decoded yet
-        self._bytes_per_s = 0.0  # the port's byte rate lately (pace() keeps a read under TTY_READ_BYTES)
+        self._bytes_per_s = 0.0  # the port's byte rate lately (drain_s keeps a read under TTY_READ_BYTES)
         self._ever_open = False
         self._retry_s = retry_min_s
         self._next_retry = 0.0
