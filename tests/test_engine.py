@@ -192,3 +192,56 @@ def test_options_restrict_the_library() -> None:
     res = _test_result(analyze_recording(t, L, plan, options=opts))
     assert abs(res["parameters"]["backlash_x_um"]["value"] - 2.0) < 1e-3
     assert res["parameters"]["squareness_urad"]["value"] is None
+
+
+def test_a_line_is_placed_right_on_an_arc_whose_length_has_a_large_prime_factor() -> None:
+    """The noise findings take each arc up to a fast FFT length and shorten the arc with it: a line stays at its
+    cycles per revolution and its Hz (without the shortened arc it would read 0.2 % low: 1.8 of 1000 cpr)."""
+    from ballbar.analysis import noise
+
+    n, fs, arc = 376_991, 10_000.0, 360.0  # a 10 kHz circle: 376 991 = 11 x 34 271, no fast FFT
+    rng = np.random.default_rng(3)
+    k = np.arange(n)
+    u = np.radians(arc) * k / n
+    r = 0.5 * np.sin(2.0 * np.pi * 1000.0 * k / n) + rng.normal(0.0, 0.1, n)  # 1000 cycles/rev
+    found = noise.findings([(u, r, arc, fs)], 30.0)
+    assert abs(found["vibration_peak_cpr"] - 1000.0) < 0.5, found["vibration_peak_cpr"]
+    assert abs(found["vibration_peak_hz"] - 1000.0 * fs / n) < 0.5 * fs / n, found["vibration_peak_hz"]
+    assert found["vibration_significant"] and abs(found["vibration_peak_um"] - 0.5 / math.sqrt(2)) < 0.02
+
+
+def test_the_final_fit_stops_refolding_once_the_correction_has_settled(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The physical servo correction takes only the fitted mismatch from the fit: once that moves by less than
+    OFFSET_SETTLED_UM / V, refolding every sample with it changes nothing. The result is the one the fit
+    refolded to the end gives, with fewer folds."""
+    from ballbar.tools.simulator import MachineModel, simulate
+
+    plan = TestPlan(sample_hz=250.0)
+    sim = simulate(plan, MachineModel(kv_y_per_s=36.0, backlash_x_um=3.0, noise_um=0.1), 250.0)
+    folds = []
+    real_refit = engine.CircleFit.refit
+
+    def counted(self: engine.CircleFit, offset: object) -> None:
+        folds.append(1)
+        real_refit(self, offset)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(engine.CircleFit, "refit", counted)
+
+    def run() -> tuple[dict, int]:
+        folds.clear()
+        res = [r for r in analyze_recording(sim.t_s, sim.length_mm, plan) if r.get("kind") == "test"][-1]
+        return res, len(folds)
+
+    settled, n_settled = run()
+    monkeypatch.setattr(engine, "OFFSET_SETTLED_UM", 0.0)  # refold while anything moves, up to the limit
+    full, n_full = run()
+    assert abs(settled["parameters"]["servo_mismatch_ms"]["value"]) > 0.1  # a correction to settle
+    assert n_settled < n_full, (n_settled, n_full)
+    for name, p in full["parameters"].items():
+        q = settled["parameters"][name]
+        if p["value"] is None:
+            assert q["value"] is None
+            continue
+        # (skipping the first refold too, the fine set's mismatch kept, moves them by 6e-4 of it here)
+        assert abs(q["value"] - p["value"]) <= 1e-5 * p["stderr"], (name, q["value"], p["value"])
+        assert q["significant"] == p["significant"]
