@@ -56,8 +56,10 @@ from that result's ``timing``.
 
 Bounded, and cheap.  A batch is only queued; the samples are processed
 together, and the length series sent, at most every ``send_interval_s``
-(0.25 s; ``polar_update_s`` while a test is drawn live) on the samples' host
-clock, and at each result or event.  The length series is decimated to
+(0.25 s; ``polar_update_s`` while a test is drawn live, and where a send would
+carry fewer than ``MIN_SEND_POINTS`` samples: at 15.625 Hz a send of four points
+costs what one of 250 does) on the samples' host clock, and at each result or
+event.  The length series is decimated to
 ``length_hz`` (100 points per second of the host clock, whatever the sample
 rate); a live circle gains a piece at a time (never the whole circle again);
 the current test's samples are kept at ``buffer_hz``, at most
@@ -1044,6 +1046,7 @@ ROW_BYTES = 24
 REFRESH_FRACTION = 0.5  # serve mode: the history is re-sent after this fraction of the server's limit
 HISTORY_SHARE_WARN = 0.25  # warn when the history needs more than this share of the server's limit
 MAX_PENDING_SAMPLES = 200_000  # samples waiting to be processed: at most this many
+MIN_SEND_POINTS = 8  # fewer new samples than this in a send_interval_s: sent every polar_update_s instead
 HISTORY_SLICE_BYTES = 512 * 1024  # a periodic sending of the history: at most this much per flush
 
 
@@ -1666,7 +1669,7 @@ class RerunViewer(Listener):
 
     def _flush(self, now: float) -> None:
         """Process the queued samples; send the length series and the live polar curve when due."""
-        self._next_flush = self._latest_host + self.options.send_interval_s
+        self._next_flush = self._latest_host + self._send_period()
         self._maintain(now)
         self._process_pending()
         if not self._sink_live:
@@ -1678,6 +1681,14 @@ class RerunViewer(Listener):
             self._next_polar = self._latest_host + self.options.polar_update_s
             self._redraw_live()
         self._refresh_if_due()
+
+    def _send_period(self) -> float:
+        """``send_interval_s``, or ``polar_update_s`` (if longer) where the samples come too slowly to bring
+        ``MIN_SEND_POINTS`` in ``send_interval_s``: a send's cost is mostly its own, not its points'."""
+        period = self.options.send_interval_s
+        if self._host_hz * period < MIN_SEND_POINTS:  # False while the rate is not known (NaN)
+            return max(period, self.options.polar_update_s)
+        return period
 
     def _send_pending_length(self, rec: rr.RecordingStream | None = None) -> None:
         if self._len_pending:

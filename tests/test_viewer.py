@@ -866,6 +866,36 @@ def test_length_series_is_decimated_and_coalesced(rate: float, receivers: list[R
     assert seconds / v.options.send_interval_s - 2 <= sends <= seconds / v.options.send_interval_s + 2
 
 
+def test_a_slow_length_series_is_sent_at_the_polar_cadence(receivers: list[Receiver], tmp_path: Path) -> None:
+    """At 15.625 Hz a send every send_interval_s would carry four points, each costing as much as a full one:
+    the series goes every polar_update_s instead, every sample in it."""
+    from ballbar.daemon.viewer import MIN_SEND_POINTS
+
+    port = free_port()
+    rx = Receiver(tmp_path, "slow", port)
+    receivers.append(rx)
+    v = connected_viewer(f"rerun+http://127.0.0.1:{port}/proxy")
+    rate, seconds = 15.625, 20.0
+    seq = np.arange(int(seconds * rate))
+    t = time.monotonic() + seq / rate
+    L = 100.0 + 0.001 * np.sin(seq / 7.0)
+    try:
+        assert rate * v.options.send_interval_s < MIN_SEND_POINTS
+        for i in range(0, seq.size, 2):  # the reader's batches: two samples each
+            j = min(i + 2, seq.size)
+            v.on_batch(SampleBatch.from_columns(t[i:j], t[i:j], L[i:j], seq[i:j], np.zeros(j - i)))
+        sends = v.stats()["length_sends"]
+    finally:
+        v.stop()
+    rx.finish()
+    rows = [r for r in read_rows(rx.rrd) if r.entity == "/length" and r.values.get("Scalars:scalars") is not None]
+    values = np.concatenate([np.atleast_1d(r.values["Scalars:scalars"]) for r in rows])
+    _, first = np.unique(np.array([r.time for r in rows], dtype=float), return_index=True)
+    assert np.allclose(values[first], L[: first.size]) and first.size >= seq.size - 2 * MIN_SEND_POINTS
+    per_s = seconds / v.options.polar_update_s
+    assert per_s - 2 <= sends <= per_s + 2, sends
+
+
 def test_own_buffers_stay_bounded(script: Script, monkeypatch: pytest.MonkeyPatch) -> None:
     """After many tests the viewer holds no more than it is configured to."""
     import ballbar.daemon.viewer as viewer_mod
