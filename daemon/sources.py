@@ -46,9 +46,10 @@ The interface (:class:`Source`)
     the port is read that often, but what is read is only gathered, and
     decoded and stamped once per batch.
 
-A serial source wakes at most once per batch period while samples flow: it
-sleeps to the next boundary of a ``batch_s`` grid on the monotonic clock and
-takes everything the port has in one go; when nothing came (idle, or a device
+A serial source makes at most one batch per batch period (``read_s``) while
+samples flow: it sleeps to the next boundary of a ``read_s`` grid on the
+monotonic clock, waking every ``drain_s`` on the way to gather what the port
+has, and decodes it all at the boundary; when nothing came (idle, or a device
 slower than one sample per batch period) it waits for the first bytes with
 ``poll()`` and takes them at once.  The port's settings (its timeout among
 them) are applied once, at open: pyserial re-applies termios and the lock on
@@ -167,6 +168,7 @@ from ballbar.protocol._common import add_counts
 from ballbar.protocol.gauges import PROFILES
 
 from .errors import SourceClosed, SourceConfigError, SourceError
+from .listeners import MERGE_S
 from .samples import EventKind, SampleBatch, SourceEvent, SourceStats
 from .timebase import Stamper
 
@@ -175,7 +177,7 @@ log = logging.getLogger(__name__)
 RATE_MIN_HZ = 15.625
 RATE_MAX_HZ = 10_000.0
 DEFAULT_BATCH_S = 0.02
-RELAXED_BATCH_S = 0.25  # pace()'s longest: the outputs' merge period (listeners.MERGE_S)
+RELAXED_BATCH_S = MERGE_S  # pace()'s longest: the outputs' merge period
 TTY_READ_BYTES = 3000  # a relaxed read of a serial port takes at most about this much (a tty buffers 4 KiB)
 WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 POLL_WINDOWS = 4096  # request/answer windows kept for the status's median and p99
@@ -716,11 +718,12 @@ class SerialSource(Source):
             self._event(EventKind.STALL, gap_s=now - self._last_rx)
 
     def _stream_step(self, deadline: float | None) -> SampleBatch | None:
-        """One read: at most one wake-up per batch period while samples flow.
+        """One batch: at most one per batch period (``read_s``) while samples flow.
 
         While bytes flow (the last read found some, and more than one sample comes per batch period),
-        sleep to the next boundary of a ``batch_s`` grid on the monotonic clock and take all that came
-        meanwhile.  Otherwise (idle, or a slow device) wait for the first bytes and take them at once.
+        gather what comes until the next boundary of a ``read_s`` grid on the monotonic clock
+        (:meth:`_drain_until`) and decode it then.  Otherwise (idle, or a slow device) wait for the first
+        bytes and take them at once.
         """
         data: bytes | None = b""
         b = self.read_s
@@ -763,8 +766,7 @@ class SerialSource(Source):
         parts: list[bytes] = []
         d = self.drain_s
         while True:
-            now = time.monotonic()
-            self._nap(until if d >= self.read_s else min(until, (math.floor(now / d) + 1.0) * d))
+            self._nap(min(until, (math.floor(time.monotonic() / d) + 1.0) * d))
             if self._closed:
                 break
             data = self._read_now(defer_loss=bool(parts))
