@@ -1780,7 +1780,7 @@ def _fit_at(
     search = _LagSearch(plan, machine, options, patterns, t, L, fi, span, base, windows, tau, widths, accel)
     hyper = _Hyper(spike_width_deg=min(max(DEFAULT_SPIKE_WIDTH_DEG, widths[0]), widths[1]))
     offset = None
-    offset_m = 0.0  # the servo mismatch (ms) the correction was made with: it depends on no other value
+    offset_m = 0.0  # the servo mismatch (ms) the correction was made with (correction())
     lost = LostMotion()
     spacing_rad = base.feed_mm_s / plan.radius_mm / sample_hz if sample_hz > 0 else 0.0
     u_in = arc_start_deg(plan, plan.direction_list[0])
@@ -1794,12 +1794,18 @@ def _fit_at(
         axes = axis_reversals(m, omega, u_in) if tau is not None else (0.0, 0.0)
         return LostMotion.choose(values, options.lost_motion, plan.radius_mm, loops, axes)
 
+    def correction(fit: FitResult, lost: LostMotion) -> tuple[Offset | None, float]:
+        """The physical correction at the fit's values, and the servo mismatch (ms) it was made with: the one
+        value it takes from them."""
+        values = _values(fit)
+        return make_offset(values, tau, lost, cos2, frame_cos2), values.get("servo_mismatch_ms") or 0.0
+
     if search.coarse.idx.size > 50:
         pre = search.joint(search.coarse, hyper, None, lost, keep=True)
         pre_fit = pre.solve(options, rank=False)
         search.kappa = _kappa(_lag1(pre.residuals(pre_fit.x)))
         lost = choose(pre_fit)
-        offset, offset_m = make_offset(_values(pre_fit), tau, lost, cos2, frame_cos2), _servo_ms(pre_fit)
+        offset, offset_m = correction(pre_fit, lost)
         # 2. Lag and spike width with the corrections applied; then, where the fit at that timing changes a
         # lost-motion model or moves a table's reversal by a tenth of a sample (a sample at the onset decides a
         # spike's height), again from there.
@@ -1813,7 +1819,7 @@ def _fit_at(
             joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
             fit_s = joint_s.solve(options, rank=False)
             chosen = choose(fit_s)
-            offset, offset_m = make_offset(_values(fit_s), tau, chosen, cos2, frame_cos2), _servo_ms(fit_s)
+            offset, offset_m = correction(fit_s, chosen)
             moved = max(abs(a - b) for a, b in zip(chosen.onset_rad, lost.onset_rad, strict=True))
             same = chosen.models == lost.models and moved <= ONSET_MOVE_SAMPLES * spacing_rad
             # The residual's correlation, judged before the timing was found, may have been the misfit's
@@ -1859,15 +1865,16 @@ def _fit_at(
         chosen = choose(fit)
         if chosen.models != lost.models:  # the final fit turned a backlash's sign: the other model
             lost = chosen
-            offset, offset_m = make_offset(_values(fit), tau, lost, cos2, frame_cos2), _servo_ms(fit)
+            offset, offset_m = correction(fit, lost)
             joint = full(lost, offset)
             fit = joint.solve(options, exclude=exclude, rank=False)
             continue
         # The correction moves by at most |dm| V (um; the servo's linear mask moves by half that) where the fit's
         # mismatch moved by dm: below OFFSET_SETTLED_UM the fold is already at its fixed point.
-        if offset is not None and abs(_servo_ms(fit) - offset_m) * V < OFFSET_SETTLED_UM:
+        now, now_m = correction(fit, lost)
+        if offset is not None and abs(now_m - offset_m) * V < OFFSET_SETTLED_UM:
             break
-        offset, offset_m = make_offset(_values(fit), tau, lost, cos2, frame_cos2), _servo_ms(fit)
+        offset, offset_m = now, now_m
         if offset is None and all(c.offset is None for c in joint.circles):
             break
         for c in joint.circles:
@@ -1938,11 +1945,6 @@ def _fit_at(
         return res
 
     return _Fitted(rms, sum(c.factor.n for c in joint.circles), _kappa(_lag1(residuals)), report, hyper)
-
-
-def _servo_ms(fit: FitResult) -> float:
-    """The fitted servo mismatch (ms; 0 where it is not fitted): all a correction takes from the fit."""
-    return _values(fit).get("servo_mismatch_ms") or 0.0
 
 
 def _embed_vec(v: np.ndarray, sub: Sequence[Pattern], full: Sequence[Pattern]) -> np.ndarray:
