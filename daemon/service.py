@@ -350,10 +350,12 @@ class Daemon:
         self.speedup = float(speedup)
         self.source = source
         self.notifier = notifier or Notifier()
-        outputs = [*listeners, (LogListener(), 100, "drop_oldest")]
         # Outputs that add to a test result before it fans out (the monitor's verdict), and may send messages
-        # of their own through broadcast (its alerts).
+        # of their own through broadcast (its alerts).  They are handed each message last: an alert their
+        # thread sends about a test then reaches every other queue after that test, never before it.
         self.annotators = [lst for lst, _c, _p in listeners if callable(getattr(lst, "annotate", None))]
+        outputs = [*(o for o in listeners if o[0] not in self.annotators), (LogListener(), 100, "drop_oldest"),
+                   *(o for o in listeners if o[0] in self.annotators)]
         for lst in self.annotators:
             lst.bind(self.broadcast)  # type: ignore[attr-defined]
         self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]

@@ -7,6 +7,7 @@ engine on every test (``ballbar.tools.alert_survey``), with one test a day.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -19,6 +20,7 @@ from ballbar.analysis import monitor as mon
 from ballbar.analysis.engine import analyze_recording
 from ballbar.daemon import schemas
 from ballbar.daemon.config import ConfigError, load, monitor_settings
+from ballbar.daemon.listeners import Listener
 from ballbar.daemon.monitor import Monitor, MonitorStore
 from ballbar.tools import alert_survey
 from ballbar.tools.simulator import MachineModel, simulate
@@ -256,6 +258,54 @@ def test_the_store_keeps_trend_and_alert_states_across_a_restart(tmp_path: Path)
     assert [a["alert_id"] for a in MonitorStore(tmp_path, "m").alerts()] == ["m-alert-1"]
     for a in sent:
         validate(a)
+
+
+class _Recorder(Listener):
+    name = "recorder"
+    batch_period_s = None
+    idle_s = None
+
+    def __init__(self) -> None:
+        self.messages: list[dict[str, Any]] = []
+
+    def on_message(self, msg: dict[str, Any]) -> None:
+        self.messages.append(msg)
+
+    def stop(self) -> None:
+        pass
+
+
+def test_an_alert_reaches_every_other_output_after_the_test_it_is_about(tmp_path: Path) -> None:
+    """The monitor is built before the bus (its store seeds history/alert), so it comes first in the outputs; but
+    an alert its thread sends at once must not overtake, on the bus, the test result it refers to.  The other
+    queue is slowed here where it takes a test, as a broadcaster descheduled between two queues would be."""
+    from ballbar.daemon.config import load
+    from ballbar.daemon.monitor import MonitorListener
+    from ballbar.daemon.service import Daemon
+    from ballbar.daemon.sources import open_source
+
+    cfg = load(None, ["mcap.enabled=false", "zenoh.enabled=false", 'rerun.mode="off"', "limits.enabled=true",
+                      "limits.parameters={backlash_x_um=5.0}", f'daemon.state_dir="{tmp_path}"'], env={})
+    monitor, rec = MonitorListener.from_config(cfg), _Recorder()
+    d = Daemon(cfg, open_source("sim:?speedup=1&rate=100"), [(monitor, 10, "drop_newest"), (rec, 10, "drop_newest")])
+    q = next(q for q in d.outputs if q.listener is rec)
+    put = q.put_message
+
+    def slow_put(msg: dict[str, Any]) -> None:
+        if msg.get("kind") == "test":
+            time.sleep(0.3)
+        put(msg)
+
+    q.put_message = slow_put  # type: ignore[method-assign]
+    try:
+        d.broadcast(fake_result(9.0, 0.05))  # beyond the limit: a fail alert
+        deadline = time.monotonic() + 5.0
+        while len(rec.messages) < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        d.shutdown(1.0)
+    assert [(m["kind"], m.get("alert")) for m in rec.messages] == [("test", None), ("alert", "verdict")]
+    assert rec.messages[0]["verdict"]["status"] == "fail" and rec.messages[1]["state"] == "fail"
 
 
 # ----------------------------------------------------------------------------- simulated machines
