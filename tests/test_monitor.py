@@ -296,7 +296,7 @@ def test_an_alert_reaches_every_other_output_after_the_test_it_is_about(tmp_path
             time.sleep(0.3)
         put(msg)
 
-    q.put_message = slow_put  # type: ignore[method-assign]
+    q.put_message = slow_put
     try:
         d.broadcast(fake_result(9.0, 0.05))  # beyond the limit: a fail alert
         deadline = time.monotonic() + 5.0
