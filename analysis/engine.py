@@ -684,16 +684,6 @@ def _has_spikes(patterns: Sequence[Pattern]) -> bool:
     return any(p.reversal is not None for p in patterns)
 
 
-class _Split(NamedTuple):
-    """A direction's columns (among its own) of the patterns other than the spikes, and of the spikes; and those
-    patterns (:meth:`_LagSearch._gram_at_width`)."""
-
-    fixed: np.ndarray
-    spiky: np.ndarray
-    fixed_patterns: list[Pattern]
-    spike_patterns: list[Pattern]
-
-
 class _Joint:
     """Both circles of one test at one timing, spike width and correction."""
 
@@ -967,14 +957,18 @@ class _LagSearch:
         self._memo: dict[tuple[object, ...], tuple[float, float, np.ndarray]] = {}  # sse() by timing and width
         self._memo_for: tuple[object, ...] = ()  # ... on this sample set, correction and lost-motion model
         self.by_direction = {}  # per direction: its patterns and their columns among all
-        self.split: dict[int, _Split] = {}  # per direction: its spikes apart from its other patterns
+        # per direction: the columns (among its own) of the patterns other than the spikes, and of the spikes;
+        # and those patterns
+        self.split: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.split_patterns: dict[int, tuple[list[Pattern], list[Pattern]]] = {}
         self._fixed: dict[tuple[object, ...], tuple[Geometry, np.ndarray, np.ndarray] | None] = {}  # _gram_at_width
         for d in plan.direction_list:
             mine = _for_direction(patterns, d)
             self.by_direction[d] = (mine, np.array([start[p.name] + k for p in mine for k in range(p.q)], dtype=int))
             is_spike = np.array([p.reversal is not None for p in mine for _ in range(p.q)], dtype=bool)
-            self.split[d] = _Split(np.flatnonzero(~is_spike), np.flatnonzero(is_spike),
-                                   [p for p in mine if p.reversal is None], [p for p in mine if p.reversal is not None])
+            self.split[d] = (np.flatnonzero(~is_spike), np.flatnonzero(is_spike))
+            self.split_patterns[d] = ([p for p in mine if p.reversal is None],
+                                      [p for p in mine if p.reversal is not None])
         self.coarse = self.samples(base, windows, COARSE_NEAR_DEG, COARSE_SPACING_DEG)
         self.fine = self.coarse
 
@@ -1097,7 +1091,9 @@ class _LagSearch:
                 continue
             q = cols.size
             gram = self._gram_at_width(d, parts[d], points[0], timings[0], w, offset, lost) if k == 1 else None
-            if gram is None:
+            if gram is not None:
+                gram = gram[None]
+            else:
                 g = self._geometry(d, parts[d], timings, lost)
                 MT = np.empty((q + 1, len(g)))  # [A | y] transposed: each column contiguous, stacked by timing
                 design(patterns, g, w, out=MT[:q].T)
@@ -1152,13 +1148,13 @@ class _LagSearch:
         offset: Offset | None,
         lost: LostMotion,
     ) -> np.ndarray | None:
-        """The Gram matrix of ``[A | y]`` of direction ``d`` at one timing (a stack of one), where only the
-        spikes' width changed since the last call (the width's scalar search, its error): the other columns,
-        their products and the geometry are kept for the last timing (within the memo's sample set, correction
-        and lost-motion model), and only the spike columns are made again.  None: a timing not asked for before
-        (the caller makes the whole matrix; most single timings are not asked for again)."""
+        """The Gram matrix of ``[A | y]`` of direction ``d`` at one timing, where only the spikes' width changed
+        since the last call (the width's scalar search, its error): the other columns, their products and the
+        geometry are kept for the last timing (within the memo's sample set, correction and lost-motion
+        model), and only the spike columns are made again.  None: a timing not asked for before (the caller
+        makes the whole matrix; most single timings are not asked for again)."""
         cols = self.by_direction[d][1]
-        fixed, spiky, fixed_patterns, spike_patterns = self.split[d]
+        fixed, spiky = self.split[d]
         if not spiky.size:
             return None
         key = (d, point[0], self.aperture_rad, *sorted((point[1] or {}).items()))
@@ -1170,12 +1166,12 @@ class _LagSearch:
         if kept is None:
             g = self._geometry(d, part, [timing], lost)
             N = np.empty((fixed.size + 1, len(g)))  # the other columns and the deviation, transposed
-            design(fixed_patterns, g, w, out=N[:-1].T)
+            design(self.split_patterns[d][0], g, w, out=N[:-1].T)
             self._deviation(part, g, offset, N[-1])
             kept = self._fixed[key] = (g, N, N @ N.T)
         g, N, NN = kept
         S = np.empty((spiky.size, len(g)))
-        design(spike_patterns, g, w, out=S.T)
+        design(self.split_patterns[d][1], g, w, out=S.T)
         q = cols.size
         rows = np.append(fixed, q)
         gram = np.empty((q + 1, q + 1))
@@ -1184,7 +1180,7 @@ class _LagSearch:
         gram[spiky[:, None], rows] = SN
         gram[rows[:, None], spiky] = SN.T
         gram[spiky[:, None], spiky] = S @ S.T
-        return gram[None]
+        return gram
 
     def width_error(self, hyper: _Hyper, offset: Offset | None, lost: LostMotion) -> tuple[float, dict[str, float]]:
         """The spike width's standard error in ``ln w`` and each spike height's change per unit ``ln w``.
