@@ -957,18 +957,9 @@ class _LagSearch:
         self._memo: dict[tuple[object, ...], tuple[float, float, np.ndarray]] = {}  # sse() by timing and width
         self._memo_for: tuple[object, ...] = ()  # ... on this sample set, correction and lost-motion model
         self.by_direction = {}  # per direction: its patterns and their columns among all
-        # per direction: the columns (among its own) of the patterns other than the spikes, and of the spikes;
-        # and those patterns
-        self.split: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self.split_patterns: dict[int, tuple[list[Pattern], list[Pattern]]] = {}
-        self._fixed: dict[tuple[object, ...], tuple[Geometry, np.ndarray, np.ndarray] | None] = {}  # _gram_at_width
         for d in plan.direction_list:
             mine = _for_direction(patterns, d)
             self.by_direction[d] = (mine, np.array([start[p.name] + k for p in mine for k in range(p.q)], dtype=int))
-            is_spike = np.array([p.reversal is not None for p in mine for _ in range(p.q)], dtype=bool)
-            self.split[d] = (np.flatnonzero(~is_spike), np.flatnonzero(is_spike))
-            self.split_patterns[d] = ([p for p in mine if p.reversal is None],
-                                      [p for p in mine if p.reversal is not None])
         self.coarse = self.samples(base, windows, COARSE_NEAR_DEG, COARSE_SPACING_DEG)
         self.fine = self.coarse
 
@@ -1037,7 +1028,7 @@ class _LagSearch:
         """
         context = (at, offset, lost)
         if len(self._memo_for) != 3 or any(a is not b for a, b in zip(context, self._memo_for, strict=True)):
-            self._memo, self._memo_for, self._fixed = {}, context, {}
+            self._memo, self._memo_for = {}, context
         keys = [(c, w_deg, self.aperture_rad, *sorted((shift or {}).items())) for c, shift in points]
         todo: dict[tuple[object, ...], tuple[float, dict[int, float] | None]] = {}
         for key, point in zip(keys, points, strict=True):
@@ -1082,24 +1073,36 @@ class _LagSearch:
         ``[A | y]`` per timing."""
         k = len(points)
         timings = [self.timing(c, shift) for c, shift in points]
+        feeds = np.array([tm.feed_mm_s for tm in timings]) if k > 1 else None
         G = np.zeros((k, self.p, self.p))
         b = np.zeros((k, self.p))
         yy = np.zeros(k)
         w = math.radians(w_deg)
+        extra = lost.geometry(self.tau)
         for d, (patterns, cols) in self.by_direction.items():
-            if parts[d][0].size == 0:
+            t_rel, y0, t_min = parts[d]
+            n = t_rel.size
+            if n == 0:
                 continue
+            # Schedule.angle_deg of each timing, as one expression over the stack
+            start = np.array([[tm.sched.data_start_s[d]] for tm in timings])
+            feed = np.array([[tm.feed_mm_s] for tm in timings])
+            u_deg = data_start_deg(self.plan, d) + d * np.degrees(feed * (t_rel - start) / self.plan.radius_mm)
+            u = np.radians(u_deg).reshape(-1)
+            g = Geometry(
+                u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
+                R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
+                travel=d * (u - math.radians(arc_start_deg(self.plan, d))), loop_lag_s=self.tau,
+                aperture_rad=self.aperture_rad, feeds=feeds, **extra,
+            )
             q = cols.size
-            gram = self._gram_at_width(d, parts[d], points[0], timings[0], w, offset, lost) if k == 1 else None
-            if gram is not None:
-                gram = gram[None]
-            else:
-                g = self._geometry(d, parts[d], timings, lost)
-                MT = np.empty((q + 1, len(g)))  # [A | y] transposed: each column contiguous, stacked by timing
-                design(patterns, g, w, out=MT[:q].T)
-                self._deviation(parts[d], g, offset, MT[q])
-                X = MT.reshape(q + 1, k, -1).transpose(1, 0, 2)
-                gram = np.matmul(X, X.transpose(0, 2, 1))
+            MT = np.empty((q + 1, u.size))  # [A | y] transposed: each column contiguous, stacked by timing
+            design(patterns, g, w, out=MT[:q].T)
+            MT[q].reshape(k, n)[:] = y0
+            if offset is not None:
+                MT[q] -= offset(g)
+            X = MT.reshape(q + 1, k, n).transpose(1, 0, 2)
+            gram = np.matmul(X, X.transpose(0, 2, 1))
             G[:, cols[:, None], cols] += gram[:, :q, :q]
             b[:, cols] += gram[:, :q, q]
             yy += gram[:, q, q]
@@ -1111,76 +1114,6 @@ class _LagSearch:
             Gu, bu = G[:, use][:, :, use], b[:, use]
             bare = _sse_at(_normal_solve_many(Gu, bu), Gu, bu, yy)
         return [(float(full[i]), float(bare[i]), x[i]) for i in range(k)]
-
-    def _geometry(
-        self, d: int, part: tuple[np.ndarray, np.ndarray, np.ndarray], timings: Sequence[Timing], lost: LostMotion
-    ) -> Geometry:
-        """Direction ``d``'s samples of ``part`` at each of ``timings``, stacked (:attr:`.Geometry.feeds`)."""
-        t_rel, _, t_min = part
-        k = len(timings)
-        # Schedule.angle_deg of each timing, as one expression over the stack
-        start = np.array([[tm.sched.data_start_s[d]] for tm in timings])
-        feed = np.array([[tm.feed_mm_s] for tm in timings])
-        u_deg = data_start_deg(self.plan, d) + d * np.degrees(feed * (t_rel - start) / self.plan.radius_mm)
-        u = np.radians(u_deg).reshape(-1)
-        return Geometry(
-            u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
-            R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
-            travel=d * (u - math.radians(arc_start_deg(self.plan, d))), loop_lag_s=self.tau,
-            aperture_rad=self.aperture_rad, feeds=feed[:, 0] if k > 1 else None, **lost.geometry(self.tau),
-        )
-
-    @staticmethod
-    def _deviation(part: tuple[np.ndarray, np.ndarray, np.ndarray], g: Geometry, offset: Offset | None,
-                   out: np.ndarray) -> None:
-        """The corrected deviation (um) at ``g``'s stacked timings, into ``out``."""
-        out.reshape(-1, part[1].size)[:] = part[1]
-        if offset is not None:
-            out -= offset(g)
-
-    def _gram_at_width(
-        self,
-        d: int,
-        part: tuple[np.ndarray, np.ndarray, np.ndarray],
-        point: tuple[float, dict[int, float] | None],
-        timing: Timing,
-        w: float,
-        offset: Offset | None,
-        lost: LostMotion,
-    ) -> np.ndarray | None:
-        """The Gram matrix of ``[A | y]`` of direction ``d`` at one timing, where only the spikes' width changed
-        since the last call (the width's scalar search, its error): the other columns, their products and the
-        geometry are kept for the last timing (within the memo's sample set, correction and lost-motion
-        model), and only the spike columns are made again.  None: a timing not asked for before (the caller
-        makes the whole matrix; most single timings are not asked for again)."""
-        cols = self.by_direction[d][1]
-        fixed, spiky = self.split[d]
-        if not spiky.size:
-            return None
-        key = (d, point[0], self.aperture_rad, *sorted((point[1] or {}).items()))
-        if key not in self._fixed:
-            self._fixed = {k: v for k, v in self._fixed.items() if k[0] != d}  # the last timing, per direction
-            self._fixed[key] = None
-            return None
-        kept = self._fixed[key]
-        if kept is None:
-            g = self._geometry(d, part, [timing], lost)
-            N = np.empty((fixed.size + 1, len(g)))  # the other columns and the deviation, transposed
-            design(self.split_patterns[d][0], g, w, out=N[:-1].T)
-            self._deviation(part, g, offset, N[-1])
-            kept = self._fixed[key] = (g, N, N @ N.T)
-        g, N, NN = kept
-        S = np.empty((spiky.size, len(g)))
-        design(self.split_patterns[d][1], g, w, out=S.T)
-        q = cols.size
-        rows = np.append(fixed, q)
-        gram = np.empty((q + 1, q + 1))
-        gram[rows[:, None], rows] = NN
-        SN = S @ N.T
-        gram[spiky[:, None], rows] = SN
-        gram[rows[:, None], spiky] = SN.T
-        gram[spiky[:, None], spiky] = S @ S.T
-        return gram
 
     def width_error(self, hyper: _Hyper, offset: Offset | None, lost: LostMotion) -> tuple[float, dict[str, float]]:
         """The spike width's standard error in ``ln w`` and each spike height's change per unit ``ln w``.

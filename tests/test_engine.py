@@ -210,41 +210,6 @@ def test_a_line_is_placed_right_on_an_arc_whose_length_has_a_large_prime_factor(
     assert found["vibration_significant"] and abs(found["vibration_peak_um"] - 0.5 / math.sqrt(2)) < 0.02
 
 
-def test_the_width_search_keeps_the_other_columns_and_gives_the_same_result(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The spike width's scalar search asks for one timing at many widths: only the spike columns are made
-    again (``_gram_at_width``).  The result is the one the whole matrix at every call gives."""
-    from ballbar.tools.simulator import MachineModel, simulate
-
-    plan = TestPlan(sample_hz=250.0)
-    machine = MachineModel(spike_x_um=3.0, spike_y_um=2.0, backlash_y_um=2.0, kv_y_per_s=33.0, noise_um=0.2)
-    sim = simulate(plan, machine, 250.0)
-    kept = []
-    real = engine._LagSearch._gram_at_width
-
-    def counted(self: engine._LagSearch, *args: object) -> object:
-        gram = real(self, *args)  # type: ignore[arg-type]
-        kept.append(gram is not None)
-        return gram
-
-    monkeypatch.setattr(engine._LagSearch, "_gram_at_width", counted)
-
-    def run() -> dict:
-        return [r for r in analyze_recording(sim.t_s, sim.length_mm, plan) if r.get("kind") == "test"][-1]
-
-    fast = run()
-    assert sum(kept) > 20, (sum(kept), len(kept))  # the width searches' calls took the kept columns
-    monkeypatch.setattr(engine._LagSearch, "_gram_at_width", lambda *_args: None)
-    whole = run()
-    assert fast["timing"]["spike_width_deg"] == pytest.approx(whole["timing"]["spike_width_deg"], rel=1e-9)
-    for name, p in whole["parameters"].items():
-        q = fast["parameters"][name]
-        if p["value"] is None:
-            assert q["value"] is None
-            continue
-        assert abs(q["value"] - p["value"]) <= 1e-6 * p["stderr"], (name, q["value"], p["value"])
-        assert q["significant"] == p["significant"]
-
-
 def test_the_final_fit_stops_refolding_once_the_correction_has_settled(monkeypatch: pytest.MonkeyPatch) -> None:
     """The physical servo correction takes only the fitted mismatch from the fit: once that moves by less than
     OFFSET_SETTLED_UM / V, refolding every sample with it changes nothing. The result is the one the fit
