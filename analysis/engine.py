@@ -79,17 +79,27 @@ COARSE_NEAR_DEG, COARSE_SPACING_DEG = (1.0, 4.5), 0.03
 FINE_NEAR_DEG, FINE_SPACING_DEG = (0.7, 2.5), 0.004
 FINE_TRIM_S = 0.03  # the fine set's data arcs, trimmed for lags within this of the coarse one
 LAG_SEARCH_BELOW_S = 0.1  # a negative per-move overhead is unphysical: search only this far below 0
-LAG_GRID_S = (0.015, 0.0015, 0.0005)  # the lag's grids: whole range, around the best, the stair (at most)
-STAIR_REACH_S = 0.001  # the stair grid's reach either side (at least)
+LAG_GRID_S = (0.015, 0.0015)  # the lag's grids: over its whole range, and around the best
+STAIR_REACH_S = 0.001  # a stair's reach either side (at most, unless half a sample period is more)
 STAIR_BISECT = 4  # bisections of each stair edge between the stair grid's points
 STAIR_NATS = 0.01  # likelihood levels this close are one stair of the lag's staircase
 LAG_CI_NATS = 2.0  # lags whose full-model likelihood is this close to the best are not told apart by it
-HOLD_REACH_S = (0.01, 0.003)  # the lag's reach (s) either side while holding one arc's start, twice
-COMPASS_S = (0.001, 0.00002)  # the joint refinement of lag and wait: first step, last step at most (s)
-COMPASS_EVALS, COMPASS_GAIN_NATS = 120, 0.5  # at most this many objectives; a step must gain this much
-COMPASS_AHEAD = 4  # compass steps evaluated together where the timings' samples are many
-COMPASS_DIRS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))  # (lag, wait), in this order
-SPECULATE_ROWS = 3000  # a search sample set this small: timings the search may want next are evaluated together
+NEWTON_START_S = 0.003  # the smoothed descent's first stencil spacing in the arcs' starts (s): the grids' resolution
+NEWTON_LOCAL_S = 0.001  # ... where it starts from a timing found at corrections that moved little
+NEWTON_SHRINK = 3.0  # the spacing's shrink once the minimum lies within the stencil
+NEWTON_STEPS = 10  # at most this many stencils
+NEWTON_REACH = 1.5  # a fitted quadratic's minimum is taken at most this many spacings away
+NEWTON_STRETCH = 4.0  # the stencil stretched along a flat valley by at most this much
+FLAT_CURVATURE = 1e-3  # a fitted curvature below this share of the largest is taken as flat (a valley's floor)
+FINE_SCALE_S = 0.002  # the finest timing scale the descents resolve: a sample period, at most this (s)
+STAIR_SAMPLES = 3.0  # a stair's reach either side: this many sample periods, at most STAIR_REACH_S
+STAIR_FIRST = 0.02  # the first step (sample periods) out to a stair's edges, doubled until off the stair
+COMPASS_EVALS, COMPASS_GAIN_NATS = 120, 0.5  # a compass search on point samples: at most this many objectives;
+# a step must gain this much
+COMPASS_FIRST, COMPASS_LAST = 0.25, 0.02  # ... from and down to this many sample periods
+CONTINUE_SAMPLES = 0.03  # the smoothing followed down to this many sample periods
+WAIT_LAG_STEPS = 4.0  # the best lag without the extra wait: a compass search from this many sample periods
+COMPASS_DIRS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))  # (lag, wait)
 SMOOTH_MAX_SAMPLE_DEG = 0.025  # samples further apart (deg) are searched as points: no smoothing
 WAIT_MAX_S = 0.3  # no extra wait beyond this (s), either sign
 WAIT_PRIOR_S = 0.1  # prior on it: where the data cannot see it (low rates), it stays near 0
@@ -109,7 +119,6 @@ WIDTH_AT_BOUND = 1.03  # a fitted width within 3 % of a bound of its search has 
 WIDTH_STEP_LN = 0.05  # the step in ln w of the width's error estimate
 SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full) standard errors
 SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
-LOCAL_MOVE_SAMPLES = 1.0  # ... and only by a local search where it moved by less (samples), the rest the same
 KAPPA_RESEARCH = 0.5  # the timing is searched again where the residual's correlation has fallen below this share
 ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
 OFFSET_SETTLED_UM = 1e-4  # the final fit is not refolded for a correction that would move by less (um)
@@ -666,6 +675,7 @@ class _Hyper:
     spike_width_deg: float = DEFAULT_SPIKE_WIDTH_DEG
     lag_stderr_s: float = float("nan")
     wait_s: float = 0.0  # how much more the feed-in's move costs than each arc's (in-position waits)
+    wait_free: bool = True  # the wait was fitted (False: the data did not need one, and it is 0)
     shift_s: dict[int, float] = field(default_factory=dict)  # per direction: its data arc's delay from that
     # the spikes' likelihood ratio (nats) against the spike-free model at its own best timing (nan: not found)
     spike_lr_nats: float = float("nan")
@@ -736,10 +746,11 @@ class _Joint:
     def solve(
         self, options: AnalysisOptions, rho: float = 0.0, exclude: dict[str, str] | None = None,
         family_dof: dict[str, int] | None = None, family_lr: dict[str, float] | None = None, rank: bool = True,
+        timing_cov: np.ndarray | None = None,
     ) -> FitResult:
         return solve(self.factor(), self.patterns, rho=rho, significance=options.significance,
                      min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=self.colmax(),
-                     exclude=exclude, family_dof=family_dof, family_lr=family_lr, rank=rank)
+                     exclude=exclude, family_dof=family_dof, family_lr=family_lr, rank=rank, timing_cov=timing_cov)
 
 
 def _spike_timing_error(res: dict[str, Any], hyper: _Hyper, omega_rad_s: float) -> None:
@@ -944,6 +955,12 @@ class _LagSearch:
         self.sample_rad = base.feed_mm_s / plan.radius_mm / self.sample_hz if self.sample_hz > 0 else 0.0
         self.aperture_rad = 0.0
         self.kappa = 1.0
+        self.omega = base.feed_mm_s / plan.radius_mm  # rad/s
+        # the finest timing scale the descents resolve (s): a sample period, where the point samples' stairs begin
+        self.fine_s = min(1.0 / self.sample_hz, FINE_SCALE_S) if self.sample_hz > 0 else FINE_SCALE_S
+        # a descent from a timing found at corrections that moved little starts this far apart (s)
+        self.local_s = max(NEWTON_LOCAL_S, self.fine_s)
+        self.lo_c, self.hi_c = -min(options.max_lag_s, LAG_SEARCH_BELOW_S), options.max_lag_s
         start = {}
         self.p = 0
         for pat in patterns:
@@ -953,6 +970,8 @@ class _LagSearch:
         # how much worse (nats) the spike-free model may be than the full one before the spikes' joint test,
         # their heights and width as parameters, calls them significant
         self.spike_nats = float(stats.chi2.isf(options.significance, int(self.spike_cols.sum()) + 1)) / 2
+        # how much worse (nats) the model without the feed-in's extra wait may be before the wait is kept
+        self.wait_nats = float(stats.chi2.isf(options.significance, 1)) / 2
         self.last_x = np.zeros(0)  # the full model's coefficients of the last sse()
         self._memo: dict[tuple[object, ...], tuple[float, float, np.ndarray]] = {}  # sse() by timing and width
         self._memo_for: tuple[object, ...] = ()  # ... on this sample set, correction and lost-motion model
@@ -962,6 +981,8 @@ class _LagSearch:
             self.by_direction[d] = (mine, np.array([start[p.name] + k for p in mine for k in range(p.q)], dtype=int))
         self.coarse = self.samples(base, windows, COARSE_NEAR_DEG, COARSE_SPACING_DEG)
         self.fine = self.coarse
+        # the objective being searched (:meth:`_begin`): its samples, corrections, timing and lowest full value
+        self._begin(self.coarse, None, LostMotion(), _Hyper())
 
     def samples(
         self, timing: Timing, windows: dict[int, tuple[float, float]], near: tuple[float, float], spacing: float
@@ -1136,6 +1157,301 @@ class _LagSearch:
         slope = {f"{nm}_um": float((xs[2][j] - xs[0][j]) / (2 * d)) for j, nm in enumerate(names) if self.spike_cols[j]}
         return sigma, slope
 
+    def timing_spread(
+        self, offset: Offset | None, lost: LostMotion, hyper: _Hyper
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The timing's covariance in (lag, wait), and the full model's coefficients' change per unit of each.
+
+        The timing is fixed by the same samples as the patterns, so what moves
+        with it is uncertain by as much as it is: a pattern that trades with
+        the timing (above all, with a large servo mismatch, the scale mismatch
+        with the two arcs' relative start: the wait) is known only as well as
+        the timing.  The timing rules (each stair's middle, the spike-free
+        model's choice) take any timing the full model cannot tell from its
+        best, so the spread is that region's, ``LAG_CI_NATS`` (not the
+        likelihood's own curvature): its ellipse from a quadratic fitted to a
+        3 x 3 stencil of the objective smoothed at a sample (the envelope, not
+        the stairs), spaced as the region, found twice.  The coefficients'
+        change is their least-squares slope over the same stencil.  None where
+        the lag was not searched or the objective is no bowl there.
+        """
+        if not self.options.estimate_lag or self.fine.idx.size <= 50:
+            return None
+        self._begin(self.fine, offset, lost, replace(hyper))
+        try:
+            return self._timing_spread(hyper)
+        finally:
+            self.aperture_rad = 0.0
+
+    def _timing_spread(self, hyper: _Hyper) -> tuple[np.ndarray, np.ndarray] | None:
+        self.smooth(self.fine_s)
+        here = np.array([hyper.overhead_s, hyper.wait_s])
+        se = hyper.lag_stderr_s if math.isfinite(hyper.lag_stderr_s) and hyper.lag_stderr_s > 0 else self.fine_s
+        steps = np.array([max(se, self.fine_s), max(2.0 * se, self.fine_s)])
+        if not hyper.wait_free:  # the lag alone: no wait was fitted
+            grid = np.array([(a, 0) for a in (-2, -1, 0, 1, 2)], dtype=float)
+        else:
+            grid = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], dtype=float)
+        region, slope = None, None
+        for _ in range(2):
+            points = [self.bounded(*(here + steps * g)) for g in grid]
+            self.prefetch(points)
+            vals, coefs = [], []
+            for c, w in points:
+                vals.append(self.objs(c, w)[0])
+                coefs.append(self.last_x)
+            x = (np.array(points) - here) / steps
+            if hyper.wait_free:
+                _, hess = _quadratic_minimum(x, np.array(vals), NEWTON_REACH)
+                if hess is None:
+                    return None
+                region = 2.0 * LAG_CI_NATS * np.linalg.inv(hess)  # in stencil units
+            else:
+                curv = np.polyfit(x[:, 0], np.array(vals), 2)[0] * 2.0
+                if not curv > 0:
+                    return None
+                region = np.diag([2.0 * LAG_CI_NATS / curv, 0.0])
+            M = np.column_stack([np.ones(len(points)), x])
+            slope = np.linalg.lstsq(M, np.array(coefs), rcond=None)[0][1:].T  # (p, 2), per stencil unit
+            half = np.sqrt(np.maximum(np.diag(region), 0.0))
+            if not hyper.wait_free:
+                half[1] = 1.0
+            if np.all((half > 0.5) & (half < 2.0)):
+                break
+            steps = steps * np.clip(half, 0.25, 4.0)
+        assert region is not None and slope is not None
+        return np.diag(steps) @ region @ np.diag(steps), slope @ np.diag(1.0 / steps)
+
+    # ------------------------------------------------------------------------------------------ the objective
+
+    def _begin(self, at: _SampleSet, offset: Offset | None, lost: LostMotion, hyper: _Hyper) -> None:
+        """Search ``hyper`` on ``at`` with these corrections: the objective's context, until the next begin."""
+        self.at, self.offset, self.lost, self.hyper = at, offset, lost, hyper
+        self.best = math.inf
+
+    def nll(self, value: float) -> float:
+        """The profile negative log-likelihood of a sum of squares on the current set: a residual below 1 nm
+        rms is numerical, not signal, and there the prior decides."""
+        n = self.at.idx.size
+        return 0.5 * n / self.kappa * math.log(value + n * SSE_FLOOR_UM**2)
+
+    def objs(self, c: float, wait: float) -> tuple[float, float, float]:
+        """The full and the spike-free model's objectives at ``(c, wait)``, priors included, and the prior.
+        ``best`` follows the lowest full objective seen on the current objective."""
+        full, bare = self.sse(self.at, c, self.hyper.spike_width_deg, self.offset, self.lost, self.shifts(wait))
+        prior = c * c / (2 * LAG_PRIOR_S**2) + wait * wait / (2 * WAIT_PRIOR_S**2)
+        f = self.nll(full) + prior
+        self.best = min(self.best, f)
+        return f, self.nll(bare) + prior, prior
+
+    def prefetch(self, points: Sequence[tuple[float, float]]) -> None:
+        """Evaluate the objectives at these ``(lag, wait)`` together (:meth:`sse_many` keeps them)."""
+        if len(points) > 1:
+            self.sse_many(self.at, [(c, self.shifts(w)) for c, w in points], self.hyper.spike_width_deg,
+                          self.offset, self.lost)
+
+    def smooth(self, step: float | None, floor: bool = True) -> None:
+        """Average the sharp features over the angle a timing step moves them (``floor``: at least a sample's):
+        the objective is then smooth at that scale, and its stairs and narrow wells are not missed.  None:
+        point samples, as the data are and the final fit takes them."""
+        aperture = 0.0 if step is None else max(self.sample_rad if floor else 0.0, self.omega * step)
+        if self.sample_rad > math.radians(SMOOTH_MAX_SAMPLE_DEG):
+            aperture = 0.0  # samples this far apart: no smoothing (a box a sample wide misfits point samples)
+        if aperture != self.aperture_rad:
+            self.aperture_rad = aperture
+            self.best = math.inf  # another objective
+
+    def choose(self, full: np.ndarray, bare: np.ndarray) -> int:
+        return _pick(full, bare, self.best, self.spike_nats)
+
+    def bounded(self, c: float, wait: float) -> tuple[float, float]:
+        return min(max(c, self.lo_c), self.hi_c), min(max(wait, -WAIT_MAX_S), WAIT_MAX_S)
+
+    # ------------------------------------------------------------------------------ the timing's coordinates
+
+    def start_of(self, d: int, c: float, wait: float) -> float:
+        return float(self.timing(c).sched.data_start_s[d]) + self.shifts(wait).get(d, 0.0)
+
+    def coords(self, c: float, wait: float) -> np.ndarray:
+        """What the samples fix of a timing, nearly independently: each data arc's start (s); in a test of one
+        direction its start and the lag (which sets the feed)."""
+        dirs = self.plan.direction_list
+        if len(dirs) > 1:
+            return np.array([self.start_of(d, c, wait) for d in dirs])
+        return np.array([self.start_of(dirs[0], c, wait), c])
+
+    def _inverse_jacobian(self, c: float, wait: float) -> np.ndarray:
+        """d(lag, wait) / d(coords) at ``(c, wait)``: the coordinates are affine in the wait and nearly so in the
+        lag (which moves the feed a little)."""
+        e = 1e-4
+        here = self.coords(c, wait)
+        J = np.column_stack([(self.coords(c + e, wait) - here) / e, (self.coords(c, wait + e) - here) / e])
+        return np.asarray(np.linalg.inv(J))
+
+    # --------------------------------------------------------------------------------------------- the stages
+
+    def grid(
+        self, lo: float, hi: float, step: float, wait: bool = False, hold: int | None = None
+    ) -> tuple[np.ndarray, ...]:
+        """The objectives over the lag or (``wait``) the feed-in's extra wait, ``lo..hi`` about its value.
+
+        ``hold``: along the lag with that direction's data arc held where it starts (the wait follows): only
+        the other arc's start and the feed move.
+        """
+        h = self.hyper
+        now, (b0, b1) = (h.wait_s, (-WAIT_MAX_S, WAIT_MAX_S)) if wait else (h.overhead_s, (self.lo_c, self.hi_c))
+        g = np.arange(max(now + lo, b0), min(now + hi, b1) + 0.5 * step, step)
+        at = self.line(wait, hold)
+        points = [at(float(x)) for x in g]
+        self.prefetch(points)
+        v = np.array([self.objs(c, w) for c, w in points])
+        return g, v[:, 0], v[:, 1], v[:, 2], np.array(points)
+
+    def line(self, wait: bool, hold: int | None) -> Callable[[float], tuple[float, float]]:
+        """The (lag, wait) at a coordinate of :meth:`grid`'s line through the current timing."""
+        h = self.hyper
+        if hold is not None:
+            target = self.start_of(hold, h.overhead_s, h.wait_s)
+            coef = self.shifts(1.0)[hold]
+            return lambda x: (x, (target - self.start_of(hold, x, 0.0)) / coef)
+        c0, w0 = h.overhead_s, h.wait_s
+        return (lambda x: (c0, x)) if wait else (lambda x: (x, w0))
+
+    def pick(self, lo: float, hi: float, step: float, wait: bool = False) -> np.ndarray:
+        """Take the best timing of a smoothed grid along the lag or the wait; return the full objectives."""
+        self.smooth(step)
+        _, full, bare, _, points = self.grid(lo, hi, step, wait)
+        self.hyper.overhead_s, self.hyper.wait_s = (float(v) for v in points[self.choose(full, bare)])
+        return np.asarray(full)
+
+    def width(self) -> None:
+        """The spikes' width: the objective is smooth in it (a bounded scalar search in ``ln w``)."""
+        h = self.hyper
+        lo_w, hi_w = (math.log(v) for v in self.width_bounds)
+        r = optimize.minimize_scalar(
+            lambda lw: self.sse(self.at, h.overhead_s, math.exp(lw), self.offset, self.lost, self.shifts(h.wait_s))[0],
+            bounds=(lo_w, hi_w), method="bounded", options={"xatol": 0.015})
+        h.spike_width_deg = float(math.exp(r.x))
+
+    def newton(
+        self, value: Callable[[tuple[float, float, float]], float], h0: float, h_min: float, floor: bool = True
+    ) -> None:
+        """Move the timing to the minimum of ``value`` (of :meth:`objs`) smoothed at a shrinking scale.
+
+        Around the current timing a 3 x 3 stencil of the coordinates (:meth:`coords`), ``h`` apart, is
+        evaluated at once with the features averaged over ``h`` (:meth:`smooth`); a quadratic fitted to it
+        proposes its minimum (at most 1.5 ``h`` away), and the best of the ten points is the next centre.
+        Smoothed at its own scale the objective is a bowl, so a few such steps take the timing from the grids'
+        resolution down to ``h_min`` (a sample period): the valley the two arcs' starts trade along at a slant
+        (each moves the feed too) is followed by the fitted quadratic, not by steps along the axes.
+        """
+        h = self.hyper
+        step = max(h0, h_min)
+        axes = np.eye(2)  # the stencil's axes in the coordinates, per unit spacing: along the valley, stretched
+        grid = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], dtype=float)
+        for _ in range(NEWTON_STEPS):
+            self.smooth(step, floor)
+            here = np.array([h.overhead_s, h.wait_s])
+            base = self.coords(*here)
+            to_timing = self._inverse_jacobian(*here) @ axes * step  # stencil units -> (lag, wait)
+            points = [self.bounded(*(here + to_timing @ o)) for o in grid]
+            self.prefetch(points)
+            vals = [value(self.objs(c, w)) for c, w in points]
+            to_stencil = np.linalg.inv(axes) / step  # coordinates -> stencil units
+            where = [to_stencil @ (self.coords(c, w) - base) for c, w in points]
+            proposal, hess = _quadratic_minimum(np.array(where), np.array(vals), NEWTON_REACH)
+            if proposal is not None:
+                p = self.bounded(*(here + to_timing @ proposal))
+                points.append(p)
+                vals.append(value(self.objs(*p)))
+                where.append(to_stencil @ (self.coords(*p) - base))
+            k = int(np.argmin(vals))
+            h.overhead_s, h.wait_s = points[k]
+            if hess is not None:  # the next stencil along the bowl's axes, stretched where it is flat
+                curv, turn = np.linalg.eigh(to_stencil.T @ hess @ to_stencil)
+                stretch = np.sqrt(curv.max() / np.maximum(curv, FLAT_CURVATURE * curv.max()))
+                axes = turn * np.minimum(stretch, NEWTON_STRETCH)
+            if float(np.abs(where[k]).max()) < 0.5:  # within half a spacing: look closer, or stop at the finest
+                if step <= h_min * 1.0001:
+                    break
+                step = max(step / NEWTON_SHRINK, h_min)
+
+    def stair(self, hold: int | None = None, wait: bool = False) -> float:
+        """Move to the middle of the stair the timing stands on, along a coordinate of :meth:`grid`; return a
+        uniform spread over it.
+
+        On point samples the likelihood is a staircase: a sharp onset moves between two samples without
+        changing the fit, so every timing on a stair fits the samples equally, and its middle is the least
+        biased.  The stair is where the spike-free likelihood stays within ``STAIR_NATS`` of its value here,
+        among the timings the full model cannot tell from its best (or where the spike-free model is within
+        the spikes' joint test of it).  Its edges are bracketed by steps doubling from ``STAIR_FIRST`` sample
+        periods either way (out to the stair reach), then bisected; both edges are worked on together.
+        """
+        self.smooth(None)
+        at = self.line(wait, hold)
+        x0 = self.hyper.wait_s if wait else self.hyper.overhead_s
+        _, b, p = self.objs(*at(x0))
+        level = b - p + STAIR_NATS  # the stair is a level of the likelihood, not of the prior
+
+        def on(x: float) -> bool:
+            f, b, p = self.objs(*at(x))
+            return (f <= self.best + LAG_CI_NATS or b <= self.best + self.spike_nats) and b - p <= level
+
+        period = 1.0 / self.sample_hz
+        reach = max(0.5 * period, min(STAIR_REACH_S, STAIR_SAMPLES * period))
+        inside = [x0, x0]  # per side (-, +): the farthest point found on the stair, and the nearest off it
+        outside: list[float | None] = [None, None]
+        step = min(STAIR_FIRST * period, reach)
+        while True:
+            sides = [k for k in (0, 1) if outside[k] is None]
+            if not sides:
+                break
+            xs = {k: x0 + (2 * k - 1) * step for k in sides}
+            self.prefetch([at(x) for x in xs.values()])
+            for k, x in xs.items():
+                if on(x):
+                    inside[k] = x
+                else:
+                    outside[k] = x
+            if step >= reach:
+                break
+            step = min(2 * step, reach)
+        for _ in range(STAIR_BISECT):  # both brackets halved together
+            mids = {k: 0.5 * (inside[k] + o) for k, o in enumerate(outside) if o is not None}
+            if not mids:
+                break
+            self.prefetch([at(x) for x in mids.values()])
+            for k, x in mids.items():
+                if on(x):
+                    inside[k] = x
+                else:
+                    outside[k] = x
+        edges = [inside[k] if o is None else 0.5 * (inside[k] + o) for k, o in enumerate(outside)]
+        self.hyper.overhead_s, self.hyper.wait_s = at(0.5 * (edges[0] + edges[1]))
+        return float(abs(edges[1] - edges[0]) / math.sqrt(12.0))
+
+    def constrained_bare(self) -> None:
+        """Of the timings the full model cannot tell from its best (``LAG_CI_NATS``), or where the model
+        without spikes is within their joint test of it (``spike_nats``), move to where the model without
+        spikes fits best (:func:`_pick` over a stencil a sample apart, on point samples)."""
+        h = self.hyper
+        self.smooth(None)
+        c0, w0 = h.overhead_s, h.wait_s
+        inv = self._inverse_jacobian(c0, w0)
+        step = self.fine_s
+        for _ in range(NEWTON_STEPS):
+            c0, w0 = h.overhead_s, h.wait_s
+            points = [self.bounded(*(np.array([c0, w0]) + inv @ (step * np.array((a, b), dtype=float))))
+                      for a in (-1, 0, 1) for b in (-1, 0, 1)]
+            self.prefetch(points)
+            v = np.array([self.objs(c, w) for c, w in points])
+            k = self.choose(v[:, 0], v[:, 1])
+            h.overhead_s, h.wait_s = points[k]
+            if k == 4:  # the centre
+                break
+
+    # -------------------------------------------------------------------------------------------- the search
+
     def run(
         self,
         offset: Offset | None,
@@ -1144,10 +1460,62 @@ class _LagSearch:
         misfit_only: bool = False,
         local: bool = False,
     ) -> _Hyper:
-        """``start``: refine from there on the fine set (no search over the whole range).  ``misfit_only``:
-        only the best timing is wanted, not its uncertainty (no stairs; a loop gain's profile value).
-        ``local``: ``start`` is near (the corrections moved little since it was found): only the compass
-        searches, the width and the stairs, not the grids along each line.
+        """The timing at these corrections.  ``start``: refine from there on the fine set (no search over the
+        whole range).  ``misfit_only``: only the best timing is wanted (a loop gain's profile value).
+        ``local``: ``start`` is near (the corrections moved little since it was found): only the smoothed
+        descent, not the grids.  The point-sample finish (:meth:`finish`) is the caller's, once the
+        corrections have settled.
+
+        The grids (over the whole lag range on the coarse set, then the lag and the feed-in's extra wait
+        about the best on the fine set) are smoothed at their steps, so that no narrow well is stepped over;
+        :meth:`newton` then finds the smoothed objective's minimum in both arcs' starts down to a sample
+        period.
+
+        The feed-in may also cost more or less than the arcs (``wait_s``): a control that waits for
+        in-position after each move waits longer after a move whose axes end with more following error (the
+        feed-in ends radially, the arcs tangentially; with unequal gains on other axes).  With equal
+        overheads for the rest, the ``k``-th of ``n`` data arcs then runs ``(n + 1 - k) / (n + 1)`` of that
+        difference later (the feed itself, from the span, is unchanged).  It is found on a grid too, with a
+        weak prior (``WAIT_PRIOR_S``) where the data cannot see it.
+        """
+        options = self.options
+        hyper = _Hyper() if start is None else replace(start)
+        self._begin(self.coarse if start is None else self.fine, offset, lost, hyper)
+        spikes = _has_spikes(self.patterns)
+        if start is None:
+            hyper.spike_width_deg = min(max(DEFAULT_SPIKE_WIDTH_DEG, self.width_bounds[0]), self.width_bounds[1])
+        if options.estimate_lag and start is None:
+            self.pick(self.lo_c - hyper.overhead_s, self.hi_c - hyper.overhead_s, LAG_GRID_S[0])
+            # from here on every sample near the features, where they are at this lag
+            self.fine = self.fine_samples(hyper.overhead_s)
+            self._begin(self.fine, offset, lost, hyper)
+        local = local and start is not None
+        if spikes and not local:
+            self.smooth(LAG_GRID_S[1])
+            self.width()
+        if options.estimate_lag:
+            if not local:
+                reach = LAG_GRID_S[0] if start is None else LAG_GRID_S[0] / 2
+                full = self.pick(-reach, reach, LAG_GRID_S[1])
+                if full.size >= 5:  # the lag's uncertainty: the full objective's curvature over that grid
+                    g = np.arange(full.size) * LAG_GRID_S[1]
+                    a2 = np.polyfit(g - g[int(np.argmin(full))], full, 2)[0]
+                    hyper.lag_stderr_s = 1.0 / math.sqrt(2 * a2) if a2 > 0 else float("inf")
+                # the feed-in's extra wait over its whole range (the lag's grids above held it at 0)
+                if start is None or misfit_only:  # (from another loop gain's timing: the wait moves with the gain)
+                    self.pick(-WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0],
+                              wait=True)
+            self.newton(lambda o: o[0], self.local_s if local else NEWTON_START_S, self.fine_s)
+        elif spikes and start is None:
+            self.fine = self.fine_samples(hyper.overhead_s)
+            self._begin(self.fine, offset, lost, hyper)
+            self.width()
+        hyper.shift_s = self.shifts(hyper.wait_s)
+        self.aperture_rad = 0.0
+        return hyper
+
+    def finish(self, offset: Offset | None, lost: LostMotion, start: _Hyper) -> _Hyper:
+        """The timing on point samples, as the data are and the final fit takes them, from :meth:`run`'s.
 
         Spikes and timing trade off: where a reversal carries a step (backlash,
         above all a compensation step filtered by the loop), a lag that puts
@@ -1162,253 +1530,117 @@ class _LagSearch:
         taken: spikes do not buy a timing the steps refute, and where spikes
         are real the model without them is far worse everywhere.
 
-        The feed-in may also cost more or less than the arcs (``wait_s``): a
-        control that waits for in-position after each move waits longer after
-        a move whose axes end with more following error (the feed-in ends
-        radially, the arcs tangentially; with unequal gains on other axes).
-        With equal overheads for the rest, the ``k``-th of ``n`` data arcs then
-        runs ``(n + 1 - k) / (n + 1)`` of that difference later (the feed
-        itself, from the span, is unchanged).  It is found on grids too, with a
-        weak prior (``WAIT_PRIOR_S``) where the data cannot see it.
+        On point samples the likelihood is a staircase: every timing on a stair fits the samples equally, and
+        its middle is the least biased.  The spikes' width is found again at this timing; then along each arc's
+        start (the other's held) the stair is resolved and its middle taken.
         """
-        options = self.options
-        hyper = _Hyper() if start is None else replace(start)
-        idx = self.coarse if start is None else self.fine
+        hyper = replace(start)
+        self._begin(self.fine, offset, lost, hyper)
         spikes = _has_spikes(self.patterns)
-        lo_w, hi_w = (math.log(v) for v in self.width_bounds)
-        if start is None:
-            hyper.spike_width_deg = min(max(DEFAULT_SPIKE_WIDTH_DEG, self.width_bounds[0]), self.width_bounds[1])
-
-        def nll(value: float) -> float:
-            # a residual below 1 nm rms is numerical, not signal: there the prior decides
-            n = idx.idx.size
-            return 0.5 * n / self.kappa * math.log(value + n * SSE_FLOOR_UM**2)
-
-        def objs(c: float, wait: float) -> tuple[float, float, float]:
-            full, bare = self.sse(idx, c, hyper.spike_width_deg, offset, lost, self.shifts(wait))
-            prior = c * c / (2 * LAG_PRIOR_S**2) + wait * wait / (2 * WAIT_PRIOR_S**2)
-            return nll(full) + prior, nll(bare) + prior, prior
-
-        # where one timing's samples are few, its cost is per call: timings the search may want next are then
-        # evaluated together beforehand (compass steps, bisections), not only those it wants for sure (grids)
-        def speculate() -> bool:
-            return sum(v[0].size for v in self.parts(idx).values()) <= SPECULATE_ROWS
-
-        def prefetch(points: Sequence[tuple[float, float]]) -> None:
-            """Evaluate the objectives at these ``(lag, wait)`` together (:meth:`sse_many` keeps them)."""
-            if len(points) > 1:
-                self.sse_many(idx, [(c, self.shifts(w)) for c, w in points], hyper.spike_width_deg, offset, lost)
-
-        def start_of(d: int, c: float, wait: float) -> float:
-            return float(self.timing(c).sched.data_start_s[d]) + self.shifts(wait).get(d, 0.0)
-
-        def grid(
-            lo: float, hi: float, step: float, wait: bool = False, hold: int | None = None
-        ) -> tuple[np.ndarray, ...]:
-            """The objectives over the lag or (``wait``) the feed-in's extra wait, ``lo..hi`` about its value.
-
-            ``hold``: along the lag with that direction's data arc held where it starts (the wait follows):
-            only the other arc's start and the feed move, so that the two arcs' starts are searched nearly
-            independently (as the lag and the wait are not: both move both).
-            """
-            now, (b0, b1) = (hyper.wait_s, (-WAIT_MAX_S, WAIT_MAX_S)) if wait else (hyper.overhead_s, (lo_c, hi_c))
-            g = np.arange(max(now + lo, b0), min(now + hi, b1) + 0.5 * step, step)
-            at = line(wait, hold)
-            points = [at(float(x)) for x in g]
-            prefetch(points)
-            v = np.array([objs(c, w) for c, w in points])
-            return g, v[:, 0], v[:, 1], v[:, 2], np.array(points)
-
-        def line(wait: bool, hold: int | None) -> Callable[[float], tuple[float, float]]:
-            """The (lag, wait) at a coordinate of :func:`grid`'s line through the current timing."""
-            if hold is not None:
-                target = start_of(hold, hyper.overhead_s, hyper.wait_s)
-                coef = self.shifts(1.0)[hold]
-                return lambda x: (x, (target - start_of(hold, x, 0.0)) / coef)
-            c0, w0 = hyper.overhead_s, hyper.wait_s
-            return (lambda x: (c0, x)) if wait else (lambda x: (x, w0))
-
-        omega = self.base.feed_mm_s / self.plan.radius_mm
-
-        def smooth(step: float | None) -> None:
-            """Average the sharp features over the angle a grid step moves them (at least a sample's): the
-            objective is then smooth at the grid's scale, and its stairs and narrow wells are not missed.
-            None: point samples, as the data are and the final fit takes them."""
-            aperture = 0.0 if step is None else max(self.sample_rad, omega * step)
-            if self.sample_rad > math.radians(SMOOTH_MAX_SAMPLE_DEG):
-                aperture = 0.0  # samples this far apart: no smoothing (a box a sample wide misfits point samples)
-            if aperture != self.aperture_rad:
-                self.aperture_rad = aperture
-                best[0] = math.inf  # another objective
-
-        def pick(lo: float, hi: float, step: float, wait: bool = False, hold: int | None = None) -> np.ndarray:
-            smooth(step)
-            _, full, bare, _, points = grid(lo, hi, step, wait, hold)
-            hyper.overhead_s, hyper.wait_s = (float(v) for v in points[choose(full, bare)])
-            return np.asarray(full)
-
-        best = [math.inf]  # the lowest full objective seen on the current sample set
-
-        def choose(full: np.ndarray, bare: np.ndarray) -> int:
-            best[0] = min(best[0], float(full.min()))
-            return _pick(full, bare, best[0], self.spike_nats)
-
-        def width() -> None:
-            r = optimize.minimize_scalar(
-                lambda lw: self.sse(idx, hyper.overhead_s, math.exp(lw), offset, lost, self.shifts(hyper.wait_s))[0],
-                bounds=(lo_w, hi_w), method="bounded", options={"xatol": 0.015})
-            hyper.spike_width_deg = float(math.exp(r.x))
-
-        def stair(wait: bool = False, hold: int | None = None) -> float:
-            """Resolve the stair along a coordinate of :func:`grid` and take its middle; return a uniform spread
-            over it (the stairs are about a sample period over the sharp features' count wide)."""
-            reach = max(STAIR_REACH_S, 0.5 / self.sample_hz)
-            step = max(min(LAG_GRID_S[2], 0.1 / self.sample_hz), reach / 20)
-            smooth(None)
-            at = line(wait, hold)
-            g, full, bare, pr, _ = grid(-reach, reach, step, wait, hold)
-            k = choose(full, bare)
-            like = bare - pr  # the stair is a level of the likelihood, not of the prior
-            ok = (full <= best[0] + LAG_CI_NATS) | (bare <= best[0] + self.spike_nats)
-            level = like[k] + STAIR_NATS
-
-            def on(x: float) -> bool:
-                c, w = at(x)
-                f, b, p = objs(c, w)
-                return (f <= best[0] + LAG_CI_NATS or b <= best[0] + self.spike_nats) and b - p <= level
-
-            lo, hi = k, k
-            while lo > 0 and ok[lo - 1] and like[lo - 1] <= level:
-                lo -= 1
-            while hi < g.size - 1 and ok[hi + 1] and like[hi + 1] <= level:
-                hi += 1
-            # the stair's edges between the grid's points, by bisection
-            if speculate():  # every midpoint either bisection may take
-                ahead = [p for inside, outside in ((lo, lo - 1), (hi, hi + 1)) if 0 <= outside < g.size
-                         for p in _bisections(float(g[inside]), float(g[outside]), STAIR_BISECT)]
-                prefetch([at(x) for x in ahead])
-            edges = []
-            for inside, outside in ((lo, lo - 1), (hi, hi + 1)):
-                a = float(g[inside])
-                if not 0 <= outside < g.size:
-                    edges.append(a)
-                    continue
-                b = float(g[outside])
-                for _ in range(STAIR_BISECT):
-                    mid = 0.5 * (a + b)
-                    a, b = (mid, b) if on(mid) else (a, mid)
-                edges.append(0.5 * (a + b))
-            hyper.overhead_s, hyper.wait_s = at(0.5 * (edges[0] + edges[1]))
-            return float(abs(edges[1] - edges[0]) / math.sqrt(12.0))
-
-        lo_c, hi_c = -min(options.max_lag_s, LAG_SEARCH_BELOW_S), options.max_lag_s
-        if options.estimate_lag and start is None:
-            pick(lo_c - hyper.overhead_s, hi_c - hyper.overhead_s, LAG_GRID_S[0])
-            # from here on every sample near the features, where they are at this lag
-            self.fine = idx = self.fine_samples(hyper.overhead_s)
-            best[0] = math.inf
-            smooth(LAG_GRID_S[1])
-        local = local and start is not None
-        if spikes and not local:
-            width()
-        if options.estimate_lag:
+        if self.options.estimate_lag:
             dirs = self.plan.direction_list
-            if not local:
-                reach = LAG_GRID_S[0] if start is None else LAG_GRID_S[0] / 2
-                full = pick(-reach, reach, LAG_GRID_S[1])
-                if full.size >= 5:  # the lag's uncertainty: the full objective's curvature over that grid
-                    g = np.arange(full.size) * LAG_GRID_S[1]
-                    a2 = np.polyfit(g - g[int(np.argmin(full))], full, 2)[0]
-                    hyper.lag_stderr_s = 1.0 / math.sqrt(2 * a2) if a2 > 0 else float("inf")
-                # the feed-in's extra wait over its whole range (the lag's grids above held it at 0)
-                if start is None or misfit_only:  # (from another loop gain's timing: the wait moves with the gain)
-                    pick(-WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0] * WAIT_GRID_S[1], WAIT_GRID_S[0], wait=True)
-                # each arc's start in turn, the other's held (one direction: its start, then the feed)
-                for reach in HOLD_REACH_S:
-                    if len(dirs) == 1:
-                        pick(-reach * 2, reach * 2, reach / 5, wait=True)
-                        pick(-reach, reach, reach / 10, hold=dirs[0])
-                    else:
-                        for d in dirs:
-                            pick(-reach, reach, reach / 10, hold=-d)
-            # Then both together, on the full model: the lines above cross the valley the two trade along at a
-            # slant (each moves the feed too), and on point samples no gradient leads along it.  A compass
-            # search takes the steps (the axes and the diagonals) that gain more than COMPASS_GAIN_NATS,
-            # halving them down to a fraction of a sample period: it crosses stairs, and it does not wander
-            # where the full model cannot tell timings apart (there the spike-free model chose above).
-            smooth(None)
-
-            def compass(value: Callable[[float, float], float], gain: float = COMPASS_GAIN_NATS) -> float:
-                """Move the timing by compass steps while ``value`` falls by ``gain``; return the last value."""
-                here = value(hyper.overhead_s, hyper.wait_s)
-                step_c = COMPASS_S[0]
-                evals = 0
-                while step_c >= min(COMPASS_S[1], 0.02 / self.sample_hz) and evals < COMPASS_EVALS:
-                    moved = False
-                    steps = [(hyper.overhead_s + dc * step_c, hyper.wait_s + dw * step_c) for dc, dw in COMPASS_DIRS]
-                    steps = [(c, w) for c, w in steps if lo_c <= c <= hi_c and abs(w) <= WAIT_MAX_S]
-                    # Evaluated together ahead of need, all at once where one timing's samples are few, else
-                    # COMPASS_AHEAD at a time: a stack of a few timings costs little more than one, and most
-                    # rounds try several directions (every one, at each halving).
-                    ahead = len(steps) if speculate() else COMPASS_AHEAD
-                    for i, (c, w) in enumerate(steps):
-                        if i % ahead == 0:
-                            prefetch(steps[i : i + ahead])
-                        f = value(c, w)
-                        evals += 1
-                        if f < here - gain:
-                            hyper.overhead_s, hyper.wait_s, here, moved = c, w, f, True
-                            break
-                    if not moved:
-                        step_c /= 2
-                return here
-
-            def full_value(c: float, w: float) -> float:
-                f = objs(c, w)[0]
-                best[0] = min(best[0], f)
-                return f
-
-            def bare_value(c: float, w: float) -> float:
-                f, b, _ = objs(c, w)
-                best[0] = min(best[0], f)
-                return b if f <= best[0] + LAG_CI_NATS or b <= best[0] + self.spike_nats else math.inf
-
-            compass(full_value)
+            first = self.fine_s
+            if self.sample_rad <= math.radians(SMOOTH_MAX_SAMPLE_DEG):
+                # the smoothing shrunk below a sample, following the minimum into the point samples' stairs
+                self.newton(lambda o: o[0], self.fine_s, CONTINUE_SAMPLES * self.fine_s, floor=False)
+                first = COMPASS_FIRST * self.fine_s
+            self.smooth(None)
+            self.compass(lambda o: o[0], first, COMPASS_LAST * self.fine_s)
             if spikes:
-                # then along the timings the full model cannot tell apart, to the one the steps fit best: free
-                # spikes can follow a step a sample off, and the lines above may have ended on such a timing
-                compass(bare_value)
-            if spikes:
-                width()
-            if not misfit_only:
-                spread = stair(wait=True) if len(dirs) == 1 else 0.0
+                self.compass(self.bare_value, 0.5 * self.fine_s, COMPASS_LAST * self.fine_s)
+                self.width()
+            hyper.wait_free = self.wait_needed()
+            if hyper.wait_free:
+                # along the feed-in's extra wait first (both arcs' starts together: where free spikes or a large
+                # servo pattern trade with the timing, the stairs are flat along it), then along each arc's start
+                self.stair(wait=True)
+                spread = 0.0
                 for d in dirs:
-                    spread = max(spread, stair(hold=-d if len(dirs) > 1 else d))
-                hyper.lag_stderr_s = max(hyper.lag_stderr_s, spread)
-            if spikes and not misfit_only:
-                # The spikes' test against the spike-free model at its own best timing: at the timing the full
-                # model chose, free spikes may be taking up a step a sample off that another timing fits.  Found
-                # when read (hyper.spike_lr), on this search's objective as it is now.
-                chosen, kappa = replace(hyper), self.kappa
-
-                def spike_lr() -> float:
-                    kept_kappa, self.kappa = self.kappa, kappa
-                    try:
-                        smooth(None)
-                        full_here, _, prior_here = objs(chosen.overhead_s, chosen.wait_s)
-                        bare_best = compass(lambda c, w: float(np.subtract(*objs(c, w)[1:])), gain=STAIR_NATS)
-                    finally:
-                        hyper.overhead_s, hyper.wait_s = chosen.overhead_s, chosen.wait_s
-                        self.kappa, self.aperture_rad = kept_kappa, 0.0
-                    return max(bare_best - (full_here - prior_here), 0.0)
-
-                hyper.spike_lr_search = spike_lr
-        elif spikes and start is None:
-            self.fine = idx = self.fine_samples(hyper.overhead_s)
-            width()
+                    spread = max(spread, self.stair(hold=-d if len(dirs) > 1 else d))
+            else:
+                spread = self.stair()  # along the lag alone
+            hyper.lag_stderr_s = max(hyper.lag_stderr_s, spread)
+            if spikes:
+                hyper.spike_lr_search = self._spike_lr_search(replace(hyper))
         hyper.shift_s = self.shifts(hyper.wait_s)
         self.aperture_rad = 0.0
         return hyper
+
+    def wait_needed(self) -> bool:
+        """Whether the feed-in's extra wait earns its place: else the timing moves to the best lag without one.
+
+        The wait is an optional part of the timing model (a control that waits
+        for in-position after each move); where the data do not need it, a free
+        wait only trades with what else moves both arcs' starts (a large servo
+        pattern turned by it reads as scale mismatch).  It is kept where the
+        full model without it, at its own best lag (a compass search along the
+        lag), is worse by more than the chi-square test of one parameter allows
+        at the significance level (``wait_nats``).
+        """
+        h = self.hyper
+        if h.wait_s == 0.0:
+            return False
+        kept, with_wait = (h.overhead_s, h.wait_s), self.objs(h.overhead_s, h.wait_s)[0]
+        h.wait_s = 0.0
+        without = self.compass(lambda o: o[0], WAIT_LAG_STEPS * self.fine_s, COMPASS_LAST * self.fine_s,
+                               dirs=((1, 0), (-1, 0)))
+        if without - with_wait > self.wait_nats:
+            h.overhead_s, h.wait_s = kept
+            return True
+        return False
+
+    def _spike_lr_search(self, chosen: _Hyper) -> Callable[[], float]:
+        """The spikes' likelihood ratio against the spike-free model at its own best timing, found when read
+        (:meth:`_Hyper.spike_lr`) on this objective: at the timing the full model chose, free spikes may be
+        taking up a step a sample off that another timing fits."""
+        context = (self.at, self.offset, self.lost, self.kappa)
+
+        def spike_lr() -> float:
+            kept = (self.at, self.offset, self.lost, self.kappa, self.hyper, self.best, self.aperture_rad)
+            self.at, self.offset, self.lost, self.kappa = context
+            self.hyper, self.best = replace(chosen), math.inf
+            try:
+                self.smooth(None)
+                full_here, _, prior_here = self.objs(chosen.overhead_s, chosen.wait_s)
+                bare_only = lambda o: o[1] - o[2]  # noqa: E731
+                self.newton(bare_only, self.local_s, self.fine_s)
+                self.smooth(None)
+                bare_best = self.compass(bare_only, 0.5 * self.fine_s, 0.05 * self.fine_s, STAIR_NATS)
+            finally:
+                self.at, self.offset, self.lost, self.kappa, self.hyper, self.best, self.aperture_rad = kept
+            return max(bare_best - (full_here - prior_here), 0.0)
+
+        return spike_lr
+
+    def bare_value(self, o: tuple[float, float, float]) -> float:
+        """The spike-free model's objective where the full model cannot tell the timing from its best, or where
+        it is within the spikes' joint test of that best; elsewhere infinite."""
+        f, b, _ = o
+        return b if f <= self.best + LAG_CI_NATS or b <= self.best + self.spike_nats else math.inf
+
+    def compass(
+        self, value: Callable[[tuple[float, float, float]], float], first: float, last: float,
+        gain: float = COMPASS_GAIN_NATS, dirs: Sequence[tuple[int, int]] = COMPASS_DIRS,
+    ) -> float:
+        """Move the timing by compass steps (``dirs`` of the lag and the wait: by default the axes and
+        diagonals, evaluated together) while ``value`` falls by ``gain``, halving the step from ``first`` to
+        ``last``; return the last value."""
+        h = self.hyper
+        here = value(self.objs(h.overhead_s, h.wait_s))
+        step = first
+        evals = 0
+        while step >= last and evals < COMPASS_EVALS:
+            steps = [self.bounded(h.overhead_s + dc * step, h.wait_s + dw * step) for dc, dw in dirs]
+            self.prefetch(steps)
+            vals = [value(self.objs(c, w)) for c, w in steps]
+            evals += len(steps)
+            k = int(np.argmin(vals))
+            if vals[k] < here - gain:
+                h.overhead_s, h.wait_s = steps[k]
+                here = vals[k]
+            else:
+                step /= 2
+        return here
 
     def shifts(self, wait_s: float) -> dict[int, float]:
         """Per direction, how much later its data arc runs when the feed-in costs ``wait_s`` more than each arc."""
@@ -1463,12 +1695,30 @@ def _width_verdict(w: float, bounds: tuple[float, float], options: AnalysisOptio
     return ""
 
 
-def _bisections(a: float, b: float, depth: int) -> list[float]:
-    """Every midpoint ``depth`` bisections of ``a..b`` may take (``a`` the side that holds)."""
-    if depth == 0:
-        return []
-    mid = 0.5 * (a + b)
-    return [mid, *_bisections(mid, b, depth - 1), *_bisections(a, mid, depth - 1)]
+def _quadratic_minimum(
+    x: np.ndarray, values: np.ndarray, limit: float
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The minimum of the quadratic fitted (least squares) to ``values`` at the points ``x`` (m, 2), at most
+    ``limit`` from 0 in either coordinate (scaled down to it), and its Hessian; ``(None, None)`` where the fit
+    is no bowl."""
+    x1, x2 = x[:, 0], x[:, 1]
+    M = np.column_stack([np.ones_like(x1), x1, x2, 0.5 * x1 * x1, x1 * x2, 0.5 * x2 * x2])
+    finite = np.isfinite(values)
+    if finite.sum() < M.shape[1]:
+        return None, None
+    coef = np.linalg.lstsq(M[finite], values[finite] - values[finite].min(), rcond=None)[0]
+    curv, turn = np.linalg.eigh(np.array([[coef[3], coef[4]], [coef[4], coef[5]]]))
+    if not curv.max() > 0:
+        return None, None
+    # a valley narrower than the stencil fits no bowl along its floor: there the curvature is taken as nearly
+    # flat, and the minimum lies along the floor, downhill, as far as the limit allows
+    curv = np.maximum(curv, FLAT_CURVATURE * curv.max())
+    H = turn @ np.diag(curv) @ turn.T
+    p = -turn @ ((turn.T @ coef[1:3]) / curv)
+    big = float(np.abs(p).max())
+    if not math.isfinite(big):
+        return None, None
+    return (p * (limit / big) if big > limit else p), H
 
 
 def _pick(full: np.ndarray, bare: np.ndarray, best: float, spike_nats: float) -> int:
@@ -1829,10 +2079,16 @@ def _fit_at(
             if rejudged:
                 search.kappa, same = kappa, False
             # a reversal moved by less than a sample, the rest as it was: the timing moves little, nearby
-            local = chosen.models == lost.models and moved <= LOCAL_MOVE_SAMPLES * spacing_rad and not rejudged
+            local = chosen.models == lost.models and moved <= search.omega * search.local_s and not rejudged
             lost, start = chosen, hyper
             if same:
                 break
+        if near is None:
+            # on point samples, at the corrections the passes settled on; then the corrections at that timing
+            hyper = search.finish(offset, lost, hyper)
+            fit_s = search.joint(search.fine, hyper, offset, lost, keep=True).solve(options, rank=False)
+            lost = choose(fit_s)
+            offset, offset_m = correction(fit_s, lost)
     # Spikes the data arcs do not reach, or whose width the data do not fix, are left out, with the reason.
     exclude = _unreached_spikes(plan, patterns)
     resolution_limited = bool(unresolved) or (
@@ -1885,9 +2141,18 @@ def _fit_at(
     rms = float(np.sqrt(np.mean(all_r**2)))
 
     def report() -> dict[str, Any]:
+        # what moves with the timing is known only as well as the timing (the spikes count theirs themselves:
+        # their onset's, _spike_timing_error)
+        spread = search.timing_spread(offset, lost, hyper) if near is None else None
+        timing_cov = None
+        if spread is not None:
+            region, slope = spread
+            timing_cov = slope @ region @ slope.T
+            timing_cov[search.spike_cols, :] = 0.0
+            timing_cov[:, search.spike_cols] = 0.0
         # the spikes' width was fitted to these samples: their joint test counts it
         fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1},
-                          family_lr={"reversal_spike": hyper.spike_lr()})
+                          family_lr={"reversal_spike": hyper.spike_lr()}, timing_cov=timing_cov)
         res = _result_body(plan, machine, options, fit, patterns)
         _spike_timing_error(res, hyper, V / plan.radius_mm)
         res["fit"]["servo_model"] = "physical" if tau is not None else "linear"

@@ -185,6 +185,7 @@ def solve(
     exclude: dict[str, str] | None = None,
     family_dof: dict[str, int] | None = None,
     family_lr: dict[str, float] | None = None,
+    timing_cov: np.ndarray | None = None,
     rank: bool = True,
 ) -> FitResult:
     """Fit ``patterns`` from ``factor``; rank them; say which cannot be identified.
@@ -200,6 +201,11 @@ def solve(
     without it at that model's own best search (the spike-free model at its
     own timing): its joint test is also the chi-square test of that ratio,
     and the larger p of the two is the family's.
+    ``timing_cov``: the parameters' covariance through a timing the same
+    data fixed (the arc start's lag and the feed-in's extra wait, searched
+    for; :mod:`.engine`), added to the fit's own: the standard errors count
+    it, and each test's statistic keeps the share of its Wald statistic
+    that is left once it is counted.
     ``rank``: False for the values and covariance alone (no terms: an
     intermediate fit whose ranking nothing reads).
     """
@@ -264,9 +270,22 @@ def solve(
         cs = (Rinv @ Rinv.T) / np.outer(norms[cols], norms[cols]) * (sse_full / dof) * kappa
         x[cols] = xs
         cov[np.ix_(cols, cols)] = cs
+    fit_cov = cov.copy()
+    if timing_cov is not None and cols:
+        cov[np.ix_(cols, cols)] += timing_cov[np.ix_(cols, cols)]
     result = FitResult(patterns, used, reasons, x, cov, sse_full, n, p, kappa, rho, condition=condition)
     if not rank:
         return result
+
+    def counted(own: Sequence[int]) -> float:
+        """The share of the Wald statistic of columns ``own`` left once the timing's covariance is counted."""
+        if timing_cov is None:
+            return 1.0
+        idx = np.ix_(own, own)
+        v = x[own]
+        alone = float(v @ np.linalg.pinv(fit_cov[idx]) @ v)
+        return float(v @ np.linalg.pinv(cov[idx]) @ v) / alone if alone > 0 else 1.0
+
     # Extra sum of squares (Suh & Lee section 4.2): drop each term in turn.
     ssr: dict[str, float] = {}
     for i, pat in enumerate(patterns):
@@ -279,9 +298,9 @@ def solve(
     for i, pat in enumerate(patterns):
         if pat.name not in ssr:
             continue
-        F = (ssr[pat.name] / pat.q) / mse if mse > 0 else math.inf
-        pv = float(stats.f.sf(F, pat.q, dof)) if math.isfinite(F) else 0.0
         sl = slices[i]
+        F = (ssr[pat.name] / pat.q) / mse * counted(list(range(sl.start, sl.stop))) if mse > 0 else math.inf
+        pv = float(stats.f.sf(F, pat.q, dof)) if math.isfinite(F) else 0.0
         scale = effect_scale[sl] if effect_scale is not None else np.ones(pat.q)
         effect = float(np.sum(np.abs(x[sl]) * scale))
         share = 100.0 * ssr[pat.name] / total if total > 0 else 0.0
@@ -298,7 +317,7 @@ def solve(
         own = {c for i in idx for c in range(slices[i].start, slices[i].stop)}
         q = len(own) + (family_dof or {}).get(fam, 0)
         fam_ssr = max(sse_subset(R, [c for c in cols if c not in own]) - sse_full, 0.0)
-        F = (fam_ssr / q) / mse if mse > 0 else math.inf
+        F = (fam_ssr / q) / mse * counted(sorted(own)) if mse > 0 else math.inf
         p_gate = float(stats.f.sf(F, q, dof)) if math.isfinite(F) else 0.0
         how = f"joint F-test over {q} parameters"
         lr = (family_lr or {}).get(fam, math.nan)
