@@ -92,6 +92,12 @@ class Geometry:
         return 0
 
     @cached_property
+    def dd(self) -> float | np.ndarray:
+        """The direction as a factor: the scalar all samples share (one pass over them fewer per use), else
+        ``d``."""
+        return float(self.direction) if self.direction else self.d
+
+    @cached_property
     def feed(self) -> float | np.ndarray:
         """The path feed: ``V``, or per sample for a stack of timings (``feeds``)."""
         if self.feeds is None:
@@ -123,7 +129,9 @@ class Geometry:
         return (self.cos_u - self.sin_u) * (self.cos_u + self.sin_u)
 
 
-ColumnFn = Callable[[Geometry, float], np.ndarray]
+# A mask's columns: an (n, q) array, or q arrays of n (each written into its column as made)
+Columns = np.ndarray | tuple[np.ndarray, ...]
+ColumnFn = Callable[[Geometry, float], Columns]
 
 
 @dataclass(frozen=True)
@@ -151,6 +159,8 @@ class Pattern:
 
     def columns(self, g: Geometry, spike_width_rad: float) -> np.ndarray:
         cols = self.fn(g, spike_width_rad)
+        if isinstance(cols, tuple):
+            return np.column_stack(cols)
         return cols.reshape(len(g), self.q)
 
 
@@ -196,38 +206,52 @@ def _wrap_count(x: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
     return r, k
 
 
-def _centre(g: Geometry, _w: float) -> np.ndarray:
-    return np.column_stack([g.cos_u, g.sin_u])
+def _centre(g: Geometry, _w: float) -> Columns:
+    return g.cos_u, g.sin_u
 
 
 def _radius(g: Geometry, _w: float) -> np.ndarray:
-    return np.ones((len(g), 1))
+    return np.ones(len(g))
 
 
 def _backlash_x(g: Geometry, _w: float) -> np.ndarray:
     # DX = -(bX/2) sgn(vX), vX = -d V sin u
     if g.comp_x and g.loop_lag_s:
         # the command's sign, d sgn(sin uc), is +1 on the even half-turns after 0 (either direction)
-        return 0.5 * _loop_steps(g, 0.0, math.pi, (0,))[0] * g.cos_u
+        out = _loop_steps(g, 0.0, math.pi, (0,))[0]
+        out *= 0.5
+        out *= g.cos_u
+        return out
     s = _step_at(g, 0)
     if s == 0.0:
-        return 0.5 * g.d * _switch(g, g.sin_u, g.u, math.pi) * g.cos_u
-    us = g.u - g.d * s
-    sin_us = g.sin_u * math.cos(s) - g.d * (g.cos_u * math.sin(s))  # sin(u - d s), d = +-1
-    return 0.5 * g.d * _switch(g, sin_us, us, math.pi) * g.cos_u
+        out = _switch(g, g.sin_u, g.u, math.pi)
+    else:
+        us = g.u - g.dd * s
+        sin_us = g.sin_u * math.cos(s) - g.dd * (g.cos_u * math.sin(s))  # sin(u - d s), d = +-1
+        out = _switch(g, sin_us, us, math.pi)
+    out *= 0.5 * g.dd
+    out *= g.cos_u
+    return out
 
 
 def _backlash_y(g: Geometry, _w: float) -> np.ndarray:
     # DY = -(bY/2) sgn(vY), vY = d V cos u
     if g.comp_y and g.loop_lag_s:
         # -d sgn(cos uc): +1 on the even half-turns after 90 deg (either direction)
-        return 0.5 * _loop_steps(g, 0.5 * math.pi, math.pi, (1,))[0] * g.sin_u
+        out = _loop_steps(g, 0.5 * math.pi, math.pi, (1,))[0]
+        out *= 0.5
+        out *= g.sin_u
+        return out
     s = _step_at(g, 1)
     if s == 0.0:
-        return -0.5 * g.d * _switch(g, g.cos_u, g.u - 0.5 * math.pi, math.pi) * g.sin_u
-    us = g.u - g.d * s
-    cos_us = g.cos_u * math.cos(s) + g.d * (g.sin_u * math.sin(s))  # cos(u - d s)
-    return -0.5 * g.d * _switch(g, cos_us, us - 0.5 * math.pi, math.pi) * g.sin_u
+        out = _switch(g, g.cos_u, g.u - 0.5 * math.pi, math.pi)
+    else:
+        us = g.u - g.dd * s
+        cos_us = g.cos_u * math.cos(s) + g.dd * (g.sin_u * math.sin(s))  # cos(u - d s)
+        out = _switch(g, cos_us, us - 0.5 * math.pi, math.pi)
+    out *= -0.5 * g.dd
+    out *= g.sin_u
+    return out
 
 
 def _step_at(g: Geometry, axis: int) -> float:
@@ -239,7 +263,11 @@ def _step_at(g: Geometry, axis: int) -> float:
 
 def _servo(g: Geometry, _w: float) -> np.ndarray:
     # DX = -vX/KX, DY = -vY/KY; m = 1/KX - 1/KY in ms; V [mm/s] * m [ms] = um
-    return 0.5 * g.feed * g.d * g.sin_2u
+    if g.feeds is None or not g.direction:
+        return 0.5 * g.feed * g.dd * g.sin_2u
+    # a stack of timings: each block at its own feed
+    k = g.feeds.size
+    return (g.sin_2u.reshape(k, -1) * (0.5 * g.direction * g.feeds)[:, None]).reshape(-1)
 
 
 def through_loop(
@@ -268,12 +296,14 @@ def through_loop(
 def _loop_steps(g: Geometry, first_rad: float, period_rad: float, axes: Sequence[int]) -> list[np.ndarray]:
     """:func:`through_loop` for each of ``axes``, of a command-side sign that is +1 from each even-numbered
     switching angle after ``first_rad`` (in the direction of travel) to the next, -1 from each odd one: the
-    angles travelled and the sign are shared, the axes differ only in their lag."""
+    angles travelled and the sign are shared, the axes differ only in their lag.
+
+    ``sign (1 - 2 settle)`` is ``sign`` but where the loop still settles: the exponential is made only where it
+    is not below ``exp(-SPIKE_REACH)`` (a few degrees after each switch), as the spikes' are.
+    """
     lead = g.loop_angles(axes[0])[0]  # the command's lead is the frame's, the same for both axes
-    uc = g.u + g.d * lead
-    since, k = _wrap_count(g.d * (uc - first_rad), period_rad)
+    since, k = _wrap_count(g.d * (g.u - first_rad) + lead, period_rad)  # d (uc - first), uc = u + d lead
     sign = 1.0 - 2.0 * (k - 2.0 * np.floor(0.5 * k))  # (-1)^k
-    unpassed = since > g.travel + lead if g.travel is not None else None
     out: list[np.ndarray] = []
     last: float | np.ndarray | None = None
     for axis in axes:
@@ -281,26 +311,34 @@ def _loop_steps(g: Geometry, first_rad: float, period_rad: float, axes: Sequence
         if out and isinstance(lag, float) and lag == last:  # equal loops
             out.append(out[-1])
             continue
-        settle = np.exp(-since / lag)
-        if unpassed is not None:
-            settle[unpassed] = 0.0
-        out.append(sign * (1.0 - 2.0 * settle))
+        reach = SPIKE_REACH * lag
+        near = np.flatnonzero(since < reach)
+        if g.travel is not None:  # a switch the command has not passed since the arc began: long settled
+            limit = g.travel[near] + (lead if isinstance(lead, float) else lead[near])
+            near = near[since[near] <= limit]
+        lag_near = lag if isinstance(lag, float) else lag[near]
+        col = sign.copy()
+        col[near] -= 2.0 * sign[near] * np.exp(-since[near] / lag_near)
+        out.append(col)
         last = lag
     return out
 
 
-def _master_slave(g: Geometry, _w: float) -> np.ndarray:
+def _master_slave(g: Geometry, _w: float) -> Columns:
     # a command-side switch at each 45 deg line (where X and Y trade the master's role), which each axis'
     # loop follows: DX = sigma_X (a + b) / (2 sqrt 2), DY = sigma_Y (a - b) / (2 sqrt 2)
     if not g.loop_lag_s:
         sx = sy = _switch(g, -g.cos_2u, g.u - 0.25 * math.pi, 0.5 * math.pi)
+        k: float | np.ndarray = 0.5 / math.sqrt(2.0)
     else:
         # sigma(uc): +1 where X is the faster (master) axis, |sin uc| >= |cos uc| (cos 2uc <= 0), -1 elsewhere;
         # that is d (-1)^k on the k-th quarter turn after 45 deg in the direction of travel
-        sx, sy = (g.d * s for s in _loop_steps(g, math.pi / 4, math.pi / 2, (0, 1)))
-    k = 0.5 / math.sqrt(2.0)
-    xs, ys = k * sx * g.cos_u, k * sy * g.sin_u
-    return np.column_stack([xs + ys, xs - ys])  # sigma (sin, cos) of u + 45 deg for equal loops
+        sx, sy = _loop_steps(g, math.pi / 4, math.pi / 2, (0, 1))
+        k = 0.5 / math.sqrt(2.0) * g.dd
+    xs, ys = sx * g.cos_u, sy * g.sin_u
+    xs *= k
+    ys *= k
+    return xs + ys, xs - ys  # sigma (sin, cos) of u + 45 deg for equal loops
 
 
 def _squareness(g: Geometry, _w: float) -> np.ndarray:
@@ -315,12 +353,16 @@ def _scale(g: Geometry, _w: float) -> np.ndarray:
 
 def _lateral_x(g: Geometry, _w: float) -> np.ndarray:
     # DY = -(lX/2) sgn(vX)
-    return 0.5 * g.d * np.abs(g.sin_u)
+    out = np.abs(g.sin_u)
+    out *= 0.5 * g.dd
+    return out
 
 
 def _lateral_y(g: Geometry, _w: float) -> np.ndarray:
     # DX = -(lY/2) sgn(vY)
-    return -0.5 * g.d * np.abs(g.cos_u)
+    out = np.abs(g.cos_u)
+    out *= -0.5 * g.dd
+    return out
 
 
 def _straight_x(g: Geometry, _w: float) -> np.ndarray:
@@ -333,23 +375,27 @@ def _straight_y(g: Geometry, _w: float) -> np.ndarray:
     return g.sin_u * g.sin_u * g.cos_u
 
 
-def _cyclic_x(g: Geometry, _w: float) -> np.ndarray:
+def _cyclic_x(g: Geometry, _w: float) -> Columns:
     # DX = c sin(2 pi X/p + phi) = c cos(phi) sin(.) + c sin(phi) cos(.)
     assert g.pitch_x_mm is not None
     c = g.cos_u
     cos_a, sin_a = cos_sin(2.0 * math.pi * g.R / g.pitch_x_mm * c)
-    return np.column_stack([sin_a * c, cos_a * c])
+    sin_a *= c
+    cos_a *= c
+    return sin_a, cos_a
 
 
-def _cyclic_y(g: Geometry, _w: float) -> np.ndarray:
+def _cyclic_y(g: Geometry, _w: float) -> Columns:
     assert g.pitch_y_mm is not None
     s = g.sin_u
     cos_a, sin_a = cos_sin(2.0 * math.pi * g.R / g.pitch_y_mm * s)
-    return np.column_stack([sin_a * s, cos_a * s])
+    sin_a *= s
+    cos_a *= s
+    return sin_a, cos_a
 
 
 def _drift(g: Geometry, _w: float) -> np.ndarray:
-    return g.t_min.astype(float, copy=True)
+    return g.t_min
 
 
 def _decay(g: Geometry, du: np.ndarray, w: float, travel: np.ndarray | None) -> np.ndarray:
@@ -395,10 +441,24 @@ def _spike(at_deg: float, direction: int) -> ColumnFn:
         # friction acts where the table reverses: the onset moves it off the reversal point
         onset = at + direction * g.onset_rad[axis]
         if g.direction == direction:  # one circle's samples: no selection to copy
-            # spike_travel(u, d, onset), from the geometry's travel past 0 (shared by the circle's spikes)
-            du = g.phase - (direction * onset) % (2.0 * math.pi)
-            du[du < 0.0] += 2.0 * math.pi
-            return _decay_near(g, du, w, g.travel)
+            # spike_travel(u, d, onset) = (phase - start) mod 2 pi, from the geometry's travel past 0 (shared by
+            # the circle's spikes), made only where the spike acts: phase within [start - h, start + reach]
+            start = (direction * onset) % (2.0 * math.pi)
+            h = 0.5 * g.aperture_rad
+            lo, hi = start - h, start + SPIKE_REACH * w + h
+            ph = g.phase
+            inside = (ph >= lo) & (ph <= hi)
+            if lo < 0.0:
+                inside |= ph >= lo + 2.0 * math.pi
+            if hi >= 2.0 * math.pi:
+                inside |= ph <= hi - 2.0 * math.pi
+            idx = np.flatnonzero(inside)
+            out = np.zeros(len(g))
+            if idx.size:
+                du = ph[idx] - start
+                du[du < 0.0] += 2.0 * math.pi
+                out[idx] = _decay(g, du, w, g.travel[idx] if g.travel is not None else None)
+            return out
         out = np.zeros(len(g))
         if g.direction == 0:
             mine = g.d == direction
@@ -483,6 +543,13 @@ def design(
     A = np.empty((n, cols)) if out is None else out
     j = 0
     for p in patterns:
-        A[:, j : j + p.q] = p.columns(g, spike_width_rad)
+        made = p.fn(g, spike_width_rad)
+        if isinstance(made, tuple):
+            for k, col in enumerate(made):
+                A[:, j + k] = col
+        elif made.ndim == 1:
+            A[:, j] = made
+        else:
+            A[:, j : j + p.q] = made.reshape(n, p.q)
         j += p.q
     return A

@@ -81,20 +81,25 @@ def servo_remainder(g: Geometry, m_ms: float, tau_s: float, frame_cos2: float | 
     # one timing: scalars; a stack of timings (g.feeds): a column of its blocks' values against their rows
     V: float | np.ndarray = g.V if g.feeds is None else g.feeds[:, None]
     shape = (len(g),) if g.feeds is None else (g.feeds.size, -1)
-    cos_u, sin_u, d = g.cos_u.reshape(shape), g.sin_u.reshape(shape), g.d.reshape(shape)
+    cos_2u, sin_2u = g.cos_2u.reshape(shape), g.sin_2u.reshape(shape)
+    d = g.dd if isinstance(g.dd, float) else g.d.reshape(shape)
     omega = V / g.R
     gx2 = 1.0 / (1.0 + (omega * inv_kx) ** 2)
     gy2 = 1.0 / (1.0 + (omega * inv_ky) ** 2)
     ref = omega * (tau_s + 0.5 * m_ms / 1000.0 * (frame_cos2 or 0.0))
     dx = np.arctan(omega * inv_kx) - ref
     dy = np.arctan(omega * inv_ky) - ref
-    # cos(u - d dx) and sin(u - d dy) from the geometry's cos u, sin u (d = +-1)
-    cx = cos_u * np.cos(dx) + d * (sin_u * np.sin(dx))
-    sy = sin_u * np.cos(dy) - d * (cos_u * np.sin(dy))
-    L_over_R = np.sqrt(gx2 * cx**2 + gy2 * sy**2)
-    physical = g.R * 1000.0 * (L_over_R - 1.0)
-    mask = 0.5 * d * V * m_ms * g.sin_2u.reshape(shape)
-    return np.asarray(physical - mask).reshape(-1)
+    # cx = cos(u - d dx), sy = sin(u - d dy) (d = +-1): gX^2 cx^2 + gY^2 sy^2 is a + b cos 2u + d c sin 2u with
+    # a, b, c per timing (cos^2 u = (1 + cos 2u)/2, sin^2 u = (1 - cos 2u)/2, 2 sin u cos u = sin 2u)
+    cdx, sdx, cdy, sdy = np.cos(dx), np.sin(dx), np.cos(dy), np.sin(dy)
+    at_cos2 = gx2 * cdx**2 + gy2 * sdy**2  # the coefficients of cos^2 u and sin^2 u
+    at_sin2 = gx2 * sdx**2 + gy2 * cdy**2
+    a, b = 0.5 * (at_cos2 + at_sin2), 0.5 * (at_cos2 - at_sin2)
+    c = gx2 * cdx * sdx - gy2 * cdy * sdy
+    L_over_R = np.sqrt(a + b * cos_2u + (c * d) * sin_2u)
+    # physical - mask: R (L/R - 1) in um less the mask (d V/2) m sin 2u
+    out = g.R * 1000.0 * (L_over_R - 1.0) - (0.5 * V * m_ms) * d * sin_2u
+    return np.asarray(out).reshape(-1)
 
 
 AXIS_FIELDS = ("backlash_x_um", "backlash_y_um")
