@@ -70,13 +70,13 @@ from .timeaxis import Break, TimeAxis
 log = logging.getLogger(__name__)
 
 FOLD_SAMPLES = 256  # a live circle folds new samples in blocks of at least this many (or as it completes)
-SEARCH_SAMPLES_PER_CIRCLE = 1000  # thinned samples per circle away from the sharp features
+SEARCH_SAMPLES_PER_CIRCLE = 400  # thinned samples per circle away from the sharp features
 FOLD_ROWS = 16384  # samples folded into a QR factor at a time: the block's design and factor stay in cache
 SEARCH_BATCH_ROWS = 60_000  # the search's timings evaluated together: at most this many samples in all
 # Near each 45 deg point (before, after it; deg) the search keeps samples up to one per spacing (deg): over the
 # whole lag range (which moves the points by up to ~3 deg) coarsely, then where they are finely (at 10 kHz 1 in 4).
 COARSE_NEAR_DEG, COARSE_SPACING_DEG = (1.0, 4.5), 0.03
-FINE_NEAR_DEG, FINE_SPACING_DEG = (0.7, 2.5), 0.004
+FINE_NEAR_DEG, FINE_SPACING_DEG = (0.7, 1.0), 0.004
 FINE_TRIM_S = 0.03  # the fine set's data arcs, trimmed for lags within this of the coarse one
 LAG_SEARCH_BELOW_S = 0.1  # a negative per-move overhead is unphysical: search only this far below 0
 LAG_GRID_S = (0.015, 0.0015)  # the lag's grids: over its whole range, and around the best
@@ -990,10 +990,11 @@ class _LagSearch:
         idx = search_samples(self.plan, timing, self.t, windows, self.sample_hz, near, spacing)
         return _SampleSet(idx, windows)
 
-    def fine_samples(self, c: float) -> _SampleSet:
-        """Every sample near the features where they are at lag ``c``, in the data arcs at ``c`` but for
-        what the lags still to be tried could move in or out (the features at the arcs' ends included)."""
-        timing = self.timing(c)
+    def fine_samples(self, c: float, wait: float = 0.0) -> _SampleSet:
+        """Every sample near the features where they are at lag ``c`` and extra wait ``wait``, in the data arcs
+        there but for what the lags still to be tried could move in or out (the features at the arcs' ends
+        included)."""
+        timing = self.timing(c, self.shifts(wait))
         windows = {}
         for d in self.plan.direction_list:
             a, b = timing.window(d)
@@ -2065,6 +2066,8 @@ def _fit_at(
             start = replace(near, spike_lr_search=None)
         local = False
         for _pass in range(3 if near is None else 1):
+            if _pass:  # the features where the last pass put them
+                search.fine = search.fine_samples(start.overhead_s, start.wait_s)
             hyper = search.run(offset, lost, start, misfit_only=near is not None, local=local)
             joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
             fit_s = joint_s.solve(options, rank=False)
