@@ -335,6 +335,8 @@ class TestAnalyzer:
     ``executor``: where each test's fit runs (see the module docstring;
     ``None``: inline, its result returned with the feed-out); ``on_submit``
     is handed each background job's future (to be told when it is done).
+    ``circles``: False for the tests' results alone (no provisional circles:
+    an offline analysis that reads only the test's result).
     """
 
     __test__ = False
@@ -348,8 +350,10 @@ class TestAnalyzer:
         curves: bool = False,
         executor: cf.Executor | None = None,
         on_submit: Callable[[cf.Future[dict[str, Any]]], None] | None = None,
+        circles: bool = True,
     ) -> None:
         self.plan = plan
+        self.circles = circles
         self.executor = executor
         self.on_submit = on_submit
         self._pending: tuple[int, StepEvent, cf.Future[dict[str, Any]]] | None = None
@@ -534,7 +538,7 @@ class TestAnalyzer:
         self._circles = [
             CircleFit(self.plan, self.machine, _for_direction(self.patterns, d), d, timing, self.hints.spike_width_deg)
             for d in self.plan.direction_list
-        ]
+        ] if self.circles else []
         self._emitted = set()
         self._added = 0
 
@@ -2066,7 +2070,7 @@ def _fit_at(
             start = replace(near, spike_lr_search=None)
         local = False
         for _pass in range(3 if near is None else 1):
-            if _pass:  # the features where the last pass put them
+            if start is not None and _pass:  # the features where the last pass put them
                 search.fine = search.fine_samples(start.overhead_s, start.wait_s)
             hyper = search.run(offset, lost, start, misfit_only=near is not None, local=local)
             joint_s = search.joint(search.fine, hyper, offset, lost, keep=True)
@@ -2322,19 +2326,21 @@ def analyze_recording(
     options: AnalysisOptions | None = None,
     curves: bool = False,
     breaks: Sequence[tuple[int, str]] = (),
+    circles: bool = True,
 ) -> list[dict[str, Any]]:
     """Everything :class:`TestAnalyzer` reports on a whole recording, in order.
 
     ``curves``: see :func:`analyze_test`.  ``breaks``: ``(index, reason)``, a
     discontinuity the times may not show (a device reset) just before sample
-    ``index`` (:meth:`TestAnalyzer.mark_break`).
+    ``index`` (:meth:`TestAnalyzer.mark_break`).  ``circles``: False for no
+    provisional circle results (the tests' results are the same).
     """
     t = np.asarray(t, dtype=float)
     L = np.asarray(L, dtype=float)
     if t.size >= 2 and np.all(np.isfinite(t)) and not np.any(t[1:] > t[:-1]):  # no full-length np.diff
         what = f"all {t.size} samples have t={t[0]:g} s" if np.all(t == t[0]) else "it never increases"
         raise DataError(f"the time axis does not advance ({what}): no test can be timed")
-    an = TestAnalyzer(plan, machine, options, curves=curves)
+    an = TestAnalyzer(plan, machine, options, curves=curves, circles=circles)
     out: list[dict[str, Any]] = []
     i = 0
     for j, reason in sorted(breaks, key=lambda b: b[0]):

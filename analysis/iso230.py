@@ -20,25 +20,34 @@ from typing import Any
 
 import numpy as np
 
+from .patterns import cos_sin
 
-def _lsc_residual(u: np.ndarray, dr: np.ndarray) -> np.ndarray:
-    """Radial deviation about the least-squares circle (centre and radius removed)."""
-    A = np.column_stack([np.ones_like(u), np.cos(u), np.sin(u)])
-    x, *_ = np.linalg.lstsq(A, dr, rcond=None)
+
+def _lsc_residual(u: np.ndarray, dr: np.ndarray, trig: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Radial deviation about the least-squares circle (centre and radius removed); ``trig``: ``cos u, sin u``
+    where already made."""
+    c, s = cos_sin(u) if trig is None else trig
+    A = np.empty((u.size, 3))
+    A[:, 0] = 1.0
+    A[:, 1] = c
+    A[:, 2] = s
+    x, *_ = np.linalg.lstsq(A.T @ A, A.T @ dr, rcond=None)  # the normal equations of three columns
     return np.asarray(dr - A @ x)
 
 
 def figures(per_direction: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
     """ISO 230-4 figures in micrometres from ``{direction: (u_rad, dR_um)}``."""
     out: dict[str, Any] = {"G_ccw_um": None, "G_cw_um": None, "G_b_um": None, "H_um": None}
+    trig = {d: cos_sin(u) for d, (u, _) in per_direction.items()}
     for d, key in ((1, "G_ccw_um"), (-1, "G_cw_um")):
         if d in per_direction and per_direction[d][0].size >= 4:
-            r = _lsc_residual(*per_direction[d])
+            r = _lsc_residual(*per_direction[d], trig[d])
             out[key] = float(r.max() - r.min())
     all_u = np.concatenate([v[0] for v in per_direction.values()])
     all_dr = np.concatenate([v[1] for v in per_direction.values()])
     if all_u.size >= 4:
-        r_all = _lsc_residual(all_u, all_dr)
+        both = tuple(np.concatenate([trig[d][k] for d in per_direction]) for k in (0, 1))
+        r_all = _lsc_residual(all_u, all_dr, (both[0], both[1]))
         if len(per_direction) == 2:
             out["G_b_um"] = float(r_all.max() - r_all.min())
             n_ccw = per_direction[1][0].size

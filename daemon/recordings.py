@@ -451,9 +451,12 @@ def analyze_file(
 def analyze(
     rec: Recording, plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, curves: bool = False
 ) -> list[dict[str, Any]]:
-    """:func:`~ballbar.analysis.engine.analyze_recording` of a recording; its errors name the recording."""
+    """:func:`~ballbar.analysis.engine.analyze_recording` of a recording, its tests' results and events (no
+    provisional circles: what the daemon published of them live is in the recording); its errors name the
+    recording."""
     try:
-        out = analyze_recording(rec.t, rec.L, plan, machine, options, curves=curves, breaks=rec.breaks)
+        out = analyze_recording(rec.t, rec.L, plan, machine, options, curves=curves, breaks=rec.breaks,
+                                circles=False)
     except DataError as err:
         if rec.name and not str(err).startswith(rec.name):
             err.args = (f"{rec.name}: {err}",)
