@@ -1099,36 +1099,13 @@ class _LagSearch:
         ``[A | y]`` per timing."""
         k = len(points)
         timings = [self.timing(c, shift) for c, shift in points]
-        feeds = np.array([tm.feed_mm_s for tm in timings]) if k > 1 else None
         G = np.zeros((k, self.p, self.p))
         b = np.zeros((k, self.p))
         yy = np.zeros(k)
-        w = math.radians(w_deg)
-        extra = lost.geometry(self.tau)
-        for d, (patterns, cols) in self.by_direction.items():
-            t_rel, y0, t_min = parts[d]
-            n = t_rel.size
-            if n == 0:
-                continue
-            # Schedule.angle_deg of each timing, as one expression over the stack
-            start = np.array([[tm.sched.data_start_s[d]] for tm in timings])
-            feed = np.array([[tm.feed_mm_s] for tm in timings])
-            u_deg = data_start_deg(self.plan, d) + d * np.degrees(feed * (t_rel - start) / self.plan.radius_mm)
-            u = np.radians(u_deg).reshape(-1)
-            g = Geometry(
-                u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
-                R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
-                travel=d * (u - math.radians(arc_start_deg(self.plan, d))), loop_lag_s=self.tau,
-                aperture_rad=self.aperture_rad, feeds=feeds, **extra,
-            )
+        jobs = [(d, cols, parts[d]) for d, (_, cols) in self.by_direction.items() if parts[d][0].size]
+        grams = [self._direction_gram(d, part, timings, w_deg, offset, lost) for d, _, part in jobs]
+        for (_, cols, _), gram in zip(jobs, grams, strict=True):
             q = cols.size
-            MT = np.empty((q + 1, u.size))  # [A | y] transposed: each column contiguous, stacked by timing
-            design(patterns, g, w, out=MT[:q].T)
-            MT[q].reshape(k, n)[:] = y0
-            if offset is not None:
-                MT[q] -= offset(g)
-            X = MT.reshape(q + 1, k, n).transpose(1, 0, 2)
-            gram = np.matmul(X, X.transpose(0, 2, 1))
             G[:, cols[:, None], cols] += gram[:, :q, :q]
             b[:, cols] += gram[:, :q, q]
             yy += gram[:, q, q]
@@ -1140,6 +1117,39 @@ class _LagSearch:
             Gu, bu = G[:, use][:, :, use], b[:, use]
             bare = _sse_at(_normal_solve_many(Gu, bu), Gu, bu, yy)
         return [(float(full[i]), float(bare[i]), x[i]) for i in range(k)]
+
+    def _direction_gram(
+        self,
+        d: int,
+        part: tuple[np.ndarray, np.ndarray, np.ndarray],
+        timings: Sequence[Timing],
+        w_deg: float,
+        offset: Offset | None,
+        lost: LostMotion,
+    ) -> np.ndarray:
+        """One direction's Gram matrices of ``[A | y]`` (k, q + 1, q + 1), its samples stacked by timing."""
+        patterns, cols = self.by_direction[d]
+        t_rel, y0, t_min = part
+        k, n = len(timings), t_rel.size
+        # Schedule.angle_deg of each timing, as one expression over the stack
+        start = np.array([[tm.sched.data_start_s[d]] for tm in timings])
+        feed = np.array([[tm.feed_mm_s] for tm in timings])
+        u_deg = data_start_deg(self.plan, d) + d * np.degrees(feed * (t_rel - start) / self.plan.radius_mm)
+        u = np.radians(u_deg).reshape(-1)
+        g = Geometry(
+            u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
+            R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
+            travel=d * (u - math.radians(arc_start_deg(self.plan, d))), loop_lag_s=self.tau,
+            aperture_rad=self.aperture_rad, feeds=feed[:, 0] if k > 1 else None, **lost.geometry(self.tau),
+        )
+        q = cols.size
+        MT = np.empty((q + 1, u.size))  # [A | y] transposed: each column contiguous, stacked by timing
+        design(patterns, g, math.radians(w_deg), out=MT[:q].T)
+        MT[q].reshape(k, n)[:] = y0
+        if offset is not None:
+            MT[q] -= offset(g)
+        X = MT.reshape(q + 1, k, n).transpose(1, 0, 2)
+        return np.asarray(np.matmul(X, X.transpose(0, 2, 1)))
 
     def width_error(self, hyper: _Hyper, offset: Offset | None, lost: LostMotion) -> tuple[float, dict[str, float]]:
         """The spike width's standard error in ``ln w`` and each spike height's change per unit ``ln w``.
