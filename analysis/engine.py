@@ -81,7 +81,7 @@ FINE_TRIM_S = 0.03  # the fine set's data arcs, trimmed for lags within this of 
 LAG_SEARCH_BELOW_S = 0.1  # a negative per-move overhead is unphysical: search only this far below 0
 LAG_GRID_S = (0.015, 0.0015)  # the lag's grids: over its whole range, and around the best
 STAIR_REACH_S = 0.001  # a stair's reach either side (at most, unless half a sample period is more)
-STAIR_BISECT = 4  # bisections of each stair edge between the stair grid's points
+STAIR_BISECT = 4  # bisections of each stair edge once bracketed
 STAIR_NATS = 0.01  # likelihood levels this close are one stair of the lag's staircase
 LAG_CI_NATS = 2.0  # lags whose full-model likelihood is this close to the best are not told apart by it
 NEWTON_START_S = 0.003  # the smoothed descent's first stencil spacing in the arcs' starts (s): the grids' resolution
@@ -1305,25 +1305,21 @@ class _LagSearch:
 
     # --------------------------------------------------------------------------------------------- the stages
 
-    def grid(
-        self, lo: float, hi: float, step: float, wait: bool = False, hold: int | None = None
-    ) -> tuple[np.ndarray, ...]:
-        """The objectives over the lag or (``wait``) the feed-in's extra wait, ``lo..hi`` about its value.
-
-        ``hold``: along the lag with that direction's data arc held where it starts (the wait follows): only
-        the other arc's start and the feed move.
-        """
+    def grid(self, lo: float, hi: float, step: float, wait: bool = False) -> tuple[np.ndarray, ...]:
+        """The objectives over the lag or (``wait``) the feed-in's extra wait, ``lo..hi`` about its value."""
         h = self.hyper
         now, (b0, b1) = (h.wait_s, (-WAIT_MAX_S, WAIT_MAX_S)) if wait else (h.overhead_s, (self.lo_c, self.hi_c))
         g = np.arange(max(now + lo, b0), min(now + hi, b1) + 0.5 * step, step)
-        at = self.line(wait, hold)
+        at = self.line(wait, None)
         points = [at(float(x)) for x in g]
         self.prefetch(points)
         v = np.array([self.objs(c, w) for c, w in points])
         return g, v[:, 0], v[:, 1], v[:, 2], np.array(points)
 
     def line(self, wait: bool, hold: int | None) -> Callable[[float], tuple[float, float]]:
-        """The (lag, wait) at a coordinate of :meth:`grid`'s line through the current timing."""
+        """The (lag, wait) at a coordinate of a line through the current timing: along the lag, or (``wait``)
+        the wait; ``hold``: along the lag with that direction's data arc held where it starts (the wait
+        follows), so that only the other arc's start and the feed move."""
         h = self.hyper
         if hold is not None:
             target = self.start_of(hold, h.overhead_s, h.wait_s)
@@ -1354,11 +1350,13 @@ class _LagSearch:
         """Move the timing to the minimum of ``value`` (of :meth:`objs`) smoothed at a shrinking scale.
 
         Around the current timing a 3 x 3 stencil of the coordinates (:meth:`coords`), ``h`` apart, is
-        evaluated at once with the features averaged over ``h`` (:meth:`smooth`); a quadratic fitted to it
-        proposes its minimum (at most 1.5 ``h`` away), and the best of the ten points is the next centre.
-        Smoothed at its own scale the objective is a bowl, so a few such steps take the timing from the grids'
-        resolution down to ``h_min`` (a sample period): the valley the two arcs' starts trade along at a slant
-        (each moves the feed too) is followed by the fitted quadratic, not by steps along the axes.
+        evaluated at once with the features averaged over ``h`` (:meth:`smooth`; ``floor``: over a sample at
+        least); a quadratic fitted to it proposes its minimum (at most ``NEWTON_REACH`` spacings away), and the
+        best of the ten points is the next centre.  The next stencil is turned along the fitted bowl's axes
+        and stretched (by up to ``NEWTON_STRETCH``) where it is flat: a valley the two arcs' starts trade along
+        at a slant (each moves the feed too; free spikes or a large servo pattern trade with the wait) is
+        followed, not crossed by steps along the axes.  ``h`` shrinks by ``NEWTON_SHRINK`` once the minimum is
+        within half a spacing, from ``h0`` down to ``h_min``.
         """
         h = self.hyper
         step = max(h0, h_min)
@@ -1392,8 +1390,8 @@ class _LagSearch:
                 step = max(step / NEWTON_SHRINK, h_min)
 
     def stair(self, hold: int | None = None, wait: bool = False) -> float:
-        """Move to the middle of the stair the timing stands on, along a coordinate of :meth:`grid`; return a
-        uniform spread over it.
+        """Move to the middle of the stair the timing stands on, along a :meth:`line`; return a uniform spread
+        over it.
 
         On point samples the likelihood is a staircase: a sharp onset moves between two samples without
         changing the fit, so every timing on a stair fits the samples equally, and its middle is the least
@@ -1444,26 +1442,6 @@ class _LagSearch:
         edges = [inside[k] if o is None else 0.5 * (inside[k] + o) for k, o in enumerate(outside)]
         self.hyper.overhead_s, self.hyper.wait_s = at(0.5 * (edges[0] + edges[1]))
         return float(abs(edges[1] - edges[0]) / math.sqrt(12.0))
-
-    def constrained_bare(self) -> None:
-        """Of the timings the full model cannot tell from its best (``LAG_CI_NATS``), or where the model
-        without spikes is within their joint test of it (``spike_nats``), move to where the model without
-        spikes fits best (:func:`_pick` over a stencil a sample apart, on point samples)."""
-        h = self.hyper
-        self.smooth(None)
-        c0, w0 = h.overhead_s, h.wait_s
-        inv = self._inverse_jacobian(c0, w0)
-        step = self.fine_s
-        for _ in range(NEWTON_STEPS):
-            c0, w0 = h.overhead_s, h.wait_s
-            points = [self.bounded(*(np.array([c0, w0]) + inv @ (step * np.array((a, b), dtype=float))))
-                      for a in (-1, 0, 1) for b in (-1, 0, 1)]
-            self.prefetch(points)
-            v = np.array([self.objs(c, w) for c, w in points])
-            k = self.choose(v[:, 0], v[:, 1])
-            h.overhead_s, h.wait_s = points[k]
-            if k == 4:  # the centre
-                break
 
     # -------------------------------------------------------------------------------------------- the search
 
@@ -1545,9 +1523,15 @@ class _LagSearch:
         taken: spikes do not buy a timing the steps refute, and where spikes
         are real the model without them is far worse everywhere.
 
-        On point samples the likelihood is a staircase: every timing on a stair fits the samples equally, and
-        its middle is the least biased.  The spikes' width is found again at this timing; then along each arc's
-        start (the other's held) the stair is resolved and its middle taken.
+        On point samples the likelihood is a staircase, and where spikes are large its stairs are a fraction
+        of a sample wide and tens of nats apart.  So first the smoothing is shrunk below a sample (to
+        ``CONTINUE_SAMPLES``), :meth:`newton` following the minimum into the stairs (where samples are close
+        enough to smooth at all); then a compass search on point samples takes the lowest stair near, and
+        another, among the timings the full model cannot tell apart, the one the spike-free model fits best.
+        The spikes' width is found again at that timing; the feed-in's extra wait is kept only where the data
+        need it (:meth:`wait_needed`).  Last, every timing on a stair fits the samples equally and its middle is
+        the least biased: the stair is resolved along the wait and along each arc's start (the other's held),
+        or, without a wait, along the lag, and its middle taken.
         """
         hyper = replace(start)
         self._begin(self.fine, offset, lost, hyper)
