@@ -1414,31 +1414,25 @@ class _LagSearch:
         reach = max(0.5 * period, min(STAIR_REACH_S, STAIR_SAMPLES * period))
         inside = [x0, x0]  # per side (-, +): the farthest point found on the stair, and the nearest off it
         outside: list[float | None] = [None, None]
-        step = min(STAIR_FIRST * period, reach)
-        while True:
-            sides = [k for k in (0, 1) if outside[k] is None]
-            if not sides:
-                break
-            xs = {k: x0 + (2 * k - 1) * step for k in sides}
+
+        def probe(xs: dict[int, float]) -> None:  # per side, a point: on the stair or off it (evaluated together)
             self.prefetch([at(x) for x in xs.values()])
             for k, x in xs.items():
                 if on(x):
                     inside[k] = x
                 else:
                     outside[k] = x
+
+        step = min(STAIR_FIRST * period, reach)
+        while any(o is None for o in outside):
+            probe({k: x0 + (2 * k - 1) * step for k in (0, 1) if outside[k] is None})
             if step >= reach:
                 break
             step = min(2 * step, reach)
         for _ in range(STAIR_BISECT):  # both brackets halved together
-            mids = {k: 0.5 * (inside[k] + o) for k, o in enumerate(outside) if o is not None}
-            if not mids:
+            if all(o is None for o in outside):
                 break
-            self.prefetch([at(x) for x in mids.values()])
-            for k, x in mids.items():
-                if on(x):
-                    inside[k] = x
-                else:
-                    outside[k] = x
+            probe({k: 0.5 * (inside[k] + o) for k, o in enumerate(outside) if o is not None})
         edges = [inside[k] if o is None else 0.5 * (inside[k] + o) for k, o in enumerate(outside)]
         self.hyper.overhead_s, self.hyper.wait_s = at(0.5 * (edges[0] + edges[1]))
         return float(abs(edges[1] - edges[0]) / math.sqrt(12.0))
@@ -2155,6 +2149,12 @@ def _fit_at(
         fit = joint.solve(options, rho=_lag1(residuals), exclude=exclude, family_dof={"reversal_spike": 1},
                           family_lr={"reversal_spike": hyper.spike_lr()}, timing_cov=timing_cov)
         res = _result_body(plan, machine, options, fit, patterns)
+        if timing_cov is not None:
+            res["fit"]["uncertainty_method"] += (
+                "; every parameter's also holds the timing's spread (the lag and the feed-in's extra wait the full "
+                "model cannot tell from its best, times the parameter's change with them), and each F-test keeps "
+                "the share of its Wald statistic left once that is counted"
+            )
         _spike_timing_error(res, hyper, V / plan.radius_mm)
         res["fit"]["servo_model"] = "physical" if tau is not None else "linear"
         res["fit"]["servo_model_note"] = tau_source
