@@ -245,3 +245,14 @@ def test_the_final_fit_stops_refolding_once_the_correction_has_settled(monkeypat
         # (skipping the first refold too, the fine set's mismatch kept, moves them by 6e-4 of it here)
         assert abs(q["value"] - p["value"]) <= 1e-5 * p["stderr"], (name, q["value"], p["value"])
         assert q["significant"] == p["significant"]
+
+
+def test_an_analysis_without_provisional_circles_gives_the_same_tests() -> None:
+    """``circles=False`` (``ballbar analyze``, which reads only the tests) leaves the circles out and nothing
+    else."""
+    plan = TestPlan(sample_hz=250.0)
+    t, L = mask_recording(plan, FULL_TRUTH, fs=250.0)
+    live = analyze_recording(t, L, plan, options=MASKS)
+    offline = analyze_recording(t, L, plan, options=MASKS, circles=False)
+    assert any(r["kind"] == "circle" for r in live)
+    assert [r for r in live if r["kind"] != "circle"] == offline

@@ -122,3 +122,28 @@ def test_extra_sum_of_squares_ranks_and_tests(amp: float, expect_sig: bool) -> N
     assert fit.terms["maybe"].significant is expect_sig
     assert math.isclose(sum(t.share_pct for t in fit.terms.values()), 100.0)
     assert fit.terms["big"].share_pct > fit.terms["zero"].share_pct
+
+
+def test_a_timing_spread_widens_the_errors_and_weakens_the_tests_it_reaches() -> None:
+    """A covariance through the timing is added to the fit's: the parameter it reaches has the larger standard
+    error and the larger p; the one it does not reach is unchanged; a zero one changes nothing."""
+    rng = np.random.default_rng(8)
+    u = rng.uniform(0, 2 * np.pi, 3000)
+    A = np.column_stack([np.ones_like(u), np.cos(2 * u), np.sin(2 * u)])
+    y = A @ np.array([1.0, 0.02, 0.5]) + rng.normal(scale=0.1, size=u.size)
+    f = Factor(3)
+    f.add(A, y)
+    pats = [_pat("radius"), _pat("scale"), _pat("servo")]
+    plain = solve(f, pats, min_effect_um=0.0)
+    same = solve(f, pats, min_effect_um=0.0, timing_cov=np.zeros((3, 3)))
+    np.testing.assert_allclose(same.cov, plain.cov)
+    assert [t.p_value for t in same.terms.values()] == [t.p_value for t in plain.terms.values()]
+    timing = np.zeros((3, 3))
+    timing[1, 1] = 0.02**2  # the scale moves with the timing by as much as it is worth
+    wide = solve(f, pats, min_effect_um=0.0, timing_cov=timing)
+    assert math.sqrt(wide.cov[1, 1]) > 3 * math.sqrt(plain.cov[1, 1])
+    assert wide.terms["scale"].p_value > 10 * plain.terms["scale"].p_value
+    assert plain.terms["scale"].significant and not wide.terms["scale"].significant
+    assert wide.cov[2, 2] == plain.cov[2, 2]
+    assert wide.terms["servo"].F == pytest.approx(plain.terms["servo"].F)
+
