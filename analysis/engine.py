@@ -2268,8 +2268,10 @@ def _timing_dict(
         },
         "method": (
             "feed from the feed-in to feed-out centroid span; arc-start lag (per-move overhead), each data arc's "
-            "shift against it (unequal waits before the arcs) and spike width by profile likelihood of the full "
-            "model, the lag among those the full model cannot tell apart where the model without spikes fits best"
+            "shift against it (unequal waits before the arcs, fitted only where the data need them: "
+            + ("fitted" if hyper.wait_free else "not needed here, 0")
+            + ") and spike width by profile likelihood of the full model, the lag among those the full model "
+            "cannot tell apart where the model without spikes fits best, each stair's middle on point samples"
         ),
     }
     return out
