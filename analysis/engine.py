@@ -41,7 +41,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy import optimize
 from scipy.linalg.blas import dsymv as _symv
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotri as _potri
@@ -117,6 +116,7 @@ DEFAULT_SPIKE_WIDTH_DEG = 0.5
 RESOLVE_SAMPLES = 2.0  # samples per spike width below which a spike cannot be sized
 WIDTH_AT_BOUND = 1.03  # a fitted width within 3 % of a bound of its search has run onto it
 WIDTH_STEP_LN = 0.05  # the step in ln w of the width's error estimate
+WIDTH_GRID, WIDTH_XTOL = 9, 0.015  # the width's search: a grid over its range in ln w, refined to this step
 SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full) standard errors
 SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
 KAPPA_RESEARCH = 0.5  # the timing is searched again where the residual's correlation has fallen below this share
@@ -1052,9 +1052,7 @@ class _LagSearch:
         most): at low rates each timing's samples are few and the cost is
         per call, not per sample.
         """
-        context = (at, offset, lost)
-        if len(self._memo_for) != 3 or any(a is not b for a, b in zip(context, self._memo_for, strict=True)):
-            self._memo, self._memo_for = {}, context
+        self._memo_context(at, offset, lost)
         keys = [(c, w_deg, self.aperture_rad, *sorted((shift or {}).items())) for c, shift in points]
         todo: dict[tuple[object, ...], tuple[float, dict[int, float] | None]] = {}
         for key, point in zip(keys, points, strict=True):
@@ -1072,6 +1070,28 @@ class _LagSearch:
         out = [self._memo[key] for key in keys]
         self.last_x = out[-1][2]
         return [(full, bare) for full, bare, _ in out]
+
+    def sse_widths(
+        self, at: _SampleSet, c: float, widths_deg: Sequence[float], offset: Offset | None, lost: LostMotion,
+        shift_s: dict[int, float] | None = None,
+    ) -> list[float]:
+        """The full model's sums of squares on ``at`` at lag ``c`` and each spike width (kept as :meth:`sse_many`
+        keeps its own; the widths not kept yet evaluated together, :meth:`_evaluate_widths`)."""
+        self._memo_context(at, offset, lost)
+        keys = [(c, w, self.aperture_rad, *sorted((shift_s or {}).items())) for w in widths_deg]
+        todo = [(key, w) for key, w in zip(keys, widths_deg, strict=True) if key not in self._memo]
+        if todo:
+            got = self._evaluate_widths(self.parts(at), (c, shift_s), [w for _, w in todo], offset, lost)
+            for (key, _), value in zip(todo, got, strict=True):
+                self._memo[key] = value
+        return [self._memo[key][0] for key in keys]
+
+    def _memo_context(self, at: _SampleSet, offset: Offset | None, lost: LostMotion) -> None:
+        """The kept objectives hold for one sample set, correction and lost-motion model: forget them for
+        another."""
+        context = (at, offset, lost)
+        if len(self._memo_for) != 3 or any(a is not b for a, b in zip(context, self._memo_for, strict=True)):
+            self._memo, self._memo_for = {}, context
 
     def parts(self, at: _SampleSet) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Per direction, the samples of ``at`` in its window: times from the feed-in (the timings' reference),
@@ -1097,14 +1117,54 @@ class _LagSearch:
         """Full and spike-free sums of squares and the full model's coefficients at each timing of ``points``:
         the timings' samples stacked into one geometry (:attr:`.patterns.Geometry.feeds`), one Gram matrix of
         ``[A | y]`` per timing."""
-        k = len(points)
         timings = [self.timing(c, shift) for c, shift in points]
+        return self._solve_grams({d: self._direction_gram(d, parts[d], timings, w_deg, offset, lost)
+                                  for d in self.by_direction if parts[d][0].size}, len(points))
+
+    def _evaluate_widths(
+        self,
+        parts: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]],
+        point: tuple[float, dict[int, float] | None],
+        widths_deg: Sequence[float],
+        offset: Offset | None,
+        lost: LostMotion,
+    ) -> list[tuple[float, float, np.ndarray]]:
+        """:meth:`_evaluate` of one timing at several spike widths: everything but the spike columns is the
+        same at each, so it is made once, and only the spikes' blocks of the Gram matrix per width."""
+        timing = self.timing(*point)
+        grams = {}
+        for d, (patterns, cols) in self.by_direction.items():
+            if not parts[d][0].size:
+                continue
+            g = self._geometry(d, parts[d], [timing], lost)
+            at = np.cumsum([0] + [p.q for p in patterns])
+            steady = [i for i, p in enumerate(patterns) if p.reversal is None]
+            spikes = [i for i, p in enumerate(patterns) if p.reversal is not None]
+            # the steady columns and y, and the spikes' columns, in the direction's [A | y]
+            rest = np.array([c for i in steady for c in range(at[i], at[i + 1])] + [cols.size])
+            sharp = np.array([c for i in spikes for c in range(at[i], at[i + 1])], dtype=int)
+            N = np.empty((g.u.size, rest.size))  # [A without the spikes | y]
+            design([patterns[i] for i in steady], g, 0.0, out=N[:, :-1])
+            N[:, -1] = parts[d][1] - offset(g) if offset is not None else parts[d][1]
+            gram = np.empty((len(widths_deg), cols.size + 1, cols.size + 1))
+            gram[:, rest[:, None], rest] = N.T @ N
+            for i, w_deg in enumerate(widths_deg):
+                S = design([patterns[j] for j in spikes], g, math.radians(w_deg))
+                NS = N.T @ S
+                gram[i, rest[:, None], sharp] = NS
+                gram[i, sharp[:, None], rest] = NS.T
+                gram[i, sharp[:, None], sharp] = S.T @ S
+            grams[d] = gram
+        return self._solve_grams(grams, len(widths_deg))
+
+    def _solve_grams(self, grams: dict[int, np.ndarray], k: int) -> list[tuple[float, float, np.ndarray]]:
+        """Full and spike-free sums of squares and the full model's coefficients from each direction's stack of
+        ``[A | y]`` Gram matrices (k, q + 1, q + 1), its columns placed among the model's."""
         G = np.zeros((k, self.p, self.p))
         b = np.zeros((k, self.p))
         yy = np.zeros(k)
-        jobs = [(d, cols, parts[d]) for d, (_, cols) in self.by_direction.items() if parts[d][0].size]
-        grams = [self._direction_gram(d, part, timings, w_deg, offset, lost) for d, _, part in jobs]
-        for (_, cols, _), gram in zip(jobs, grams, strict=True):
+        for d, gram in grams.items():
+            cols = self.by_direction[d][1]
             q = cols.size
             G[:, cols[:, None], cols] += gram[:, :q, :q]
             b[:, cols] += gram[:, :q, q]
@@ -1129,27 +1189,35 @@ class _LagSearch:
     ) -> np.ndarray:
         """One direction's Gram matrices of ``[A | y]`` (k, q + 1, q + 1), its samples stacked by timing."""
         patterns, cols = self.by_direction[d]
-        t_rel, y0, t_min = part
-        k, n = len(timings), t_rel.size
-        # Schedule.angle_deg of each timing, as one expression over the stack
-        start = np.array([[tm.sched.data_start_s[d]] for tm in timings])
-        feed = np.array([[tm.feed_mm_s] for tm in timings])
-        u_deg = data_start_deg(self.plan, d) + d * np.degrees(feed * (t_rel - start) / self.plan.radius_mm)
-        u = np.radians(u_deg).reshape(-1)
-        g = Geometry(
-            u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
-            R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
-            travel=d * (u - math.radians(arc_start_deg(self.plan, d))), loop_lag_s=self.tau,
-            aperture_rad=self.aperture_rad, feeds=feed[:, 0] if k > 1 else None, **lost.geometry(self.tau),
-        )
+        y0 = part[1]
+        k, n = len(timings), y0.size
+        g = self._geometry(d, part, timings, lost)
         q = cols.size
-        MT = np.empty((q + 1, u.size))  # [A | y] transposed: each column contiguous, stacked by timing
+        MT = np.empty((q + 1, g.u.size))  # [A | y] transposed: each column contiguous, stacked by timing
         design(patterns, g, math.radians(w_deg), out=MT[:q].T)
         MT[q].reshape(k, n)[:] = y0
         if offset is not None:
             MT[q] -= offset(g)
         X = MT.reshape(q + 1, k, n).transpose(1, 0, 2)
         return np.asarray(np.matmul(X, X.transpose(0, 2, 1)))
+
+    def _geometry(
+        self, d: int, part: tuple[np.ndarray, np.ndarray, np.ndarray], timings: Sequence[Timing], lost: LostMotion
+    ) -> Geometry:
+        """Direction ``d``'s samples of ``part`` at each of ``timings``, stacked (:attr:`.patterns.Geometry.feeds`)."""
+        t_rel, _, t_min = part
+        k = len(timings)
+        # Schedule.angle_deg of each timing, as one expression over the stack
+        start = np.array([[tm.sched.data_start_s[d]] for tm in timings])
+        feed = np.array([[tm.feed_mm_s] for tm in timings])
+        u_deg = data_start_deg(self.plan, d) + d * np.degrees(feed * (t_rel - start) / self.plan.radius_mm)
+        u = np.radians(u_deg).reshape(-1)
+        return Geometry(
+            u=u, d=np.full(u.size, float(d)), t_min=np.tile(t_min, k), V=timings[0].feed_mm_s,
+            R=self.plan.radius_mm, pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
+            travel=d * (u - math.radians(arc_start_deg(self.plan, d))), loop_lag_s=self.tau,
+            aperture_rad=self.aperture_rad, feeds=feed[:, 0] if k > 1 else None, **lost.geometry(self.tau),
+        )
 
     def width_error(self, hyper: _Hyper, offset: Offset | None, lost: LostMotion) -> tuple[float, dict[str, float]]:
         """The spike width's standard error in ``ln w`` and each spike height's change per unit ``ln w``.
@@ -1336,13 +1404,35 @@ class _LagSearch:
         return np.asarray(full)
 
     def width(self) -> None:
-        """The spikes' width: the objective is smooth in it (a bounded scalar search in ``ln w``)."""
+        """The spikes' width: the full model's best in ``ln w`` over its range.
+
+        The objective is smooth in the width, but not always of one well: a grid over the range
+        (``WIDTH_GRID`` points), then about the best a step a third as wide either side and the vertex of the
+        parabola through the three, while the step is above ``WIDTH_XTOL``.  Each round's widths are made
+        together at this timing, where only the spikes' columns differ (:meth:`sse_widths`).
+        """
         h = self.hyper
-        lo_w, hi_w = (math.log(v) for v in self.width_bounds)
-        r = optimize.minimize_scalar(
-            lambda lw: self.sse(self.at, h.overhead_s, math.exp(lw), self.offset, self.lost, self.shifts(h.wait_s))[0],
-            bounds=(lo_w, hi_w), method="bounded", options={"xatol": 0.015})
-        h.spike_width_deg = float(math.exp(r.x))
+        lo, hi = (math.log(v) for v in self.width_bounds)
+        seen: dict[float, float] = {}
+
+        def evaluate(lws: Sequence[float]) -> None:
+            new = [lw for lw in dict.fromkeys(min(max(v, lo), hi) for v in lws) if lw not in seen]
+            if new:
+                values = self.sse_widths(self.at, h.overhead_s, [math.exp(v) for v in new], self.offset, self.lost,
+                                         self.shifts(h.wait_s))
+                seen.update(zip(new, values, strict=True))
+
+        evaluate(list(np.linspace(lo, hi, WIDTH_GRID)))
+        step = (hi - lo) / (WIDTH_GRID - 1)
+        while step > WIDTH_XTOL:
+            best = min(seen, key=seen.__getitem__)
+            step /= 3.0
+            evaluate([best - step, best + step])
+            a, b = seen[max(best - step, lo)], seen[min(best + step, hi)]
+            bend = a + b - 2.0 * seen[best]
+            if bend > 0:  # the parabola's vertex, within the step
+                evaluate([best + 0.5 * step * (a - b) / bend])
+        h.spike_width_deg = float(math.exp(min(seen, key=seen.__getitem__)))
 
     def newton(
         self, value: Callable[[tuple[float, float, float]], float], h0: float, h_min: float, floor: bool = True
