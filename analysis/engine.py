@@ -922,16 +922,13 @@ class _LagSearch:
     ``c^2 / (2 s^2)`` with ``s`` = 50 ms: where the data cannot see the lag, it
     stays near zero.
 
-    On point samples the likelihood is a staircase in ``c``: a sharp onset (a
-    spike's, a step's) moves between two samples without changing the fit, and
-    an exponential spike trades a shift for its height exactly.  A bracketing
-    optimiser stops on whichever stair it meets, so ``c`` is found on grids
-    instead (``LAG_GRID_S``): over the whole range on a coarse set of samples,
-    around the best on a fine one that keeps every sample near the sharp
-    features, and the middle of the lowest stair is taken (every ``c`` on it
-    fits the samples equally; its middle is the least biased).  The width is
-    found by a bounded scalar search between them: the objective is smooth in
-    ``w``.
+    On point samples the likelihood is a staircase: a sharp onset (a spike's, a
+    step's) moves between two samples without changing the fit, and an
+    exponential spike trades a shift for its height exactly.  A bracketing
+    optimiser stops on whichever stair it meets, so the timing is found on grids
+    and descents smoothed at their own scale (:meth:`run`: where it lies), then
+    on point samples (:meth:`finish`: the lowest stair near, its middle).  The
+    width is found on a grid in ``ln w`` refined about the best (:meth:`width`).
     """
 
     def __init__(
