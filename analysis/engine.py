@@ -122,6 +122,9 @@ SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes ar
 KAPPA_RESEARCH = 0.5  # the timing is searched again where the residual's correlation has fallen below this share
 ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
 OFFSET_SETTLED_UM = 1e-4  # the final fit is not refolded for a correction that would move by less (um)
+SLOPE_MS = 1e-3  # the step (ms of servo mismatch) of the correction's slope, folded with the final fit
+FOLD_SLOPE = True  # fold that slope (False: refold every sample at each new correction)
+FINAL_STEPS = 6  # the final fit's correction brought to its fixed point in at most this many steps
 # A measured feed this far from the programmed one is not the machine's habit (controls hold the feed to well
 # under 1 % at 100 % override): something else went wrong, and the next test must not assume it.
 HINT_MAX_FEED_DEVIATION = 0.1
@@ -212,6 +215,7 @@ class CircleFit:
         lost: LostMotion | None = None,
         aperture_rad: float = 0.0,
         skip_rad: float = 0.0,
+        slope: Offset | None = None,
     ) -> None:
         self.plan, self.machine, self.patterns = plan, machine, list(patterns)
         self.loop_lag_s = loop_lag_s
@@ -227,6 +231,11 @@ class CircleFit:
         self.t_start, self.t_end = timing.window(direction)
         self.keep_design = keep_design
         self.offset = offset
+        # The correction's change per ms of servo mismatch, folded as one more column of [A | -slope | y]: the
+        # factor at another mismatch is then that column's multiple added to y's (:meth:`move_correction`),
+        # without a fold.
+        self.slope = slope
+        self.with_slope = Factor(self.p + 1) if slope is not None else None
         self.kept: list[tuple[np.ndarray, np.ndarray]] = []  # (t, dR as measured) of the samples folded in
 
     def geometry(self, t: np.ndarray) -> Geometry:
@@ -263,8 +272,34 @@ class CircleFit:
     def _fold(self, t: np.ndarray, dr: np.ndarray) -> None:
         """Fold samples into the factor ``FOLD_ROWS`` at a time (no design matrix of a whole circle in memory)."""
         for g, A, rows in self._blocks(t):
-            self.factor.add(A, dr[rows] - self.offset(g) if self.offset is not None else dr[rows])
+            y = dr[rows] - self.offset(g) if self.offset is not None else dr[rows]
+            if self.with_slope is not None and self.slope is not None:
+                self.with_slope.add(np.column_stack([A, -self.slope(g)]), y)
+            else:
+                self.factor.add(A, y)
             np.maximum(self.colmax, np.abs(A).max(axis=0), out=self.colmax)
+        if self.with_slope is not None:
+            self.factor = self._factor_at(0.0)
+
+    def _factor_at(self, delta: float) -> Factor:
+        """The factor of ``[A | y - offset - delta slope]`` from the one folded with the slope's column."""
+        assert self.with_slope is not None
+        R, p = self.with_slope.rows, self.p
+        y = R[:, p + 1] + delta * R[:, p]  # in the folded rows' frame: y's column less delta slopes
+        out = Factor(p)
+        out.R = np.zeros((p + 1, p + 1))
+        out.R[:p, :p] = R[:p, :p]
+        out.R[:p, p] = y[:p]
+        out.R[p, p] = math.hypot(y[p], y[p + 1])
+        out.n = self.with_slope.n
+        return out
+
+    def move_correction(self, delta_ms: float, offset: Offset | None) -> None:
+        """The correction made at a servo mismatch ``delta_ms`` away from the folded one, ``offset``: the factor
+        moved along the folded slope (exact to the correction's second order in the mismatch; the residuals
+        are made at ``offset`` itself)."""
+        self.factor = self._factor_at(delta_ms)
+        self.offset = offset
 
     def _blocks(self, t: np.ndarray) -> Iterator[tuple[Geometry, np.ndarray, slice]]:
         """The geometry and design of ``t`` in blocks of ``FOLD_ROWS`` samples, with each block's rows."""
@@ -277,6 +312,7 @@ class CircleFit:
         """Refold the kept samples with another correction (the design is made again, block by block)."""
         self.offset = offset
         self.factor = Factor(self.p)
+        self.slope, self.with_slope = None, None
         for t, dr in self.kept:
             self._fold(t, dr)
 
@@ -717,13 +753,14 @@ class _Joint:
         lost: LostMotion | None = None,
         aperture_rad: float = 0.0,
         skip_rad: float = 0.0,
+        slope: Offset | None = None,
     ) -> None:
         self.patterns = list(patterns)
         self.circles: list[CircleFit] = []
         for d in plan.direction_list:
             cf = CircleFit(
                 plan, machine, _for_direction(patterns, d), d, timing, spike_width_deg, keep, offset, loop_lag_s, lost,
-                aperture_rad, skip_rad,
+                aperture_rad, skip_rad, slope,
             )
             if windows is not None:
                 cf.t_start, cf.t_end = windows[d]  # the same samples whatever the timing
@@ -2130,6 +2167,17 @@ def _fit_at(
         values = _values(fit)
         return make_offset(values, tau, lost, cos2, frame_cos2), values.get("servo_mismatch_ms") or 0.0
 
+    def slope(m: float, lost: LostMotion) -> Offset | None:
+        """The correction's change per ms of servo mismatch at ``m`` (a central difference), None where it does
+        not depend on it (no servo correction)."""
+        if tau is None or not FOLD_SLOPE:
+            return None
+        up, down = (make_offset({"servo_mismatch_ms": m + s}, tau, lost, cos2, frame_cos2)
+                    for s in (SLOPE_MS, -SLOPE_MS))
+        if up is None or down is None:
+            return None
+        return lambda g: (up(g) - down(g)) / (2.0 * SLOPE_MS)
+
     if search.coarse.idx.size > 50:
         pre = search.joint(search.coarse, hyper, None, lost, keep=True)
         pre_fit = pre.solve(options, rank=False)
@@ -2187,11 +2235,12 @@ def _fit_at(
     # so that no other pattern (a backlash step, above all) takes them up.
     skip = SKIP_SAMPLES * search.sample_rad if resolution_limited else 0.0
 
-    def full(lost: LostMotion, offset: Offset | None) -> _Joint:
+    def full(lost: LostMotion, offset: Offset | None, m: float) -> _Joint:
         return _Joint(plan, machine, patterns, timing, hyper.spike_width_deg, t, L, offset, True, None, tau, lost,
-                      0.0, skip)
+                      0.0, skip, slope(m, lost) if offset is not None else None)
 
-    joint = full(lost, offset)
+    joint = full(lost, offset, offset_m)
+    folded_m = offset_m  # the servo mismatch the fold's correction was made at
     for c in joint.circles:
         if c.factor.n < 8:
             raise DataError(
@@ -2199,24 +2248,31 @@ def _fit_at(
                 f"{c.factor.n} samples: too few to fit"
             )
     fit = joint.solve(options, exclude=exclude, rank=False)
-    for _ in range(2):
+    refolds = 0
+    for _ in range(FINAL_STEPS):
         chosen = choose(fit)
-        if chosen.models != lost.models:  # the final fit turned a backlash's sign: the other model
-            lost = chosen
+        if chosen.models != lost.models and refolds < 2:  # the final fit turned a backlash's sign: the other model
+            lost, refolds = chosen, refolds + 1
             offset, offset_m = correction(fit, lost)
-            joint = full(lost, offset)
+            joint, folded_m = full(lost, offset, offset_m), offset_m
             fit = joint.solve(options, exclude=exclude, rank=False)
             continue
         # The correction moves by at most |dm| V (um; the servo's linear mask moves by half that) where the fit's
-        # mismatch moved by dm: below OFFSET_SETTLED_UM the fold is already at its fixed point.
+        # mismatch moved by dm: below OFFSET_SETTLED_UM the fold is already at its fixed point; without a servo
+        # correction it does not move with the fit at all.
         now, now_m = correction(fit, lost)
-        if offset is not None and abs(now_m - offset_m) * V < OFFSET_SETTLED_UM:
+        if (now is None) == (offset is None) and (tau is None or abs(now_m - offset_m) * V < OFFSET_SETTLED_UM):
             break
         offset, offset_m = now, now_m
-        if offset is None and all(c.offset is None for c in joint.circles):
+        if offset is not None and all(c.with_slope is not None for c in joint.circles):
+            for c in joint.circles:  # along the folded slope: no fold
+                c.move_correction(offset_m - folded_m, offset)
+        elif refolds < 2:
+            refolds += 1
+            for c in joint.circles:
+                c.refit(offset)
+        else:
             break
-        for c in joint.circles:
-            c.refit(offset)
         fit = joint.solve(options, exclude=exclude, rank=False)
     residuals = joint.residuals(fit.x)
     all_r = np.concatenate(residuals)

@@ -210,41 +210,50 @@ def test_a_line_is_placed_right_on_an_arc_whose_length_has_a_large_prime_factor(
     assert found["vibration_significant"] and abs(found["vibration_peak_um"] - 0.5 / math.sqrt(2)) < 0.02
 
 
-def test_the_final_fit_stops_refolding_once_the_correction_has_settled(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The physical servo correction takes only the fitted mismatch from the fit: once that moves by less than
-    OFFSET_SETTLED_UM / V, refolding every sample with it changes nothing. The result is the one the fit
-    refolded to the end gives, with fewer folds."""
+def test_the_final_fit_moves_its_correction_without_refolding_and_stops_once_it_settles(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The physical servo correction takes only the fitted mismatch from the fit. Folded with its slope in that
+    mismatch as one more column, the factor at another mismatch is y's column moved along the slope's: no sample
+    is folded again, and the result is the one refolding every sample gives. The steps stop once the mismatch
+    moves by less than OFFSET_SETTLED_UM / V, with the result that stepping on to the end gives."""
     from ballbar.tools.simulator import MachineModel, simulate
 
     plan = TestPlan(sample_hz=250.0)
     sim = simulate(plan, MachineModel(kv_y_per_s=36.0, backlash_x_um=3.0, noise_um=0.1), 250.0)
-    folds = []
-    real_refit = engine.CircleFit.refit
+    calls: list[str] = []
+    for name in ("refit", "move_correction"):
+        real = getattr(engine.CircleFit, name)
 
-    def counted(self: engine.CircleFit, offset: object) -> None:
-        folds.append(1)
-        real_refit(self, offset)  # type: ignore[arg-type]
+        def counted(self: engine.CircleFit, *args: object, _real: object = real, _name: str = name) -> None:
+            calls.append(_name)
+            _real(self, *args)  # type: ignore[operator]
 
-    monkeypatch.setattr(engine.CircleFit, "refit", counted)
+        monkeypatch.setattr(engine.CircleFit, name, counted)
 
-    def run() -> tuple[dict, int]:
-        folds.clear()
+    def run() -> tuple[dict, list[str]]:
+        calls.clear()
         res = [r for r in analyze_recording(sim.t_s, sim.length_mm, plan) if r.get("kind") == "test"][-1]
-        return res, len(folds)
+        return res, list(calls)
 
-    settled, n_settled = run()
-    monkeypatch.setattr(engine, "OFFSET_SETTLED_UM", 0.0)  # refold while anything moves, up to the limit
-    full, n_full = run()
+    settled, steps = run()
     assert abs(settled["parameters"]["servo_mismatch_ms"]["value"]) > 0.1  # a correction to settle
-    assert n_settled < n_full, (n_settled, n_full)
-    for name, p in full["parameters"].items():
-        q = settled["parameters"][name]
-        if p["value"] is None:
-            assert q["value"] is None
-            continue
-        # (skipping the first refold too, the fine set's mismatch kept, moves them by 6e-4 of it here)
-        assert abs(q["value"] - p["value"]) <= 1e-5 * p["stderr"], (name, q["value"], p["value"])
-        assert q["significant"] == p["significant"]
+    assert "refit" not in steps and "move_correction" in steps, steps
+    monkeypatch.setattr(engine, "OFFSET_SETTLED_UM", 0.0)  # step while anything moves, up to the limit
+    to_the_end, more = run()
+    assert len(more) > len(steps), (steps, more)
+    monkeypatch.setattr(engine, "OFFSET_SETTLED_UM", 1e-4)
+    monkeypatch.setattr(engine, "FOLD_SLOPE", False)  # refold every sample at each new correction
+    refolded, folds = run()
+    assert "refit" in folds and "move_correction" not in folds, folds
+    for other in (to_the_end, refolded):
+        for name, p in other["parameters"].items():
+            q = settled["parameters"][name]
+            if p["value"] is None:
+                assert q["value"] is None
+                continue
+            assert abs(q["value"] - p["value"]) <= 1e-5 * p["stderr"], (name, q["value"], p["value"])
+            assert q["significant"] == p["significant"]
 
 
 def test_an_analysis_without_provisional_circles_gives_the_same_tests() -> None:
