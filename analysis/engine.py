@@ -372,7 +372,12 @@ class TestAnalyzer:
     ``None``: inline, its result returned with the feed-out); ``on_submit``
     is handed each background job's future (to be told when it is done).
     ``circles``: False for the tests' results alone (no provisional circles:
-    an offline analysis that reads only the test's result).
+    an offline analysis that reads only the test's result).  ``only``: fit
+    only the test of that number (from 1, the feed-ins in order); the
+    others' feed-outs come with a ``test_skipped`` event instead of a fit.
+    A test's fit does not depend on the tests before it (only the
+    provisional circles take the hints they teach), so its result is the
+    one the whole analysis gives; ``only`` needs ``circles=False``.
     """
 
     __test__ = False
@@ -387,9 +392,14 @@ class TestAnalyzer:
         executor: cf.Executor | None = None,
         on_submit: Callable[[cf.Future[dict[str, Any]]], None] | None = None,
         circles: bool = True,
+        only: int | None = None,
     ) -> None:
+        if only is not None and circles:
+            raise ValueError("only: a test's provisional circles take the hints the tests before it teach; "
+                             "pass circles=False")
         self.plan = plan
         self.circles = circles
+        self.only = only
         self.executor = executor
         self.on_submit = on_submit
         self._pending: tuple[int, StepEvent, cf.Future[dict[str, Any]]] | None = None
@@ -628,6 +638,9 @@ class TestAnalyzer:
     def _finish_test(self, fo: StepEvent) -> list[dict[str, Any]]:
         assert self._fi is not None
         fi, self._fi = self._fi, None
+        if self.only is not None and self.test_index != self.only:
+            return [{"kind": "event", "event": "test_skipped", "test_index": self.test_index, "t_s": fo.t_s,
+                     "message": f"not analysed (test {self.only} was asked for)"}]
         tb, Lb = self.detector.samples()
         m = (tb >= fi.t_begin_s) & (tb <= fo.t_end_s)
         args = (self.plan, self.machine, self.options, tb[m], Lb[m], fi, fo, self.curves)
@@ -2466,20 +2479,22 @@ def analyze_recording(
     curves: bool = False,
     breaks: Sequence[tuple[int, str]] = (),
     circles: bool = True,
+    only: int | None = None,
 ) -> list[dict[str, Any]]:
     """Everything :class:`TestAnalyzer` reports on a whole recording, in order.
 
     ``curves``: see :func:`analyze_test`.  ``breaks``: ``(index, reason)``, a
     discontinuity the times may not show (a device reset) just before sample
     ``index`` (:meth:`TestAnalyzer.mark_break`).  ``circles``: False for no
-    provisional circle results (the tests' results are the same).
+    provisional circle results (the tests' results are the same).  ``only``:
+    fit that test alone (see :class:`TestAnalyzer`; with ``circles=False``).
     """
     t = np.asarray(t, dtype=float)
     L = np.asarray(L, dtype=float)
     if t.size >= 2 and np.all(np.isfinite(t)) and not np.any(t[1:] > t[:-1]):  # no full-length np.diff
         what = f"all {t.size} samples have t={t[0]:g} s" if np.all(t == t[0]) else "it never increases"
         raise DataError(f"the time axis does not advance ({what}): no test can be timed")
-    an = TestAnalyzer(plan, machine, options, curves=curves, circles=circles)
+    an = TestAnalyzer(plan, machine, options, curves=curves, circles=circles, only=only)
     out: list[dict[str, Any]] = []
     i = 0
     for j, reason in sorted(breaks, key=lambda b: b[0]):

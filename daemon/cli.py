@@ -312,7 +312,7 @@ def _analyze_records(args: argparse.Namespace, base: dict[str, Any]) -> dict[str
     base.update(next((config_sections(f.config) for f in reversed(files) if f.config), {}))
     plan, machine, options = configs_from_args(args, base=dict(base))
     rec = recording(read_logs([f.path for f in files]), args.file)
-    return pick_test(analyze(rec, plan, machine, options), args.test or 1, args.file, plan)
+    return pick_test(analyze(rec, plan, machine, options, only=args.test or 1), args.test or 1, args.file, plan)
 
 
 def _list_tests(args: argparse.Namespace, mcap: bool) -> int:

@@ -377,12 +377,16 @@ def config_sections(configs: list[dict[str, Any]]) -> dict[str, Any]:
     return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis", "limits") if isinstance(cfg.get(k), dict)}
 
 
+OUTCOME_EVENTS = {"test_rejected": "rejected", "test_incomplete": "incomplete", "test_skipped": "skipped"}
+
+
 def outcomes(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One entry per test an analysis found, in order.
 
     Each: ``number`` (from 1), ``feed_in_s``, ``status`` (``complete``,
-    ``rejected`` or ``incomplete``), ``message`` (why not complete) and
-    ``result`` (the test result, or None).
+    ``rejected``, ``incomplete``, or ``skipped``: not fitted, another test
+    was asked for), ``message`` (why not complete) and ``result`` (the test
+    result, or None).
     """
     tests: dict[int, dict[str, Any]] = {}
     for r in results:
@@ -398,9 +402,8 @@ def outcomes(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
             continue
         if r.get("kind") == "test":
             entry.update(status="complete", result=r)
-        elif r.get("event") in ("test_rejected", "test_incomplete") and entry["status"] == "incomplete":
-            entry.update(status="rejected" if r["event"] == "test_rejected" else "incomplete",
-                         message=str(r.get("message", "")))
+        elif r.get("event") in OUTCOME_EVENTS and entry["status"] == "incomplete":
+            entry.update(status=OUTCOME_EVENTS[r["event"]], message=str(r.get("message", "")))
     return list(tests.values())
 
 
@@ -417,8 +420,8 @@ def pick_test(
         raise DataError(f"{name}: holds {len(found)} test(s), test {test} asked for")
     entry = found[test - 1]
     if entry["result"] is None:
-        others = [e["number"] for e in found if e["result"] is not None]
-        hint = f" (complete: test {', '.join(map(str, others))}; choose with --test N)" if others else ""
+        others = [e["number"] for e in found if e["status"] in ("complete", "skipped")]
+        hint = f" (whole: test {', '.join(map(str, others))}; choose with --test N)" if others else ""
         which = f"test {test} of {len(found)}: " if len(found) > 1 else ""
         raise DataError(f"{name}: {which}{entry['message'] or entry['status']}{hint}")
     return with_source(entry["result"], {"file": os.path.abspath(name), "tests_found": len(found)}, plan)
@@ -443,20 +446,27 @@ def analyze_file(
     test: int = 1,
     curves: bool = False,
 ) -> dict[str, Any]:
-    """Read a recording (:func:`load_recording`), analyse it and return its ``test``-th test result."""
+    """Read a recording (:func:`load_recording`), analyse it and return its ``test``-th test result (the
+    other tests are found, not fitted)."""
     rec = load_recording(path)
-    return pick_test(analyze(rec, plan, machine, options, curves), test, path, plan)
+    return pick_test(analyze(rec, plan, machine, options, curves, only=test), test, path, plan)
 
 
 def analyze(
-    rec: Recording, plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, curves: bool = False
+    rec: Recording,
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    curves: bool = False,
+    only: int | None = None,
 ) -> list[dict[str, Any]]:
     """:func:`~ballbar.analysis.engine.analyze_recording` of a recording, its tests' results and events (no
     provisional circles: what the daemon published of them live is in the recording); its errors name the
-    recording."""
+    recording.  ``only``: fit that test alone (from 1), the others reported ``test_skipped``: its result is
+    the one the whole analysis gives."""
     try:
         out = analyze_recording(rec.t, rec.L, plan, machine, options, curves=curves, breaks=rec.breaks,
-                                circles=False)
+                                circles=False, only=only)
     except DataError as err:
         if rec.name and not str(err).startswith(rec.name):
             err.args = (f"{rec.name}: {err}",)

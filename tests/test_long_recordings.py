@@ -21,10 +21,12 @@ import numpy as np
 import pytest
 from masksynth import FULL_TRUTH, mask_recording
 
-from ballbar.analysis import detect, timeaxis
+from ballbar.analysis import AnalysisOptions, MachineConfig, detect, engine, timeaxis
 from ballbar.analysis.engine import TestAnalyzer, analyze_recording
+from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import TestPlan
 from ballbar.analysis.timeaxis import TimeAxis, TimeAxisError, positive_steps
+from ballbar.daemon.recordings import analyze, analyze_file, load_recording, outcomes
 
 PLAN = TestPlan(sample_hz=100)
 
@@ -113,6 +115,39 @@ def write_csv(path: Path, t: np.ndarray, L: np.ndarray) -> Path:
         fh.write("\n".join(np.char.add(np.char.add(np.char.mod("%.4f", t), ","), np.char.mod("%.6f", L)).tolist()))
         fh.write("\n")
     return path
+
+
+def test_the_test_asked_for_is_fitted_alone_and_gives_the_whole_analysis_result(
+    two_tests: tuple[np.ndarray, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``ballbar analyze --test N`` (and the report) fit only test N of a recording: the others are found, not
+    fitted, and N's result is the one the analysis of every test gives."""
+    path = write_csv(tmp_path / "two.csv", *two_tests)
+    machine, options = MachineConfig(), AnalysisOptions()
+    everything = outcomes(analyze(load_recording(path), PLAN, machine, options))
+    assert [e["status"] for e in everything] == ["complete", "complete"]
+    fitted: list[float] = []
+    whole_fit = engine.analyze_test
+
+    def counted(*args: object) -> dict[str, object]:
+        fitted.append(args[5].t_s)  # type: ignore[attr-defined]  # the feed-in
+        return whole_fit(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(engine, "analyze_test", counted)
+    for n in (1, 2):
+        fitted.clear()
+        got = analyze_file(path, PLAN, machine, options, test=n)
+        want = everything[n - 1]["result"]
+        assert fitted == [want["timing"]["feed_in_s"]]
+        assert got["source"]["tests_found"] == 2
+        assert json.dumps({k: v for k, v in got.items() if k != "source"}, sort_keys=True) == json.dumps(
+            {k: v for k, v in want.items() if k != "source"}, sort_keys=True)
+    statuses = [e["status"] for e in outcomes(analyze(load_recording(path), PLAN, machine, options, only=2))]
+    assert statuses == ["skipped", "complete"]
+    with pytest.raises(DataError, match="holds 2 test"):
+        analyze_file(path, PLAN, machine, options, test=3)
+    with pytest.raises(ValueError, match="circles=False"):
+        TestAnalyzer(PLAN, only=1)
 
 
 def analyze_growth(path: Path) -> int:
