@@ -74,6 +74,22 @@ def release_freed_memory() -> None:
         trim(0)
 
 
+def freeze_long_lived() -> None:
+    """Take every object alive now (the imports, the configuration, the outputs just started) out of the cyclic
+    collector's sight for good (``gc.freeze``).
+
+    A full collection walks every tracked object, and holds every thread for as long: about 90,000 objects in
+    the daemon once Rerun and Zenoh are loaded, 35 to 60 ms a collection (measured at x20, 1 kHz), landing
+    on whichever result is being made then.  What the daemon makes later is short-lived or held in bounded
+    buffers: frozen after its start-up, a full collection walks some 250 objects, 0.3 ms.  In the analysis
+    worker the collection after each test goes from about 20 ms to 0.1 ms.  What is frozen is never freed
+    by the collector, only by its reference counts: call this once start-up is done, not on a heap
+    holding garbage.
+    """
+    gc.collect()
+    gc.freeze()
+
+
 PR_SET_PDEATHSIG = 1
 
 
@@ -91,6 +107,7 @@ def _warm_up() -> int:
     """Import the analysis in the child before the first test needs it; its process id."""
     import ballbar.analysis.engine  # noqa: F401 - the import is the point
 
+    freeze_long_lived()
     return os.getpid()
 
 

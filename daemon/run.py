@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
+from .analysis_worker import freeze_long_lived
 from .config import Config, ConfigError, load
 from .errors import SourceClosed, SourceConfigError, SourceError
 from .listeners import MERGE_S, Listener, Message
@@ -118,6 +119,7 @@ class StartedLater(Listener):
                         log.exception("%s: could not start; its output is off", self.name)
                     else:
                         log.debug("%s: started in %.2f s", self.name, time.monotonic() - t0)
+                        freeze_long_lived()  # its imports and set-up are for good too
         return self._inner
 
     def on_batch(self, batch: SampleBatch) -> None:

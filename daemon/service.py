@@ -50,7 +50,7 @@ from ballbar.analysis.engine import TestAnalyzer, TimingHints
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.polled import Timing, from_events, state_span
 
-from .analysis_worker import AnalysisWorker, release_freed_memory
+from .analysis_worker import AnalysisWorker, freeze_long_lived, release_freed_memory
 from .config import Config
 from .listeners import MERGE_S, TEST_END_EVENTS, Listener, ListenerQueue, Message
 from .mcap_log import scaled_ints
@@ -478,6 +478,7 @@ class Daemon:
         # READY=1 once the source is set up, whether or not its port is there yet: a service waits for its
         # adapter (the status says "waiting" and why, and a warning repeats every minute).
         self.notifier.ready(f"reading {self.source.url}")
+        freeze_long_lived()  # start-up's objects: no full collection walks them again (the viewer's, once made)
         log.info("ready: reading %s", self.source.url)
         next_status = time.monotonic() + interval
         deadline = time.monotonic() + duration_s if duration_s else math.inf
