@@ -83,6 +83,7 @@ LATENCY_GOAL_P99_MS = {"circle": 50.0, "test": 250.0}
 FALLBACK_TEST_PERIOD_S = 160.0
 ANALYSIS_WORKER = f"daemon child {WORKER}"  # the daemon's child that fits each test: its CPU is the daemon's too
 CLK_TCK = os.sysconf("SC_CLK_TCK")
+SLOWEST = 12  # the slowest results listed per kind, with when they came
 
 
 # ----------------------------------------------------------------------------- /proc
@@ -245,6 +246,18 @@ def distribution(values: Iterable[float | None]) -> dict[str, Any]:
         "n": int(v.size), "min": float(v.min()), "median": float(np.median(v)),
         "p99": float(np.percentile(v, 99)), "max": float(v.max()), "mean": float(v.mean()),
     }
+
+
+def _restarts(statuses: Sequence[dict[str, Any]], t0: float) -> list[float]:
+    """When (s from ``t0``, the status that first showed it) the daemon's Rerun server was restarted."""
+    out, last = [], None
+    for st in statuses:
+        n = (st.get("rerun_server") or {}).get("restarts")
+        if isinstance(n, int):
+            if last is not None and n > last:
+                out.append(round(st["rx"] - t0, 1))
+            last = n
+    return out
 
 
 def rss_summary(t_s: Sequence[float], mib: Sequence[float]) -> dict[str, Any]:
@@ -842,7 +855,14 @@ class Measurement:
                                             if isinstance(r.get("t_host"), int | float)),
                 "payload_bytes": distribution(r.get("bytes") for r in rows),
                 "count": len(rows),
+                # where the tail comes from: the slowest, by when in the window (beside the restarts below)
+                "slowest": [{"at_s": round(r["rx"] - snap_a["daemon"].t, 3), "ms": round(ms, 1),
+                             "test_id": r.get("test_id"), "direction": r.get("direction")}
+                            for ms, r in sorted(((1000.0 * (r["rx"] - r["last_sample_t_host"]), r) for r in rows
+                                                 if isinstance(r.get("last_sample_t_host"), int | float)),
+                                                key=lambda x: -x[0])[:SLOWEST]],
             }
+        latency["rerun_restarts_at_s"] = _restarts(statuses, snap_a["daemon"].t)
         queues = self._queues(statuses, t0 + p.warmup_s)
         last = statuses[-1] if statuses else {}
         lost = last.get("lost_samples")
@@ -962,6 +982,11 @@ def report(runs: list[dict[str, Any]]) -> Iterator[str]:
                 x = lat.get(kind) or {}
                 yield (f"  {kind} latency ms median/p99: subscriber {_lat(x.get('subscriber_ms', {}))}, "
                        f"published {_lat(x.get('published_ms', {}))}, delivery {_lat(x.get('delivery_ms', {}))}")
+                if x.get("slowest"):
+                    yield "    slowest (ms at s): " + ", ".join(
+                        f"{v['ms']:.0f} at {v['at_s']:.0f}" for v in x["slowest"])
+            if lat.get("rerun_restarts_at_s"):
+                yield "  rerun server restarted at s: " + ", ".join(f"{v:.0f}" for v in lat["rerun_restarts_at_s"])
         q = r["queues"]
         if q:
             yield "  queues (depth median/p99/max, dropped): " + ", ".join(
