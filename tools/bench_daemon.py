@@ -846,8 +846,10 @@ class Measurement:
             events = dict(self.events)
         latency: dict[str, Any] = {}
         for kind, rows in results.items():
-            own = [1000.0 * (r["rx"] - r["last_sample_t_host"]) for r in rows
-                   if isinstance(r.get("last_sample_t_host"), int | float)]
+            # the subscriber's latency, ms, of each result that carries its last sample's host time
+            timed = [(1000.0 * (r["rx"] - r["last_sample_t_host"]), r) for r in rows
+                     if isinstance(r.get("last_sample_t_host"), int | float)]
+            own = [ms for ms, _ in timed]
             latency[kind] = {
                 "subscriber_ms": distribution(own),
                 "published_ms": distribution(r.get("latency_ms") for r in rows),
@@ -858,9 +860,7 @@ class Measurement:
                 # where the tail comes from: the slowest, by when in the window (beside the restarts below)
                 "slowest": [{"at_s": round(r["rx"] - snap_a["daemon"].t, 3), "ms": round(ms, 1),
                              "test_id": r.get("test_id"), "direction": r.get("direction")}
-                            for ms, r in sorted(((1000.0 * (r["rx"] - r["last_sample_t_host"]), r) for r in rows
-                                                 if isinstance(r.get("last_sample_t_host"), int | float)),
-                                                key=lambda x: -x[0])[:SLOWEST]],
+                            for ms, r in sorted(timed, key=lambda x: -x[0])[:SLOWEST]],
             }
         latency["rerun_restarts_at_s"] = _restarts(statuses, snap_a["daemon"].t)
         queues = self._queues(statuses, t0 + p.warmup_s)
