@@ -679,7 +679,8 @@ def _rerun_stats() -> Schema:
         {"pid": integer("its process id (null: not running)", True), "listening": boolean("it accepts viewers"),
          "rss_mb": num("its resident memory, MiB"), "max_rss_mb": num("the most seen, MiB"),
          "rss_cap_mb": num("restarted above this, MiB"), "restarts": integer("restarts"),
-         "rss_kills": integer("restarts for memory")},
+         "rss_kills": integer("restarts for memory"),
+         "stall_kills": integer("restarts because it took none of the daemon's stream")},
     )
     one_of = [
         obj("the viewer, not (yet) started", {"state": string("starting or failed", enum=["starting", "failed"])}),
@@ -699,6 +700,7 @@ def _rerun_stats() -> Schema:
                 "history_pending": integer("history steps still to send"),
                 **{k: integer(c) for k in ("batches", "samples", "messages", "flushes", "length_sends",
                                            "polar_draws", "sinks", "refreshes", "errors", "skipped")},
+                "server_stalls": integer("serve mode: restarts asked of the server, which took none of the stream"),
                 "server": server,
             },
             required=["mode", "connected"],

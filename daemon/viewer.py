@@ -902,8 +902,14 @@ class _ServerProcess:
     (checked with rerun 0.41: 200 MB of blueprints took a 32 MiB-limited server from 115 to 332 MB).
     In its own process, whatever clients push never touches the daemon's memory; this supervisor
     restarts the server when it exits and kills it when its resident memory passes ``rss_cap``
-    (the daemon then sends the scene again).  ``generation`` counts the starts: a new one needs a
-    new sink.  It looks every ``period_s`` while the server starts, or while its memory grows fast
+    (the daemon then sends the scene again).  A server that takes none of the daemon's own stream
+    (a client flooding or wedging it; the viewer's health check sees its flush time out) is
+    restarted on the viewer's :meth:`request_restart`: once the loopback socket's buffers are full
+    (minutes of the daemon's stream), the daemon's gRPC client keeps all it cannot send in the
+    daemon's memory until that connection ends (rerun 0.41: freed at once when the server is
+    killed; swapping or disconnecting the sink instead blocks for as long as the server does).
+    ``generation`` counts the starts: a new one needs a new sink.  It looks every ``period_s``
+    while the server starts, or while its memory grows fast
     enough to reach half its headroom to the cap within ``IDLE_PERIOD_S``; else every
     ``IDLE_PERIOD_S``: four looks a second cost more than the rest of the viewer at the lowest
     sample rates.
@@ -924,6 +930,8 @@ class _ServerProcess:
         self.listening = False
         self.restarts = 0
         self.rss_kills = 0
+        self.stall_kills = 0
+        self._restart_request: tuple[int, str] | None = None  # (generation, why), from the viewer's thread
         self.max_rss = 0
         self.last_rss = 0
         self._looked = 0.0  # when last_rss was read
@@ -933,6 +941,7 @@ class _ServerProcess:
         self._next_start = 0.0
         self._warned_busy = False
         self._stop = threading.Event()
+        self._kick = threading.Event()  # wakes the supervisor: a restart requested, or close()
         self._thread = threading.Thread(target=self._run, name="rerun-server", daemon=True)
         self._thread.start()
 
@@ -943,8 +952,14 @@ class _ServerProcess:
                 self._step(time.monotonic())
             except Exception:  # the supervisor must outlive any surprise
                 log.exception("rerun server: supervisor error")
-            self._stop.wait(self.IDLE_PERIOD_S if self._calm() else self.period_s)
+            self._kick.wait(self.IDLE_PERIOD_S if self._calm() else self.period_s)
+            self._kick.clear()
         self._terminate()
+
+    def request_restart(self, generation: int, why: str) -> None:
+        """Restart the server of start ``generation`` (if it is still the one running), at once; any thread."""
+        self._restart_request = (generation, why)
+        self._kick.set()
 
     def _calm(self) -> bool:
         """Listening, and at the growth of the last look not within half its headroom of the cap in IDLE_PERIOD_S."""
@@ -964,25 +979,30 @@ class _ServerProcess:
             if now >= self._next_start:
                 self._start(now)
             return
+        request, self._restart_request = self._restart_request, None
+        if request is not None and request[0] == self.generation:
+            self.stall_kills += 1
+            self._restart(now, request[1])
+            return
         rss = _rss_bytes(proc.pid) or 0
         if self.last_rss and now > self._looked:
             self._growth_bps = max(0.0, (rss - self.last_rss) / (now - self._looked))
         self.last_rss, self._looked = rss, now
         self.max_rss = max(self.max_rss, rss)
         if rss > self.rss_cap:
-            log.warning(
-                "rerun server: %.0f MiB resident, over its %.0f MiB cap (a client pushed data into it); "
-                "restarting it, and sending viewers the scene again",
-                rss / 2**20, self.rss_cap / 2**20,
-            )
             self.rss_kills += 1
-            self._terminate(grace_s=0.0)
-            self.restarts += 1
-            self._next_start = now
+            self._restart(now, f"{rss / 2**20:.0f} MiB resident, over its {self.rss_cap / 2**20:.0f} MiB cap "
+                               "(a client pushed data into it)")
             return
         if not self.listening and _tcp_listening(*self._probe, timeout=0.2):
             self.listening = True
             self._backoff = 0.5
+
+    def _restart(self, now: float, why: str) -> None:
+        log.warning("rerun server: %s; restarting it, and sending viewers the scene again", why)
+        self._terminate(grace_s=0.0)
+        self.restarts += 1
+        self._next_start = now
 
     def _start(self, now: float) -> None:
         if not _port_free(self.bind, self.port):
@@ -1026,10 +1046,12 @@ class _ServerProcess:
             "rss_cap_mb": round(self.rss_cap / 2**20, 1),
             "restarts": self.restarts,
             "rss_kills": self.rss_kills,
+            "stall_kills": self.stall_kills,
         }
 
     def close(self, timeout: float = 3.0) -> None:
         self._stop.set()
+        self._kick.set()
         self._thread.join(timeout)
 
 
@@ -1048,6 +1070,8 @@ HISTORY_SHARE_WARN = 0.25  # warn when the history needs more than this share of
 MAX_PENDING_SAMPLES = 200_000  # samples waiting to be processed: at most this many
 MIN_SEND_POINTS = 8  # fewer new samples than this in a send_interval_s: sent every polar_update_s instead
 HISTORY_SLICE_BYTES = 512 * 1024  # a periodic sending of the history: at most this much per flush
+STALL_FLUSH_S = 2.0  # serve mode: a flush to the (local) server that takes longer says it takes nothing
+STALL_RECHECK_S = 1.0  # ... and is tried again this much later; a second such flush restarts the server
 
 
 class _Ring:
@@ -1260,6 +1284,7 @@ class RerunViewer(Listener):
         self._sink_failures = 0  # the prober's failure count when the sink was made
         self._next_retry = 0.0
         self._next_health = 0.0
+        self._stalled_since: float | None = None  # serve mode: when a flush to the server first timed out
         self._prober: _Prober | None = None
         self._err_next_log = 0.0
         self._err_count = 0
@@ -1274,6 +1299,7 @@ class RerunViewer(Listener):
             "refreshes": 0,
             "errors": 0,
             "skipped": 0,
+            "server_stalls": 0,  # serve mode: restarts asked for because the server took none of the stream
         }
         self._sent_bytes = 0  # estimate of what the sink was sent (MSG_BYTES ...), for the refresh
         self._refreshed_at = 0  # _sent_bytes when the history was last sent
@@ -1394,9 +1420,13 @@ class RerunViewer(Listener):
             if self._sink_live and srv.generation != self._sink_generation:
                 log.info("rerun viewer: the server was restarted; sending the scene again")
                 self._sink_live = False
+            if self._sink_live and now >= self._next_health:
+                self._check_server_stream(rec, srv)
             if not self._sink_live and srv.listening and now >= self._next_retry:
                 self._next_retry = now + min(self.options.retry_s, 0.5)
                 self._sink_generation = srv.generation
+                self._next_health = now + self.options.health_s
+                self._stalled_since = None
                 rec.set_sinks(rr.GrpcSink(srv.url))
                 self._on_new_sink(
                     "serving on %s:%d (viewers: rerun %s)", self.options.bind, self.options.port, self.address
@@ -1421,6 +1451,37 @@ class RerunViewer(Listener):
             rec.set_sinks(rr.GrpcSink(self.options.url))
             self._next_health = now + self.options.health_s
             self._on_new_sink("pushing to %s", self.options.url)
+
+    def _check_server_stream(self, rec: rr.RecordingStream, srv: _ServerProcess) -> None:
+        """Serve mode: whether the server takes the daemon's stream; one that has not for a while is restarted.
+
+        A flush that times out (``STALL_FLUSH_S``) is looked at again ``STALL_RECHECK_S`` later; a
+        second one in a row has the supervisor restart the server (what the gRPC client holds is
+        the daemon's memory).  A flush that fails at once (the stream severed, the server alive)
+        makes a new sink.
+        """
+        began = time.monotonic()
+        try:
+            rec.flush(timeout_sec=STALL_FLUSH_S)
+        except Exception as err:  # rerun raises a bare RuntimeError
+            now = time.monotonic()
+            if now - began < 0.5 * STALL_FLUSH_S:
+                log.info("rerun viewer: the stream to the server was lost (%s); sending the scene again", err)
+                self._sink_live = False
+                return
+            if self._stalled_since is None:
+                self._stalled_since = began
+                self._next_health = now + STALL_RECHECK_S
+                return
+            self.counters["server_stalls"] += 1
+            srv.request_restart(self._sink_generation,
+                                f"it has taken none of the daemon's stream for {now - self._stalled_since:.0f} s "
+                                "(a client flooding or wedging it)")
+            self._stalled_since = None
+            self._next_health = now + self.options.health_s
+            return
+        self._stalled_since = None
+        self._next_health = time.monotonic() + self.options.health_s
 
     def _on_new_sink(self, msg: str, *args: Any) -> None:
         self._sink_live = True

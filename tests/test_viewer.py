@@ -455,6 +455,55 @@ def test_serve_mode_waits_for_a_busy_port(caplog: pytest.LogCaptureFixture) -> N
 # --------------------------------------------------------------------------- viewers that misbehave
 
 
+def test_a_server_that_takes_nothing_is_restarted_and_sent_the_scene(
+    script: Script, receivers: list[Receiver], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A wedged server (here stopped: alive, listening, reading nothing; a flooding client does the same)
+    leaves all the daemon sends in the daemon's gRPC client.  Once a flush to it times out twice in a
+    row, the supervisor restarts it, and the new one is sent the scene."""
+    import rerun as rr
+
+    port = free_port()
+    v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=port, server_memory_limit="64MiB",
+                                  health_s=0.2), plan=PLAN)
+    try:
+        wait_connected(v)
+        first, rest = script.split(0.5)
+        feed(v, first)
+        srv = v._server
+        assert srv is not None and srv.proc is not None
+        stopped, generation = srv.proc.pid, srv.generation
+        os.kill(stopped, signal.SIGSTOP)
+        # the stream's own rate takes minutes to fill the sockets' buffers; a busy one does it in seconds
+        rec = v._rec
+        assert rec is not None
+        rng = np.random.default_rng(0)
+        deadline = time.monotonic() + 60.0
+        while srv.generation == generation:
+            assert time.monotonic() < deadline, f"the stopped server was not restarted: {v.stats()}"
+            rec.log("busy", rr.Points2D(rng.random((2000, 2))))
+            v.on_idle()
+            time.sleep(0.002)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(stopped, signal.SIGCONT)  # it was killed: nothing to resume
+        assert "taken none of the daemon's stream" in caplog.text
+        assert srv.stall_kills == 1 and srv.rss_kills == 0 and v.stats()["server_stalls"] == 1
+        wait_connected(v)
+        assert srv.proc is not None and srv.proc.pid != stopped
+        rx = Receiver(tmp_path, "after", free_port(), connect=v.address)
+        receivers.append(rx)
+        feed(v, rest)
+        time.sleep(0.5)
+        v.stop()
+        rx.finish()
+        saved = read_rrd(rx.rrd)
+        assert saved.rows.get("/polar/reference/nominal", 0) > 0, sorted(saved.rows)  # the scene, sent again
+        assert saved.rows.get("/length", 0) > 0  # and the live stream after it
+    finally:
+        v.stop()
+
+
+
 def test_vanished_viewer_never_slows_the_listener(script: Script, receivers: list[Receiver], tmp_path: Path) -> None:
     port = free_port()
     rx = Receiver(tmp_path, "doomed", port)
