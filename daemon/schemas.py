@@ -680,7 +680,9 @@ def _rerun_stats() -> Schema:
          "rss_mb": num("its resident memory, MiB"), "max_rss_mb": num("the most seen, MiB"),
          "rss_cap_mb": num("restarted above this, MiB"), "restarts": integer("restarts"),
          "rss_kills": integer("restarts for memory"),
-         "stall_kills": integer("restarts because it took none of the daemon's stream")},
+         "stall_kills": integer("restarts because it took none of the daemon's stream"),
+         "clients_ended": integer("connections to it (viewers, clients pushing) that ended: each has the "
+                                  "history sent again")},
     )
     one_of = [
         obj("the viewer, not (yet) started", {"state": string("starting or failed", enum=["starting", "failed"])}),

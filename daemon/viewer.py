@@ -238,7 +238,10 @@ class ViewerOptions:
     clock where the source has one, corrected by the times the analysis
     messages carry).  ``retry_s``: probe/rebind period;
     ``health_s``: how often a pushed stream is checked (a flush that fails
-    at once: the viewer restarted between two probes); ``stop_timeout_s``:
+    at once: the viewer restarted between two probes; in ``serve`` mode one
+    that times out: the server takes nothing); ``history_refresh_s``: in
+    ``serve`` mode the history is sent again at least this often (other
+    clients may have pushed it out of the server's buffer); ``stop_timeout_s``:
     bound on :meth:`RerunViewer.stop`.
     """
 
@@ -266,6 +269,7 @@ class ViewerOptions:
     clock: Clock = "auto"
     retry_s: float = 2.0
     health_s: float = 10.0
+    history_refresh_s: float = 600.0
     stop_timeout_s: float = 2.0
 
     def __post_init__(self) -> None:
@@ -302,6 +306,7 @@ class ViewerOptions:
             "history_length_s",
             "retry_s",
             "health_s",
+            "history_refresh_s",
             "stop_timeout_s",
         ):
             v = getattr(self, name)
@@ -384,6 +389,28 @@ def _tcp_listening(host: str, port: int, timeout: float) -> bool:
             return True
     except OSError:
         return False
+
+
+def _sockets_of(pid: int) -> set[str]:
+    """The sockets a process holds (``socket:[inode]``): its listener, and a socket per connection.
+
+    46 us for the rerun server here, against 6.7 ms for reading ``/proc/net/tcp`` (the kernel walks
+    every socket for it), once a second for months.
+    """
+    out: set[str] = set()
+    d = f"/proc/{pid}/fd"
+    try:
+        fds = os.listdir(d)
+    except OSError:
+        return out
+    for fd in fds:
+        try:
+            link = os.readlink(f"{d}/{fd}")
+        except OSError:
+            continue
+        if link.startswith("socket:"):
+            out.add(link)
+    return out
 
 
 def _port_free(bind: str, port: int) -> bool:
@@ -931,6 +958,9 @@ class _ServerProcess:
         self.restarts = 0
         self.rss_kills = 0
         self.stall_kills = 0
+        self.clients_ended = 0  # connections to the server (viewers, or clients pushing into it) that ended
+        self._clients: set[str] = set()  # the server's sockets at the last look
+        self._first_clients: set[str] = set()  # ... and at the first once listening (the probe's among them)
         self._restart_request: tuple[int, str] | None = None  # (generation, why), from the viewer's thread
         self.max_rss = 0
         self.last_rss = 0
@@ -997,6 +1027,11 @@ class _ServerProcess:
         if not self.listening and _tcp_listening(*self._probe, timeout=0.2):
             self.listening = True
             self._backoff = 0.5
+            self._clients = self._first_clients = _sockets_of(proc.pid)  # its own, and the probe's
+        if self.listening:
+            clients = _sockets_of(proc.pid)
+            self.clients_ended += len(self._clients - clients - self._first_clients)
+            self._clients = clients
 
     def _restart(self, now: float, why: str) -> None:
         log.warning("rerun server: %s; restarting it, and sending viewers the scene again", why)
@@ -1047,6 +1082,7 @@ class _ServerProcess:
             "restarts": self.restarts,
             "rss_kills": self.rss_kills,
             "stall_kills": self.stall_kills,
+            "clients_ended": self.clients_ended,
         }
 
     def close(self, timeout: float = 3.0) -> None:
@@ -1066,6 +1102,7 @@ STRIP_BYTES = 800
 POINT_BYTES = 8
 ROW_BYTES = 24
 REFRESH_FRACTION = 0.5  # serve mode: the history is re-sent after this fraction of the server's limit
+SCENE_REFRESH_S = 10.0  # serve mode: the references (static, a few kB) are re-sent this often
 HISTORY_SHARE_WARN = 0.25  # warn when the history needs more than this share of the server's limit
 MAX_PENDING_SAMPLES = 200_000  # samples waiting to be processed: at most this many
 MIN_SEND_POINTS = 8  # fewer new samples than this in a send_interval_s: sent every polar_update_s instead
@@ -1303,6 +1340,9 @@ class RerunViewer(Listener):
         }
         self._sent_bytes = 0  # estimate of what the sink was sent (MSG_BYTES ...), for the refresh
         self._refreshed_at = 0  # _sent_bytes when the history was last sent
+        self._refreshed_mono = time.monotonic()  # ... and when
+        self._clients_ended = 0  # the server's count of connections that ended, then
+        self._static_mono = time.monotonic()  # when the references were last sent
         self._history_steps: deque[Callable[[], None]] = deque()  # the rest of a sliced sending
         # the analysis clock (see ViewerOptions.clock) and the latest sample times seen on each
         self._use_host = self.options.clock == "host"
@@ -1521,6 +1561,9 @@ class RerunViewer(Listener):
         """
         self.counters["refreshes"] += 1
         self._refreshed_at = self._sent_bytes
+        self._refreshed_mono = time.monotonic()
+        if self._server is not None:
+            self._clients_ended = self._server.clients_ended
         steps: list[Callable[[], None]] = [functools.partial(self._send_record, r) for r in self._history]
         if len(self._trends):
             steps.append(functools.partial(self._send_trends, self._trends.rows()))
@@ -1564,16 +1607,36 @@ class RerunViewer(Listener):
             self._emit()
 
     def _refresh_if_due(self) -> None:
-        if self.options.mode != "serve":
+        """Serve mode: the history and the references sent again before the server's buffer can have lost them.
+
+        The server drops its oldest messages first, whoever sent the new ones.  Due when half its limit
+        has been sent by the daemon since; when a connection to the server ended since (a client that
+        pushed into it, or a viewer that left: what it pushed may have evicted the scene); and every
+        ``history_refresh_s`` (a client that floods it and stays connected).  The references (nominal
+        circle, axes, band: a few kB, static) every ``SCENE_REFRESH_S``: a client's static data evicts
+        them, and one that pushes for less than a second comes and goes between the supervisor's looks.
+        """
+        srv = self._server
+        if self.options.mode != "serve" or srv is None:
             return  # a connected viewer keeps what it got; one that reconnects gets the scene again
         limit = _memory_bytes(self.options.server_memory_limit) or 0
+        now = time.monotonic()
+        why = ""
         if self._sent_bytes - self._refreshed_at >= REFRESH_FRACTION * limit:
-            log.debug("rerun viewer: sending the history again (%.1f MiB sent since)",
-                      (self._sent_bytes - self._refreshed_at) / 2**20)
+            why = f"{(self._sent_bytes - self._refreshed_at) / 2**20:.1f} MiB sent since"
+        elif srv.clients_ended != self._clients_ended:
+            why = f"{srv.clients_ended - self._clients_ended} connection(s) to the server ended since"
+        elif now - self._refreshed_mono >= self.options.history_refresh_s:
+            why = f"{now - self._refreshed_mono:.0f} s since"
+        if why:
+            log.debug("rerun viewer: sending the history again (%s)", why)
             self._send_history(sliced=True)
+        if why or now - self._static_mono >= SCENE_REFRESH_S:
+            self._log_static()
         self._continue_history()
 
     def _log_static(self) -> None:
+        self._static_mono = time.monotonic()
         ax1, ax2 = self.plan.axes if self.plan else ("X", "Y")
         radii = rr.Radius.ui_points(0.75)
         self._log(

@@ -22,6 +22,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import time
 import warnings
 from collections.abc import Iterator, Sequence
@@ -35,6 +36,7 @@ import rerun  # noqa: F401 - its runtime's descriptors (opened at import, once) 
 
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.plan import MachineConfig, TestPlan
+from ballbar.daemon import viewer as viewer_module
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.daemon.viewer import (
     R0,
@@ -453,6 +455,67 @@ def test_serve_mode_waits_for_a_busy_port(caplog: pytest.LogCaptureFixture) -> N
 
 
 # --------------------------------------------------------------------------- viewers that misbehave
+
+
+@pytest.mark.parametrize("kind", ["temporal", "static"])
+def test_a_late_viewer_gets_the_references_after_a_client_pushed_them_out_of_the_server(
+    kind: str, script: Script, receivers: list[Receiver], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The server drops its oldest messages first, whoever sent the new ones: a client pushing four times its
+    buffer of static data evicts the daemon's references (checked: without their timer, the static case fails).
+    The daemon sends them again every SCENE_REFRESH_S (here shortened), whether or not it saw the client."""
+    monkeypatch.setattr(viewer_module, "SCENE_REFRESH_S", 0.5)
+    port = free_port()
+    v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=port, server_memory_limit="16MiB"), plan=PLAN)
+    try:
+        wait_connected(v)
+        first, rest = script.split(0.5)
+        feed(v, first)
+        subprocess.run([sys.executable, str(Path(__file__).resolve().parent / "pusher.py"), v.address, kind, "64"],
+                       timeout=120, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(0.6)
+        half = len(rest) // 2
+        feed(v, rest[:half])  # the daemon's next sends
+        rx = Receiver(tmp_path, "late", free_port(), connect=v.address)
+        receivers.append(rx)
+        time.sleep(1.0)  # it has what the server holds
+        v.stop()
+        rx.finish()
+        saved = read_rrd(rx.rrd)
+        for path in ("/polar/reference/nominal", "/polar/reference/axes", "/polar/reference/axis_labels"):
+            assert saved.rows.get(path, 0) > 0, (path, sorted(saved.rows))
+    finally:
+        v.stop()
+
+
+def test_a_connection_to_the_server_that_ends_has_the_history_sent_again(script: Script) -> None:
+    """What a client pushed while connected may have evicted the history: when its connection ends (seen at the
+    supervisor's next look), the next send starts the history again."""
+    port = free_port()
+    v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=port), plan=PLAN)
+    try:
+        wait_connected(v)
+        first, rest = script.split(0.5)
+        feed(v, first)
+        srv = v._server
+        assert srv is not None
+        own = len(srv._clients)  # its listener, the daemon's own stream
+        with socket.create_connection(("127.0.0.1", port)):
+            deadline = time.monotonic() + 5.0
+            while len(srv._clients) <= own:
+                assert time.monotonic() < deadline, "the supervisor did not see the client"
+                time.sleep(0.05)
+        deadline = time.monotonic() + 5.0
+        while srv.clients_ended == 0:
+            assert time.monotonic() < deadline, "the supervisor did not see the client go"
+            time.sleep(0.05)
+        refreshes = v.stats()["refreshes"]
+        feed(v, rest[:20])
+        assert v.stats()["refreshes"] == refreshes + 1
+        feed(v, rest[20:40])
+        assert v.stats()["refreshes"] == refreshes + 1  # once
+    finally:
+        v.stop()
 
 
 def test_a_server_that_takes_nothing_is_restarted_and_sent_the_scene(
