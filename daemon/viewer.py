@@ -1613,7 +1613,7 @@ class RerunViewer(Listener):
         has been sent by the daemon since; when a connection to the server ended since (a client that
         pushed into it, or a viewer that left: what it pushed may have evicted the scene); and every
         ``history_refresh_s`` (a client that floods it and stays connected).  The references (nominal
-        circle, axes, band: a few kB, static) every ``SCENE_REFRESH_S``: a client's static data evicts
+        circle, axes and their labels: a few kB, static) every ``SCENE_REFRESH_S``: a client's static data evicts
         them, and one that pushes for less than a second comes and goes between the supervisor's looks.
         """
         srv = self._server
