@@ -1028,7 +1028,7 @@ class _ServerProcess:
             self.listening = True
             self._backoff = 0.5
             self._clients = self._first_clients = _sockets_of(proc.pid)  # its own, and the probe's
-        if self.listening:
+        elif self.listening:
             clients = _sockets_of(proc.pid)
             self.clients_ended += len(self._clients - clients - self._first_clients)
             self._clients = clients

@@ -201,7 +201,6 @@ def test_the_server_goes_with_a_killed_daemon(tmp_path: Path) -> None:
 def test_the_supervisor_looks_once_a_second_at_a_calm_server_and_often_at_a_growing_one() -> None:
     """A server whose memory holds still is looked at every IDLE_PERIOD_S (its RSS, its exit); one that grows
     fast enough to reach half its headroom to the cap within that is looked at every period_s again."""
-
     server = _ServerProcess("127.0.0.1", free_port(), "64MiB", 512 << 20)
     try:
         deadline = time.monotonic() + 20
