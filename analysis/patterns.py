@@ -63,7 +63,8 @@ class Geometry:
     comp_y: bool = False
     deadband: tuple[bool, bool] = (False, False)  # X, Y: a dead band, whose step sits at the take-up's end
     loop_rad: tuple[float, float, float] | None = None  # the command's lead, X's and Y's loop lag, as angles
-    aperture_rad: float = 0.0  # angle a sample averages over (0: an instant); see _switch
+    # angle a sample (or a bin of samples) averages over, per row or for all (0: an instant); see _switch
+    aperture_rad: float | np.ndarray = 0.0
     # A stack of timings (a search's batch): the rows are len(feeds) equal blocks, each at its own feed (V is
     # the first's); None: one timing at V.
     feeds: np.ndarray | None = None
@@ -173,11 +174,11 @@ def _switch(g: Geometry, value: np.ndarray, from_first: np.ndarray, period: floa
     """
     s = np.sign(value)
     h = 0.5 * g.aperture_rad
-    if h <= 0:
+    if np.ndim(h) == 0 and h <= 0:
         return s
     half = 0.5 * period
     dist = np.abs(wrap(from_first + half, period) - half)  # to the nearest switching point
-    return s * np.minimum(dist / h, 1.0)
+    return s * np.minimum(dist / np.maximum(h, 1e-300), 1.0)
 
 
 def cos_sin(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -398,32 +399,46 @@ def _drift(g: Geometry, _w: float) -> np.ndarray:
     return g.t_min
 
 
-def _decay(g: Geometry, du: np.ndarray, w: float, travel: np.ndarray | None) -> np.ndarray:
-    """``exp(-du / w)`` from ``du = 0`` on, averaged over the sample's aperture where there is one."""
+def _half(g: Geometry, idx: np.ndarray | None = None) -> float | np.ndarray:
+    """Half the aperture (rad): of every row, or of the rows ``idx`` where it is per row."""
     h = 0.5 * g.aperture_rad
-    if h <= 0:
+    if np.ndim(h) and idx is not None:
+        return np.asarray(h)[idx]
+    return h
+
+
+def _decay(du: np.ndarray, w: float, h: float | np.ndarray, travel: np.ndarray | None) -> np.ndarray:
+    """``exp(-du / w)`` from ``du = 0`` on, averaged over each sample's aperture ``2 h`` where there is one."""
+    if np.ndim(h) == 0 and h <= 0:
         out = np.exp(-du / w)
     else:
         x = np.where(du > math.pi, du - 2.0 * math.pi, du)  # just before the onset: negative
         lo, hi = np.maximum(x - h, 0.0), np.maximum(x + h, 0.0)
-        out = (w / (2.0 * h)) * (np.exp(-lo / w) - np.exp(-hi / w))
+        hs = np.maximum(h, 1e-12 * w)  # an aperture this small against the width is an instant
+        out = (w / (2.0 * hs)) * (np.exp(-lo / w) - np.exp(-hi / w))
+        if np.ndim(h):
+            point = np.asarray(h) <= 1e-12 * w
+            if point.any():
+                out[point] = np.exp(-du[point] / w)
     if travel is not None:
         out[du > travel] = 0.0
     return out
 
 
-def _decay_near(g: Geometry, du: np.ndarray, w: float, travel: np.ndarray | None) -> np.ndarray:
+def _decay_near(
+    g: Geometry, du: np.ndarray, w: float, travel: np.ndarray | None, mine: np.ndarray | None = None
+) -> np.ndarray:
     """:func:`_decay` where it is not below ``exp(-SPIKE_REACH)`` of its peak (out to ``SPIKE_REACH`` widths
     past the onset, and the aperture's half before it), 0 elsewhere: a spike acts on a few degrees of the
-    circle, and the exponential costs most of a column."""
-    h = 0.5 * g.aperture_rad
+    circle, and the exponential costs most of a column.  ``mine``: the rows of ``g`` that ``du`` holds."""
+    h = _half(g, mine)
     near = du <= SPIKE_REACH * w + h
-    if h > 0:
-        near |= du > 2.0 * math.pi - h
+    near |= du > 2.0 * math.pi - h
     idx = np.flatnonzero(near)
     out = np.zeros(du.size)
     if idx.size:
-        out[idx] = _decay(g, du[idx], w, travel[idx] if travel is not None else None)
+        hi = np.asarray(h)[idx] if np.ndim(h) else h
+        out[idx] = _decay(du[idx], w, hi, travel[idx] if travel is not None else None)
     return out
 
 
@@ -444,8 +459,9 @@ def _spike(at_deg: float, direction: int) -> ColumnFn:
             # spike_travel(u, d, onset) = (phase - start) mod 2 pi, from the geometry's travel past 0 (shared by
             # the circle's spikes), made only where the spike acts: phase within [start - h, start + reach]
             start = (direction * onset) % (2.0 * math.pi)
-            h = 0.5 * g.aperture_rad
-            lo, hi = start - h, start + SPIKE_REACH * w + h
+            h = _half(g)
+            h_max = float(np.max(h)) if np.ndim(h) else float(h)
+            lo, hi = start - h_max, start + SPIKE_REACH * w + h_max
             ph = g.phase
             inside = (ph >= lo) & (ph <= hi)
             if lo < 0.0:
@@ -457,14 +473,14 @@ def _spike(at_deg: float, direction: int) -> ColumnFn:
             if idx.size:
                 du = ph[idx] - start
                 du[du < 0.0] += 2.0 * math.pi
-                out[idx] = _decay(g, du, w, g.travel[idx] if g.travel is not None else None)
+                out[idx] = _decay(du, w, _half(g, idx), g.travel[idx] if g.travel is not None else None)
             return out
         out = np.zeros(len(g))
         if g.direction == 0:
             mine = g.d == direction
             if mine.any():
                 out[mine] = _decay_near(g, spike_travel(g.u[mine], g.d[mine], onset), w,
-                                        g.travel[mine] if g.travel is not None else None)
+                                        g.travel[mine] if g.travel is not None else None, np.flatnonzero(mine))
         return out
 
     return fn

@@ -304,8 +304,13 @@ def lost_motion_remainder(g: Geometry) -> np.ndarray:
             continue
         en = e[near]
         bump = R_um * (1.0 - np.cos(np.clip(en, 0.0, width)))
-        if h > 0:  # the bump ends where the mask steps: averaged over the same aperture (patterns._switch)
-            bump *= np.clip((width - en + h) / (2.0 * h), 0.0, 1.0)
+        hn = np.asarray(h)[near] if np.ndim(h) else h
+        if np.ndim(hn) or hn > 0:  # the bump ends where the mask steps: averaged over the same aperture
+            # (patterns._switch); an aperture of 0 in a row is a point
+            hs = np.maximum(hn, 1e-300)
+            bump *= np.clip((width - en + hs) / (2.0 * hs), 0.0, 1.0)
+            if np.ndim(hn):
+                bump[(hn <= 0) & ((en < 0) | (en >= width))] = 0.0
         else:
             bump[(en < 0) | (en >= width)] = 0.0
         out[near] += bump * np.cos(du[near])

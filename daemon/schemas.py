@@ -273,8 +273,30 @@ def _fit(test: bool) -> Schema:
                 required=["x", "y"],
             ),
             "lost_motion_model": string("lost_motion in words"),
+            "evaluations": integer("designs the fit made (misfit evaluations and their slopes)"),
+            "valid": boolean("false: the model does not describe this test (invalid_reasons say why); no "
+                             "parameter is then significant"),
+            "invalid_reasons": {"type": "array", "items": {"type": "string"},
+                                "description": "why the model does not describe the test, in words"},
+            "checks": obj(
+                "the checks that the model describes the test (analysis/README.md, 'When the model does not fit')",
+                {
+                    "sensor_noise_um": num("the sensor's white noise from the samples alone, um", True),
+                    "residual_rms_um": num("the fit's residual, um", True),
+                    "level_change": {
+                        "type": "array",
+                        "description": "per data arc, the residual's largest step away from the reversals",
+                        "items": obj("one data arc's largest level change", {
+                            "direction": string("ccw or cw", enum=["ccw", "cw"]),
+                            "at_deg": num("where, deg", True),
+                            "step_um": num("its size, um"),
+                            "z": num("in standard errors of the two windows' difference"),
+                        }),
+                    },
+                },
+            ),
         }
-        required += ["lost_motion", "lost_motion_model"]
+        required += ["lost_motion", "lost_motion_model", "valid"]
     return obj("the fit's diagnostics", props, required)
 
 
@@ -318,9 +340,8 @@ _TIMING_TEST = obj(
         "loop_lag_source": string("where the loop lag came from, in words", True),
         "loop_lag_origin": string("configured, feed_in, fitted, assumed, none or linear"),
         "loop_lag_radial_cos2u": num("the loops' radial cos 2u term, um (null: none)", True),
-        "loop_gain_profile": counts(
-            "at rates too low to see the feed-in's settling: the gains tried (1/s, as keys) and their "
-            "negative log-likelihood against the best, nats", "number"),
+        "loop_lag_stderr_ms": num("where the loop lag was searched with the timing (nothing else told it): its "
+                                  "standard error, ms", True),
         "backlash_takeup_deg": obj("where each axis' dead band is taken up after a reversal, deg", _AXES),
         "reversal_onset_deg": obj("where friction starts after each reversal point, deg", _AXES),
         **_POLLED,

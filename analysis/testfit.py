@@ -1,0 +1,770 @@
+"""One test's fit: the timing, the spike width and the loops' lag by separable least squares, then the patterns.
+
+:func:`analyze_test` is the whole-test analysis of analysis/README.md ("The
+fit"): from a test's samples and its feed-in and feed-out, the measured feed
+and the nonlinear parameters (:mod:`.search`), the physical corrections at
+their fixed point (:mod:`.physics`), the fit with its ranking, uncertainty
+and significance (:mod:`.fit`), the checks that the model fits at all
+(:mod:`.validity`), and the result (:mod:`.result`).
+
+The stages (each a few Gauss-Newton steps of :func:`.search.minimise`):
+
+1. a fit of the masks alone at the starting timing, on coarse bins: the
+   corrections' first values and the noise;
+2. the timing (arc-start lag and the feed-in's extra wait; the loops' lag
+   where nothing else tells it) with the sharp features integrated over a
+   wider interval: the objective is a bowl over the whole lag range;
+3. with the corrections at that timing, fine bins about the sharp features
+   where they now lie, the features integrated over the bins alone, the
+   spikes' width with the timing; again where the lost-motion model changed;
+4. the feed-in's wait kept only where the data need it (its Wald test);
+5. the final fit, its corrections brought to their fixed point.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from . import iso230, noise, stats
+from .advice import advise
+from .circle import Timing
+from .detect import StepEvent
+from .errors import DataError
+from .fit import Factor, FitResult, solve
+from .loops import DEFAULT_KV_PER_S, Lag, loop_lag
+from .patterns import Geometry, Pattern, design, select, wrap
+from .physics import MODEL_WORDS, LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
+from .plan import AnalysisOptions, MachineConfig, TestPlan
+from .program import accel_from_spread, arc_start_deg, data_start_deg, feed_from_span, model_limits, schedule
+from .result import (
+    result_body,
+    spike_significance,
+    timing_dict,
+    unreached_spikes,
+    values_of,
+    width_verdict,
+)
+from .search import (
+    COARSE_BIN_DEG,
+    FINE_BIN_DEG,
+    NOISE_FLOOR_UM,
+    Binned,
+    Context,
+    Evaluation,
+    Found,
+    Objective,
+    Prior,
+    Theta,
+    feature_zones,
+    make_bins,
+    minimise,
+)
+from .validity import check_model, sensor_noise
+
+LAG_PRIOR_S = 0.05  # prior on the arc-start lag: where the data cannot see it, it stays near 0
+WAIT_PRIOR_S = 0.1  # ... and on the feed-in's extra wait
+WAIT_MAX_S = 0.3
+LAG_BELOW_S = 0.1  # a negative per-move overhead is unphysical: only this far below 0
+TAU_PRIOR_LN = math.log(2.5)  # the loops' lag where nothing tells it: within a factor 2.5 of the default's
+TAU_BOUNDS_PER_S = (8.0, 150.0)  # ... and between these gains
+DEFAULT_SPIKE_WIDTH_DEG = 0.5
+RESOLVE_SAMPLES = 2.0  # samples per spike width below which a spike cannot be sized
+WIDTH_AT_BOUND = 1.03  # a fitted width within 3 % of a bound of its search has run onto it
+SMOOTH_S = 0.02  # the first stage integrates the sharp features over this much travel (s of the feed)
+SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
+ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
+OFFSET_SETTLED_UM = 1e-4  # the corrections' fixed point: they move by less than this (um)
+FINAL_STEPS = 6
+FOLD_ROWS = 16384  # samples whose model is made at a time
+POINT_APERTURES = (0.2, 0.03)  # the last stage integrates the sharp features over these shares of a sample's
+# interval in turn
+FINE_TRIM_S = 0.03  # the fine stage's data arcs, trimmed for timings within this of the coarse stage's
+
+
+def _rate(t: np.ndarray) -> float:
+    if t.size < 2:
+        return float("nan")
+    return float(1.0 / np.median(np.diff(t)))
+
+
+def _lag1(residuals: Sequence[np.ndarray]) -> float:
+    num = sum(float(np.dot(r[1:], r[:-1])) for r in residuals if r.size > 1)
+    den = sum(float(np.dot(r, r)) for r in residuals)
+    return num / den if den > 0 else 0.0
+
+
+def _kappa(rho: float) -> float:
+    """The AR(1) variance inflation ``(1 + rho) / (1 - rho)`` of a residual's lag-1 correlation, 1..400."""
+    return min(max((1 + rho) / (1 - rho), 1.0), 400.0) if rho < 1 else 400.0
+
+
+def feed_accel(plan: TestPlan, steps: Sequence[StepEvent], feed_mm_s: float) -> float | None:
+    """The acceleration part of the per-move overhead, from the feed-in's (and feed-out's) spread in time.
+
+    The rest of the overhead (an in-position wait after each move, a
+    control's block change) does not shape a move: only this decides whether
+    the short feed-in reaches the feed (:func:`.program.feed_in_half`).  None
+    where the steps' spread was not resolved (then all the overhead is taken
+    as acceleration).
+    """
+    found = [accel_from_spread(plan.feed_in_mm, feed_mm_s, e.move_var_s2) for e in steps
+             if math.isfinite(e.move_var_s2) and e.move_var_s2 > 0]
+    return float(np.mean(found)) if found else None
+
+
+def check_plan(plan: TestPlan, fi: StepEvent, fo: StepEvent) -> float:
+    """Raise DataError where the recording does not match the plan; return the feed (mm/s) at c = 0."""
+    f = plan.feed_in_mm
+    for ev in (fi, fo):
+        if not 0.75 * f <= ev.height_mm <= 1.25 * f:
+            raise DataError(
+                f"plan does not match the data: the {ev.kind.replace('_', '-')} at t={ev.t_s:.3f} s "
+                f"is a {ev.height_mm:.3f} mm step, the plan's feed-in is {f:g} mm"
+            )
+    span = fo.t_s - fi.t_s
+    V0 = feed_from_span(plan, span, 0.0)
+    nominal = schedule(plan, plan.feed_mm_s).feed_out_centroid_s
+    if not (math.isfinite(V0) and 0.5 <= V0 / plan.feed_mm_s <= 1.5):
+        raise DataError(
+            f"plan does not match the data: feed-in to feed-out takes {span:.2f} s, the plan's program "
+            f"takes {nominal:.2f} s at {plan.feed_mm_min:g} mm/min (check feed, radius, arcs and dwell)"
+        )
+    return V0
+
+
+def spike_width_bounds(
+    plan: TestPlan, options: AnalysisOptions, feed_mm_s: float, sample_hz: float
+) -> tuple[tuple[float, float], str]:
+    """The spike width's search range (deg) at this sample rate, and why spikes cannot be sized at all ("").
+
+    A spike is sized from the samples on its decay: it needs ``RESOLVE_SAMPLES``
+    of them per width, so the range starts there (or at the configured minimum).
+    """
+    spacing = math.degrees(feed_mm_s / plan.radius_mm / sample_hz) if sample_hz > 0 else math.inf
+    lo = max(options.spike_width_min_deg, RESOLVE_SAMPLES * spacing)
+    hi = options.spike_width_max_deg
+    if not lo * 1.5 < hi:
+        return (min(lo, hi), hi), (
+            f"below the resolution at {sample_hz:.6g} Hz: the samples are {spacing:.2f} deg apart and the widest "
+            f"spike searched for decays within {hi:g} deg (spike_width_max_deg)"
+        )
+    return (lo, hi), ""
+
+
+def _credible_backlash(x: dict[str, float], se: dict[str, float], min_um: float) -> dict[str, float]:
+    """The fit's values with a backlash that is no finding set to 0.
+
+    What decides an axis' lost-motion model and where its table reverses: a
+    take-up angle grows as the root of the backlash (0.04 deg for 0.03 um at
+    R 100 mm), so a backlash of nothing would move the spikes' onset by several
+    samples and feed on itself.  A backlash counts when it exceeds three
+    standard errors and the minimum effect.
+    """
+    out = dict(x)
+    for key in ("backlash_x_um", "backlash_y_um"):
+        if key in out and abs(out[key]) <= max(3.0 * se.get(key, 0.0), min_um):
+            out[key] = 0.0
+    return out
+
+
+@dataclass
+class _State:
+    """The fit's current estimates: nonlinear parameters, the linear fit's values, and the corrections'."""
+
+    theta: Theta
+    values: dict[str, float]
+    lost: LostMotion
+    found: Found | None = None
+
+
+class TestFit:
+    """The analysis of one test (see the module docstring); :meth:`run` then :meth:`report`."""
+
+    __test__ = False
+
+    def __init__(
+        self, plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, t: np.ndarray, L: np.ndarray,
+        fi: StepEvent, fo: StepEvent, lag: Lag,
+    ) -> None:
+        self.plan, self.machine, self.options = plan, machine, options
+        self.t, self.L, self.fi, self.fo, self.lag = t, L, fi, fo, lag
+        self.sample_hz = _rate(t)
+        self.period_s = 1.0 / self.sample_hz if self.sample_hz > 0 else 0.0
+        self.span = fo.t_s - fi.t_s
+        self.patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
+        V0 = feed_from_span(plan, self.span, 0.0)
+        self.accel = feed_accel(plan, [fi, fo], V0)
+        self.omega0 = V0 / plan.radius_mm
+        self.widths, self.unresolved = spike_width_bounds(plan, options, V0, self.sample_hz)
+        self.exclude = unreached_spikes(plan, self.patterns)
+        self.has_spikes = any(p.reversal is not None for p in self.patterns)
+        if self.has_spikes and self.unresolved:
+            self.exclude = {p.name: self.exclude.get(p.name, self.unresolved)
+                            for p in self.patterns if p.reversal is not None}
+        self.sized = self.has_spikes and not self.unresolved  # the spikes' width is searched
+        search_patterns = self.patterns if self.sized else [p for p in self.patterns if p.reversal is None]
+        self.ctx = Context(plan, machine, search_patterns, fi.t_s, self.span, self.accel)
+        self.full_ctx = Context(plan, machine, self.patterns, fi.t_s, self.span, self.accel)
+        self.tau_fitted = lag.origin == "assumed"  # the loops' lag searched with the timing
+        self.u_in = arc_start_deg(plan, plan.direction_list[0])
+        self.frame_cos2 = math.cos(2.0 * math.radians(self.u_in))
+        w0 = min(max(DEFAULT_SPIKE_WIDTH_DEG, self.widths[0]), self.widths[1])
+        self.state = _State(Theta(0.0, 0.0, w0, lag.tau), {}, LostMotion())
+        # the search's samples: the data arcs whatever lag the search tries
+        base = self.ctx.timing(Theta())
+        trim = 1.5 * options.max_lag_s
+        self.windows: dict[int, tuple[float, float]] = {}
+        for d in plan.direction_list:
+            a, b = base.window(d)
+            self.windows[d] = (a + trim, b - trim) if b - a > 4 * trim else (a, b)
+        self.evaluations = 0
+        self.skip_rad = 0.0
+        self.wait_free = False
+        self.aperture_scale = 1.0
+        # the sensor's white noise, from the samples alone (:func:`.validity.sensor_noise`)
+        sw = [sensor_noise((self.L[(self.t >= a) & (self.t <= b)] - plan.radius_mm) * 1000.0)
+              for a, b in self.windows.values()]
+        sw = [v for v in sw if math.isfinite(v)]
+        self.white_var = float(np.mean(np.square(sw))) if sw else 0.0
+
+    # ------------------------------------------------------------------ pieces
+
+    def _bins(self, timing: Timing | None, windows: dict[int, tuple[float, float]], skip: LostMotion | None = None
+              ) -> dict[int, Binned]:
+        """The samples of ``windows`` in bins: coarse everywhere (``timing`` None) or fine about the sharp
+        features where ``timing`` puts them.  ``skip``: leave out the samples just after each table reversal
+        (:attr:`skip_rad`)."""
+        out = {}
+        omega = (timing.feed_mm_s if timing is not None else self.omega0 * self.plan.radius_mm) / self.plan.radius_mm
+        fine_s = math.radians(FINE_BIN_DEG) / omega
+        coarse_s = math.radians(COARSE_BIN_DEG) / omega
+        for d in self.plan.direction_list:
+            a, b = windows[d]
+            i, j = int(np.searchsorted(self.t, a, side="left")), int(np.searchsorted(self.t, b, side="right"))
+            t = self.t[i:j]
+            y = (self.L[i:j] - self.plan.radius_mm) * 1000.0
+            if skip is not None and self.skip_rad > 0 and timing is not None and t.size:
+                keep = ~_after_onsets(self._sample_geometry(d, t, timing, self.state.theta.tau, skip), self.skip_rad)
+                t, y = t[keep], y[keep]
+            zones = feature_zones(self.plan, timing, d, (a, b)) if timing is not None else []
+            out[d] = make_bins(d, t - self.fi.t_s, y, self.period_s, zones, fine_s, coarse_s)
+        return out
+
+    def _offset_for(self, values: dict[str, float], lost: LostMotion) -> Any:
+        """The corrections at ``values`` given the nonlinear parameters (the loops' lag among them)."""
+        lag, fc = self.lag, self.frame_cos2
+
+        def at(theta: Theta) -> Offset | None:
+            return make_offset(values, theta.tau, lost, lag.cos2, fc)
+
+        return at
+
+    def _choose(self, values: dict[str, float], se: dict[str, float], theta: Theta) -> LostMotion:
+        credible = _credible_backlash(values, se, self.options.min_effect_um)
+        m = credible.get("servo_mismatch_ms", 0.0)
+        V = feed_from_span(self.plan, self.span, theta.c, self.accel)
+        omega = V / self.plan.radius_mm
+        tau = theta.tau
+        loops = loop_angles(mean_lag(tau, self.lag.cos2, m), m, omega, self.u_in)
+        axes = axis_reversals(m, omega, self.u_in) if tau is not None else (0.0, 0.0)
+        return LostMotion.choose(credible, self.options.lost_motion, self.plan.radius_mm, loops, axes)
+
+    def _values_se(self, e: Evaluation, obj: Objective) -> tuple[dict[str, float], dict[str, float]]:
+        """The evaluation's values by field, and their standard errors (the fit's, its correlation counted)."""
+        assert e.normal is not None and e.use is not None
+        var = np.zeros(e.x.size)
+        var[e.use] = np.diagonal(e.normal.solve(np.eye(int(e.use.sum())))) * self._noise(e, obj.samples)
+        values, se = {}, {}
+        j = 0
+        for p in obj.ctx.patterns:
+            for k, f in enumerate(p.fields):
+                values[f] = float(e.x[j + k])
+                se[f] = math.sqrt(max(float(var[j + k]), 0.0))
+            j += p.q
+        return values, se
+
+    def _space(self, active: Sequence[int]) -> tuple[dict[int, tuple[float, float]], dict[int, float],
+                                                     list[Prior]]:
+        lo_c = -min(self.options.max_lag_s, LAG_BELOW_S)
+        bounds = {0: (lo_c, self.options.max_lag_s), 1: (-WAIT_MAX_S, WAIT_MAX_S),
+                  2: (math.log(self.widths[0]), math.log(self.widths[1])),
+                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0]))}
+        # finite differences on the scale the objective is smooth on: a tenth of a bin's travel, at least a
+        # hundredth of a sample period
+        fine_s = math.radians(FINE_BIN_DEG) / self.omega0
+        h_t = max(0.1 * max(fine_s, self.period_s), 1e-5)
+        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02}
+        priors = [Prior(0, 0.0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S)]
+        if self.tau_fitted:
+            priors.append(Prior(3, -math.log(DEFAULT_KV_PER_S), TAU_PRIOR_LN))
+        return bounds, steps, [p for p in priors if p.index in active]
+
+    def _active(self, wait: bool = True, width: bool = True) -> list[int]:
+        out = [0] if self.options.estimate_lag else []
+        if wait and self.options.estimate_lag and len(self.plan.direction_list) > 1:
+            out.append(1)
+        if width and self.sized:
+            out.append(2)
+        if self.tau_fitted:
+            out.append(3)
+        return out
+
+    def _search(self, obj: Objective, active: list[int], max_iter: int, scale: float = 1.0) -> Found:
+        bounds, steps, priors = self._space(active)
+        steps = {k: v * scale if k in (0, 1) else v for k, v in steps.items()}
+        start = self.state.theta
+        found = minimise(obj, start, active, bounds=bounds, steps=steps, priors=priors, max_iter=max_iter)
+        self.evaluations += obj.evaluations
+        obj.evaluations = 0
+        return found
+
+    def _update(self, obj: Objective, e: Evaluation) -> bool:
+        """The corrections and lost-motion models at evaluation ``e``; whether the timing must be searched again
+        (a model changed, or a table's reversal moved by more than ``ONSET_MOVE_SAMPLES``)."""
+        values, se = self._values_se(e, obj)
+        lost = self._choose(values, se, e.theta)
+        old = self.state.lost
+        moved = max(abs(a - b) for a, b in zip(lost.onset_rad, old.onset_rad, strict=True))
+        spacing = self.omega0 * self.period_s
+        again = lost.models != old.models or moved > ONSET_MOVE_SAMPLES * spacing
+        self.state = _State(e.theta, values, lost, self.state.found)
+        return again
+
+    # ------------------------------------------------------------------ the stages
+
+    def run(self) -> TestFit:
+        plan, options = self.plan, self.options
+        no_offset = lambda th: None  # noqa: E731
+        # 1. the masks alone at the starting timing, on coarse bins: the corrections' first values
+        coarse = self._bins(None, self.windows)
+        if sum(b.samples for b in coarse.values()) <= self.ctx.p + 2:
+            raise DataError("the data arcs hold too few samples to fit")
+        obj = Objective(self.ctx, coarse, LostMotion(), no_offset, 0.0)
+        pre = obj.evaluate(self.state.theta)
+        self.evaluations += obj.evaluations
+        self._update(obj, pre)
+        # 2. the timing with the sharp features integrated over a wider interval, on coarse bins
+        active = [k for k in self._active(width=False) if k != 3]
+        if active:
+            obj = Objective(self.ctx, coarse, self.state.lost,
+                            self._offset_for(self.state.values, self.state.lost),
+                            smooth_rad=self.omega0 * SMOOTH_S)
+            found = self._search(obj, active, max_iter=6)
+            self._update(obj, found.best)
+        # 3. fine bins about the features where they now lie, the features integrated over the bins alone; the
+        # data arcs where they now lie, but for what the timing's last steps could move in or out
+        for _pass in range(3):
+            timing = self.ctx.timing(self.state.theta)
+            windows = {}
+            for d in plan.direction_list:
+                a, b = timing.window(d)
+                windows[d] = (a + FINE_TRIM_S, b - FINE_TRIM_S)
+            obj = Objective(self.ctx, self._bins(timing, windows), self.state.lost,
+                            self._offset_for(self.state.values, self.state.lost))
+            active = self._active()
+            if not active:
+                e = obj.evaluate(self.state.theta)
+                self.evaluations += obj.evaluations
+                self._update(obj, e)
+                break
+            found = self._search(obj, active, max_iter=8)
+            self.state.found = found
+            again = self._update(obj, found.best)
+            if not again:
+                break
+        # 4. the feed-in's extra wait only where the data need it (its Wald test); where it is not, the other
+        # coordinates move to their best given a wait of 0 (the likelihood's quadratic), and the fit is made there
+        last: Found | None = self.state.found
+        self.wait_free = False
+        if last is not None and 1 in last.active:
+            found = last
+            cov = found.cov(self._noise(found.best, obj.samples))
+            j = found.active.index(1)
+            z = float(stats.chi2.isf(options.significance, 1)) ** 0.5
+            wait = self.state.theta.wait
+            if abs(wait) > z * math.sqrt(max(cov[j, j], 0.0)):
+                self.wait_free = True
+            else:
+                keep = [i for i, k in enumerate(found.active) if k != 1]
+                v = self.state.theta.vector()
+                for i in keep:
+                    v[found.active[i]] -= cov[i, j] / cov[j, j] * wait if cov[j, j] > 0 else 0.0
+                v[1] = 0.0
+                bounds, _, _ = self._space(found.active)
+                for k, (lo, hi) in bounds.items():
+                    v[k] = min(max(v[k], lo), hi)
+                best = obj.evaluate(Theta.of(v, self.state.theta.tau is not None))
+                self.evaluations += obj.evaluations
+                obj.evaluations = 0
+                self.state.found = Found(best, found.jtj[np.ix_(keep, keep)], found.hprior[np.ix_(keep, keep)],
+                                         found.dx[:, keep], [found.active[i] for i in keep], found.phi,
+                                         found.iterations)
+                self._update(obj, best)
+        # 5. point samples: the sharp features integrated over a shrinking share of each sample's interval, from
+        # the timing that integrating them over the whole interval found (on point samples, that is up to half a
+        # sample off for each feature: a step or an onset between two samples); each share's minimum is the next
+        # one's start, so that every feature is led to the right side of its samples
+        last = self.state.found
+        at_bound = math.log(self.state.theta.w_deg / self.widths[0]) < math.log(WIDTH_AT_BOUND)
+        active = [k for k in self._active(wait=self.wait_free, width=not at_bound) if k != 3]
+        # (only where the bins about the features are single samples: a bin of several samples is their mean,
+        # which its whole interval's integral models; and there a sample is short against every feature anyway)
+        singles = self.omega0 * self.period_s >= math.radians(FINE_BIN_DEG)
+        if active and last is not None and singles:
+            polished = found = last
+            for scale in POINT_APERTURES:
+                obj.aperture_scale = scale
+                polished = self._search(obj, active, max_iter=3, scale=scale)
+                self.state.theta = polished.best.theta
+            keep = [i for i, k in enumerate(found.active) if k not in active]
+            self.state.found = _merge(polished, found, keep)
+            self._update(obj, polished.best)
+        self.aperture_scale = POINT_APERTURES[-1] if active and singles else 1.0
+        return self
+
+    def _noise(self, e: Evaluation, samples: int) -> float:
+        """The noise variance per sample (um^2) that the search's covariance takes: the residual's, inflated for
+        its correlation as the final fit does (a smooth misfit over white noise ``sw^2`` of variance ``M``
+        has ``rho = M / (M + sw^2)``, so ``kappa = 2 s^2 / sw^2 - 1``, 1..400)."""
+        s2 = max(e.sse / max(samples - self.ctx.p, 1), NOISE_FLOOR_UM**2)
+        kappa = min(max(2.0 * s2 / max(self.white_var, 1e-12) - 1.0, 1.0), 400.0)
+        return s2 * kappa
+
+    def _sample_geometry(self, d: int, t: np.ndarray, timing: Timing, tau: float | None, lost: LostMotion) -> Geometry:
+        plan = self.plan
+        u = np.radians(timing.sched.angle_deg(plan, d, t - timing.t_ref))
+        omega = timing.feed_mm_s / plan.radius_mm
+        return Geometry(
+            u=u, d=np.full(t.size, float(d)), t_min=(t - timing.t_mid) / 60.0, V=timing.feed_mm_s, R=plan.radius_mm,
+            pitch_x_mm=self.machine.pitch_x_mm, pitch_y_mm=self.machine.pitch_y_mm,
+            travel=d * (u - math.radians(arc_start_deg(plan, d))), loop_lag_s=tau,
+            aperture_rad=omega * self.period_s * self.aperture_scale, **lost.geometry(tau),
+        )
+
+    # ------------------------------------------------------------------ the final fit and the result
+
+    def report(self, curves: bool = False) -> dict[str, Any]:
+        plan, options = self.plan, self.options
+        theta = self.state.theta
+        timing = self.full_ctx.timing(theta)
+        V = timing.feed_mm_s
+        windows = {d: timing.window(d) for d in plan.direction_list}
+        resolution_limited = bool(self.unresolved) or (
+            self.sized and self.widths[0] > options.spike_width_min_deg
+            and theta.w_deg <= self.widths[0] * WIDTH_AT_BOUND)
+        if self.sized:
+            why = width_verdict(theta.w_deg, self.widths, options, self.sample_hz, RESOLVE_SAMPLES, WIDTH_AT_BOUND)
+            if why:
+                self.exclude = {p.name: self.exclude.get(p.name, why) for p in self.patterns
+                                if p.reversal is not None}
+        # Spikes too narrow to size still touch the first samples after each table reversal: those are left out,
+        # so that no other pattern (a backlash step, above all) takes them up.
+        omega = V / plan.radius_mm
+        self.skip_rad = SKIP_SAMPLES * omega * self.period_s if resolution_limited else 0.0
+        values, lost = self.state.values, self.state.lost
+        bins = self._bins(timing, windows, skip=lost)
+        for d, b in bins.items():
+            if b.samples < 8:
+                a, z = windows[d]
+                raise DataError(f"the {'CCW' if d > 0 else 'CW'} data arc ({a:.2f}..{z:.2f} s) holds "
+                                f"{b.samples} samples: too few to fit")
+        fit = None
+        obj = None
+        factor, colmax = None, None
+        refolds = 0
+        for _ in range(FINAL_STEPS):
+            obj = Objective(self.full_ctx, bins, lost, self._offset_for(values, lost))
+            obj.aperture_scale = self.aperture_scale
+            factor, colmax = obj.factor(theta)
+            self.evaluations += obj.evaluations
+            fit = solve(factor, self.patterns, significance=options.significance,
+                        min_effect_um=options.min_effect_um, vif_limit=options.vif_limit,
+                        effect_scale=colmax, exclude=self.exclude, rank=False)
+            new_values = values_of(fit)
+            se = {f: math.sqrt(max(fit.cov[i, i], 0.0)) for i, f in enumerate(_fields(self.patterns))
+                  if np.isfinite(fit.cov[i, i])}
+            chosen = self._choose(new_values, se, theta)
+            if chosen.models != lost.models and refolds < 2:
+                lost, refolds = chosen, refolds + 1
+                values = new_values
+                bins = self._bins(timing, windows, skip=lost)
+                continue
+            moved = _correction_moved(values, new_values, V)
+            values = new_values
+            if moved < OFFSET_SETTLED_UM:
+                break
+        assert fit is not None and obj is not None and factor is not None and colmax is not None
+        offset = make_offset(values, theta.tau, lost, self.lag.cos2, self.frame_cos2)
+        # the residual at every sample of the data arcs
+        per_dir = self._residuals(timing, windows, theta, fit.x, lost, offset)
+        residuals = [r for _, _, r in per_dir.values()]
+        rho = _lag1(residuals)
+        # the nonlinear parameters' covariance at the final fit's noise, its correlation counted
+        found = self.state.found
+        self.final_kappa = _kappa(rho)
+        noise_var = max(fit.sigma**2, NOISE_FLOOR_UM**2) * self.final_kappa
+        self.theta_cov = found.cov(noise_var) if found is not None else np.zeros((0, 0))
+        timing_cov = self._timing_cov(fit)
+        res = self._solve_report(obj, theta, factor, colmax, rho, timing_cov)
+        fit_final = res.pop("_fit")
+        all_r = np.concatenate(residuals) if residuals else np.empty(0)
+        rms = float(np.sqrt(np.mean(all_r**2))) if all_r.size else math.nan
+        res["fit"]["servo_model"] = "physical" if theta.tau is not None else "linear"
+        res["fit"]["servo_model_note"] = self.lag.source
+        res["fit"]["lost_motion"] = lost.to_dict()
+        res["fit"]["lost_motion_model"] = "; ".join(
+            f"{axis.upper()}: {MODEL_WORDS[m]}" for axis, m in zip("xy", lost.models, strict=True)
+        )
+        res["fit"]["evaluations"] = self.evaluations
+        res["kind"] = "test"
+        lag_se = math.nan
+        w_se = math.nan
+        if found is not None:
+            for j, k in enumerate(found.active):
+                s = math.sqrt(max(self.theta_cov[j, j], 0.0))
+                if k == 0:
+                    lag_se = s
+                elif k == 2:
+                    w_se = s * theta.w_deg
+        res["timing"] = timing_dict(plan, self.fi, self.fo, timing, theta, V, lag_se, self.wait_free,
+                                    self.ctx.shifts(theta.wait))
+        res["timing"]["spike_width_stderr_deg"] = w_se if math.isfinite(w_se) else None
+        spike_significance(res)
+        res["advice"] = advise(res["parameters"], plan, self.machine)
+        tau = theta.tau
+        res["timing"]["loop_lag_ms"] = tau * 1000.0 if tau is not None else None
+        origin, source = self._lag_origin(found)
+        if found is not None and 3 in found.active and tau is not None:
+            sd = math.sqrt(max(self.theta_cov[found.active.index(3), found.active.index(3)], 0.0))
+            res["timing"]["loop_lag_stderr_ms"] = tau * 1000.0 * sd
+        res["timing"]["loop_lag_source"] = source
+        res["timing"]["loop_lag_origin"] = origin
+        res["fit"]["servo_model_note"] = source
+        res["timing"]["loop_lag_radial_cos2u"] = self.lag.cos2
+        res["timing"]["backlash_takeup_deg"] = {
+            axis: math.degrees(o) if m == "deadband" else 0.0
+            for axis, m, o in zip("xy", lost.models, lost.onset_rad, strict=True)
+        }
+        res["timing"]["reversal_onset_deg"] = {axis: math.degrees(o) for axis, o in zip("xy", lost.onset_rad,
+                                                                                      strict=True)}
+        if theta.c > 0 and math.isfinite(theta.c):
+            limits = model_limits(plan.with_(feed_mm_min=V * 60.0), V / theta.c)
+            if limits:
+                res["warnings"] = [
+                    f"timing model: {why} (acceleration from the measured arc-start lag); the measured feed and the "
+                    "angles are biased: lengthen overshoot_deg" for why in limits
+                ]
+        measured = {d: (u, y) for d, (u, y, _) in per_dir.items()}
+        res["iso230_4"] = iso230.figures(measured)
+        res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, self.sample_hz)
+        res["noise"] = noise.findings(
+            [(per_dir[d][0], per_dir[d][2], plan.data_arc_deg, self.sample_hz) for d in per_dir],
+            options.vibration_cutoff_cpr,
+        )
+        check_model(res, per_dir, self.sample_hz, fit_final)
+        if curves:
+            res["curves"] = {}
+            for d, (u, y, r) in per_dir.items():
+                tt = self._arc_times(d, windows)
+                res["curves"]["ccw" if d > 0 else "cw"] = {
+                    "t_s": tt, "u_deg": np.degrees(u), "measured_um": y, "model_um": y - r,
+                }
+        res["residual_rms_um"] = rms
+        res["samples"] = {
+            "in_test": int(self.t.size),
+            "in_data_arcs": int(sum(per_dir[d][0].size for d in per_dir)),
+            "sample_hz": self.sample_hz,
+        }
+        return res
+
+    def _lag_origin(self, found: Found | None) -> tuple[str, str]:
+        lag = self.lag
+        if not self.tau_fitted or found is None or 3 not in found.active:
+            return lag.origin, lag.source
+        j = found.active.index(3)
+        sd = math.sqrt(max(self.theta_cov[j, j], 0.0))
+        kv = 1.0 / (self.state.theta.tau or 1.0 / DEFAULT_KV_PER_S)
+        if sd < 0.5 * TAU_PRIOR_LN:
+            return "fitted", (
+                f"fitted to the data arcs with the timing: {kv:.3g}/s (its log known to {sd:.2g}, against a "
+                f"prior of {TAU_PRIOR_LN:.2g} about {DEFAULT_KV_PER_S:g}/s); the feed-in's settling is not resolved "
+                "at this sample rate and no kv_x/kv_y is configured"
+            )
+        return "assumed", (
+            f"{lag.source}; the data arcs barely tell the gain (its log known to {sd:.2g} against the prior's "
+            f"{TAU_PRIOR_LN:.2g}): {kv:.3g}/s"
+        )
+
+    def _timing_cov(self, fit: FitResult) -> np.ndarray | None:
+        """The coefficients' covariance through the nonlinear parameters the same data fixed: ``J S J^T`` with
+        ``S`` their covariance and ``J`` the coefficients' change with them (:class:`.search.Found`)."""
+        found = self.state.found
+        if found is None or not found.active:
+            return None
+        # the search's columns are the full model's, or all but the spikes' where they are not sized
+        dx = np.zeros((fit.x.size, len(found.active)))
+        full_cols = _column_map(self.ctx.patterns, self.patterns)
+        dx[full_cols] = found.dx
+        return np.asarray(dx @ self.theta_cov @ dx.T)
+
+    def _solve_report(
+        self, obj: Objective, theta: Theta, factor: Factor, colmax: np.ndarray, rho: float,
+        timing_cov: np.ndarray | None
+    ) -> dict[str, Any]:
+        options = self.options
+        final = solve(factor, self.patterns, rho=rho, significance=options.significance,
+                      min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=colmax,
+                      exclude=self.exclude, family_dof={"reversal_spike": 1}, timing_cov=timing_cov)
+        term = next((t for n, t in final.terms.items() if n.startswith("reversal_spike")), None)
+        if self.sized and term is not None and any(t.significant for n, t in final.terms.items()
+                                                    if n.startswith("reversal_spike")):
+            lr = self._spike_lr(obj, theta)
+            final = solve(factor, self.patterns, rho=rho, significance=options.significance,
+                          min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=colmax,
+                          exclude=self.exclude, family_dof={"reversal_spike": 1},
+                          family_lr={"reversal_spike": lr}, timing_cov=timing_cov)
+        res = result_body(self.plan, self.machine, options, final, self.patterns)
+        if timing_cov is not None:
+            res["fit"]["uncertainty_method"] += (
+                "; every parameter's also holds the spread of the nonlinear parameters the same samples fixed (the "
+                "arc-start lag, the feed-in's extra wait, the spikes' width, the loops' lag where fitted: their "
+                "covariance from the likelihood's curvature, times each coefficient's change with them), and each "
+                "F-test keeps the share of its Wald statistic left once that is counted"
+            )
+        res["_fit"] = final
+        return res
+
+    def _spike_lr(self, obj: Objective, theta: Theta) -> float:
+        """The spikes' likelihood ratio (nats) against the spike-free model at its own best timing: free spikes
+        could be buying a timing that the steps refute."""
+        full = obj.evaluate(theta)
+        bare_obj = Objective(obj.ctx, obj.bins, obj.lost, obj.offset, 0.0, spikes=False)
+        bare_obj.aperture_scale = obj.aperture_scale
+        active = [k for k in self._active(wait=self.wait_free) if k != 2]
+        if active:
+            bounds, steps, priors = self._space(active)
+            found = minimise(bare_obj, theta, active, bounds=bounds, steps=steps, priors=priors, max_iter=4)
+            bare = found.best
+        else:
+            bare = bare_obj.evaluate(theta)
+        self.evaluations += bare_obj.evaluations + obj.evaluations
+        obj.evaluations = 0
+        n_eff = bare_obj.samples / self.final_kappa
+        return max(0.5 * n_eff * math.log(max(bare.sse, 1e-12) / max(full.sse, 1e-12)), 0.0)
+
+    def _arc_times(self, d: int, windows: dict[int, tuple[float, float]]) -> np.ndarray:
+        a, b = windows[d]
+        i, j = np.searchsorted(self.t, a, side="left"), np.searchsorted(self.t, b, side="right")
+        t = self.t[i:j]
+        if self.skip_rad > 0:
+            timing = self.full_ctx.timing(self.state.theta)
+            t = t[~_after_onsets(self._sample_geometry(d, t, timing, self.state.theta.tau, self.state.lost),
+                                 self.skip_rad)]
+        return t
+
+    def _residuals(
+        self, timing: Timing, windows: dict[int, tuple[float, float]], theta: Theta, x: np.ndarray,
+        lost: LostMotion, offset: Offset | None,
+    ) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per direction: each data-arc sample's angle (rad), deviation as measured (um) and residual (um)."""
+        x = np.nan_to_num(x)
+        w = math.radians(theta.w_deg)
+        out = {}
+        for d in self.plan.direction_list:
+            t = self._arc_times(d, windows)
+            i = np.searchsorted(self.t, t)
+            y = (self.L[i] - self.plan.radius_mm) * 1000.0
+            mine, cols = self.full_ctx.by_direction[d]
+            us, rs = [], []
+            for k in range(0, t.size, FOLD_ROWS):
+                g = self._sample_geometry(d, t[k : k + FOLD_ROWS], timing, theta.tau, lost)
+                model = design(mine, g, w) @ x[cols]
+                if offset is not None:
+                    model = model + offset(g)
+                us.append(g.u)
+                rs.append(y[k : k + FOLD_ROWS] - model)
+            out[d] = (np.concatenate(us) if us else np.empty(0), y, np.concatenate(rs) if rs else np.empty(0))
+        return out
+
+
+def _merge(polished: Found, earlier: Found, keep: Sequence[int]) -> Found:
+    """The last stage's minimum with the earlier one's curvature and slopes for the coordinates it held
+    (``keep``: their indices in ``earlier.active``): the covariance of all, the held ones' cross terms as
+    the earlier stage found them."""
+    active = list(polished.active) + [earlier.active[i] for i in keep]
+    n = len(active)
+    order = [earlier.active.index(k) for k in active]
+    jtj = earlier.jtj[np.ix_(order, order)].copy()
+    m = len(polished.active)
+    jtj[:m, :m] = polished.jtj
+    hprior = earlier.hprior[np.ix_(order, order)].copy()
+    hprior[:m, :m] = polished.hprior
+    dx = np.zeros((polished.dx.shape[0], n))
+    dx[:, :m] = polished.dx
+    dx[:, m:] = earlier.dx[:, list(keep)]
+    return Found(polished.best, jtj, hprior, dx, active, polished.phi, polished.iterations)
+
+
+def _fields(patterns: Sequence[Pattern]) -> list[str]:
+    return [f for p in patterns for f in p.fields]
+
+
+def _column_map(sub: Sequence[Pattern], full: Sequence[Pattern]) -> np.ndarray:
+    """The columns of ``full`` that ``sub``'s columns are."""
+    pos, j = {}, 0
+    for p in full:
+        pos[p.name] = j
+        j += p.q
+    return np.array([pos[p.name] + k for p in sub for k in range(p.q)], dtype=int)
+
+
+def _correction_moved(before: dict[str, float], after: dict[str, float], V: float) -> float:
+    """How far (um) the corrections can have moved between two fits' values: the servo correction moves by at
+    most ``|dm| V``; the centre's share of the exact bar length and the dead band's take-up far less."""
+    dm = abs(after.get("servo_mismatch_ms", 0.0) - before.get("servo_mismatch_ms", 0.0))
+    dc = math.hypot(after.get("centre_x_um", 0.0) - before.get("centre_x_um", 0.0),
+                    after.get("centre_y_um", 0.0) - before.get("centre_y_um", 0.0))
+    db = max(abs(after.get(k, 0.0) - before.get(k, 0.0)) for k in ("backlash_x_um", "backlash_y_um"))
+    return dm * V + 1e-2 * dc + 1e-2 * db
+
+
+def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
+    """Samples within ``reach_rad`` past a table's reversal (where friction sets in), any axis."""
+    out = np.zeros(len(g), dtype=bool)
+    for axis, points in ((0, (0.0, math.pi)), (1, (0.5 * math.pi, 1.5 * math.pi))):
+        for at in points:
+            du = wrap(g.d * (g.u - at) - g.onset_rad[axis], 2.0 * math.pi)  # travel past the onset
+            out |= du < reach_rad
+    return out
+
+
+def analyze_test(
+    plan: TestPlan,
+    machine: MachineConfig,
+    options: AnalysisOptions,
+    t: np.ndarray,
+    L: np.ndarray,
+    fi: StepEvent,
+    fo: StepEvent,
+    curves: bool = False,
+) -> dict[str, Any]:
+    """The joint fit of one test whose feed-in and feed-out are known.
+
+    ``curves``: also return, under ``"curves"``, each data arc's samples as
+    numpy arrays (not JSON; for plots): ``t_s``, ``u_deg`` (commanded angle at
+    the fitted timing), ``measured_um`` (``L - R``) and ``model_um`` (the
+    fitted model in the same space, physical corrections included, so that
+    ``measured_um - model_um`` is the fit's residual).
+    """
+    check_plan(plan, fi, fo)
+    lag = loop_lag(plan, machine, options, fi, fo, _rate(t))
+    return TestFit(plan, machine, options, t, L, fi, fo, lag).run().report(curves)
+
+
+__all__ = ["TestFit", "analyze_test", "check_plan", "feed_accel", "spike_width_bounds"]
+_ = (data_start_deg, wrap)

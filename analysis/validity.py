@@ -1,0 +1,128 @@
+"""Whether the model fits the test at all: a result is right within its uncertainty or says why it cannot be.
+
+The fit's uncertainties hold where the model describes the machine and the
+test ran as planned.  Where it does not (the feed override changed between
+the arcs, a ball seated anew and stepped the bar's length, an error this
+library has no pattern for), the least-squares values are still numbers, and
+with tens of thousands of samples every one of them looks significant.  So
+the residual is checked against what the test's own data say about the noise:
+
+- **noise**: the sensor's noise from the data alone, the scatter of second
+  differences of consecutive samples (robust: their median absolute value),
+  which no smooth misfit moves;
+- **misfit**: the fit's residual rms far above that noise (more than
+  ``MISFIT_RATIO`` times it and by more than ``MISFIT_MIN_UM``): the model
+  leaves out most of what the bar saw;
+- **level change**: the residual steps at one sample, by more than
+  ``STEP_SIGMAS`` of its standard error over the windows either side (each
+  ``STEP_WINDOW_DEG`` of travel) and by more than ``STEP_MIN_UM``, away from
+  the reversals and changeovers the model describes.
+
+A test that fails a check keeps its values, but ``fit.valid`` is false with
+``fit.invalid_reasons``, and no parameter is significant (each says why):
+it is a finding about the test, not the machine.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .fit import FitResult
+
+MISFIT_RATIO = 4.0  # residual rms against the sensor noise beyond which the model does not describe the test
+MISFIT_MIN_UM = 0.25  # ... and by at least this much (um): tiny absolute misfits are the model's fine detail
+STEP_WINDOW_DEG = 2.0  # each side of a candidate level change (deg of travel)
+STEP_SIGMAS = 12.0  # a level change this many standard errors of the windows' difference
+STEP_MIN_UM = 0.2  # ... and at least this large (um)
+FEATURE_DEG = 3.0  # level changes whose windows come this close to a 45 deg point (reversals, changeovers) are
+# not judged: what the model leaves there is its own fine detail
+
+
+def sensor_noise(y: np.ndarray) -> float:
+    """The white noise (um rms) of consecutive samples: ``median |second difference| / 0.6745 / sqrt(6)``."""
+    if y.size < 8:
+        return math.nan
+    d2 = y[2:] - 2.0 * y[1:-1] + y[:-2]
+    return float(np.median(np.abs(d2)) / 0.6745 / math.sqrt(6.0))
+
+
+def level_change(u: np.ndarray, r: np.ndarray, d: int, sample_deg: float, sigma: float) -> tuple[float, float]:
+    """The residual's largest step between two windows of ``STEP_WINDOW_DEG``, away from the 45 deg points:
+    its angle (deg) and size (um), in standard errors of the windows' difference ``(step, z)``... returned as
+    ``(angle_deg, step_um)`` with the step's z-score compared by the caller."""
+    w = max(round(STEP_WINDOW_DEG / max(sample_deg, 1e-9)), 3)
+    if r.size < 4 * w:
+        return math.nan, 0.0
+    c = np.concatenate([[0.0], np.cumsum(r)])
+    k = np.arange(w, r.size - w + 1)
+    diff = (c[k + w] - c[k]) / w - (c[k] - c[k - w]) / w
+    deg = np.degrees(u[k])
+    past = np.mod(deg, 45.0)
+    # both windows clear of every 45 deg point (reversals, changeovers), by FEATURE_DEG
+    ok = np.minimum(past, 45.0 - past) > FEATURE_DEG + STEP_WINDOW_DEG
+    if not ok.any():
+        return math.nan, 0.0
+    i = int(np.argmax(np.where(ok, np.abs(diff), -1.0)))
+    return float(deg[i]), float(diff[i])
+
+
+def check_model(
+    res: dict[str, Any], per_dir: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]], sample_hz: float,
+    fit: FitResult,
+) -> None:
+    """Mark ``res`` invalid where the model does not describe the test (see the module docstring)."""
+    reasons: list[str] = []
+    noises, sq, n = [], 0.0, 0
+    for _, y, r in per_dir.values():
+        s = sensor_noise(y)
+        if math.isfinite(s):
+            noises.append((s, y.size))
+        sq += float(r @ r)
+        n += r.size
+    noise = math.sqrt(sum(s * s * k for s, k in noises) / sum(k for _, k in noises)) if noises else math.nan
+    rms = math.sqrt(sq / n) if n else math.nan
+    checks: dict[str, Any] = {"sensor_noise_um": noise, "residual_rms_um": rms}
+    if math.isfinite(noise) and math.isfinite(rms) and rms > MISFIT_RATIO * noise and rms - noise > MISFIT_MIN_UM:
+        reasons.append(
+            f"the residual, {rms:.3g} um rms, is {rms / max(noise, 1e-9):.3g} times the sensor's noise seen in the "
+            f"samples themselves ({noise:.2g} um): the model does not describe this test (was it run as planned, at "
+            "one feed? an error the pattern library lacks?)"
+        )
+    steps = []
+    for d, (u, _, r) in per_dir.items():
+        if r.size < 16 or not math.isfinite(noise):
+            continue
+        sample_deg = abs(float(np.degrees(u[-1] - u[0]))) / max(u.size - 1, 1)
+        at, step = level_change(u, r, d, sample_deg, noise)
+        w = max(round(STEP_WINDOW_DEG / max(sample_deg, 1e-9)), 3)
+        se = noise * math.sqrt(2.0 / w)
+        z = abs(step) / se if se > 0 else 0.0
+        steps.append({"direction": "ccw" if d > 0 else "cw", "at_deg": at, "step_um": step, "z": z})
+        if z > STEP_SIGMAS and abs(step) > STEP_MIN_UM:
+            reasons.append(
+                f"the {'CCW' if d > 0 else 'CW'} residual changes its level by {step:+.3g} um at {at:.1f} deg "
+                f"({z:.3g} standard errors), away from any reversal: the bar's length stepped during the test (a "
+                "ball seating anew, a loose pivot or cup)"
+            )
+    checks["level_change"] = steps
+    res["fit"]["checks"] = checks
+    res["fit"]["valid"] = not reasons
+    res["fit"]["invalid_reasons"] = reasons
+    if not reasons:
+        return
+    why = "the test is marked invalid: " + "; ".join(reasons)
+    for p in res["parameters"].values():
+        if p.get("significant"):
+            p["significant"] = False
+        if p.get("value") is not None:
+            p["significance_reason"] = why
+    for r_ in res["ranking"]:
+        r_["significant"] = False
+        r_["significance_reason"] = why
+    res["advice"] = []
+    warnings = res.setdefault("warnings", [])
+    warnings.append(why)
+    _ = fit
