@@ -317,6 +317,82 @@ def lost_motion_remainder(g: Geometry) -> np.ndarray:
     return out
 
 
+def servo_point(g: Geometry, m_ms: float, tau_s: float | None, frame_cos2: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The spindle's position (um, from the programmed centre) in the analyzer's frame: on the circle of the
+    first-order loops (:func:`servo_remainder`), ``X = R gX cos(u - d dX)``, ``Y = R gY sin(u - d dY)``; the
+    commanded circle where the loops' lag is not known."""
+    R_um = g.R * 1000.0
+    inv_kx = (tau_s or 0.0) + 0.5 * m_ms / 1000.0
+    inv_ky = (tau_s or 0.0) - 0.5 * m_ms / 1000.0
+    if tau_s is None or inv_kx <= 0 or inv_ky <= 0:
+        return R_um * g.cos_u, R_um * g.sin_u
+    omega = g.V / g.R
+    ref = omega * (tau_s + 0.5 * m_ms / 1000.0 * (frame_cos2 or 0.0))
+    dx = math.atan(omega * inv_kx) - ref
+    dy = math.atan(omega * inv_ky) - ref
+    gx = 1.0 / math.sqrt(1.0 + (omega * inv_kx) ** 2)
+    gy = 1.0 / math.sqrt(1.0 + (omega * inv_ky) ** 2)
+    d = g.dd
+    # cos(u - d dx) = cos u cos dx + d sin u sin dx, sin(u - d dy) = sin u cos dy - d cos u sin dy (d = +-1)
+    X = (R_um * gx) * (g.cos_u * math.cos(dx) + d * (g.sin_u * math.sin(dx)))
+    Y = (R_um * gy) * (g.sin_u * math.cos(dy) - d * (g.cos_u * math.sin(dy)))
+    return np.asarray(X), np.asarray(Y)
+
+
+def error_vector(g: Geometry, values: Mapping[str, float | None]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The machine's and the set-up's displacement ``D = (DX, DY)`` (um) of the patterns whose physical model
+    is a vector (analysis/README.md, "The pattern library"), at the fitted ``values``; None where all are 0.
+
+    The masks are its radial component ``D . e_u``; the bar's exact length also holds the rest
+    (:func:`second_order`)."""
+    v = {k: float(values.get(k) or 0.0) for k in (
+        "centre_x_um", "centre_y_um", "squareness_urad", "scale_mismatch_ppm", "backlash_x_um", "backlash_y_um",
+        "lateral_play_x_um", "lateral_play_y_um", "straightness_x_um", "straightness_y_um")}
+    if not any(v.values()):
+        return None
+    c, s = g.cos_u, g.sin_u
+    R = g.R
+    d = g.dd
+    DX = np.full(len(g), v["centre_x_um"])
+    DY = np.full(len(g), v["centre_y_um"])
+    if v["squareness_urad"]:  # DX = S Y: urad x mm = 1e-3 um
+        DX += (1e-3 * v["squareness_urad"] * R) * s
+    if v["scale_mismatch_ppm"]:  # DX = eX X, DY = eY Y with eX - eY = e, split evenly: ppm x mm = 1e-3 um
+        half = 0.5e-3 * v["scale_mismatch_ppm"] * R
+        DX += half * c
+        DY -= half * s
+    if v["backlash_x_um"] or v["lateral_play_x_um"]:  # sgn(vX) = -d sgn(sin u)
+        sx = d * np.sign(s)
+        DX += (0.5 * v["backlash_x_um"]) * sx
+        DY += (0.5 * v["lateral_play_x_um"]) * sx
+    if v["backlash_y_um"] or v["lateral_play_y_um"]:  # sgn(vY) = d sgn(cos u)
+        sy = d * np.sign(c)
+        DY -= (0.5 * v["backlash_y_um"]) * sy
+        DX -= (0.5 * v["lateral_play_y_um"]) * sy
+    if v["straightness_x_um"]:
+        DY += v["straightness_x_um"] * c * c
+    if v["straightness_y_um"]:
+        DX += v["straightness_y_um"] * s * s
+    return DX, DY
+
+
+def second_order(P: tuple[np.ndarray, np.ndarray], D: tuple[np.ndarray, np.ndarray], g: Geometry) -> np.ndarray:
+    """The bar's exact length beyond the masks (um): ``|P + D| - |P| - D . e_u``, with ``P`` the spindle's
+    position (:func:`servo_point`) and ``D`` the displacement (:func:`error_vector`).
+
+    The masks keep the first order in ``D`` about the commanded circle.  What they leave is the tangential
+    part of ``D`` squared over ``2R`` and, above all, its cross terms with the loops' unequal lags: with the
+    pivot ``c`` off centre and a servo mismatch ``m`` the actual path turns away from the frame's angle by
+    about ``Omega (m/2) cos 2u``, which moves the bar by ``c_t`` times that, a term whose sign flips with the
+    direction: left out it reads as drift and lateral play (0.28 um/min of drift on a noise-free 28 s test,
+    R 50 mm, F 3000 mm/min, 7 um off centre, 25/28 1/s).
+    """
+    X, Y = P
+    DX, DY = D
+    return np.asarray(np.hypot(X + DX, Y + DY) - np.hypot(X, Y) - (DX * g.cos_u + DY * g.sin_u))
+
+
 def make_offset(
     values: Mapping[str, float | None],
     tau_s: float | None,
@@ -332,13 +408,15 @@ def make_offset(
     ``radial_cos2``: ``tau_s`` was measured along a radius at angles whose mean
     ``cos 2u`` this is, where the lag is ``tau_bar + (m/2) cos 2u``.
     ``frame_cos2``: ``cos 2u`` of the feed-in, whose delay the analyzer's angles
-    carry (:func:`servo_remainder`); None: the mean lag's frame.
+    carry (:func:`servo_remainder`); None: the mean lag's frame.  The bar's
+    exact length beyond the masks (:func:`second_order`) at ``values`` is part of it.
     """
     m = values.get("servo_mismatch_ms") or 0.0
     tau_s = mean_lag(tau_s, radial_cos2, m)
     models = lost_motion.models if lost_motion is not None else ("step", "step")
     use_servo = tau_s is not None and math.isfinite(tau_s) and tau_s > 0 and math.isfinite(m)
-    if not use_servo and "deadband" not in models:
+    vector = any(values.get(k) for k in _VECTOR_FIELDS)
+    if not use_servo and "deadband" not in models and not vector:
         return None
 
     def offset(g: Geometry) -> np.ndarray:
@@ -346,7 +424,14 @@ def make_offset(
         if use_servo:
             assert tau_s is not None
             out += servo_remainder(g, m, tau_s, frame_cos2)
+        D = error_vector(g, values) if vector else None
+        if D is not None:
+            out += second_order(servo_point(g, m, tau_s if use_servo else None, frame_cos2), D, g)
         return out
 
     return offset
+
+
+_VECTOR_FIELDS = ("centre_x_um", "centre_y_um", "squareness_urad", "scale_mismatch_ppm", "backlash_x_um",
+                  "backlash_y_um", "lateral_play_x_um", "lateral_play_y_um", "straightness_x_um", "straightness_y_um")
 

@@ -230,6 +230,7 @@ class Context:
 
 
 OffsetFor = Callable[[Theta], Offset | None]
+LostFor = Callable[[Theta], LostMotion]  # the lost-motion models' angles at the nonlinear parameters (the loops' lag)
 TIMING = (0, 1)  # the coordinates of Theta.vector that move the samples' angles: the lag and the wait
 
 
@@ -237,18 +238,23 @@ class Objective:
     """The residual of the linear fit at each value of the nonlinear parameters (variable projection).
 
     ``offset``: the physical corrections (um) at the current estimates, given the nonlinear parameters
-    (:mod:`.physics`; they need the loops' lag).  ``smooth_rad``: the sharp features' extra integration width.
-    ``spikes``: False for the model without the reversal spikes.  ``evaluations`` counts the designs made.
+    (:mod:`.physics`; they need the loops' lag); ``lost``: the lost-motion models, or their angles given the
+    nonlinear parameters (a compensation step's lead and rise are the loops').  ``smooth_rad``: the sharp
+    features' extra integration width.  ``spikes``: False for the model without the reversal spikes.
+    ``designs`` counts the designs made, ``misfits`` the misfit evaluations (the objective at a value of the
+    nonlinear parameters) among them.
     """
 
     def __init__(
-        self, ctx: Context, bins: dict[int, Binned], lost: LostMotion, offset: OffsetFor, smooth_rad: float = 0.0,
+        self, ctx: Context, bins: dict[int, Binned], lost: LostMotion | LostFor, offset: OffsetFor,
+        smooth_rad: float = 0.0,
         spikes: bool = True,
     ) -> None:
         self.ctx, self.lost, self.offset, self.smooth_rad = ctx, lost, offset, smooth_rad
         self.bins = {d: b for d, b in bins.items() if len(b)}
         self.spikes = spikes  # the spikes' columns in the fit (False: the spike-free model)
-        self.evaluations = 0
+        self.designs = 0
+        self.misfits = 0
         self.sqrt_n = {d: np.sqrt(b.n) for d, b in self.bins.items()}
         self.weights = np.concatenate(list(self.sqrt_n.values())) if self.bins else np.empty(0)
         self.ss = sum(b.ss for b in self.bins.values())
@@ -263,17 +269,18 @@ class Objective:
     def rows(self, theta: Theta, du: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The weighted design (bins x all columns) and the weighted corrected deviation at ``theta``; ``du``:
         every angle moved by this much (rad), for the model's slope in the angle."""
-        self.evaluations += 1
+        self.designs += 1
         ctx = self.ctx
         timing = ctx.timing(theta)
         offset = self.offset(theta)
+        lost = self.lost(theta) if callable(self.lost) else self.lost
         w = math.radians(theta.w_deg)
         A = np.zeros((self.weights.size, ctx.p))
         ys = []
         i = 0
         for d, b in self.bins.items():
             mine, cols = ctx.by_direction[d]
-            g = ctx.geometry(b, timing, theta.tau, self.lost, self.smooth_rad, du, self.aperture_scale)
+            g = ctx.geometry(b, timing, theta.tau, lost, self.smooth_rad, du, self.aperture_scale)
             block = A[i : i + len(b)]
             if self.spikes:
                 block[:, cols] = design(mine, g, w)
@@ -285,7 +292,45 @@ class Objective:
         A *= self.weights[:, None]
         return A, np.concatenate(ys) * self.weights
 
+    def width_profile(self, theta: Theta, widths_deg: Sequence[float]) -> list[float]:
+        """The fit's sum of squares at ``theta`` at each of the spikes' ``widths_deg``: the rest of the design
+        made once, the spikes' columns at each width (a misfit evaluation and a design each)."""
+        ctx = self.ctx
+        timing = ctx.timing(theta)
+        offset = self.offset(theta)
+        lost = self.lost(theta) if callable(self.lost) else self.lost
+        self.designs += 1
+        A0 = np.zeros((self.weights.size, ctx.p))
+        parts, ys = [], []
+        i = 0
+        for d, b in self.bins.items():
+            mine, cols = ctx.by_direction[d]
+            g = ctx.geometry(b, timing, theta.tau, lost, self.smooth_rad, 0.0, self.aperture_scale)
+            steady = [p for p in mine if p.reversal is None]
+            A0[i : i + len(b), cols[~ctx.spike_cols[cols]]] = design(steady, g, 0.0)
+            sharp = [p for p in mine if p.reversal is not None]
+            parts.append((slice(i, i + len(b)), cols[ctx.spike_cols[cols]], sharp, g))
+            ys.append(b.y - offset(g) if offset is not None else b.y)
+            i += len(b)
+        y = np.concatenate(ys) * self.weights
+        out = []
+        for w_deg in widths_deg:
+            self.designs += 1
+            self.misfits += 1
+            A = A0.copy()
+            for rows, cols, sharp, g in parts:
+                if sharp:
+                    A[rows, cols] = design(sharp, g, math.radians(w_deg))
+            A *= self.weights[:, None]
+            use = self.supported(A)
+            Au = A[:, use]
+            x = Normal(Au).solve(Au.T @ y)
+            r = y - Au @ x
+            out.append(float(r @ r) + self.ss)
+        return out
+
     def evaluate(self, theta: Theta) -> Evaluation:
+        self.misfits += 1
         A, y = self.rows(theta)
         use = self.supported(A)
         A = A[:, use]
@@ -327,6 +372,47 @@ class Objective:
                 A1, y1 = self.rows(Theta.of(v, tau_known))
                 out.append(((y1 - A1[:, use] @ e.x[use]) - e.r) / steps[k])
         return out
+
+    def last_arc_feed(self, e: Evaluation, steps: dict[int, float], noise_var: float) -> tuple[float, float]:
+        """How much faster the last arc ran than the first, as a share of the feed, and that estimate in its
+        standard errors: the residual regressed on the model's slope along a feed change of the last arc
+        (each of its bins' angle moves by ``d Omega tau``, ``tau`` the time since that arc's data began), the
+        lag's and the wait's slopes and the design's columns held (a score test of the one timing the
+        schedule does not have).  ``noise_var``: the noise variance per sample (um^2)."""
+        assert e.A is not None and e.normal is not None and e.use is not None
+        dirs = self.ctx.plan.direction_list
+        last = dirs[-1]
+        if len(dirs) < 2 or last not in self.bins:
+            return math.nan, 0.0
+        tau_known = e.theta.tau is not None
+        du = 1e-3 * self._finest_rad(e.theta)
+        A1, y1 = self.rows(e.theta, du)
+        slope_u = ((y1 - A1[:, e.use] @ e.x[e.use]) - e.r) / du
+        base = self.angles(e.theta)
+        cols = []
+        for k in TIMING:
+            v = e.theta.vector()
+            v[k] += steps[k]
+            moved = self.angles(Theta.of(v, tau_known))
+            cols.append(slope_u * np.concatenate([(moved[d] - base[d]) / steps[k] for d in self.bins]))
+        timing = self.ctx.timing(e.theta)
+        omega = timing.feed_mm_s / self.ctx.plan.radius_mm
+        du_rho = np.concatenate([
+            (last * omega * (b.t - timing.sched.data_start_s[last])) if d == last else np.zeros(len(b))
+            for d, b in self.bins.items()
+        ])
+        cols.append(slope_u * du_rho)
+        S = np.column_stack(cols)
+        P = S - e.A @ e.normal.solve(e.A.T @ S)  # off the design's columns
+        coef, *_ = np.linalg.lstsq(P, e.r, rcond=None)
+        try:
+            cov = np.linalg.inv(P.T @ P) * noise_var
+        except np.linalg.LinAlgError:
+            return math.nan, 0.0
+        se = math.sqrt(max(float(cov[-1, -1]), 0.0))
+        # the residual is y - model: a slope that fits it is the model's change opposite to it
+        rho = -float(coef[-1])
+        return rho, abs(rho) / se if se > 0 else 0.0
 
     def _finest_rad(self, theta: Theta) -> float:
         """The narrowest interval any bin integrates over (rad)."""
@@ -448,6 +534,7 @@ def minimise(
     max_iter: int = 8,
     first: Evaluation | None = None,
     warm: Found | None = None,
+    max_evals: int = 1_000,
 ) -> Found:
     """Gauss-Newton with Levenberg-Marquardt damping on the coordinates ``active`` of :meth:`Theta.vector`.
 
@@ -458,8 +545,8 @@ def minimise(
     with the coefficients held, projected off the design's columns, :meth:`Objective.slopes`), made once
     (or taken from ``warm``, a minimum found on a near objective with the same bins) and then carried along
     by Broyden's secant updates, one design a step; it is made again where a step along it fails.  Stops
-    when every step is below ``tol`` (default: a tenth of ``steps``) or after ``max_iter`` steps.  Bounds
-    are kept by clipping.
+    when every step is below ``tol`` (default: a tenth of ``steps``), after ``max_iter`` steps, or once it
+    has made ``max_evals`` designs.  Bounds are kept by clipping.
     """
     tau_known = start.tau is not None
     active = list(active)
@@ -477,6 +564,7 @@ def minimise(
             v[k] = min(max(v[k], lo), hi)
         return v
 
+    spent = obj.designs
     here = first if first is not None else obj.evaluate(start)
     Hp = np.zeros((len(active), len(active)))
     for p in pri:
@@ -489,9 +577,11 @@ def minimise(
     lam = 1e-3
     iterations = 0
     nv = max(here.sse / n, NOISE_FLOOR_UM**2)
-    while iterations < max_iter:
+    while iterations < max_iter and obj.designs - spent < max_evals:
         iterations += 1
         if J is None:
+            if obj.designs - spent + _slope_designs(active) + 1 > max_evals:
+                break  # no budget left for a step along new slopes
             J, dX = _jacobian(obj, here, active, steps)
             fresh = True
         nv = max(here.sse / n, NOISE_FLOOR_UM**2)
@@ -507,6 +597,8 @@ def minimise(
             break  # within a small share of a standard error of the minimum: nothing left to gain
         trial = None
         for _ in range(4):
+            if obj.designs - spent >= max_evals:
+                break
             D = np.diag(np.maximum(np.diagonal(H), 1e-12))
             try:
                 delta = -np.linalg.solve(H + lam * D, g)
@@ -525,7 +617,7 @@ def minimise(
             if not fresh:  # a carried Jacobian led astray: make it anew here before damping further
                 break
         if trial is None:
-            if fresh:
+            if fresh or obj.designs - spent >= max_evals:
                 break
             J, lam = None, 1e-3  # made anew where the search stands
             continue
@@ -547,6 +639,11 @@ def minimise(
     if J is None:  # the slopes, for the covariance and the coefficients' spread
         J, dX = _jacobian(obj, here, active, steps)
     return Found(here, J.T @ J, Hp, dX, active, phi(here, nv), iterations, J)
+
+
+def _slope_designs(active: Sequence[int]) -> int:
+    """The designs :meth:`Objective.slopes` makes: one for the timing coordinates together, one each other."""
+    return int(any(k in TIMING for k in active)) + sum(k not in TIMING for k in active)
 
 
 def _decrement(H: np.ndarray, g: np.ndarray) -> float:

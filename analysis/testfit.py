@@ -25,18 +25,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from . import iso230, noise, stats
+from . import iso230, noise
 from .advice import advise
 from .circle import Timing
 from .detect import StepEvent
 from .errors import DataError
 from .fit import Factor, FitResult, solve
-from .loops import DEFAULT_KV_PER_S, Lag, loop_lag
+from .loops import DEFAULT_KV_PER_S, FAST_LOOP_S, Lag, loop_lag
 from .patterns import Geometry, Pattern, design, select, wrap
 from .physics import MODEL_WORDS, LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
 from .plan import AnalysisOptions, MachineConfig, TestPlan
@@ -79,8 +79,18 @@ SMOOTH_S = 0.02  # the first stage integrates the sharp features over this much 
 SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
 ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal moves by more (samples)
 OFFSET_SETTLED_UM = 1e-4  # the corrections' fixed point: they move by less than this (um)
-FINAL_STEPS = 6
+FINAL_STEPS = 4
 FOLD_ROWS = 16384  # samples whose model is made at a time
+TAU_NATS = 2.0  # the data must prefer another loop lag than the default gain's by this much log-likelihood
+WAIT_Z = 3.0  # the feed-in's extra wait is kept where it is this many standard errors from 0: a nuisance that
+# trades with what moves one arc against the other (lateral play, at low rates), kept only where clearly needed
+WIDTH_GRID = 5  # the spikes' widths tried over their range (log-spaced) before the fine stage's search
+STAGE_CAPS = (8, 14, 6, 6)  # designs per search: the coarse stage's, the fine's, the spike-free model's, each
+# point-sample share's (the first Jacobian and a step always)
+SEARCH_BUDGET = 44  # designs the searches may make in all (a search always makes its first Jacobian and a step);
+# a test the model does not describe makes them wander, the final fit and its checks come after
+SERVO_VAR_SHARE = 0.15  # each axis' loop variance in time known to this share of the loops' lag squared
+SERVO_MEAN_SHARE = 0.5  # ... and the two axes' mean to this share
 POINT_APERTURES = (0.2, 0.03)  # the last stage integrates the sharp features over these shares of a sample's
 # interval in turn
 FINE_TRIM_S = 0.03  # the fine stage's data arcs, trimmed for timings within this of the coarse stage's
@@ -180,6 +190,7 @@ class _State:
     values: dict[str, float]
     lost: LostMotion
     found: Found | None = None
+    se: dict[str, float] | None = None
 
 
 class TestFit:
@@ -222,9 +233,12 @@ class TestFit:
         for d in plan.direction_list:
             a, b = base.window(d)
             self.windows[d] = (a + trim, b - trim) if b - a > 4 * trim else (a, b)
-        self.evaluations = 0
+        self.designs = 0  # the designs made: misfit evaluations and their slopes
+        self.misfits = 0  # the misfit evaluations among them
         self.skip_rad = 0.0
+        self.spike_sse: tuple[float, float, int] | None = None  # full and spike-free SSE at their best, samples
         self.wait_free = False
+        self.held: set[int] = set()  # coordinates held at their prior's value (the loops' lag: the default gain)
         self.aperture_scale = 1.0
         # the sensor's white noise, from the samples alone (:func:`.validity.sensor_noise`)
         sw = [sensor_noise((self.L[(self.t >= a) & (self.t <= b)] - plan.radius_mm) * 1000.0)
@@ -314,13 +328,16 @@ class TestFit:
             out.append(3)
         return out
 
-    def _search(self, obj: Objective, active: list[int], max_iter: int, scale: float = 1.0) -> Found:
+    def _search(
+        self, obj: Objective, active: list[int], max_iter: int, scale: float = 1.0, cap: int = 1_000
+    ) -> Found:
         bounds, steps, priors = self._space(active)
         steps = {k: v * scale if k in (0, 1) else v for k, v in steps.items()}
         start = self.state.theta
-        found = minimise(obj, start, active, bounds=bounds, steps=steps, priors=priors, max_iter=max_iter)
-        self.evaluations += obj.evaluations
-        obj.evaluations = 0
+        budget = max(min(SEARCH_BUDGET - self.designs - obj.designs, cap), 2)
+        found = minimise(obj, start, active, bounds=bounds, steps=steps, priors=priors, max_iter=max_iter,
+                         max_evals=budget)
+        self._account(obj)
         return found
 
     def _update(self, obj: Objective, e: Evaluation) -> bool:
@@ -332,13 +349,19 @@ class TestFit:
         moved = max(abs(a - b) for a, b in zip(lost.onset_rad, old.onset_rad, strict=True))
         spacing = self.omega0 * self.period_s
         again = lost.models != old.models or moved > ONSET_MOVE_SAMPLES * spacing
-        self.state = _State(e.theta, values, lost, self.state.found)
+        self.state = _State(e.theta, values, lost, self.state.found, se)
         return again
+
+    def _lost_for(self) -> Any:
+        """The lost-motion models of the current estimates, their angles at each value of the nonlinear
+        parameters (the loops' lag moves a compensation step's lead and rise)."""
+        values, se = self.state.values, self.state.se or {}
+        return lambda theta: self._choose(values, se, theta)
 
     # ------------------------------------------------------------------ the stages
 
     def run(self) -> TestFit:
-        plan, options = self.plan, self.options
+        plan = self.plan
         no_offset = lambda th: None  # noqa: E731
         # 1. the masks alone at the starting timing, on coarse bins: the corrections' first values
         coarse = self._bins(None, self.windows)
@@ -346,71 +369,80 @@ class TestFit:
             raise DataError("the data arcs hold too few samples to fit")
         obj = Objective(self.ctx, coarse, LostMotion(), no_offset, 0.0)
         pre = obj.evaluate(self.state.theta)
-        self.evaluations += obj.evaluations
+        self._account(obj)
         self._update(obj, pre)
         # 2. the timing with the sharp features integrated over a wider interval, on coarse bins
-        active = [k for k in self._active(width=False) if k != 3]
+        active = [k for k in self._active() if k != 3]
         if active:
-            obj = Objective(self.ctx, coarse, self.state.lost,
+            obj = Objective(self.ctx, coarse, self._lost_for(),
                             self._offset_for(self.state.values, self.state.lost),
                             smooth_rad=self.omega0 * SMOOTH_S)
-            found = self._search(obj, active, max_iter=6)
+            found = self._search(obj, active, max_iter=6, cap=STAGE_CAPS[0])
             self._update(obj, found.best)
         # 3. fine bins about the features where they now lie, the features integrated over the bins alone; the
-        # data arcs where they now lie, but for what the timing's last steps could move in or out
-        for _pass in range(3):
+        # data arcs where they now lie, but for what the timing's last steps could move in or out.  Free spikes
+        # can take up what a step a few samples off leaves and hold the timing there: the model without them,
+        # searched from that timing, must not fit better (it is nested in the full one), else the full model is
+        # searched again from the spike-free model's timing
+        restarted = False
+        for _pass in range(4):
+            if _pass and self.designs + 6 > SEARCH_BUDGET:
+                break  # a test the model barely describes: no more passes
             timing = self.ctx.timing(self.state.theta)
             windows = {}
             for d in plan.direction_list:
                 a, b = timing.window(d)
                 windows[d] = (a + FINE_TRIM_S, b - FINE_TRIM_S)
-            obj = Objective(self.ctx, self._bins(timing, windows), self.state.lost,
+            obj = Objective(self.ctx, self._bins(timing, windows), self._lost_for(),
                             self._offset_for(self.state.values, self.state.lost))
             active = self._active()
             if not active:
                 e = obj.evaluate(self.state.theta)
-                self.evaluations += obj.evaluations
+                self._account(obj)
                 self._update(obj, e)
                 break
-            found = self._search(obj, active, max_iter=8)
+            found = self._search(obj, active, max_iter=8, cap=STAGE_CAPS[1])
             self.state.found = found
             again = self._update(obj, found.best)
+            if not again and self.sized and not restarted and self.designs + 6 <= SEARCH_BUDGET:
+                bare = self._bare(obj, found.best.theta, wait=True)
+                # the spikes' likelihood ratio against the spike-free model at its own best timing, on these bins
+                self.spike_sse = (found.best.sse, bare.best.sse, obj.samples)
+                if bare.best.sse < found.best.sse:
+                    self.state.theta = replace(found.best.theta, c=bare.best.theta.c, wait=bare.best.theta.wait)
+                    restarted, again = True, True
             if not again:
                 break
-        # 4. the feed-in's extra wait only where the data need it (its Wald test); where it is not, the other
+        # 4. the feed-in's extra wait only where the data need it (its Wald test at WAIT_Z); where it is not, the other
         # coordinates move to their best given a wait of 0 (the likelihood's quadratic), and the fit is made there
         last: Found | None = self.state.found
         self.wait_free = False
         if last is not None and 1 in last.active:
-            found = last
-            cov = found.cov(self._noise(found.best, obj.samples))
-            j = found.active.index(1)
-            z = float(stats.chi2.isf(options.significance, 1)) ** 0.5
-            wait = self.state.theta.wait
-            if abs(wait) > z * math.sqrt(max(cov[j, j], 0.0)):
+            cov = last.cov(self._noise(last.best, obj.samples))
+            j = last.active.index(1)
+            if abs(self.state.theta.wait) > WAIT_Z * math.sqrt(max(cov[j, j], 0.0)):
                 self.wait_free = True
             else:
-                keep = [i for i, k in enumerate(found.active) if k != 1]
-                v = self.state.theta.vector()
-                for i in keep:
-                    v[found.active[i]] -= cov[i, j] / cov[j, j] * wait if cov[j, j] > 0 else 0.0
-                v[1] = 0.0
-                bounds, _, _ = self._space(found.active)
-                for k, (lo, hi) in bounds.items():
-                    v[k] = min(max(v[k], lo), hi)
-                best = obj.evaluate(Theta.of(v, self.state.theta.tau is not None))
-                self.evaluations += obj.evaluations
-                obj.evaluations = 0
-                self.state.found = Found(best, found.jtj[np.ix_(keep, keep)], found.hprior[np.ix_(keep, keep)],
-                                         found.dx[:, keep], [found.active[i] for i in keep], found.phi,
-                                         found.iterations)
-                self._update(obj, best)
+                self._hold(obj, last, 1, 0.0, drop=True)
+        # the loops' lag, where nothing but the data arcs tell it, moves off the default gain only where the data
+        # prefer another by more than TAU_NATS (what they say of it with the rest profiled out)
+        last = self.state.found
+        if last is not None and 3 in last.active and self.state.theta.tau is not None:
+            j = last.active.index(3)
+            H = last.jtj / self._noise(last.best, obj.samples)
+            try:
+                var = float(np.linalg.inv(H)[j, j])
+            except np.linalg.LinAlgError:
+                var = math.inf
+            moved = math.log(self.state.theta.tau) + math.log(DEFAULT_KV_PER_S)
+            if not (var > 0 and 0.5 * moved * moved / var > TAU_NATS):
+                self._hold(obj, last, 3, -math.log(DEFAULT_KV_PER_S), drop=False)
         # 5. point samples: the sharp features integrated over a shrinking share of each sample's interval, from
         # the timing that integrating them over the whole interval found (on point samples, that is up to half a
         # sample off for each feature: a step or an onset between two samples); each share's minimum is the next
         # one's start, so that every feature is led to the right side of its samples
         last = self.state.found
-        at_bound = math.log(self.state.theta.w_deg / self.widths[0]) < math.log(WIDTH_AT_BOUND)
+        at_bound = not self.widths[0] * WIDTH_AT_BOUND < self.state.theta.w_deg < self.widths[1] / WIDTH_AT_BOUND
         active = [k for k in self._active(wait=self.wait_free, width=not at_bound) if k != 3]
         # (only where the bins about the features are single samples: a bin of several samples is their mean,
         # which its whole interval's integral models; and there a sample is short against every feature anyway)
@@ -418,14 +450,50 @@ class TestFit:
         if active and last is not None and singles:
             polished = found = last
             for scale in POINT_APERTURES:
+                if self.designs + 4 > SEARCH_BUDGET:
+                    break
                 obj.aperture_scale = scale
-                polished = self._search(obj, active, max_iter=3, scale=scale)
+                polished = self._search(obj, active, max_iter=3, scale=scale, cap=STAGE_CAPS[3])
                 self.state.theta = polished.best.theta
-            keep = [i for i, k in enumerate(found.active) if k not in active]
-            self.state.found = _merge(polished, found, keep)
-            self._update(obj, polished.best)
-        self.aperture_scale = POINT_APERTURES[-1] if active and singles else 1.0
+                self.aperture_scale = scale
+            if polished is not found:
+                keep = [i for i, k in enumerate(found.active) if k not in active]
+                self.state.found = _merge(polished, found, keep)
+                self._update(obj, polished.best)
         return self
+
+    def _hold(self, obj: Objective, found: Found, k: int, value: float, drop: bool) -> None:
+        """Hold coordinate ``k`` of :meth:`.search.Theta.vector` at ``value``: the others move to their best
+        given it (the likelihood's quadratic: their regression on it), and the fit is made there.  ``drop``:
+        it leaves the search (the wait: not part of the model here); else its spread stays counted (the
+        loops' lag: the prior's, as the data barely tell it)."""
+        j = found.active.index(k)
+        cov = found.cov(self._noise(found.best, obj.samples))
+        v = self.state.theta.vector()
+        shift = value - v[k]
+        for i, kk in enumerate(found.active):
+            if kk != k and cov[j, j] > 0:
+                v[kk] += cov[i, j] / cov[j, j] * shift
+        v[k] = value
+        bounds, _, _ = self._space(found.active)
+        for kk, (lo, hi) in bounds.items():
+            v[kk] = min(max(v[kk], lo), hi)
+        best = obj.evaluate(Theta.of(v, self.state.theta.tau is not None))
+        self._account(obj)
+        if drop:
+            keep = [i for i, kk in enumerate(found.active) if kk != k]
+            self.state.found = Found(best, found.jtj[np.ix_(keep, keep)], found.hprior[np.ix_(keep, keep)],
+                                     found.dx[:, keep], [found.active[i] for i in keep], found.phi, found.iterations)
+        else:
+            self.state.found = replace(found, best=best)
+        self._update(obj, best)
+        self.held.add(k)
+
+    def _account(self, obj: Objective) -> None:
+        """Count ``obj``'s designs and misfit evaluations as the test's, and start it afresh."""
+        self.designs += obj.designs
+        self.misfits += obj.misfits
+        obj.designs = obj.misfits = 0
 
     def _noise(self, e: Evaluation, samples: int) -> float:
         """The noise variance per sample (um^2) that the search's covariance takes: the residual's, inflated for
@@ -481,7 +549,7 @@ class TestFit:
             obj = Objective(self.full_ctx, bins, lost, self._offset_for(values, lost))
             obj.aperture_scale = self.aperture_scale
             factor, colmax = obj.factor(theta)
-            self.evaluations += obj.evaluations
+            self._account(obj)
             fit = solve(factor, self.patterns, significance=options.significance,
                         min_effect_um=options.min_effect_um, vif_limit=options.vif_limit,
                         effect_scale=colmax, exclude=self.exclude, rank=False)
@@ -510,7 +578,12 @@ class TestFit:
         noise_var = max(fit.sigma**2, NOISE_FLOOR_UM**2) * self.final_kappa
         self.theta_cov = found.cov(noise_var) if found is not None else np.zeros((0, 0))
         timing_cov = self._timing_cov(fit)
+        servo_cov, servo_note = self._servo_cov(fit, theta, V)
+        if servo_cov is not None:
+            timing_cov = servo_cov if timing_cov is None else timing_cov + servo_cov
         res = self._solve_report(obj, theta, factor, colmax, rho, timing_cov)
+        if servo_note:
+            res["fit"]["uncertainty_method"] += servo_note
         fit_final = res.pop("_fit")
         all_r = np.concatenate(residuals) if residuals else np.empty(0)
         rms = float(np.sqrt(np.mean(all_r**2))) if all_r.size else math.nan
@@ -520,7 +593,8 @@ class TestFit:
         res["fit"]["lost_motion_model"] = "; ".join(
             f"{axis.upper()}: {MODEL_WORDS[m]}" for axis, m in zip("xy", lost.models, strict=True)
         )
-        res["fit"]["evaluations"] = self.evaluations
+        res["fit"]["evaluations"] = self.misfits
+        res["fit"]["designs"] = self.designs
         res["kind"] = "test"
         lag_se = math.nan
         w_se = math.nan
@@ -566,7 +640,17 @@ class TestFit:
             [(per_dir[d][0], per_dir[d][2], plan.data_arc_deg, self.sample_hz) for d in per_dir],
             options.vibration_cutoff_cpr,
         )
-        check_model(res, per_dir, self.sample_hz, fit_final)
+        feed = (math.nan, 0.0)
+        if len(plan.direction_list) > 1:
+            # on the smooth objective (each sample's whole interval): the slope of a feed change is then the
+            # model's along the whole arc, not the point samples' next to each step
+            scale, obj.aperture_scale = obj.aperture_scale, 1.0
+            e = obj.evaluate(theta)
+            _, steps, _ = self._space([0, 1])
+            feed = obj.last_arc_feed(e, steps, max(fit_final.sigma**2, NOISE_FLOOR_UM**2) * self.final_kappa)
+            obj.aperture_scale = scale
+            self._account(obj)
+        check_model(res, per_dir, self.sample_hz, fit_final, feed)
         if curves:
             res["curves"] = {}
             for d, (u, y, r) in per_dir.items():
@@ -586,18 +670,16 @@ class TestFit:
         lag = self.lag
         if not self.tau_fitted or found is None or 3 not in found.active:
             return lag.origin, lag.source
+        if 3 in self.held:
+            return "assumed", (f"{lag.source}; the data arcs do not prefer another gain by more than {TAU_NATS:g} "
+                               "nats (the loop's lag searched with the timing)")
         j = found.active.index(3)
         sd = math.sqrt(max(self.theta_cov[j, j], 0.0))
         kv = 1.0 / (self.state.theta.tau or 1.0 / DEFAULT_KV_PER_S)
-        if sd < 0.5 * TAU_PRIOR_LN:
-            return "fitted", (
-                f"fitted to the data arcs with the timing: {kv:.3g}/s (its log known to {sd:.2g}, against a "
-                f"prior of {TAU_PRIOR_LN:.2g} about {DEFAULT_KV_PER_S:g}/s); the feed-in's settling is not resolved "
-                "at this sample rate and no kv_x/kv_y is configured"
-            )
-        return "assumed", (
-            f"{lag.source}; the data arcs barely tell the gain (its log known to {sd:.2g} against the prior's "
-            f"{TAU_PRIOR_LN:.2g}): {kv:.3g}/s"
+        return "fitted", (
+            f"fitted to the data arcs with the timing: {kv:.3g}/s (its log known to {sd:.2g}; the data prefer it to "
+            f"the default {DEFAULT_KV_PER_S:g}/s by more than {TAU_NATS:g} nats); the feed-in's settling is not "
+            "resolved at this sample rate and no kv_x/kv_y is configured"
         )
 
     def _timing_cov(self, fit: FitResult) -> np.ndarray | None:
@@ -612,6 +694,42 @@ class TestFit:
         dx[full_cols] = found.dx
         return np.asarray(dx @ self.theta_cov @ dx.T)
 
+    def _servo_cov(self, fit: FitResult, theta: Theta, V: float) -> tuple[np.ndarray | None, str]:
+        """The scale mismatch's and the radius' covariance through what one circle cannot tell of the axes'
+        dynamics, and its words.
+
+        On a circle at ``Omega = V/R`` each axis answers with a gain ``g`` below 1: ``1 - g^2`` is
+        ``Omega^2`` times the variance in time of the loop's impulse response (``1/K^2`` for a first-order
+        loop, the model the corrections take).  Velocity feed-forward raises it (``(1 - ff^2)/K^2``), a
+        velocity loop of finite bandwidth lowers it (by about ``2/(K wv)``), by as much as a third of
+        ``1/K^2`` for controls of today.  The mean moves the radius (``R Omega^2 Var / 2``), the two axes'
+        difference reads exactly as a scale mismatch (``cos 2u``; ``-(Omega^2 / 2) (VarX - VarY)``, in
+        ppm): one feed cannot tell them apart, only a second, slower one (the term falls as the feed's
+        square).  So each axis' variance is taken as known to ``SERVO_VAR_SHARE`` of the loops' lag
+        squared, independently (the axes' dynamics differ: 0.27 of it between velocity loops of 30 and 200 Hz
+        at 30/s), and their mean to ``SERVO_MEAN_SHARE`` of it (feed-forward of 0.7 takes half of it off
+        both), and the scale's and the radius' covariance hold that."""
+        tau = theta.tau if theta.tau is not None else (FAST_LOOP_S if self.lag.origin == "fast" else None)
+        if tau is None or not math.isfinite(tau):
+            return None, ""
+        R = self.plan.radius_mm
+        omega2 = (V / R) ** 2
+        sd_var = SERVO_VAR_SHARE * tau * tau  # s^2, per axis
+        slices = fit.column_slices()
+        cov = np.zeros((fit.x.size, fit.x.size))
+        sd_scale = 0.5 * omega2 * math.sqrt(2.0) * sd_var * 1e6  # ppm
+        sd_radius = 0.5 * R * 1000.0 * omega2 * SERVO_MEAN_SHARE * tau * tau  # um
+        for name, sd in (("scale_mismatch", sd_scale), ("radius", sd_radius)):
+            if name in slices:
+                j = slices[name].start
+                cov[j, j] = sd * sd
+        return cov, (
+            f"; the scale mismatch's also holds what one feed cannot tell of the axes' dynamics ({sd_scale:.2g} ppm: "
+            f"each axis' loop variance known to {SERVO_VAR_SHARE:g} of its lag squared, feed-forward and velocity "
+            f"loops unknown; a slower feed separates it), and the radius' the same for their mean ({sd_radius:.2g} um, "
+            f"{SERVO_MEAN_SHARE:g} of it)"
+        )
+
     def _solve_report(
         self, obj: Objective, theta: Theta, factor: Factor, colmax: np.ndarray, rho: float,
         timing_cov: np.ndarray | None
@@ -623,7 +741,7 @@ class TestFit:
         term = next((t for n, t in final.terms.items() if n.startswith("reversal_spike")), None)
         if self.sized and term is not None and any(t.significant for n, t in final.terms.items()
                                                     if n.startswith("reversal_spike")):
-            lr = self._spike_lr(obj, theta)
+            lr = self._spike_lr()
             final = solve(factor, self.patterns, rho=rho, significance=options.significance,
                           min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=colmax,
                           exclude=self.exclude, family_dof={"reversal_spike": 1},
@@ -639,23 +757,26 @@ class TestFit:
         res["_fit"] = final
         return res
 
-    def _spike_lr(self, obj: Objective, theta: Theta) -> float:
-        """The spikes' likelihood ratio (nats) against the spike-free model at its own best timing: free spikes
-        could be buying a timing that the steps refute."""
-        full = obj.evaluate(theta)
+    def _bare(self, obj: Objective, theta: Theta, wait: bool) -> Found:
+        """The model without the spikes, its timing searched from ``theta`` on ``obj``'s bins."""
         bare_obj = Objective(obj.ctx, obj.bins, obj.lost, obj.offset, 0.0, spikes=False)
         bare_obj.aperture_scale = obj.aperture_scale
-        active = [k for k in self._active(wait=self.wait_free) if k != 2]
-        if active:
-            bounds, steps, priors = self._space(active)
-            found = minimise(bare_obj, theta, active, bounds=bounds, steps=steps, priors=priors, max_iter=4)
-            bare = found.best
-        else:
-            bare = bare_obj.evaluate(theta)
-        self.evaluations += bare_obj.evaluations + obj.evaluations
-        obj.evaluations = 0
-        n_eff = bare_obj.samples / self.final_kappa
-        return max(0.5 * n_eff * math.log(max(bare.sse, 1e-12) / max(full.sse, 1e-12)), 0.0)
+        active = [k for k in self._active(wait=wait) if k != 2]
+        bounds, steps, priors = self._space(active)
+        budget = max(min(SEARCH_BUDGET - self.designs, STAGE_CAPS[2]), 2)
+        found = minimise(bare_obj, theta, active, bounds=bounds, steps=steps, priors=priors, max_iter=4,
+                         max_evals=budget)
+        self._account(bare_obj)
+        return found
+
+    def _spike_lr(self) -> float:
+        """The spikes' likelihood ratio (nats) against the spike-free model at its own best timing, both on the
+        fine bins of the search (:meth:`run`): free spikes could be buying a timing that the steps refute."""
+        if self.spike_sse is None:
+            return math.nan
+        full, bare, samples = self.spike_sse
+        n_eff = samples / self.final_kappa
+        return max(0.5 * n_eff * math.log(max(bare, 1e-12) / max(full, 1e-12)), 0.0)
 
     def _arc_times(self, d: int, windows: dict[int, tuple[float, float]]) -> np.ndarray:
         a, b = windows[d]

@@ -13,7 +13,11 @@ the residual is checked against what the test's own data say about the noise:
 - **misfit**: the fit's residual rms far above that noise (more than
   ``MISFIT_RATIO`` times it and by more than ``MISFIT_MIN_UM``): the model
   leaves out most of what the bar saw;
-- **level change**: the residual steps at one sample, by more than
+- **feed**: the last arc ran at another feed than the first (by more than
+  ``FEED_MIN`` and ``FEED_SIGMAS`` standard errors: a score test of the
+  one timing the schedule does not have, the feed override changed between
+  the arcs);
+- **level change** (judged only where the misfit passed): the residual steps at one sample, by more than
   ``STEP_SIGMAS`` of its standard error over the windows either side (each
   ``STEP_WINDOW_DEG`` of travel) and by more than ``STEP_MIN_UM``, away from
   the reversals and changeovers the model describes.
@@ -32,11 +36,14 @@ import numpy as np
 
 from .fit import FitResult
 
-MISFIT_RATIO = 4.0  # residual rms against the sensor noise beyond which the model does not describe the test
+MISFIT_RATIO = 3.0  # residual rms against the sensor noise beyond which the model does not describe the test
 MISFIT_MIN_UM = 0.25  # ... and by at least this much (um): tiny absolute misfits are the model's fine detail
-STEP_WINDOW_DEG = 2.0  # each side of a candidate level change (deg of travel)
+STEP_WINDOW_DEG = 2.0  # each side of a candidate level change (deg of travel) ...
+STEP_WINDOW_SAMPLES = 16  # ... and at least this many samples
 STEP_SIGMAS = 12.0  # a level change this many standard errors of the windows' difference
 STEP_MIN_UM = 0.2  # ... and at least this large (um)
+FEED_SIGMAS = 8.0  # the last arc's feed differs from the first's by this many standard errors ...
+FEED_MIN = 0.002  # ... and by more than this share: the control holds a feed far better between two arcs
 FEATURE_DEG = 3.0  # level changes whose windows come this close to a 45 deg point (reversals, changeovers) are
 # not judged: what the model leaves there is its own fine detail
 
@@ -53,7 +60,7 @@ def level_change(u: np.ndarray, r: np.ndarray, d: int, sample_deg: float, sigma:
     """The residual's largest step between two windows of ``STEP_WINDOW_DEG``, away from the 45 deg points:
     its angle (deg) and size (um), in standard errors of the windows' difference ``(step, z)``... returned as
     ``(angle_deg, step_um)`` with the step's z-score compared by the caller."""
-    w = max(round(STEP_WINDOW_DEG / max(sample_deg, 1e-9)), 3)
+    w = _window(sample_deg)
     if r.size < 4 * w:
         return math.nan, 0.0
     c = np.concatenate([[0.0], np.cumsum(r)])
@@ -62,18 +69,24 @@ def level_change(u: np.ndarray, r: np.ndarray, d: int, sample_deg: float, sigma:
     deg = np.degrees(u[k])
     past = np.mod(deg, 45.0)
     # both windows clear of every 45 deg point (reversals, changeovers), by FEATURE_DEG
-    ok = np.minimum(past, 45.0 - past) > FEATURE_DEG + STEP_WINDOW_DEG
+    ok = np.minimum(past, 45.0 - past) > FEATURE_DEG + w * sample_deg
     if not ok.any():
         return math.nan, 0.0
     i = int(np.argmax(np.where(ok, np.abs(diff), -1.0)))
     return float(deg[i]), float(diff[i])
 
 
+def _window(sample_deg: float) -> int:
+    """Samples either side of a candidate level change."""
+    return max(round(STEP_WINDOW_DEG / max(sample_deg, 1e-9)), STEP_WINDOW_SAMPLES)
+
+
 def check_model(
     res: dict[str, Any], per_dir: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]], sample_hz: float,
-    fit: FitResult,
+    fit: FitResult, feed: tuple[float, float] = (math.nan, 0.0),
 ) -> None:
-    """Mark ``res`` invalid where the model does not describe the test (see the module docstring)."""
+    """Mark ``res`` invalid where the model does not describe the test (see the module docstring).  ``feed``:
+    how much faster the last arc ran than the first, as a share, and that in its standard errors."""
     reasons: list[str] = []
     noises, sq, n = [], 0.0, 0
     for _, y, r in per_dir.values():
@@ -91,17 +104,25 @@ def check_model(
             f"samples themselves ({noise:.2g} um): the model does not describe this test (was it run as planned, at "
             "one feed? an error the pattern library lacks?)"
         )
+    rho, z_feed = feed
+    checks["last_arc_feed_ratio"] = 1.0 + rho if math.isfinite(rho) else None
+    checks["last_arc_feed_z"] = z_feed if math.isfinite(rho) else None
+    misfit = bool(reasons)
+    if math.isfinite(rho) and z_feed > FEED_SIGMAS and abs(rho) > FEED_MIN and not misfit:
+        reasons.append(
+            f"the last arc ran at {100.0 * (1.0 + rho):.2f} % of the first one's feed ({z_feed:.3g} standard "
+            "errors): the program was not run as planned (the feed override changed between the arcs?)"
+        )
     steps = []
     for d, (u, _, r) in per_dir.items():
         if r.size < 16 or not math.isfinite(noise):
             continue
         sample_deg = abs(float(np.degrees(u[-1] - u[0]))) / max(u.size - 1, 1)
         at, step = level_change(u, r, d, sample_deg, noise)
-        w = max(round(STEP_WINDOW_DEG / max(sample_deg, 1e-9)), 3)
-        se = noise * math.sqrt(2.0 / w)
+        se = noise * math.sqrt(2.0 / _window(sample_deg))
         z = abs(step) / se if se > 0 else 0.0
         steps.append({"direction": "ccw" if d > 0 else "cw", "at_deg": at, "step_um": step, "z": z})
-        if z > STEP_SIGMAS and abs(step) > STEP_MIN_UM:
+        if z > STEP_SIGMAS and abs(step) > STEP_MIN_UM and not misfit:
             reasons.append(
                 f"the {'CCW' if d > 0 else 'CW'} residual changes its level by {step:+.3g} um at {at:.1f} deg "
                 f"({z:.3g} standard errors), away from any reversal: the bar's length stepped during the test (a "

@@ -273,7 +273,9 @@ def _fit(test: bool) -> Schema:
                 required=["x", "y"],
             ),
             "lost_motion_model": string("lost_motion in words"),
-            "evaluations": integer("designs the fit made (misfit evaluations and their slopes)"),
+            "evaluations": integer("misfit evaluations the fit made (the objective at a value of its nonlinear "
+                                   "parameters)"),
+            "designs": integer("designs the fit made: its misfit evaluations and their slopes"),
             "valid": boolean("false: the model does not describe this test (invalid_reasons say why); no "
                              "parameter is then significant"),
             "invalid_reasons": {"type": "array", "items": {"type": "string"},
@@ -283,6 +285,9 @@ def _fit(test: bool) -> Schema:
                 {
                     "sensor_noise_um": num("the sensor's white noise from the samples alone, um", True),
                     "residual_rms_um": num("the fit's residual, um", True),
+                    "last_arc_feed_ratio": num("the last arc's feed against the first's, as the residual tells it "
+                                               "(null: one direction)", True),
+                    "last_arc_feed_z": num("its difference from 1 in standard errors (null: one direction)", True),
                     "level_change": {
                         "type": "array",
                         "description": "per data arc, the residual's largest step away from the reversals",

@@ -19,7 +19,8 @@ The chain, evaluated on a fine time grid (``step_s``, default 0.1 ms, aligned so
 that every nominal sample instant is a grid point)
 ---------------------------------------------------------------------------
 1. Command.  The program (feed-in, dwell, CCW arc, dwell, CW arc, dwell,
-   feed-out) at feed ``F * feed_override``.  Every move starts and ends at
+   feed-out) at feed ``F * feed_override`` (from the second arc on at
+   ``F * feed_override_later`` where that is set: a test not run as planned).  Every move starts and ends at
    rest with a trapezoidal path speed of acceleration ``accel_mm_s2``; with a
    finite ``jerk_mm_s3`` the trapezoid is averaged over ``A / J`` seconds (the
    exact jerk-limited S-curve).  A move of length ``s`` then lasts
@@ -39,6 +40,10 @@ that every nominal sample instant is a grid point)
 3. Position loop per axis (semi-closed, on the motor): ``dp/dt = Kv (c - p) +
    ff dc/dt``, solved exactly for a command linear between grid points.  The
    steady following error on a ramp is ``(1 - ff) v / Kv`` against the motion.
+   With ``velocity_loop_*_hz > 0`` the motor's velocity follows that command
+   through a velocity loop of that natural frequency and
+   ``velocity_loop_damping`` (second order), the position loop closed around
+   it: the axis is then third order, its lag on a ramp unchanged.
 4. Lost motion, ``backlash_*_um = b``.  ``b > 0``: a dead band between motor
    and table (play operator) of half-width ``b/2`` centred at the start, so a
    moving table lags its motor by ``b/2`` (``DX = -(b/2) sgn(vX)``) and stands
@@ -65,7 +70,8 @@ that every nominal sample instant is a grid point)
    radius), cyclic screw error ``DX = cX sin(2 pi X / pX + phiX)`` (and Y).
 8. The bar: ``L = |P + D + (x0, y0)|`` (the pivot sits at ``-(x0, y0)`` from the
    programmed centre, so ``centre_*_um`` is the library's ``D = (x0, y0)``),
-   plus ``radius_um`` (calibration) plus ``drift_um_per_min`` times the minutes
+   plus ``length_step_um`` from ``length_step_s`` after the feed-in starts (a
+   ball seating anew), plus ``radius_um`` (calibration) plus ``drift_um_per_min`` times the minutes
    since the feed-in started, plus a radial vibration
    ``vibration_um sin(2 pi f t + phi)``.
 9. Sampling at ``k / sample_hz``.  Jitter: by default sample ``k`` is taken at
@@ -111,7 +117,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
+from scipy.signal import cont2discrete, lfilter
 
 from ballbar.analysis.errors import PlanError
 from ballbar.analysis.plan import TestPlan
@@ -135,6 +141,7 @@ class MachineModel:
 
     # Controller and motion
     feed_override: float = 1.0  # actual feed = programmed feed * this
+    feed_override_later: float = 0.0  # the override from the second arc on (0: unchanged): a test not run as planned
     accel_mm_s2: float = 2000.0  # path acceleration of the trapezoid
     jerk_mm_s3: float = math.inf  # path jerk (S-curve) when finite
     ipo_s: float = 0.0  # interpolation cycle: command held per cycle (0 = continuous)
@@ -145,6 +152,10 @@ class MachineModel:
     kv_x_per_s: float = 30.0
     kv_y_per_s: float = 30.0
     velocity_ff: float = 0.0  # velocity feed-forward fraction, 0..1, both axes
+    # velocity loop inside each position loop: its natural frequency (Hz; 0: ideal, the axis a first-order loop)
+    velocity_loop_x_hz: float = 0.0
+    velocity_loop_y_hz: float = 0.0
+    velocity_loop_damping: float = 0.7
     # Lost motion, friction
     backlash_x_um: float = 0.0
     backlash_y_um: float = 0.0
@@ -179,6 +190,8 @@ class MachineModel:
     centre_y_um: float = 0.0
     radius_um: float = 0.0  # bar calibration error, added to the reported length
     drift_um_per_min: float = 0.0
+    length_step_um: float = 0.0  # the bar's length steps by this once (a ball seating anew, a loose pivot) ...
+    length_step_s: float = 0.0  # ... this long after the feed-in starts
     vibration_um: float = 0.0  # radial amplitude
     vibration_hz: float = 50.0
     vibration_phase_deg: float = 0.0
@@ -226,6 +239,11 @@ class MachineModel:
             "backlash_comp_y_um",
             "lead_s",
             "tail_s",
+            "velocity_loop_x_hz",
+            "velocity_loop_y_hz",
+            "feed_override_later",
+            "length_step_s",
+            "velocity_loop_damping",
             "lateral_takeup_um",
             "stick_slip_um",
             "jitter_s",
@@ -416,7 +434,12 @@ def _timeline(
     smooth = m.accel_mm_s2 / m.jerk_mm_s3 if math.isfinite(m.accel_mm_s2) else 0.0
     out: list[_Segment] = []
     t = m.lead_s
+    arcs = 0
     for mv in moves(plan) if program is None else program:
+        if mv.kind == "arc":
+            arcs += 1
+            if arcs == 2 and m.feed_override_later > 0:
+                V = plan.feed_mm_s * m.feed_override_later
         if mv.kind == "dwell":
             wait = _in_position_wait(out, m, h) if out and out[-1].profile is not None else 0.0
             if wait > 0:
@@ -479,7 +502,32 @@ def _axis_commands(segs: list[_Segment], grid: np.ndarray, m: MachineModel) -> t
 
 
 def _motors(cx: np.ndarray, cy: np.ndarray, m: MachineModel, h: float) -> list[np.ndarray]:
-    return [_servo(cx, m.kv_x_per_s, m.velocity_ff, h), _servo(cy, m.kv_y_per_s, m.velocity_ff, h)]
+    return [_axis(cx, m.kv_x_per_s, m.velocity_ff, m.velocity_loop_x_hz, m.velocity_loop_damping, h),
+            _axis(cy, m.kv_y_per_s, m.velocity_ff, m.velocity_loop_y_hz, m.velocity_loop_damping, h)]
+
+
+def _axis(c: np.ndarray, kv: float, ff: float, vel_hz: float, zeta: float, h: float) -> np.ndarray:
+    """One axis' motor position for the command ``c``: the position loop alone (first order) or, with a
+    velocity loop of natural frequency ``vel_hz`` and damping ``zeta``, the position loop closed around it."""
+    if vel_hz <= 0 or math.isinf(kv):
+        return _servo(c, kv, ff, h)
+    return _servo_velocity_loop(c, kv, ff, 2.0 * math.pi * vel_hz, zeta, h)
+
+
+def _servo_velocity_loop(c: np.ndarray, kv: float, ff: float, wv: float, zeta: float, h: float) -> np.ndarray:
+    """Response of a position loop around a second-order velocity loop to ``c`` linear between grid points.
+
+    The position controller commands the velocity ``kv (c - p) + ff dc/dt``; the velocity loop follows that
+    command as ``v'' + 2 zeta wv v' + wv^2 v = wv^2 v_cmd``, and ``p' = v``.  From command to position:
+    ``wv^2 (kv + ff s) / (s^3 + 2 zeta wv s^2 + wv^2 s + wv^2 kv)``, discretised with a first-order hold
+    (exact for a command linear between grid points), from rest on the first command.
+    """
+    num = [wv * wv * ff, wv * wv * kv] if ff else [wv * wv * kv]
+    den = [1.0, 2.0 * zeta * wv, wv * wv, wv * wv * kv]
+    b, a, _ = cont2discrete((num, den), h, method="foh")
+    b = np.asarray(b).ravel()
+    out = lfilter(b, a, c - c[0])
+    return np.asarray(out + c[0])
 
 
 def _command(segs: list[_Segment], times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -650,14 +698,18 @@ def truth_of(plan: TestPlan, m: MachineModel) -> dict[str, float]:
     w = V / R
     ff = m.velocity_ff
 
-    def loop(kv: float) -> tuple[float, float, float]:
+    def loop(kv: float, vel_hz: float) -> tuple[float, float, float]:
         if math.isinf(kv):
             return 0.0, 1.0, 0.0
+        s = complex(0.0, w)
         g = complex(kv, ff * w) / complex(kv, w)
+        if vel_hz > 0:
+            wv, z = 2.0 * math.pi * vel_hz, m.velocity_loop_damping
+            g = wv * wv * (kv + ff * s) / (s**3 + 2 * z * wv * s**2 + wv * wv * s + wv * wv * kv)
         return (1.0 - ff) / kv, abs(g), -math.atan2(g.imag, g.real)
 
-    lag_x, amp_x, ph_x = loop(m.kv_x_per_s)
-    lag_y, amp_y, ph_y = loop(m.kv_y_per_s)
+    lag_x, amp_x, ph_x = loop(m.kv_x_per_s, m.velocity_loop_x_hz)
+    lag_y, amp_y, ph_y = loop(m.kv_y_per_s, m.velocity_loop_y_hz)
     servo_radius = R * ((amp_x**2 + amp_y**2) / 2.0 - 1.0) / 2.0 / UM
     servo_scale = (amp_x**2 * math.cos(2 * ph_x) - amp_y**2 * math.cos(2 * ph_y)) / 2.0 * 1e6
     smooth = m.accel_mm_s2 / m.jerk_mm_s3 if math.isfinite(m.accel_mm_s2) else 0.0
@@ -815,6 +867,8 @@ def _run(
     L += m.radius_um * UM
     if m.drift_um_per_min:
         L += m.drift_um_per_min * UM * (t_take - segs[0].t_start) / 60.0
+    if m.length_step_um:
+        L += m.length_step_um * UM * (t_take >= segs[0].t_start + m.length_step_s)
     if m.vibration_um:
         phase = 2 * np.pi * m.vibration_hz * t_take + math.radians(m.vibration_phase_deg)
         L += m.vibration_um * UM * np.sin(phase)
