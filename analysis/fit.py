@@ -270,6 +270,11 @@ def solve(
         cs = (Rinv @ Rinv.T) / np.outer(norms[cols], norms[cols]) * (sse_full / dof) * kappa
         x[cols] = xs
         cov[np.ix_(cols, cols)] = cs
+    # (A^T A)^-1 of the columns used, by column: the extra sum of squares of leaving out any of them is
+    # x_S^T [(A^T A)^-1]_SS^-1 x_S, exactly (the nested least-squares fit, without fitting it)
+    gram_inv = np.zeros((p_all, p_all))
+    if cols:
+        gram_inv[np.ix_(cols, cols)] = (Rinv @ Rinv.T) / np.outer(norms[cols], norms[cols])
     fit_cov = cov.copy()
     if timing_cov is not None and cols:
         cov[np.ix_(cols, cols)] += timing_cov[np.ix_(cols, cols)]
@@ -283,16 +288,19 @@ def solve(
             return 1.0
         idx = np.ix_(own, own)
         v = x[own]
-        alone = float(v @ np.linalg.pinv(fit_cov[idx]) @ v)
-        return float(v @ np.linalg.pinv(cov[idx]) @ v) / alone if alone > 0 else 1.0
+        alone = _quadratic(fit_cov[idx], v)
+        return _quadratic(cov[idx], v) / alone if alone > 0 else 1.0
+
+    def extra(own: Sequence[int]) -> float:
+        """SSE(all but ``own``) - SSE(all): the extra sum of squares of those columns."""
+        return max(_quadratic(gram_inv[np.ix_(own, own)], x[list(own)]), 0.0)
 
     # Extra sum of squares (Suh & Lee section 4.2): drop each term in turn.
     ssr: dict[str, float] = {}
     for i, pat in enumerate(patterns):
         if not used[i]:
             continue
-        others = [c for c in cols if not slices[i].start <= c < slices[i].stop]
-        ssr[pat.name] = max(sse_subset(R, others) - sse_full, 0.0)
+        ssr[pat.name] = extra(list(range(slices[i].start, slices[i].stop)))
     total = sum(ssr.values())
     mse = sse_full / dof * kappa
     for i, pat in enumerate(patterns):
@@ -316,7 +324,7 @@ def solve(
             continue
         own = {c for i in idx for c in range(slices[i].start, slices[i].stop)}
         q = len(own) + (family_dof or {}).get(fam, 0)
-        fam_ssr = max(sse_subset(R, [c for c in cols if c not in own]) - sse_full, 0.0)
+        fam_ssr = extra(sorted(own))
         F = (fam_ssr / q) / mse * counted(sorted(own)) if mse > 0 else math.inf
         p_gate = float(stats.f.sf(F, q, dof)) if math.isfinite(F) else 0.0
         how = f"joint F-test over {q} parameters"
@@ -329,6 +337,14 @@ def solve(
     setup = frozenset(pat.name for i, pat in enumerate(patterns) if used[i] and pat.kind == "setup")
     _judge(result.terms, significance, min_effect_um, gates, setup)
     return result
+
+
+def _quadratic(M: np.ndarray, v: np.ndarray) -> float:
+    """``v^T M^-1 v`` (least squares where ``M`` is singular)."""
+    try:
+        return float(v @ np.linalg.solve(M, v))
+    except np.linalg.LinAlgError:
+        return float(v @ np.linalg.lstsq(M, v, rcond=None)[0])
 
 
 def family(name: str) -> str:

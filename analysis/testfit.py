@@ -66,7 +66,7 @@ from .search import (
 )
 from .validity import check_model, sensor_noise
 
-LAG_PRIOR_S = 0.05  # prior on the arc-start lag: where the data cannot see it, it stays near 0
+LAG_PRIOR_S = 0.05  # prior on the arc-start lag: where the data cannot see it, it stays near the feed-in's shape's
 WAIT_PRIOR_S = 0.1  # ... and on the feed-in's extra wait
 WAIT_MAX_S = 0.3
 LAG_BELOW_S = 0.1  # a negative per-move overhead is unphysical: only this far below 0
@@ -225,7 +225,10 @@ class TestFit:
         self.u_in = arc_start_deg(plan, plan.direction_list[0])
         self.frame_cos2 = math.cos(2.0 * math.radians(self.u_in))
         w0 = min(max(DEFAULT_SPIKE_WIDTH_DEG, self.widths[0]), self.widths[1])
-        self.state = _State(Theta(0.0, 0.0, w0, lag.tau), {}, LostMotion())
+        # the lag starts at, and is drawn toward, the acceleration part of the per-move overhead that the feed-in's
+        # and feed-out's spread in time show (the overhead is at least that), 0 where they do not show it
+        self.c0 = min(max(self.accel, 0.0), options.max_lag_s) if self.accel is not None else 0.0
+        self.state = _State(Theta(self.c0, 0.0, w0, lag.tau), {}, LostMotion())
         # the search's samples: the data arcs whatever lag the search tries
         base = self.ctx.timing(Theta())
         trim = 1.5 * options.max_lag_s
@@ -238,6 +241,7 @@ class TestFit:
         self.skip_rad = 0.0
         self.spike_sse: tuple[float, float, int] | None = None  # full and spike-free SSE at their best, samples
         self.wait_free = False
+        self.below_resolution = False  # the spikes' width ran onto the samples' resolution in the coarse stage
         self.held: set[int] = set()  # coordinates held at their prior's value (the loops' lag: the default gain)
         self.aperture_scale = 1.0
         # the sensor's white noise, from the samples alone (:func:`.validity.sensor_noise`)
@@ -313,7 +317,7 @@ class TestFit:
         fine_s = math.radians(FINE_BIN_DEG) / self.omega0
         h_t = max(0.1 * max(fine_s, self.period_s), 1e-5)
         steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02}
-        priors = [Prior(0, 0.0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S)]
+        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S)]
         if self.tau_fitted:
             priors.append(Prior(3, -math.log(DEFAULT_KV_PER_S), TAU_PRIOR_LN))
         return bounds, steps, [p for p in priors if p.index in active]
@@ -379,6 +383,13 @@ class TestFit:
                             smooth_rad=self.omega0 * SMOOTH_S)
             found = self._search(obj, active, max_iter=6, cap=STAGE_CAPS[0])
             self._update(obj, found.best)
+            # spikes narrower than the samples resolve already here (the wider integration only widens them):
+            # they are not sized, and the rest of the search goes without them
+            lo = self.widths[0]
+            if self.sized and lo > self.options.spike_width_min_deg and self.state.theta.w_deg <= lo * WIDTH_AT_BOUND:
+                self.sized, self.below_resolution = False, True
+                self.ctx = Context(plan, self.machine, [p for p in self.patterns if p.reversal is None], self.fi.t_s,
+                                   self.span, self.accel)
         # 3. fine bins about the features where they now lie, the features integrated over the bins alone; the
         # data arcs where they now lie, but for what the timing's last steps could move in or out.  Free spikes
         # can take up what a step a few samples off leaves and hold the timing there: the model without them,
@@ -522,10 +533,10 @@ class TestFit:
         timing = self.full_ctx.timing(theta)
         V = timing.feed_mm_s
         windows = {d: timing.window(d) for d in plan.direction_list}
-        resolution_limited = bool(self.unresolved) or (
+        resolution_limited = bool(self.unresolved) or self.below_resolution or (
             self.sized and self.widths[0] > options.spike_width_min_deg
             and theta.w_deg <= self.widths[0] * WIDTH_AT_BOUND)
-        if self.sized:
+        if self.sized or self.below_resolution:
             why = width_verdict(theta.w_deg, self.widths, options, self.sample_hz, RESOLVE_SAMPLES, WIDTH_AT_BOUND)
             if why:
                 self.exclude = {p.name: self.exclude.get(p.name, why) for p in self.patterns
@@ -569,7 +580,7 @@ class TestFit:
         assert fit is not None and obj is not None and factor is not None and colmax is not None
         offset = make_offset(values, theta.tau, lost, self.lag.cos2, self.frame_cos2)
         # the residual at every sample of the data arcs
-        per_dir = self._residuals(timing, windows, theta, fit.x, lost, offset)
+        per_dir = self._residuals(timing, windows, theta, fit.x, lost, offset, obj)
         residuals = [r for _, _, r in per_dir.values()]
         rho = _lag1(residuals)
         # the nonlinear parameters' covariance at the final fit's noise, its correlation counted
@@ -790,26 +801,49 @@ class TestFit:
 
     def _residuals(
         self, timing: Timing, windows: dict[int, tuple[float, float]], theta: Theta, x: np.ndarray,
-        lost: LostMotion, offset: Offset | None,
+        lost: LostMotion, offset: Offset | None, obj: Objective,
     ) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Per direction: each data-arc sample's angle (rad), deviation as measured (um) and residual (um)."""
+        """Per direction: each data-arc sample's angle (rad), deviation as measured (um) and residual (um).
+
+        The model is made at every sample about the sharp features (the zones the bins are fine in); elsewhere
+        it is smooth on a scale of degrees and is the bins' model interpolated (linearly, between bins a tenth
+        of a degree or so apart: its error is the model's curvature times the square of that, below 1e-3 um)."""
         x = np.nan_to_num(x)
         w = math.radians(theta.w_deg)
+        A, yw = obj.rows(theta)
+        self._account(obj)
+        wts = obj.weights
+        model_w = A @ x  # the masks at each bin, weighted
+        offset_b = np.concatenate([b.y for b in obj.bins.values()]) - yw / wts
+        at_bins = model_w / wts + offset_b
         out = {}
+        i0 = 0
         for d in self.plan.direction_list:
             t = self._arc_times(d, windows)
-            i = np.searchsorted(self.t, t)
-            y = (self.L[i] - self.plan.radius_mm) * 1000.0
+            idx = np.searchsorted(self.t, t)
+            y = (self.L[idx] - self.plan.radius_mm) * 1000.0
+            u = np.radians(timing.sched.angle_deg(self.plan, d, t - timing.t_ref))
+            model = np.empty(t.size)
+            b = obj.bins.get(d)
+            nb = len(b) if b is not None else 0
+            zone = np.zeros(t.size, dtype=bool)
+            for za, zb in feature_zones(self.plan, timing, d, windows[d]):
+                i, j = np.searchsorted(t - self.fi.t_s, (za, zb))
+                zone[i:j] = True
+            if b is None or nb < 2:
+                zone[:] = True
+            else:
+                far = ~zone
+                model[far] = np.interp(t[far] - self.fi.t_s, b.t, at_bins[i0 : i0 + nb])
+            i0 += nb
             mine, cols = self.full_ctx.by_direction[d]
-            us, rs = [], []
-            for k in range(0, t.size, FOLD_ROWS):
-                g = self._sample_geometry(d, t[k : k + FOLD_ROWS], timing, theta.tau, lost)
-                model = design(mine, g, w) @ x[cols]
-                if offset is not None:
-                    model = model + offset(g)
-                us.append(g.u)
-                rs.append(y[k : k + FOLD_ROWS] - model)
-            out[d] = (np.concatenate(us) if us else np.empty(0), y, np.concatenate(rs) if rs else np.empty(0))
+            near = np.flatnonzero(zone)
+            for k in range(0, near.size, FOLD_ROWS):
+                rows = near[k : k + FOLD_ROWS]
+                g = self._sample_geometry(d, t[rows], timing, theta.tau, lost)
+                m = design(mine, g, w) @ x[cols]
+                model[rows] = m + offset(g) if offset is not None else m
+            out[d] = (u, y, y - model)
         return out
 
 
