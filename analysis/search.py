@@ -51,7 +51,8 @@ from .plan import MachineConfig, TestPlan
 from .program import arc_start_deg, feed_from_span
 
 FINE_BIN_DEG = 0.02  # bins near the sharp features (deg of travel), or single samples where these are coarser
-COARSE_BIN_DEG = 0.2  # bins elsewhere
+COARSE_BIN_DEG = 0.4  # bins elsewhere (at most: a screw's cyclic error wants them shorter, CYCLIC_BINS a period)
+CYCLIC_BINS = 20
 MIN_SUPPORT = 2.0  # a column holding less than this many samples' worth of its peak is left out of the search
 BROYDEN = False  # carry the Jacobian by secant updates (True) or make it anew after each step
 DECREMENT = 0.01  # a search stops where its Newton decrement (in chi-square units) is below this
@@ -68,7 +69,9 @@ class Binned:
     ``t``: each bin's mean time from the feed-in's centroid (s); ``span_s``:
     the time it stands for, its samples' span plus one sample period;
     ``y``: the mean deviation ``L - R`` (um); ``n``: its samples; ``ss``:
-    the samples' sum of squares about their bins' means (um^2).
+    the samples' sum of squares within their bins (um^2): about each bin's
+    own straight line, on the degrees of freedom of the scatter about the
+    bins' means (the model's slope across a bin is signal, not noise).
     """
 
     d: int
@@ -112,7 +115,19 @@ def make_bins(
     ends = np.append(starts[1:], n) - 1
     mean_t = np.add.reduceat(t_rel, starts) / count
     mean_y = np.add.reduceat(y, starts) / count
-    ss = float(np.dot(y, y) - np.dot(count, mean_y * mean_y))
+    # the samples' scatter within their bins about each bin's own straight line: the model's slope across a
+    # bin (a large servo pattern's, 2 um over 0.4 deg) is signal, not noise; counted on the dof the scatter
+    # about the bins' means would have
+    dt = t_rel - np.repeat(mean_t, count.astype(np.int64))
+    dy = y - np.repeat(mean_y, count.astype(np.int64))
+    stt = np.add.reduceat(dt * dt, starts)
+    sty = np.add.reduceat(dt * dy, starts)
+    syy = np.add.reduceat(dy * dy, starts)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lin = np.where(stt > 0, syy - sty * sty / np.where(stt > 0, stt, 1.0), syy)
+    dof_mean = float(np.sum(count - 1.0))
+    dof_line = float(np.sum(np.maximum(count - 2.0, 0.0)))
+    ss = float(np.sum(np.maximum(lin, 0.0))) * (dof_mean / dof_line if dof_line > 0 else 0.0)
     span = t_rel[ends] - t_rel[starts] + period_s
     return Binned(d, mean_t, span, mean_y, count, max(ss, 0.0), n)
 
@@ -291,43 +306,6 @@ class Objective:
             i += len(b)
         A *= self.weights[:, None]
         return A, np.concatenate(ys) * self.weights
-
-    def width_profile(self, theta: Theta, widths_deg: Sequence[float]) -> list[float]:
-        """The fit's sum of squares at ``theta`` at each of the spikes' ``widths_deg``: the rest of the design
-        made once, the spikes' columns at each width (a misfit evaluation and a design each)."""
-        ctx = self.ctx
-        timing = ctx.timing(theta)
-        offset = self.offset(theta)
-        lost = self.lost(theta) if callable(self.lost) else self.lost
-        self.designs += 1
-        A0 = np.zeros((self.weights.size, ctx.p))
-        parts, ys = [], []
-        i = 0
-        for d, b in self.bins.items():
-            mine, cols = ctx.by_direction[d]
-            g = ctx.geometry(b, timing, theta.tau, lost, self.smooth_rad, 0.0, self.aperture_scale)
-            steady = [p for p in mine if p.reversal is None]
-            A0[i : i + len(b), cols[~ctx.spike_cols[cols]]] = design(steady, g, 0.0)
-            sharp = [p for p in mine if p.reversal is not None]
-            parts.append((slice(i, i + len(b)), cols[ctx.spike_cols[cols]], sharp, g))
-            ys.append(b.y - offset(g) if offset is not None else b.y)
-            i += len(b)
-        y = np.concatenate(ys) * self.weights
-        out = []
-        for w_deg in widths_deg:
-            self.designs += 1
-            self.misfits += 1
-            A = A0.copy()
-            for rows, cols, sharp, g in parts:
-                if sharp:
-                    A[rows, cols] = design(sharp, g, math.radians(w_deg))
-            A *= self.weights[:, None]
-            use = self.supported(A)
-            Au = A[:, use]
-            x = Normal(Au).solve(Au.T @ y)
-            r = y - Au @ x
-            out.append(float(r @ r) + self.ss)
-        return out
 
     def evaluate(self, theta: Theta) -> Evaluation:
         self.misfits += 1

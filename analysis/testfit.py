@@ -51,6 +51,7 @@ from .result import (
 )
 from .search import (
     COARSE_BIN_DEG,
+    CYCLIC_BINS,
     FINE_BIN_DEG,
     NOISE_FLOOR_UM,
     Binned,
@@ -82,9 +83,8 @@ OFFSET_SETTLED_UM = 1e-4  # the corrections' fixed point: they move by less than
 FINAL_STEPS = 4
 FOLD_ROWS = 16384  # samples whose model is made at a time
 TAU_NATS = 2.0  # the data must prefer another loop lag than the default gain's by this much log-likelihood
-WAIT_Z = 3.0  # the feed-in's extra wait is kept where it is this many standard errors from 0: a nuisance that
+WAIT_Z = 4.0  # the feed-in's extra wait is kept where it is this many standard errors from 0: a nuisance that
 # trades with what moves one arc against the other (lateral play, at low rates), kept only where clearly needed
-WIDTH_GRID = 5  # the spikes' widths tried over their range (log-spaced) before the fine stage's search
 STAGE_CAPS = (8, 14, 6, 6)  # designs per search: the coarse stage's, the fine's, the spike-free model's, each
 # point-sample share's (the first Jacobian and a step always)
 SEARCH_BUDGET = 44  # designs the searches may make in all (a search always makes its first Jacobian and a step);
@@ -236,6 +236,10 @@ class TestFit:
         for d in plan.direction_list:
             a, b = base.window(d)
             self.windows[d] = (a + trim, b - trim) if b - a > 4 * trim else (a, b)
+        # bins away from the features: at most COARSE_BIN_DEG, and a screw period (cyclic error, where pitches are
+        # configured) in CYCLIC_BINS of them: the bins' mean is the model at the mean time to its curvature
+        pitches = [v for v in (machine.pitch_x_mm, machine.pitch_y_mm) if v]
+        self.coarse_deg = min([COARSE_BIN_DEG] + [math.degrees(v / plan.radius_mm / CYCLIC_BINS) for v in pitches])
         self.designs = 0  # the designs made: misfit evaluations and their slopes
         self.misfits = 0  # the misfit evaluations among them
         self.skip_rad = 0.0
@@ -260,7 +264,7 @@ class TestFit:
         out = {}
         omega = (timing.feed_mm_s if timing is not None else self.omega0 * self.plan.radius_mm) / self.plan.radius_mm
         fine_s = math.radians(FINE_BIN_DEG) / omega
-        coarse_s = math.radians(COARSE_BIN_DEG) / omega
+        coarse_s = math.radians(self.coarse_deg) / omega
         for d in self.plan.direction_list:
             a, b = windows[d]
             i, j = int(np.searchsorted(self.t, a, side="left")), int(np.searchsorted(self.t, b, side="right"))

@@ -1,24 +1,22 @@
-"""Benchmark: the fit's cost per circle and per test against a plain lstsq.
+"""Benchmark: one test's analysis, alone and as ``ballbar analyze`` makes it, against a baseline in the same run.
 
-For 15.625 Hz, 1 kHz and 10 kHz, on a simulated test with every pattern of
-the library (``ballbar.tools.simulator``, noisy), it measures on one core:
+For each sample rate, a simulated test with every pattern of the library
+(``MACHINE``, noisy) is analysed as ``ballbar analyze`` does (detection, the
+nonlinear parameters, the joint fit with its corrections, ranking, ISO 230-4,
+noise, checks; no provisional circles):
 
-- ``circle_update``: what finishing a circle costs live, the samples having
-  been folded in as they arrived (0.1 s chunks): the last chunk, the solve with
-  ranking and identifiability, and the result object.
-- ``circle_fold``: folding a whole circle's samples in (design + QR), summed
-  over its chunks: the work spread over the circle's duration.
-- ``lstsq_circle``: ``numpy.linalg.lstsq`` of the same circle's design matrix
-  (built beforehand, not timed): the baseline.
-- ``test``: the whole analysis of a recording as ``ballbar analyze`` makes it
-  (detection, lag and spike width search, the joint fit with physical
-  corrections, ISO, noise, advice; no provisional circles, which only the live
-  daemon publishes), and ``lstsq_test``: lstsq of the whole test's design
-  matrix.
+- ``analysis``: the CPU time of :func:`ballbar.analysis.engine.analyze_recording`
+  in this process (median of ``--repeats``), with the misfit evaluations and
+  designs the fit reports;
+- ``command``: the wall time of ``python -m ballbar.daemon.cli analyze FILE
+  --json`` on the same test written as CSV, less that of ``python -c "import
+  numpy, scipy.linalg"`` measured beside it (starting Python and the numerical
+  libraries, which no change of ours removes).
 
-Medians over repeats, with the ratio to the baseline measured in the same run.
-Run: ``OPENBLAS_NUM_THREADS=1 python -m ballbar.tools.bench_fit`` (it sets the
-single-thread variables itself when they are unset).
+``--baseline PYTHON``: the same measurements with another interpreter (another
+checkout's venv, e.g. the code before a change), interleaved with ours so that
+both see the same machine; ratios are ours over the baseline's.  Run:
+``python -m ballbar.tools.bench_fit --repeats 7 --baseline ../base/.venv/bin/python``.
 """
 
 from __future__ import annotations
@@ -29,18 +27,20 @@ for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import statistics  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
-from collections.abc import Callable, Sequence  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from ballbar.analysis import AnalysisOptions, MachineConfig, TestPlan  # noqa: E402
-from ballbar.analysis.engine import CircleFit, TestAnalyzer, analyze_recording, make_timing  # noqa: E402
-from ballbar.analysis.fit import solve  # noqa: E402
-from ballbar.analysis.patterns import design, select  # noqa: E402
-from ballbar.tools.simulator import MachineModel, simulate  # noqa: E402
+from ballbar.analysis import TestPlan  # noqa: E402
+from ballbar.tools.simulator import MachineModel, simulate, write_csv  # noqa: E402
 
 MACHINE = MachineModel(
     centre_x_um=12.0, backlash_x_um=4.0, backlash_y_um=2.0, kv_y_per_s=32.0, master_slave_a_um=1.0,
@@ -48,100 +48,101 @@ MACHINE = MachineModel(
     cyclic_x_um=0.3, pitch_x_mm=10.0, drift_um_per_min=0.2, noise_um=0.2,
 )
 
+# Run by each interpreter on the saved test: the analysis' CPU times and what the fit reports of its work.
+_ANALYSIS = """
+import json, sys, time, os
+for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(v, "1")
+import numpy as np
+from ballbar.analysis import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.engine import analyze_recording
+data = np.load(sys.argv[1])
+plan, machine = TestPlan(sample_hz=float(data["fs"])), MachineConfig(pitch_x_mm=10.0)
+times, res = [], None
+for _ in range(int(sys.argv[2])):
+    t0 = time.process_time()
+    out = analyze_recording(data["t"], data["L"], plan, machine, AnalysisOptions(), circles=False)
+    times.append(time.process_time() - t0)
+    res = [r for r in out if r["kind"] == "test"][0]
+fit = res["fit"]
+print(json.dumps({"cpu_s": times, "evaluations": fit.get("evaluations"), "designs": fit.get("designs")}))
+"""
 
-def _median_ms(fn: Callable[[], object], repeats: int) -> float:
-    times = []
+
+def _analysis(python: str, npz: Path, repeats: int) -> dict[str, Any]:
+    out = subprocess.run([python, "-c", _ANALYSIS, str(npz), str(repeats)], capture_output=True, text=True,
+                         check=True)
+    return dict(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def _wall(cmd: Sequence[str]) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(cmd, capture_output=True, check=True)
+    return time.perf_counter() - t0
+
+
+def _command(python: str, csv: Path, fs: float, repeats: int) -> tuple[float, float]:
+    """Median wall times (s) of ``ballbar analyze`` on ``csv`` and of starting Python with numpy and scipy.linalg,
+    alternated."""
+    analyze = [python, "-m", "ballbar.daemon.cli", "analyze", str(csv), "--json", "--sample-hz", f"{fs:g}",
+               "--pitch-x-mm", "10"]
+    start = [python, "-c", "import numpy, scipy.linalg"]
+    a, s = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * statistics.median(times)
+        a.append(_wall(analyze))
+        s.append(_wall(start))
+    return statistics.median(a), statistics.median(s)
 
 
-def bench(fs: float, repeats: int) -> dict[str, float]:
-    plan = TestPlan(sample_hz=fs)
-    machine = MachineConfig(pitch_x_mm=10.0)
-    sim = simulate(plan, MACHINE, fs)
-    t, L = sim.t_s, sim.length_mm
-    an = TestAnalyzer(plan, machine)
-    an.feed(t, L)  # finds the feed-in, so that the circles have their windows
-    circle = an._circles[0] if an._circles else None
-    assert circle is not None
-    patterns = circle.patterns
-    timing = circle.timing
-    m = (t >= circle.t_start) & (t <= circle.t_end)
-    tc, Lc = t[m], L[m]
-    chunk = max(1, round(0.1 * fs))
-
-    def fresh() -> CircleFit:
-        return CircleFit(plan, machine, patterns, 1, timing, 3.0)
-
-    def fold_all() -> CircleFit:
-        cf = fresh()
-        for i in range(0, tc.size, chunk):
-            cf.add(tc[i : i + chunk], Lc[i : i + chunk])
-        return cf
-
-    last = slice(max(0, tc.size - chunk), tc.size)
-    before_last = fresh()
-    for i in range(0, last.start, chunk):
-        before_last.add(tc[i : min(i + chunk, last.start)], Lc[i : min(i + chunk, last.start)])
-
-    def update() -> None:
-        cf = fresh()
-        cf.factor = before_last.factor.merged(cf.factor)  # a copy: the circle so far
-        cf.colmax = before_last.colmax.copy()
-        cf.add(tc[last], Lc[last])  # the circle's last chunk arrives
-        fit = solve(cf.factor, cf.patterns, effect_scale=cf.colmax)
-        an._circle_result(cf, fit)
-
-    A = design(patterns, circle.geometry(tc), np.radians(3.0))
-    y = (Lc - plan.radius_mm) * 1000.0
-
-    full_patterns = select(None, (1, -1), 10.0, None)
-    tm = make_timing(plan, timing.t_ref, timing.feed_mm_s, 0.0)
-    parts = []
-    for d in (1, -1):
-        mine = [p for p in full_patterns if p.reversal is None or p.reversal[2] == d]
-        cf = CircleFit(plan, machine, mine, d, tm, 3.0)
-        mm = (t >= cf.t_start) & (t <= cf.t_end)
-        g = cf.geometry(t[mm])
-        parts.append((design(full_patterns, g, np.radians(3.0)), (L[mm] - plan.radius_mm) * 1000.0))
-    A_test = np.vstack([p[0] for p in parts])
-    y_test = np.concatenate([p[1] for p in parts])
-    test_repeats = max(1, repeats // 3)
-    out = {
-        "samples_circle": float(tc.size),
-        "columns": float(A.shape[1]),
-        "circle_update_ms": _median_ms(update, repeats),
-        "circle_fold_ms": _median_ms(fold_all, max(1, repeats // 2)),
-        "lstsq_circle_ms": _median_ms(lambda: np.linalg.lstsq(A, y, rcond=None), repeats),
-        "test_ms": _median_ms(lambda: analyze_recording(t, L, plan, machine, AnalysisOptions(), circles=False),
-                              test_repeats),
-        "lstsq_test_ms": _median_ms(lambda: np.linalg.lstsq(A_test, y_test, rcond=None), test_repeats),
-    }
+def bench(fs: float, repeats: int, pythons: dict[str, str], work: Path) -> dict[str, dict[str, float]]:
+    sim = simulate(TestPlan(sample_hz=fs), MACHINE, fs)
+    npz = work / f"test_{fs:g}.npz"
+    np.savez(npz, t=sim.t_s, L=sim.length_mm, fs=fs)
+    csv = work / f"test_{fs:g}.csv"
+    write_csv(str(csv), sim.t_s, sim.length_mm)
+    out: dict[str, dict[str, float]] = {name: {} for name in pythons}
+    for name, python in pythons.items():  # one after the other, each a fresh process: the same machine
+        got = _analysis(python, npz, repeats)
+        cpu = [float(v) for v in got["cpu_s"]]
+        out[name]["analysis_s"] = statistics.median(cpu)
+        out[name]["evaluations"] = float(got["evaluations"]) if got["evaluations"] is not None else float("nan")
+        out[name]["designs"] = float(got["designs"]) if got["designs"] is not None else float("nan")
+    for name, python in pythons.items():
+        total, start = _command(python, csv, fs, max(3, repeats // 2))
+        out[name]["command_s"] = total
+        out[name]["start_s"] = start
+        out[name]["beyond_start_s"] = total - start
     return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_fit", description=__doc__.splitlines()[0])
     p.add_argument("--rates", default="15.625,1000,10000", help="sample rates (Hz), comma-separated")
-    p.add_argument("--repeats", type=int, default=9)
+    p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--baseline", metavar="PYTHON", help="another interpreter (checkout) to measure beside this one")
+    p.add_argument("--json", action="store_true", help="one JSON object of all figures")
     args = p.parse_args(argv)
+    pythons = {"this": sys.executable}
+    if args.baseline:
+        pythons["baseline"] = args.baseline
     rates = [float(r) for r in args.rates.split(",")]
-    print(f"threads: OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}; medians of {args.repeats}")
-    head = (f"{'rate Hz':>9} {'n/circle':>9} {'cols':>5} {'update ms':>10} {'fold ms':>9} {'lstsq c ms':>11} "
-            f"{'upd/lstsq':>9} {'test ms':>9} {'lstsq t ms':>11} {'test/lstsq':>10}")
-    print(head)
-    for fs in rates:
-        r = bench(fs, args.repeats)
-        print(
-            f"{fs:9.3f} {r['samples_circle']:9.0f} {r['columns']:5.0f} {r['circle_update_ms']:10.2f} "
-            f"{r['circle_fold_ms']:9.1f} {r['lstsq_circle_ms']:11.2f} "
-            f"{r['circle_update_ms'] / r['lstsq_circle_ms']:9.2f} {r['test_ms']:9.1f} {r['lstsq_test_ms']:11.1f} "
-            f"{r['test_ms'] / r['lstsq_test_ms']:10.2f}"
-        )
-        sys.stdout.flush()
+    results: dict[str, dict[str, dict[str, float]]] = {}
+    with tempfile.TemporaryDirectory(prefix="bench_fit_") as tmp:
+        for fs in rates:
+            results[f"{fs:g}"] = bench(fs, args.repeats, pythons, Path(tmp))
+            if not args.json:
+                for name, r in results[f"{fs:g}"].items():
+                    print(f"{fs:9.3f} Hz {name:9s} analysis {1000 * r['analysis_s']:8.1f} ms  "
+                          f"evaluations {r['evaluations']:5.0f}  designs {r['designs']:5.0f}  "
+                          f"command {1000 * r['command_s']:7.0f} ms  start {1000 * r['start_s']:5.0f} ms  "
+                          f"beyond start {1000 * r['beyond_start_s']:7.0f} ms")
+                if "baseline" in pythons:
+                    a, b = results[f"{fs:g}"]["this"], results[f"{fs:g}"]["baseline"]
+                    print(f"{'':13s} ratio     analysis {a['analysis_s'] / b['analysis_s']:8.2f}     "
+                          f"beyond start {a['beyond_start_s'] / b['beyond_start_s']:.2f}")
+                sys.stdout.flush()
+    if args.json:
+        print(json.dumps(results, indent=1))
     return 0
 
 
