@@ -298,7 +298,7 @@ def solve(
     # Extra sum of squares (Suh & Lee section 4.2): drop each term in turn.
     ssr: dict[str, float] = {}
     for i, pat in enumerate(patterns):
-        if not used[i]:
+        if not used[i] or pat.kind == "loop":  # a loop's property fitted beside the patterns, not a finding
             continue
         ssr[pat.name] = extra(list(range(slices[i].start, slices[i].stop)))
     total = sum(ssr.values())
@@ -316,7 +316,7 @@ def solve(
     # Each family of several patterns is also tested as a whole, with the dof its shape's search cost.
     members: dict[str, list[int]] = {}
     for i, pat in enumerate(patterns):
-        if used[i]:
+        if used[i] and pat.kind != "loop":
             members.setdefault(family(pat.name), []).append(i)
     gates: dict[str, tuple[float, int, str]] = {}
     for fam, idx in members.items():

@@ -12,7 +12,11 @@
 - Stick-slip: small steps near an axis reversal, where that axis moves slowly.
   Within ``+-window`` of each reversal (axis speed below ``sin(window)`` of the
   feed) the high-passed residual's RMS is compared with that elsewhere:
-  ``sqrt(max(0, rms_near^2 - rms_far^2))`` per axis.
+  ``sqrt(max(0, rms_near^2 - rms_far^2))`` per axis.  It is tested against the
+  noise like the masks: *significant* where the variance ratio's F-test
+  (near against far, on the samples' counts) passes ``level`` and the value
+  reaches ``STICK_SLIP_MIN_UM`` (noise of 0.3 um lifts the difference past
+  0.1 um by chance at low rates, where few samples are near a reversal).
 
 Each arc's residual is taken up to the longest length whose FFT is fast (its
 factors 2, 3, 5, 7 and 11; the few samples after it, about 0.2 % at 10 kHz,
@@ -65,9 +69,11 @@ def _line(mag: np.ndarray, lo: int, n: int) -> tuple[int, float, bool]:
 
 
 def findings(
-    circles: list[tuple[np.ndarray, np.ndarray, float, float]], cutoff_cpr: float
+    circles: list[tuple[np.ndarray, np.ndarray, float, float]], cutoff_cpr: float, level: float = 0.05
 ) -> dict[str, Any]:
-    """From ``[(u_rad, residual_um, arc_deg, sample_hz), ...]`` per data arc."""
+    """From ``[(u_rad, residual_um, arc_deg, sample_hz), ...]`` per data arc; ``level``: the stick-slip test's."""
+    from scipy import stats  # here: only a test's fit needs it, not the daemon's start
+
     hp_sq, hp_n = 0.0, 0
     best_amp, best_cpr, best_hz, best_line, best_stands = 0.0, float("nan"), float("nan"), 0.0, False
     near_sq = {"x": [0.0, 0], "y": [0.0, 0]}
@@ -108,14 +114,18 @@ def findings(
         if n >= 4:
             val = math.sqrt(max(0.0, s / n - rms_far**2))
             out[f"stick_slip_{axis}_um"] = val
-            out[f"stick_slip_{axis}_significant"] = bool(val >= STICK_SLIP_MIN_UM)
+            ratio = (s / n) / rms_far**2 if rms_far > 0 else math.inf
+            p = float(stats.f.sf(ratio, n - 1, max(far_sq[1] - 1, 1))) if math.isfinite(ratio) else 0.0
+            out[f"stick_slip_{axis}_p_value"] = p
+            out[f"stick_slip_{axis}_significant"] = bool(val >= STICK_SLIP_MIN_UM and p < level)
         else:
             out[f"stick_slip_{axis}_um"] = None
+            out[f"stick_slip_{axis}_p_value"] = None
             out[f"stick_slip_{axis}_significant"] = False
     out["method"] = (
         f"residual above {cutoff_cpr:g} cycles/rev; vibration significant where its strongest line stands "
         f"out of the noise floor and reaches {VIBRATION_MIN_UM:g} um rms (white noise alone is not "
         f"vibration); stick-slip: within +-{STICK_SLIP_WINDOW_DEG:g} deg of reversals against elsewhere, "
-        f"significant from {STICK_SLIP_MIN_UM:g} um"
+        f"significant where the variance ratio's F-test passes {level:g} and it reaches {STICK_SLIP_MIN_UM:g} um"
     )
     return out

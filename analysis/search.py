@@ -214,6 +214,7 @@ class Context:
             mine = [p for p in self.patterns if p.reversal is None or p.reversal[2] == d]
             self.by_direction[d] = (mine, np.array([start[p.name] + k for p in mine for k in range(p.q)], dtype=int))
         self.spike_cols = np.array([p.reversal is not None for p in self.patterns for _ in range(p.q)], dtype=bool)
+        self.servo_col = start.get("servo_mismatch")  # the servo pattern's column, whose size is V m/2
 
     def shifts(self, wait_s: float) -> dict[int, float]:
         """Per direction, how much later its data arc runs when the feed-in costs ``wait_s`` more than each arc
@@ -321,10 +322,12 @@ class Objective:
 
     def slopes(self, e: Evaluation, active: Sequence[int], steps: dict[int, float]) -> list[np.ndarray]:
         """Per coordinate of ``active``: the weighted residual's change per unit of it with the coefficients
-        held (``-d(A x + offset)/d theta``).  The lag and the wait move only the angles: their slopes come
-        from one design at angles moved a little (the model's slope in the angle) times each bin's angle's
-        change, which needs no design; the width and the loops' lag each by a design at a moved value."""
-        assert e.use is not None
+        held (``-d(A x + offset)/d theta``).  The lag and the wait move the angles: their slopes are the model's
+        slope in the angle (one design at angles moved a little) times each bin's angle's change, which needs
+        no design; the lag also sets the feed (the span is fixed), which scales the servo pattern (``V m/2``):
+        that part is the servo column over the feed times the feed's change.  The width and the loops' lag
+        each by a design at a moved value."""
+        assert e.use is not None and e.A is not None
         use = e.use
         tau_known = e.theta.tau is not None
         v0 = e.theta.vector()
@@ -338,12 +341,18 @@ class Objective:
                     A1, y1 = self.rows(e.theta, du)
                     slope_u = ((y1 - A1[:, use] @ e.x[use]) - e.r) / du
                     base = self.angles(e.theta)
+                assert base is not None
                 v = v0.copy()
                 v[k] += steps[k]
-                moved = self.angles(Theta.of(v, tau_known))
-                assert base is not None
-                du_dk = np.concatenate([(moved[d] - base[d]) / steps[k] for d in self.bins])
-                out.append(slope_u * du_dk)
+                moved_theta = Theta.of(v, tau_known)
+                moved = self.angles(moved_theta)
+                s = slope_u * np.concatenate([(moved[d] - base[d]) / steps[k] for d in self.bins])
+                j = self.ctx.servo_col
+                if k == 0 and j is not None and use[j]:
+                    V0, V1 = self.ctx.timing(e.theta).feed_mm_s, self.ctx.timing(moved_theta).feed_mm_s
+                    col = e.A[:, int(np.count_nonzero(use[:j]))]  # the servo column, weighted
+                    s = s - col * (e.x[j] / V0) * ((V1 - V0) / steps[k])
+                out.append(s)
             else:
                 v = v0.copy()
                 v[k] += steps[k]

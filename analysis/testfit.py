@@ -37,7 +37,7 @@ from .detect import StepEvent
 from .errors import DataError
 from .fit import Factor, FitResult, solve
 from .loops import DEFAULT_KV_PER_S, FAST_LOOP_S, Lag, loop_lag
-from .patterns import Geometry, Pattern, design, select, wrap
+from .patterns import FEED_FORWARD, Geometry, Pattern, design, select, wrap
 from .physics import MODEL_WORDS, LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import accel_from_spread, arc_start_deg, data_start_deg, feed_from_span, model_limits, schedule
@@ -89,7 +89,7 @@ STAGE_CAPS = (8, 14, 6, 6)  # designs per search: the coarse stage's, the fine's
 # point-sample share's (the first Jacobian and a step always)
 SEARCH_BUDGET = 44  # designs the searches may make in all (a search always makes its first Jacobian and a step);
 # a test the model does not describe makes them wander, the final fit and its checks come after
-SERVO_VAR_SHARE = 0.15  # each axis' loop variance in time known to this share of the loops' lag squared
+SERVO_VAR_SHARE = 0.3  # each axis' loop variance in time known to this share of the loops' lag squared
 SERVO_MEAN_SHARE = 0.5  # ... and the two axes' mean to this share
 POINT_APERTURES = (0.2, 0.03)  # the last stage integrates the sharp features over these shares of a sample's
 # interval in turn
@@ -208,6 +208,11 @@ class TestFit:
         self.period_s = 1.0 / self.sample_hz if self.sample_hz > 0 else 0.0
         self.span = fo.t_s - fi.t_s
         self.patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
+        if options.lost_motion != "step":
+            # an over-set compensation's step: the share feed-forward passes at once, before the spikes (where the two
+            # cannot be told apart, the loop's own response stays and the spikes go)
+            k = next((i for i, p in enumerate(self.patterns) if p.reversal is not None), len(self.patterns))
+            self.patterns[k:k] = list(FEED_FORWARD)
         V0 = feed_from_span(plan, self.span, 0.0)
         self.accel = feed_accel(plan, [fi, fo], V0)
         self.omega0 = V0 / plan.radius_mm
@@ -424,7 +429,8 @@ class TestFit:
                 # the spikes' likelihood ratio against the spike-free model at its own best timing, on these bins
                 self.spike_sse = (found.best.sse, bare.best.sse, obj.samples)
                 if bare.best.sse < found.best.sse:
-                    self.state.theta = replace(found.best.theta, c=bare.best.theta.c, wait=bare.best.theta.wait)
+                    nb = bare.best.theta
+                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau)
                     restarted, again = True, True
             if not again:
                 break
@@ -545,6 +551,7 @@ class TestFit:
             if why:
                 self.exclude = {p.name: self.exclude.get(p.name, why) for p in self.patterns
                                 if p.reversal is not None}
+        self._exclude_spikes_of_compensated_axes(theta, V)
         # Spikes too narrow to size still touch the first samples after each table reversal: those are left out,
         # so that no other pattern (a backlash step, above all) takes them up.
         omega = V / plan.radius_mm
@@ -653,7 +660,7 @@ class TestFit:
         res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, self.sample_hz)
         res["noise"] = noise.findings(
             [(per_dir[d][0], per_dir[d][2], plan.data_arc_deg, self.sample_hz) for d in per_dir],
-            options.vibration_cutoff_cpr,
+            options.vibration_cutoff_cpr, options.significance,
         )
         feed = (math.nan, 0.0)
         if len(plan.direction_list) > 1:
@@ -709,6 +716,27 @@ class TestFit:
         dx[full_cols] = found.dx
         return np.asarray(dx @ self.theta_cov @ dx.T)
 
+    def _exclude_spikes_of_compensated_axes(self, theta: Theta, V: float) -> None:
+        """Leave out the spikes of an axis whose lost motion is an over-set compensation through the loop: the
+        compensation's step reaches the axis partly at once (velocity feed-forward, a share no test of one feed
+        pins down, :data:`.patterns.FEED_FORWARD`) and partly settling through the loop, from where the command
+        reverses, and whatever of that response the model misses has the shape of a reversal spike there: it
+        would be read as friction that the machine may not have."""
+        tau = theta.tau
+        if tau is None or not self.has_spikes:
+            return
+        lost = self.state.lost
+        settle_deg = math.degrees(V / self.plan.radius_mm * tau)
+        for axis, model in zip("xy", lost.models, strict=True):
+            if model != "compensation":
+                continue
+            why = (f"on the {axis.upper()} axis the backlash compensation is set too high: its step reaches the axis "
+                   "partly at once (velocity feed-forward) and partly settling through the loop "
+                   f"({settle_deg:.2g} deg), which reversal spikes there cannot be told from")
+            for p in self.patterns:
+                if p.reversal is not None and p.reversal[0] == axis:
+                    self.exclude.setdefault(p.name, why)
+
     def _servo_cov(self, fit: FitResult, theta: Theta, V: float) -> tuple[np.ndarray | None, str]:
         """The scale mismatch's and the radius' covariance through what one circle cannot tell of the axes'
         dynamics, and its words.
@@ -721,9 +749,10 @@ class TestFit:
         difference reads exactly as a scale mismatch (``cos 2u``; ``-(Omega^2 / 2) (VarX - VarY)``, in
         ppm): one feed cannot tell them apart, only a second, slower one (the term falls as the feed's
         square).  So each axis' variance is taken as known to ``SERVO_VAR_SHARE`` of the loops' lag
-        squared, independently (the axes' dynamics differ: 0.27 of it between velocity loops of 30 and 200 Hz
-        at 30/s), and their mean to ``SERVO_MEAN_SHARE`` of it (feed-forward of 0.7 takes half of it off
-        both), and the scale's and the radius' covariance hold that."""
+        squared, independently (the axes' dynamics differ: between velocity loops of 30 and 200 Hz the two
+        axes' variances differ by 0.4 to 0.6 of the lag squared, between 45 and 60 Hz by under 0.15), and
+        their mean to ``SERVO_MEAN_SHARE`` of it (feed-forward of 0.7 takes half of it off both), and the
+        scale's and the radius' covariance hold that."""
         tau = theta.tau if theta.tau is not None else (FAST_LOOP_S if self.lag.origin == "fast" else None)
         if tau is None or not math.isfinite(tau):
             return None, ""
