@@ -120,6 +120,7 @@ class LostMotion:
     onset_rad: tuple[float, float] = (0.0, 0.0)  # where friction acts: the table's own reversal
     reversal_rad: tuple[float, float] = (0.0, 0.0)  # where the axis reverses (its loop's lag against the frame)
     loop_rad: tuple[float, float, float] | None = None  # the command's lead, X's and Y's loop lag (:func:`loop_angles`)
+    loop_ff: float = 0.0  # the share of a command step the loops pass at once (velocity feed-forward)
 
     @classmethod
     def choose(
@@ -129,6 +130,7 @@ class LostMotion:
         radius_mm: float,
         loop_rad: tuple[float, float, float] | None = None,
         reversal_rad: tuple[float, float] = (0.0, 0.0),
+        loop_ff: float = 0.0,
     ) -> LostMotion:
         """The models the data chose (``mode`` ``physical``: by the sign of each backlash) and onsets.
 
@@ -136,12 +138,12 @@ class LostMotion:
         itself reverses (:func:`axis_reversals`).
         """
         if mode == "step":
-            return cls(onset_rad=reversal_rad, reversal_rad=reversal_rad, loop_rad=loop_rad)
+            return cls(onset_rad=reversal_rad, reversal_rad=reversal_rad, loop_rad=loop_rad, loop_ff=loop_ff)
         models = ("compensation" if (values.get(k) or 0.0) < 0 else "deadband" for k in AXIS_FIELDS)
         mx, my = models
         extra = onset_angles(values, radius_mm, (mx, my), loop_rad)
         onset = (reversal_rad[0] + extra[0], reversal_rad[1] + extra[1])
-        return cls((mx, my), onset, reversal_rad, loop_rad)
+        return cls((mx, my), onset, reversal_rad, loop_rad, loop_ff)
 
     def geometry(self, loop_lag_s: float | None) -> dict[str, Any]:
         """The :class:`~.patterns.Geometry` fields that carry this model."""
@@ -193,22 +195,26 @@ def mean_lag(tau_s: float | None, radial_cos2: float | None, mismatch_ms: float)
 
 
 def loop_angles(
-    tau_s: float | None, mismatch_ms: float, omega_rad_s: float, feed_in_deg: float
+    tau_s: float | None, mismatch_ms: float, omega_rad_s: float, feed_in_deg: float, ff: float = 0.0
 ) -> tuple[float, float, float] | None:
     """The command's lead over the analyzer's frame and each axis' loop time constant, as angles (rad).
 
-    The frame carries the feed-in's delay ``tau_ref = tau_bar + (m/2) cos 2u_in``
-    (:func:`axis_reversals`); each axis follows with ``tau_bar +- m/2``.  None
-    where the mean lag ``tau_bar`` is not known.
+    The frame carries the feed-in's delay, the loops' lag on a ramp along it:
+    ``lam_ref = lam_bar + (m/2) cos 2u_in`` (:func:`axis_reversals`), with ``m`` the mismatch the circle
+    shows.  With velocity feed-forward passing a share ``ff`` of the command at once, the loops' lag on a
+    ramp is ``lam_bar = (1 - ff) tau_bar`` while a step still settles with the time constant ``tau_bar``;
+    each axis' is ``tau_bar +- m / (2 (1 - ff))``.  None where the mean lag ``tau_bar`` is not known.
     """
     if not tau_s:
         return None
     m = mismatch_ms / 1000.0 if math.isfinite(mismatch_ms) else 0.0
     c2 = math.cos(2.0 * math.radians(feed_in_deg))
+    keep = 1.0 - min(max(ff, 0.0), 1.0)
+    m_settle = m / max(keep, 0.1)
     return (
-        omega_rad_s * (tau_s + 0.5 * m * c2),
-        omega_rad_s * max(tau_s + 0.5 * m, 0.0),
-        omega_rad_s * max(tau_s - 0.5 * m, 0.0),
+        omega_rad_s * max(keep * tau_s + 0.5 * m * c2, 0.0),
+        omega_rad_s * max(tau_s + 0.5 * m_settle, 0.0),
+        omega_rad_s * max(tau_s - 0.5 * m_settle, 0.0),
     )
 
 

@@ -161,19 +161,23 @@ def feature_zones(plan: TestPlan, timing: Timing, d: int, window: tuple[float, f
 @dataclass
 class Theta:
     """The nonlinear parameters: arc-start lag ``c`` (s), the feed-in's extra wait ``wait`` (s), the spikes'
-    width ``w_deg`` and the loops' mean lag ``tau`` (s; None: no servo dynamics)."""
+    width ``w_deg``, the loops' mean lag ``tau`` (s; None: no servo dynamics) and the share ``ff`` of a
+    command step that the loops' velocity feed-forward passes at once (their lag on the circle is
+    ``(1 - ff) tau``: how far the command leads the axes, and so where a step made in the command lands)."""
 
     c: float = 0.0
     wait: float = 0.0
     w_deg: float = 0.5
     tau: float | None = None
+    ff: float = 0.0
 
     def vector(self) -> np.ndarray:
-        return np.array([self.c, self.wait, math.log(self.w_deg), math.log(self.tau or 1.0)])
+        return np.array([self.c, self.wait, math.log(self.w_deg), math.log(self.tau or 1.0), self.ff])
 
     @classmethod
     def of(cls, v: np.ndarray, tau_known: bool) -> Theta:
-        return cls(float(v[0]), float(v[1]), float(math.exp(v[2])), float(math.exp(v[3])) if tau_known else None)
+        return cls(float(v[0]), float(v[1]), float(math.exp(v[2])), float(math.exp(v[3])) if tau_known else None,
+                   float(v[4]))
 
 
 @dataclass

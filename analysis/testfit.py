@@ -82,6 +82,9 @@ ONSET_MOVE_SAMPLES = 0.1  # the timing is searched again when a table's reversal
 OFFSET_SETTLED_UM = 1e-4  # the corrections' fixed point: they move by less than this (um)
 FINAL_STEPS = 4
 FOLD_ROWS = 16384  # samples whose model is made at a time
+FF_MAX = 0.98  # the feed-forward share's bound (at 1 the loops would not lag on the circle at all)
+FF_PRIOR = 0.5  # ... its prior's spread about 0, where the data do not place the command's steps
+FF_GRID = (0.0, 0.25, 0.5, 0.75, 0.95)  # its search starts from the best of these
 TAU_NATS = 2.0  # the data must prefer another loop lag than the default gain's by this much log-likelihood
 WAIT_Z = 4.0  # the feed-in's extra wait is kept where it is this many standard errors from 0: a nuisance that
 # trades with what moves one arc against the other (lateral play, at low rates), kept only where clearly needed
@@ -251,6 +254,7 @@ class TestFit:
         self.spike_sse: tuple[float, float, int] | None = None  # full and spike-free SSE at their best, samples
         self.wait_free = False
         self.below_resolution = False  # the spikes' width ran onto the samples' resolution in the coarse stage
+        self.ff_started = False  # the feed-forward share's search has its start (:meth:`_start_ff`)
         self.held: set[int] = set()  # coordinates held at their prior's value (the loops' lag: the default gain)
         self.aperture_scale = 1.0
         # the sensor's white noise, from the samples alone (:func:`.validity.sensor_noise`)
@@ -297,9 +301,9 @@ class TestFit:
         V = feed_from_span(self.plan, self.span, theta.c, self.accel)
         omega = V / self.plan.radius_mm
         tau = theta.tau
-        loops = loop_angles(mean_lag(tau, self.lag.cos2, m), m, omega, self.u_in)
+        loops = loop_angles(mean_lag(tau, self.lag.cos2, m), m, omega, self.u_in, theta.ff)
         axes = axis_reversals(m, omega, self.u_in) if tau is not None else (0.0, 0.0)
-        return LostMotion.choose(credible, self.options.lost_motion, self.plan.radius_mm, loops, axes)
+        return LostMotion.choose(credible, self.options.lost_motion, self.plan.radius_mm, loops, axes, theta.ff)
 
     def _values_se(self, e: Evaluation, obj: Objective) -> tuple[dict[str, float], dict[str, float]]:
         """The evaluation's values by field, and their standard errors (the fit's, its correlation counted)."""
@@ -320,13 +324,13 @@ class TestFit:
         lo_c = -min(self.options.max_lag_s, LAG_BELOW_S)
         bounds = {0: (lo_c, self.options.max_lag_s), 1: (-WAIT_MAX_S, WAIT_MAX_S),
                   2: (math.log(self.widths[0]), math.log(self.widths[1])),
-                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0]))}
+                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0])), 4: (0.0, FF_MAX)}
         # finite differences on the scale the objective is smooth on: a tenth of a bin's travel, at least a
         # hundredth of a sample period
         fine_s = math.radians(FINE_BIN_DEG) / self.omega0
         h_t = max(0.1 * max(fine_s, self.period_s), 1e-5)
-        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02}
-        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S)]
+        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02, 4: 0.02}
+        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S), Prior(4, 0.0, FF_PRIOR)]
         if self.tau_fitted:
             priors.append(Prior(3, -math.log(DEFAULT_KV_PER_S), TAU_PRIOR_LN))
         return bounds, steps, [p for p in priors if p.index in active]
@@ -339,7 +343,18 @@ class TestFit:
             out.append(2)
         if self.tau_fitted:
             out.append(3)
+        elif self._command_steps():
+            out.append(4)
         return out
+
+    def _command_steps(self) -> bool:
+        """Whether the current estimates hold an over-set backlash compensation, a step made in the command:
+        where it lands depends on the loops' lag on the circle, ``(1 - ff)`` times the settling's, so the
+        feed-forward share ``ff`` is searched (the share it passes at once is the linear
+        :data:`.patterns.FEED_FORWARD` column).  Only where the loops' lag is known (where it is searched, it
+        moves the step as well)."""
+        return (self.state.theta.tau is not None and self.options.lost_motion != "step"
+                and "compensation" in self.state.lost.models)
 
     def _search(
         self, obj: Objective, active: list[int], max_iter: int, scale: float = 1.0, cap: int = 1_000
@@ -385,7 +400,7 @@ class TestFit:
         self._account(obj)
         self._update(obj, pre)
         # 2. the timing with the sharp features integrated over a wider interval, on coarse bins
-        active = [k for k in self._active() if k != 3]
+        active = [k for k in self._active() if k not in (3, 4)]
         if active:
             obj = Objective(self.ctx, coarse, self._lost_for(),
                             self._offset_for(self.state.values, self.state.lost),
@@ -421,6 +436,8 @@ class TestFit:
                 self._account(obj)
                 self._update(obj, e)
                 break
+            if 4 in active and not self.ff_started:
+                self._start_ff(obj)
             found = self._search(obj, active, max_iter=8, cap=STAGE_CAPS[1])
             self.state.found = found
             again = self._update(obj, found.best)
@@ -430,7 +447,7 @@ class TestFit:
                 self.spike_sse = (found.best.sse, bare.best.sse, obj.samples)
                 if bare.best.sse < found.best.sse:
                     nb = bare.best.theta
-                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau)
+                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff)
                     restarted, again = True, True
             if not again:
                 break
@@ -482,6 +499,20 @@ class TestFit:
                 self.state.found = _merge(polished, found, keep)
                 self._update(obj, polished.best)
         return self
+
+    def _start_ff(self, obj: Objective) -> None:
+        """The feed-forward share's start, the best of a coarse grid: far from where the data put the
+        compensation's steps, the other columns take up most of the misplaced step and the misfit is flat in
+        ``ff``, so a descent from 0 would stay there."""
+        self.ff_started = True
+        best = None
+        for ff in FF_GRID:
+            e = obj.evaluate(replace(self.state.theta, ff=ff))
+            if best is None or e.sse < best.sse:
+                best = e
+        self._account(obj)
+        assert best is not None
+        self.state.theta = best.theta
 
     def _hold(self, obj: Objective, found: Found, k: int, value: float, drop: bool) -> None:
         """Hold coordinate ``k`` of :meth:`.search.Theta.vector` at ``value``: the others move to their best
@@ -638,6 +669,10 @@ class TestFit:
         if found is not None and 3 in found.active and tau is not None:
             sd = math.sqrt(max(self.theta_cov[found.active.index(3), found.active.index(3)], 0.0))
             res["timing"]["loop_lag_stderr_ms"] = tau * 1000.0 * sd
+        ff_on = found is not None and 4 in found.active
+        res["timing"]["loop_feed_forward"] = theta.ff if ff_on else None
+        res["timing"]["loop_feed_forward_stderr"] = (
+            math.sqrt(max(self.theta_cov[found.active.index(4), found.active.index(4)], 0.0)) if ff_on else None)
         res["timing"]["loop_lag_source"] = source
         res["timing"]["loop_lag_origin"] = origin
         res["fit"]["servo_model_note"] = source

@@ -347,6 +347,10 @@ _TIMING_TEST = obj(
         "loop_lag_radial_cos2u": num("the loops' radial cos 2u term, um (null: none)", True),
         "loop_lag_stderr_ms": num("where the loop lag was searched with the timing (nothing else told it): its "
                                   "standard error, ms", True),
+        "loop_feed_forward": num("where an over-set backlash compensation's steps place it: the share of a command "
+                                 "step the loops pass at once (velocity feed-forward), 0..0.98; their lag on the "
+                                 "circle is (1 - this) times the settling's (null: not searched)", True),
+        "loop_feed_forward_stderr": num("its standard error (null: not searched)", True),
         "backlash_takeup_deg": obj("where each axis' dead band is taken up after a reversal, deg", _AXES),
         "reversal_onset_deg": obj("where friction starts after each reversal point, deg", _AXES),
         **_POLLED,
