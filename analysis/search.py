@@ -163,21 +163,24 @@ class Theta:
     """The nonlinear parameters: arc-start lag ``c`` (s), the feed-in's extra wait ``wait`` (s), the spikes'
     width ``w_deg``, the loops' mean lag ``tau`` (s; None: no servo dynamics) and the share ``ff`` of a
     command step that the loops' velocity feed-forward passes at once (their lag on the circle is
-    ``(1 - ff) tau``: how far the command leads the axes, and so where a step made in the command lands)."""
+    ``(1 - ff) tau``: how far the command leads the axes, and so where a step made in the command lands), and
+    ``ln_feed``, the log of the feed's ratio to the one the feed-in to feed-out span gives (0 but where those
+    steps were timed too coarsely to fix it)."""
 
     c: float = 0.0
     wait: float = 0.0
     w_deg: float = 0.5
     tau: float | None = None
     ff: float = 0.0
+    ln_feed: float = 0.0
 
     def vector(self) -> np.ndarray:
-        return np.array([self.c, self.wait, math.log(self.w_deg), math.log(self.tau or 1.0), self.ff])
+        return np.array([self.c, self.wait, math.log(self.w_deg), math.log(self.tau or 1.0), self.ff, self.ln_feed])
 
     @classmethod
     def of(cls, v: np.ndarray, tau_known: bool) -> Theta:
         return cls(float(v[0]), float(v[1]), float(math.exp(v[2])), float(math.exp(v[3])) if tau_known else None,
-                   float(v[4]))
+                   float(v[4]), float(v[5]))
 
 
 @dataclass
@@ -227,8 +230,13 @@ class Context:
         n = len(dirs)
         return {d: (n - k) / (n + 1) * wait_s for k, d in enumerate(dirs)} if wait_s else {}
 
-    def timing(self, theta: Theta) -> Timing:
+    def feed(self, theta: Theta) -> float:
+        """The path feed (mm/s): from the feed-in to feed-out span at the arc-start lag, times the fitted ratio."""
         V = feed_from_span(self.plan, self.span_s, theta.c, self.accel_s)
+        return V * math.exp(theta.ln_feed) if theta.ln_feed else V
+
+    def timing(self, theta: Theta) -> Timing:
+        V = self.feed(theta)
         return make_timing(self.plan, self.t_ref, V, theta.c, self.shifts(theta.wait), self.accel_s)
 
     def geometry(
@@ -407,7 +415,7 @@ class Objective:
 
     def _finest_rad(self, theta: Theta) -> float:
         """The narrowest interval any bin integrates over (rad)."""
-        omega = feed_from_span(self.ctx.plan, self.ctx.span_s, theta.c, self.ctx.accel_s) / self.ctx.plan.radius_mm
+        omega = self.ctx.feed(theta) / self.ctx.plan.radius_mm
         spans = [float(b.span_s.min()) for b in self.bins.values()]
         return omega * min(spans) * self.aperture_scale + self.smooth_rad
 
@@ -505,11 +513,12 @@ class Found:
         live = np.flatnonzero(d > 1e-12 * max(float(d.max(initial=0.0)), 1e-300))
         out = np.zeros_like(H)
         if live.size:
-            sub = H[np.ix_(live, live)]
-            try:
-                out[np.ix_(live, live)] = np.linalg.inv(sub)
-            except np.linalg.LinAlgError:
-                out[np.ix_(live, live)] = np.linalg.pinv(sub)
+            # a curvature pieced together from two stages (:func:`.testfit._merge`) need not be positive
+            # definite: its negative directions are no information, not negative variance
+            vals, vecs = np.linalg.eigh(0.5 * (H[np.ix_(live, live)] + H[np.ix_(live, live)].T))
+            floor = 1e-12 * max(float(vals.max(initial=0.0)), 1e-300)
+            keep = vals > floor
+            out[np.ix_(live, live)] = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
         return out
 
 

@@ -85,6 +85,7 @@ FOLD_ROWS = 16384  # samples whose model is made at a time
 FF_MAX = 0.98  # the feed-forward share's bound (at 1 the loops would not lag on the circle at all)
 FF_PRIOR = 0.5  # ... its prior's spread about 0, where the data do not place the command's steps
 FF_GRID = (0.0, 0.25, 0.5, 0.75, 0.95)  # its search starts from the best of these
+FEED_RATIO_MAX = 0.01  # the feed's ratio to the span's, where searched: within 1 % (its log)
 TAU_NATS = 2.0  # the data must prefer another loop lag than the default gain's by this much log-likelihood
 WAIT_Z = 4.0  # the feed-in's extra wait is kept where it is this many standard errors from 0: a nuisance that
 # trades with what moves one arc against the other (lateral play, at low rates), kept only where clearly needed
@@ -254,6 +255,11 @@ class TestFit:
         self.spike_sse: tuple[float, float, int] | None = None  # full and spike-free SSE at their best, samples
         self.wait_free = False
         self.below_resolution = False  # the spikes' width ran onto the samples' resolution in the coarse stage
+        # the feed's ratio to the span's is searched where a step was timed from a ramp of a few samples (at the
+        # programmed feed: a move that never reaches it is timed off by a share of a sample); its prior is that
+        # timing's spread, a third of a sample period at each end, over the span
+        coarse_steps = [e for e in (fi, fo) if e.method != "centroid"]
+        self.feed_sd = (math.sqrt(len(coarse_steps)) * self.period_s / 3.0 / self.span) if coarse_steps else 0.0
         self.ff_started = False  # the feed-forward share's search has its start (:meth:`_start_ff`)
         self.held: set[int] = set()  # coordinates held at their prior's value (the loops' lag: the default gain)
         self.aperture_scale = 1.0
@@ -298,7 +304,7 @@ class TestFit:
     def _choose(self, values: dict[str, float], se: dict[str, float], theta: Theta) -> LostMotion:
         credible = _credible_backlash(values, se, self.options.min_effect_um)
         m = credible.get("servo_mismatch_ms", 0.0)
-        V = feed_from_span(self.plan, self.span, theta.c, self.accel)
+        V = self.ctx.feed(theta)
         omega = V / self.plan.radius_mm
         tau = theta.tau
         loops = loop_angles(mean_lag(tau, self.lag.cos2, m), m, omega, self.u_in, theta.ff)
@@ -324,13 +330,15 @@ class TestFit:
         lo_c = -min(self.options.max_lag_s, LAG_BELOW_S)
         bounds = {0: (lo_c, self.options.max_lag_s), 1: (-WAIT_MAX_S, WAIT_MAX_S),
                   2: (math.log(self.widths[0]), math.log(self.widths[1])),
-                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0])), 4: (0.0, FF_MAX)}
+                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0])), 4: (0.0, FF_MAX),
+                  5: (-FEED_RATIO_MAX, FEED_RATIO_MAX)}
         # finite differences on the scale the objective is smooth on: a tenth of a bin's travel, at least a
         # hundredth of a sample period
         fine_s = math.radians(FINE_BIN_DEG) / self.omega0
         h_t = max(0.1 * max(fine_s, self.period_s), 1e-5)
-        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02, 4: 0.02}
-        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S), Prior(4, 0.0, FF_PRIOR)]
+        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02, 4: 0.02, 5: h_t / self.span}
+        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S), Prior(4, 0.0, FF_PRIOR),
+                  Prior(5, 0.0, self.feed_sd)]
         if self.tau_fitted:
             priors.append(Prior(3, -math.log(DEFAULT_KV_PER_S), TAU_PRIOR_LN))
         return bounds, steps, [p for p in priors if p.index in active]
@@ -345,6 +353,8 @@ class TestFit:
             out.append(3)
         elif self._command_steps():
             out.append(4)
+        if self.feed_sd > 0 and self.options.estimate_lag:
+            out.append(5)
         return out
 
     def _command_steps(self) -> bool:
@@ -447,7 +457,8 @@ class TestFit:
                 self.spike_sse = (found.best.sse, bare.best.sse, obj.samples)
                 if bare.best.sse < found.best.sse:
                     nb = bare.best.theta
-                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff)
+                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff,
+                                                   ln_feed=nb.ln_feed)
                     restarted, again = True, True
             if not again:
                 break
@@ -491,9 +502,13 @@ class TestFit:
                 if self.designs + 4 > SEARCH_BUDGET:
                     break
                 obj.aperture_scale = scale
+                start = self.state.theta.vector()
                 polished = self._search(obj, active, max_iter=3, scale=scale, cap=STAGE_CAPS[3])
                 self.state.theta = polished.best.theta
                 self.aperture_scale = scale
+                _, steps, _ = self._space(active)
+                if all(abs(polished.best.theta.vector()[k] - start[k]) < 0.1 * steps[k] * scale for k in active):
+                    break  # the features already lie where the samples put them: a finer share moves nothing
             if polished is not found:
                 keep = [i for i, k in enumerate(found.active) if k not in active]
                 self.state.found = _merge(polished, found, keep)
@@ -927,6 +942,10 @@ def _merge(polished: Found, earlier: Found, keep: Sequence[int]) -> Found:
     jtj[:m, :m] = polished.jtj
     hprior = earlier.hprior[np.ix_(order, order)].copy()
     hprior[:m, :m] = polished.hprior
+    if np.linalg.eigvalsh(jtj).min() < -1e-9 * max(float(np.abs(jtj).max()), 1e-300):
+        # the earlier stage's cross terms do not fit the new block: the two blocks alone (each is a curvature)
+        jtj[:m, m:] = 0.0
+        jtj[m:, :m] = 0.0
     dx = np.zeros((polished.dx.shape[0], n))
     dx[:, :m] = polished.dx
     dx[:, m:] = earlier.dx[:, list(keep)]
