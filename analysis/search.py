@@ -163,24 +163,21 @@ class Theta:
     """The nonlinear parameters: arc-start lag ``c`` (s), the feed-in's extra wait ``wait`` (s), the spikes'
     width ``w_deg``, the loops' mean lag ``tau`` (s; None: no servo dynamics) and the share ``ff`` of a
     command step that the loops' velocity feed-forward passes at once (their lag on the circle is
-    ``(1 - ff) tau``: how far the command leads the axes, and so where a step made in the command lands), and
-    ``ln_feed``, the log of the feed's ratio to the one the feed-in to feed-out span gives (0 but where those
-    steps were timed too coarsely to fix it)."""
+    ``(1 - ff) tau``: how far the command leads the axes, and so where a step made in the command lands)."""
 
     c: float = 0.0
     wait: float = 0.0
     w_deg: float = 0.5
     tau: float | None = None
     ff: float = 0.0
-    ln_feed: float = 0.0
 
     def vector(self) -> np.ndarray:
-        return np.array([self.c, self.wait, math.log(self.w_deg), math.log(self.tau or 1.0), self.ff, self.ln_feed])
+        return np.array([self.c, self.wait, math.log(self.w_deg), math.log(self.tau or 1.0), self.ff])
 
     @classmethod
     def of(cls, v: np.ndarray, tau_known: bool) -> Theta:
         return cls(float(v[0]), float(v[1]), float(math.exp(v[2])), float(math.exp(v[3])) if tau_known else None,
-                   float(v[4]), float(v[5]))
+                   float(v[4]))
 
 
 @dataclass
@@ -231,9 +228,8 @@ class Context:
         return {d: (n - k) / (n + 1) * wait_s for k, d in enumerate(dirs)} if wait_s else {}
 
     def feed(self, theta: Theta) -> float:
-        """The path feed (mm/s): from the feed-in to feed-out span at the arc-start lag, times the fitted ratio."""
-        V = feed_from_span(self.plan, self.span_s, theta.c, self.accel_s)
-        return V * math.exp(theta.ln_feed) if theta.ln_feed else V
+        """The path feed (mm/s): from the feed-in to feed-out span at the arc-start lag."""
+        return feed_from_span(self.plan, self.span_s, theta.c, self.accel_s)
 
     def timing(self, theta: Theta) -> Timing:
         V = self.feed(theta)

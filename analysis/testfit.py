@@ -85,7 +85,6 @@ FOLD_ROWS = 16384  # samples whose model is made at a time
 FF_MAX = 0.98  # the feed-forward share's bound (at 1 the loops would not lag on the circle at all)
 FF_PRIOR = 0.5  # ... its prior's spread about 0, where the data do not place the command's steps
 FF_GRID = (0.0, 0.25, 0.5, 0.75, 0.95)  # its search starts from the best of these
-FEED_RATIO_MAX = 0.01  # the feed's ratio to the span's, where searched: within 1 % (its log)
 TAU_NATS = 2.0  # the data must prefer another loop lag than the default gain's by this much log-likelihood
 WAIT_Z = 4.0  # the feed-in's extra wait is kept where it is this many standard errors from 0: a nuisance that
 # trades with what moves one arc against the other (lateral play, at low rates), kept only where clearly needed
@@ -255,11 +254,6 @@ class TestFit:
         self.spike_sse: tuple[float, float, int] | None = None  # full and spike-free SSE at their best, samples
         self.wait_free = False
         self.below_resolution = False  # the spikes' width ran onto the samples' resolution in the coarse stage
-        # the feed's ratio to the span's is searched where a step was timed from a ramp of a few samples (at the
-        # programmed feed: a move that never reaches it is timed off by a share of a sample); its prior is that
-        # timing's spread, a third of a sample period at each end, over the span
-        coarse_steps = [e for e in (fi, fo) if e.method != "centroid"]
-        self.feed_sd = (math.sqrt(len(coarse_steps)) * self.period_s / 3.0 / self.span) if coarse_steps else 0.0
         self.ff_started = False  # the feed-forward share's search has its start (:meth:`_start_ff`)
         self.held: set[int] = set()  # coordinates held at their prior's value (the loops' lag: the default gain)
         self.aperture_scale = 1.0
@@ -330,15 +324,13 @@ class TestFit:
         lo_c = -min(self.options.max_lag_s, LAG_BELOW_S)
         bounds = {0: (lo_c, self.options.max_lag_s), 1: (-WAIT_MAX_S, WAIT_MAX_S),
                   2: (math.log(self.widths[0]), math.log(self.widths[1])),
-                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0])), 4: (0.0, FF_MAX),
-                  5: (-FEED_RATIO_MAX, FEED_RATIO_MAX)}
+                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0])), 4: (0.0, FF_MAX)}
         # finite differences on the scale the objective is smooth on: a tenth of a bin's travel, at least a
         # hundredth of a sample period
         fine_s = math.radians(FINE_BIN_DEG) / self.omega0
         h_t = max(0.1 * max(fine_s, self.period_s), 1e-5)
-        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02, 4: 0.02, 5: h_t / self.span}
-        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S), Prior(4, 0.0, FF_PRIOR),
-                  Prior(5, 0.0, self.feed_sd)]
+        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02, 4: 0.02}
+        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S), Prior(4, 0.0, FF_PRIOR)]
         if self.tau_fitted:
             priors.append(Prior(3, -math.log(DEFAULT_KV_PER_S), TAU_PRIOR_LN))
         return bounds, steps, [p for p in priors if p.index in active]
@@ -353,8 +345,6 @@ class TestFit:
             out.append(3)
         elif self._command_steps():
             out.append(4)
-        if self.feed_sd > 0 and self.options.estimate_lag:
-            out.append(5)
         return out
 
     def _command_steps(self) -> bool:
@@ -457,8 +447,7 @@ class TestFit:
                 self.spike_sse = (found.best.sse, bare.best.sse, obj.samples)
                 if bare.best.sse < found.best.sse:
                     nb = bare.best.theta
-                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff,
-                                                   ln_feed=nb.ln_feed)
+                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff)
                     restarted, again = True, True
             if not again:
                 break
@@ -684,10 +673,10 @@ class TestFit:
         if found is not None and 3 in found.active and tau is not None:
             sd = math.sqrt(max(self.theta_cov[found.active.index(3), found.active.index(3)], 0.0))
             res["timing"]["loop_lag_stderr_ms"] = tau * 1000.0 * sd
-        ff_on = found is not None and 4 in found.active
-        res["timing"]["loop_feed_forward"] = theta.ff if ff_on else None
+        ff_j = found.active.index(4) if found is not None and 4 in found.active else None
+        res["timing"]["loop_feed_forward"] = theta.ff if ff_j is not None else None
         res["timing"]["loop_feed_forward_stderr"] = (
-            math.sqrt(max(self.theta_cov[found.active.index(4), found.active.index(4)], 0.0)) if ff_on else None)
+            math.sqrt(max(float(self.theta_cov[ff_j, ff_j]), 0.0)) if ff_j is not None else None)
         res["timing"]["loop_lag_source"] = source
         res["timing"]["loop_lag_origin"] = origin
         res["fit"]["servo_model_note"] = source

@@ -119,6 +119,8 @@ def check_model(
             continue
         sample_deg = abs(float(np.degrees(u[-1] - u[0]))) / max(u.size - 1, 1)
         at, step = level_change(u, r, d, sample_deg, noise)
+        if not math.isfinite(at):
+            continue  # too few samples clear of the 45 deg points to judge a level change
         se = noise * math.sqrt(2.0 / _window(sample_deg))
         z = abs(step) / se if se > 0 else 0.0
         steps.append({"direction": "ccw" if d > 0 else "cw", "at_deg": at, "step_um": step, "z": z})
