@@ -39,7 +39,12 @@ class ReportData:
     machine's earlier test results under the same conditions (plane, radius,
     feed, data arc, directions), oldest first, each with ``t_wall`` and ``test_id``; empty
     when there are none.  ``history_note``: how the history was chosen (for the
-    report's text).  ``source``: what the report was made from.
+    report's text).  ``source``: what the report was made from.  ``meta``: who
+    tested, with which bar, at what temperatures, notes and the sign-off roles
+    (the ``[report]`` configuration's keys: ``operator``, ``bar_serial``,
+    ``bar_calibrated``, ``machine_temperature_c``, ``air_temperature_c``,
+    ``notes``, ``sign_off``), from the daemon's recorded configuration and the
+    command line.
     """
 
     result: dict[str, Any]
@@ -47,6 +52,7 @@ class ReportData:
     history: list[dict[str, Any]] = field(default_factory=list)
     history_note: str = ""
     source: str = ""
+    meta: dict[str, Any] = field(default_factory=dict)
 
 
 # Test conditions that must match for an earlier result to be comparable in the trend.
@@ -142,7 +148,15 @@ def from_recording(
         candidates += read_results(_records_files(records))
     history, note = select_history(result, _unique(candidates))
     attach_verdict(result, recorded_limits(path))
-    return ReportData(result, curves, history, note, source=os.path.abspath(path))
+    return ReportData(result, curves, history, note, source=os.path.abspath(path), meta=recorded_meta(path))
+
+
+def recorded_meta(path: str) -> dict[str, Any]:
+    """The ``[report]`` table a daemon recording was made with (empty for a CSV or a recording without it)."""
+    from ballbar.daemon.recordings import recorded_config
+
+    table = recorded_config(path).get("report")
+    return {k: v for k, v in table.items() if v not in (None, "")} if isinstance(table, dict) else {}
 
 
 def recorded_limits(path: str) -> dict[str, Any] | None:
@@ -246,7 +260,10 @@ def from_recorded_test(
     history, note = select_history(result, _unique(candidates))
     limits = index.config_for(test).get("limits")
     attach_verdict(result, dict(limits) if isinstance(limits, dict) else None)
-    return ReportData(result, curves, history, note, source=f"{os.path.abspath(index.path)} test {result['test_id']}")
+    meta = index.config_for(test).get("report")
+    meta = {k: v for k, v in meta.items() if v not in (None, "")} if isinstance(meta, dict) else {}
+    return ReportData(result, curves, history, note, source=f"{os.path.abspath(index.path)} test {result['test_id']}",
+                      meta=meta)
 
 
 def published_difference(result: dict[str, Any], published: dict[str, Any], rel: float = 1e-6) -> str | None:
