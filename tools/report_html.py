@@ -173,7 +173,7 @@ footer { margin-top: 28px; padding-top: 8px; border-top: 1px solid var(--rule); 
 footer span { min-width: 0; overflow-wrap: anywhere; }
 @media (max-width: 860px) { dl.kv { grid-template-columns: max-content minmax(0, 1fr); }
   .cols, .verdict { grid-template-columns: minmax(0, 1fr); } body { padding: 14px; }
-  header.top { flex-wrap: wrap; } th, td { padding: 4px 5px; } }
+  header.top { flex-wrap: wrap; } header.top .brand { display: none; } th, td { padding: 4px 5px; } }
 @media print {
   @page { size: A4; margin: 13mm 12mm 14mm; }
   body { max-width: none; padding: 0; font-size: 10pt; }
