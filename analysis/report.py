@@ -588,3 +588,42 @@ def trend_line(x: Sequence[float], y: Sequence[float], ahead: float) -> tuple[li
     tr = theil_sen(x, y)
     xs = [float(x[0]), float(x[-1]), float(x[-1]) + ahead]
     return xs, [tr.at(v) for v in xs], tr.significant
+
+
+def forecast_sentence(name: str, wall_s: Sequence[float] | np.ndarray, values: Sequence[float] | np.ndarray,
+                      limit: float, axes: tuple[str, str] = ("X", "Y"), unit: str = "",
+                      confidence: float = 0.95) -> str:
+    """When the trend of ``name`` (values at wall-clock seconds) reaches ``|limit|``, in words: the Theil-Sen
+    line and its crossing as the monitor computes them (:func:`ballbar.analysis.monitor.theil_sen`,
+    :func:`~ballbar.analysis.monitor.crossing_days`, the interval from its bootstrap); empty with fewer than
+    3 tests."""
+    from datetime import UTC, datetime, timedelta
+
+    from .monitor import bootstrap_crossings, crossing_days, theil_sen
+
+    t = np.asarray(wall_s, dtype=float)
+    y = np.asarray(values, dtype=float)
+    if t.size < 3:
+        return ""
+    days = (t - t[0]) / 86400.0
+    tr = theil_sen(days, y, confidence)
+    label = quantity_label(name, axes)
+    unit = unit_text(unit or name.rsplit("_", 1)[-1])
+    slope = f"trend {tr.slope:+.3g} {unit}/day over {t.size} tests"
+    if not tr.significant:
+        return f"{label}: {slope}, flat within its uncertainty: no crossing forecast"
+    direction = 1 if tr.slope > 0 else -1
+    tc = crossing_days(tr, abs(limit))
+    if not math.isfinite(tc) or tc <= days[-1]:
+        return f"{label}: {slope}, heading away from its limit {abs(limit):g} {unit}"
+    boot = bootstrap_crossings(days, y, abs(limit), direction)
+    q = (1.0 - confidence) / 2.0
+    lo = float(np.quantile(boot, q, method="lower"))
+    hi = float(np.quantile(boot, 1.0 - q, method="higher"))
+    t0 = datetime.fromtimestamp(float(t[0]), UTC)
+
+    def when(d: float) -> str:
+        return (t0 + timedelta(days=d)).strftime("%Y-%m-%d") if math.isfinite(d) and abs(d) < 36500 else "never"
+
+    return (f"{label}: {slope}, reaches its limit {abs(limit):g} {unit} about {when(tc)} "
+            f"({100 * confidence:g} %: {when(lo)} .. {when(hi)})")

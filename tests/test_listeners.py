@@ -227,7 +227,7 @@ def test_the_built_outputs_take_batches_as_their_listeners_say_and_the_reader_fo
     from ballbar.daemon.run import build_listeners
     from ballbar.daemon.service import MERGE_S, Daemon
     from ballbar.daemon.sources import DEFAULT_BATCH_S, RELAXED_BATCH_S, open_source
-    from ballbar.daemon.viewer import RerunViewer
+    from ballbar.daemon.rerun import RerunViewer
 
     sets = ["zenoh.enabled=false", f'daemon.state_dir="{tmp_path}"', "daemon.analysis_worker=false"]
     cfg = load(None, [*sets, 'rerun.mode="connect"', 'rerun.url="rerun+http://127.0.0.1:9/proxy"'], env={})
