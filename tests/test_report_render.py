@@ -227,7 +227,8 @@ def test_trend_with_history_and_without(data: ReportData, tmp_path: Path) -> Non
 def test_trend_axes_span_the_uncertainty(data: ReportData) -> None:
     """A figure that moves within its standard error plots flat (the axis spans +-4 of them about the mean);
     one that moves by many keeps the autoscaled range of its points."""
-    from ballbar.tools.report_plots import trend_figure as _trend_figure, trend_quantities as _trend_quantities
+    from ballbar.tools.report_plots import trend_figure as _trend_figure
+    from ballbar.tools.report_plots import trend_quantities as _trend_quantities
 
     tests = [*_history(data.result, 3), data.result]
     servo = [r["parameters"]["servo_mismatch_ms"] for r in tests]

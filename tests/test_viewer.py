@@ -36,9 +36,6 @@ import rerun  # noqa: F401 - its runtime's descriptors (opened at import, once) 
 
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.plan import MachineConfig, TestPlan
-from ballbar.daemon.rerun import listener as listener_module
-from ballbar.daemon.rerun import scene as scene_module
-from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.daemon.rerun import (
     R0,
     TREND_VIEWS,
@@ -54,6 +51,8 @@ from ballbar.daemon.rerun import (
     result_timing,
     trend_ranges,
 )
+from ballbar.daemon.rerun import scene as scene_module
+from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.tools.simulator import MachineModel, iter_chunks
 
 PLAN = TestPlan(radius_mm=50.0, feed_mm_min=3000.0, overshoot_deg=30.0, dwell_s=0.2, sample_hz=100.0)
