@@ -484,7 +484,7 @@ def verdict_summary(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y"
     g_text = f"{ISO_WORDS[g[0]]} {g[1]:.1f} µm" if g is not None else "no circularity figure"
     if not isinstance(v, Mapping) or not v.get("limits"):
         return {"status": "none", "word": STATUS_WORDS["none"], "headline": f"{g_text}; no acceptance limits set",
-                "limits": [], "counts": {}}
+                "limits": [], "counts": {}, "worst": None}
     entries = [e for e in v["limits"] if isinstance(e, Mapping)]
 
     def badness(e: Mapping[str, Any]) -> tuple[int, float]:
@@ -499,7 +499,8 @@ def verdict_summary(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y"
     worst = ranked[0] if ranked else None
     headline = limit_words(worst, axes) if worst is not None else g_text
     return {"status": status, "word": STATUS_WORDS.get(status, status.upper()), "headline": headline,
-            "limits": [(str(e.get("status")), limit_words(e, axes)) for e in ranked], "counts": counts}
+            "limits": [(str(e.get("status")), limit_words(e, axes)) for e in ranked], "counts": counts,
+            "worst": worst}
 
 
 def advice_lines(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> list[dict[str, Any]]:

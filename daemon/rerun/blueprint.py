@@ -47,18 +47,19 @@ TRENDS: tuple[tuple[str, str, str, tuple[int, int, int]], ...] = (
 # (origin under trends/, title): the titles name the quantity in words and fit half the trends panel at 1280 px
 TREND_VIEWS: tuple[tuple[str, str], ...] = (
     ("circularity_um", "Circularity G(b) µm"),
-    ("backlash_um", "Backlash X blue, Y amber µm"),
+    ("backlash_um", "Backlash X, Y µm"),
     ("servo_mismatch_ms", "Servo mismatch ms"),
     ("squareness_urad", "Squareness µrad"),
     ("scale_mismatch_ppm", "Scale mismatch ppm"),
 )
 # the lines drawn with each trend (children of its entity): name, colour, width (ui points)
-TREND_LINES: tuple[tuple[str, tuple[int, int, int], float], ...] = (
+TREND_LINES: tuple[tuple[str, tuple[int, ...], float], ...] = (
     ("limit", (215, 50, 40), 2.0),
     ("warning", (215, 140, 30), 1.0),
     ("upper", (120, 125, 135), 0.75),
     ("lower", (120, 125, 135), 0.75),
     ("trend", (150, 190, 255), 1.0),
+    ("pad", (0, 0, 0, 0), 0.0),  # transparent: a point before the first test, so that none sits on the edge
 )
 
 
@@ -102,14 +103,19 @@ def _events_view() -> rrb.TextLogView:
 def default_blueprint(ranges: Mapping[str, tuple[float, float]] | None = None) -> rrb.Blueprint:
     """The layout (see the module docstring).  ``ranges``: the y range of trend views by origin
     (:func:`trend_ranges`); the others autoscale."""
-    bound = 1.75 * R0
+    bound = 1.85 * R0
     ranges = ranges or {}
     everything = [rrb.VisibleTimeRange(tl, start=rrb.TimeRangeBoundary.infinite(),
                                        end=rrb.TimeRangeBoundary.infinite()) for tl in ("time", "test")]
+    # each view's own x range: linked to the time panel (the default), a plot showed the last 30 s of a day's tests
+    whole = rrb.TimeAxis(link="Independent", view_range=rrb.TimeRange(
+        start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()))
+    recent = rrb.TimeAxis(link="Independent", view_range=rrb.TimeRange(
+        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-300.0), end=rrb.TimeRangeBoundary.cursor_relative()))
     trends = rrb.Grid(
         *(
             rrb.TimeSeriesView(
-                name=title, origin=f"trends/{origin}", time_ranges=everything,
+                name=title, origin=f"trends/{origin}", time_ranges=everything, axis_x=whole,
                 axis_y=rrb.ScalarAxis(range=ranges[origin], zoom_lock=False) if origin in ranges else None,
                 plot_legend=rrb.PlotLegend(visible=False),
             )
@@ -136,6 +142,7 @@ def default_blueprint(ranges: Mapping[str, tuple[float, float]] | None = None) -
             start=rrb.TimeRangeBoundary.cursor_relative(seconds=-300.0),
             end=rrb.TimeRangeBoundary.cursor_relative(),
         ),
+        axis_x=recent,
         plot_legend=rrb.PlotLegend(visible=False),
     )
     return rrb.Blueprint(
@@ -148,7 +155,7 @@ def default_blueprint(ranges: Mapping[str, tuple[float, float]] | None = None) -
             rrb.Vertical(
                 rrb.TextDocumentView(name="Verdict and findings", origin="findings"),
                 trends,
-                row_shares=[1, 1],
+                row_shares=[6, 5],
             ),
             column_shares=[3, 2],
         ),

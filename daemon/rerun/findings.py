@@ -22,6 +22,7 @@ from ballbar.analysis.report import (
     setup_words,
     share_text,
     significance_words,
+    unit_text,
     value_text,
     verdict_summary,
 )
@@ -63,10 +64,20 @@ def _conditions(result: Mapping[str, Any]) -> str:
 
 
 def headline(result: Mapping[str, Any]) -> tuple[str, str]:
-    """The verdict's status (``pass``, ``warning``, ``fail``, ``none``) and a short line for the polar plot's
-    verdict bar: ``FAIL · test 12 · Circularity G(b) 53.7 ± 0.7 µm, limit 25 µm: over by 28.7 µm``."""
-    vs = verdict_summary(result, _axes(result))
-    return vs["status"], f"{vs['word']} · test {result.get('test_index', '?')} · {vs['headline']}"
+    """The verdict's status (``pass``, ``warning``, ``fail``, ``none``) and a line short enough for the polar
+    plot's verdict bar at 1280 px: ``FAIL · test 12 · Circularity G(b) 53.7 µm, limit 25 µm``."""
+    axes = _axes(result)
+    vs = verdict_summary(result, axes)
+    head = f"{vs['word']} · test {result.get('test_index', '?')}"
+    worst = vs.get("worst")
+    if isinstance(worst, Mapping) and num(worst.get("value")) is not None:
+        unit = unit_text(worst.get("unit"))
+        lim = num(worst.get("limit"))
+        return vs["status"], (f"{head} · {quantity_label(str(worst.get('name')), axes)} "
+                              f"{float(worst['value']):.3g} {unit}, limit {lim:g} {unit}")
+    iso = result.get("iso230_4") or {}
+    g = num(iso.get("G_b_um"))
+    return vs["status"], f"{head} · G(b) {g:.3g} µm" if g is not None else head
 
 
 def findings_markdown(result: Mapping[str, Any], wall: float | None = None) -> str:
@@ -80,10 +91,6 @@ def findings_markdown(result: Mapping[str, Any], wall: float | None = None) -> s
         lines = [f"## Test {idx} in progress: {str(result.get('direction', '')).upper()} circle (provisional)"]
     else:
         lines = [f"## {vs['word']} · test {idx}{when}", "", f"**{vs['headline']}**"]
-    if result.get("test_id"):
-        lines += ["", f"test id `{result['test_id']}` · {_conditions(result)}"]
-    else:
-        lines += ["", _conditions(result)]
     ranking = [r for r in machine_ranking(result) if r.get("significant")]
     lines += ["", "### What matters most (share of the machine's error)", ""]
     if not ranking:
@@ -95,6 +102,7 @@ def findings_markdown(result: Mapping[str, Any], wall: float | None = None) -> s
     todo = [a for a in advice_lines(result, axes) if a["kind"] != "setup"]
     lines += ["", "### What to do", ""]
     lines += [f"- {a['text']}" for a in todo[:4]] or ["- nothing to adjust on the machine"]
+    lines += ["", (f"test id `{result['test_id']}` · " if result.get("test_id") else "") + _conditions(result)]
     setup = setup_words(result)
     if setup:
         lines += ["", f"Set-up, not the machine (removed from the plot and the shares): {'; '.join(setup)}."]

@@ -39,13 +39,15 @@ second); a daemon killed outright takes it along (``PR_SET_PDEATHSIG``).
 from __future__ import annotations
 
 import contextlib
+import datetime
 import logging
 import math
+import os
 import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -97,6 +99,16 @@ HISTORY_SHARE_WARN = 0.25  # warn when the history needs more than this share of
 MAX_PENDING_SAMPLES = 200_000  # samples waiting to be processed: at most this many
 MIN_SEND_POINTS = 8  # fewer new samples than this in a send_interval_s: sent every polar_update_s instead
 WAITING = "waiting for the next test (its feed-in)"
+SEED_FILES = 200  # the newest record files read for the earlier tests (one test each when rotated per test)
+
+
+def _epoch(t: Any) -> float | None:
+    """A result's ``t_wall`` (ISO 8601) as Unix seconds."""
+    try:
+        d = datetime.datetime.fromisoformat(str(t))
+    except ValueError:
+        return None
+    return (d if d.tzinfo else d.replace(tzinfo=datetime.UTC)).timestamp()
 
 _ABANDONED: list[rr.RecordingStream] = []  # recordings whose disconnect did not finish: never collected
 
@@ -220,8 +232,53 @@ class RerunViewer(Scene, Listener):
 
     @classmethod
     def from_config(cls, cfg: Any) -> RerunViewer:
-        """From the daemon's configuration (:func:`viewer_options`), with its ``plan`` and ``machine``."""
-        return cls(viewer_options(cfg), plan=getattr(cfg, "plan", None), machine=getattr(cfg, "machine", None))
+        """From the daemon's configuration (:func:`viewer_options`), with its ``plan`` and ``machine``; seeded with
+        the machine's earlier tests from the daemon's records (:meth:`seed`, the newest ``SEED_FILES`` files)."""
+        v = cls(viewer_options(cfg), plan=getattr(cfg, "plan", None), machine=getattr(cfg, "machine", None))
+        mcap = getattr(cfg, "mcap", None)
+        if mcap is not None and mcap.enabled and v.options.mode != "off":
+            directory = os.path.join(cfg.daemon.state_dir, "recordings")
+            try:
+                if os.path.isdir(directory):
+                    from ..mcap_log import list_recordings, read_results
+
+                    machine_id = cfg.daemon.machine_id
+                    v.seed(r for r in read_results(list_recordings(directory)[-SEED_FILES:])
+                           if r.get("machine_id") in (None, machine_id))
+            except Exception:  # the history is a convenience: the live view runs without it
+                log.exception("rerun viewer: could not read the earlier tests from %s", directory)
+        return v
+
+    def seed(self, results: Iterable[Mapping[str, Any]]) -> int:
+        """Earlier tests (the daemon's records, oldest first) under the configured plan's conditions: their trend
+        points at their own wall-clock time and at test numbers up to 0 (this run's tests count from 1), and the
+        newest as the last complete test (its verdict, findings and fitted model: its samples are not read).
+        Returns how many were taken."""
+        from ballbar.analysis.monitor import CONDITION_KEYS
+
+        want = {k: getattr(self.plan, k, None) for k in CONDITION_KEYS} if self.plan is not None else None
+        tests = [r for r in results if r.get("kind") == "test" and _epoch(r.get("t_wall")) is not None
+                 and (want is None or {k: (r.get("plan") or {}).get(k) for k in CONDITION_KEYS} == want)]
+        tests = tests[-TRENDS_KEPT:]
+        for i, r in enumerate(tests):
+            row = self._trend_row(r, i - len(tests) + 1, float(_epoch(r.get("t_wall")) or 0.0))
+            if row is not None:
+                self._trends.extend(row)
+        if tests:
+            last = tests[-1]
+            wall = float(_epoch(last.get("t_wall")) or 0.0)
+            self._findings_md = findings_markdown(last, wall) + self._forecast_markdown()
+            self._final = {}
+            self._curves.clear()
+            for d in DIRECTIONS:
+                if result_timing(last, d) is not None and "plan" in last:
+                    self._update_model(d, last)
+            if self.options.remove_setup and param(last, "centre_x_um") is not None:
+                self._setup_result = last
+            self._complete(last, wall, index=0)
+            self._curves.clear()
+        log.info("rerun viewer: %d earlier tests from the records", len(tests))
+        return len(tests)
 
     # ------------------------------------------------------------------ state
 

@@ -385,7 +385,7 @@ class Scene:
         """The references that do not depend on the scale, in both polar views: static, a few kB."""
         self._static_mono = time.monotonic()
         ax1, ax2 = self.plan.axes if self.plan else ("X", "Y")
-        e = 1.72 * R0
+        e = 1.7 * R0
         for view in ("polar", "live"):
             self._log(
                 f"{view}/reference/nominal",
@@ -421,6 +421,8 @@ class Scene:
             for name, lc, width in TREND_LINES:
                 self._log(f"trends/{path}/{name}", rr.SeriesLines(names=f"{label} {name}", colors=[lc], widths=width),
                           static=True)
+                if name == "pad":
+                    self._log(f"trends/{path}/{name}", rr.SeriesPoints(colors=[lc], marker_sizes=0.0), static=True)
 
     def _log_scale(self, view: str, scale_um: float | None = None) -> None:
         """The scale-dependent references of ``view`` (``polar`` or ``live``): the tolerance band and the
@@ -438,19 +440,19 @@ class Scene:
             ),
             POINT_BYTES * 2 * 361,
         )
-        # Labels on points beside the rings: a strip's own label sits at its centroid, the centre.
-        a = math.radians(75.0)
-        rings = [(R0, f"R {self.plan.radius_mm:g} mm" if self.plan else "nominal", COLOURS["nominal"])]
+        # Labels on points beside the rings (a strip's own label sits at its centroid, the centre), each ring's at
+        # its own angle so that none covers another
+        rings = [(R0, 60.0, f"R {self.plan.radius_mm:g} mm" if self.plan else "nominal", COLOURS["nominal"])]
         for j in (POLAR_DIVISIONS, -POLAR_DIVISIONS):
-            rings.append((ring_radius(j), f"{j * s:+g} µm", COLOURS["scale"]))
+            rings.append((ring_radius(j), 75.0, f"{j * s:+g} µm", COLOURS["scale"]))
         if R0 + k * tol < ring_radius(POLAR_DIVISIONS):
-            rings.append((R0 + k * tol, f"±{tol:g} µm band", COLOURS["band"]))
+            rings.append((R0 + k * tol, 112.0, f"±{tol:g} µm band", COLOURS["band"]))
         self._log(
             f"{view}/reference/labels",
             rr.Points2D(
-                [[r * math.cos(a), -r * math.sin(a)] for r, _t, _c in rings],
-                labels=[t for _r, t, _c in rings],
-                colors=[c for _r, _t, c in rings],
+                [[r * math.cos(math.radians(a)), -r * math.sin(math.radians(a))] for r, a, _t, _c in rings],
+                labels=[t for _r, _a, t, _c in rings],
+                colors=[c for _r, _a, _t, c in rings],
                 radii=rr.Radius.ui_points(2.0),
                 show_labels=True,
                 draw_order=3.0,
@@ -459,30 +461,34 @@ class Scene:
         )
 
     def _log_verdict(self, status: str, text: str) -> None:
-        """The last complete test's verdict: a bar in its colour above the plot, labelled in words."""
-        self._log(
-            "polar/verdict",
-            rr.LineStrips2D([[[-1.5 * R0, BAR_Y], [1.5 * R0, BAR_Y]]], radii=[0.11 * R0],
-                            colors=[STATUS_RGB.get(status, STATUS_RGB["none"])], labels=[text], show_labels=True,
-                            draw_order=20.0),
-            200 + len(text),
-        )
+        """The last complete test's verdict: a bar in its colour above the plot, and the verdict in words on it
+        (a label's text takes its entity's colour: white on the bar)."""
+        self._log_bar("polar/verdict", STATUS_RGB.get(status, STATUS_RGB["none"]), text)
 
     def _log_status(self) -> None:
         """What the test in progress is doing, above its plot."""
+        self._log_bar("live/status", (70, 74, 84), self._live_status)
+
+    def _log_bar(self, path: str, colour: tuple[int, int, int], text: str) -> None:
         self._log(
-            "live/status",
-            rr.LineStrips2D([[[-1.5 * R0, BAR_Y], [1.5 * R0, BAR_Y]]], radii=[0.11 * R0], colors=[(60, 64, 72)],
-                            labels=[self._live_status], show_labels=True, draw_order=20.0),
-            200 + len(self._live_status),
+            path,
+            rr.LineStrips2D([[[-1.5 * R0, BAR_Y], [1.5 * R0, BAR_Y]]], radii=[0.11 * R0], colors=[colour],
+                            draw_order=20.0),
+            200,
+        )
+        self._log(
+            f"{path}/text",
+            rr.Points2D([[0.0, BAR_Y - 0.03 * R0]], radii=rr.Radius.ui_points(0.1), colors=[(255, 255, 255)],
+                        labels=[text], show_labels=True, draw_order=21.0),
+            200 + len(text),
         )
 
     # ------------------------------------------------------------------ the last complete test
 
-    def _complete(self, res: Mapping[str, Any], wall: float) -> None:
+    def _complete(self, res: Mapping[str, Any], wall: float, index: int | None = None) -> None:
         """Test ``res`` is complete: draw it in the last-complete-test view (its own scale, its verdict) and keep
-        it for late viewers."""
-        idx = res.get("test_index")
+        it for late viewers; ``index``: its place on the ``test`` timeline (default its ``test_index``)."""
+        idx = res.get("test_index") if index is None else index
         curves: dict[str, tuple[FloatArray, FloatArray, str, float, float]] = {}
         for path, c in self._curves.items():
             name = path.split("/", 1)[1]  # ccw/measured ...
@@ -604,6 +610,15 @@ class Scene:
                 t, y = ht[: first + i + 1][upto], hv[: first + i + 1][upto]
                 trend.append(theil_sen(t, y).at(float(t[-1])) if t.size >= 3 else math.nan)
             series.append(("/trend", np.asarray(trend)))
+            if first == 0:  # the history from its start: a transparent point before it, so no point is on the edge
+                t0, t1 = rows[m, 1][0], rows[m, 1][-1]
+                rec.send_columns(
+                    f"trends/{path}/pad",
+                    indexes=[rr.TimeColumn("test", sequence=[int(rows[m, 0][0]) - 1]),
+                             rr.TimeColumn("time", timestamp=[t0 - max(0.05 * (t1 - t0), 60.0)])],
+                    columns=rr.Scalars.columns(scalars=[float(np.mean(vals[m]))]),
+                )
+                self._sent_bytes += MSG_BYTES + ROW_BYTES
             for suffix, ys in series:
                 ok = np.isfinite(ys)
                 if not ok.any():
