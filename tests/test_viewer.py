@@ -1109,3 +1109,37 @@ def test_late_viewer_gets_the_last_tests_whole(script: Script, receivers: list[R
     late = stamps[stamps > stamps[-1] - 10.0]
     assert early.size <= (run / 4) * v.options.history_length_hz * 1.1 + 2
     assert late.size >= 10.0 * v.options.length_hz * 0.9
+
+
+def test_a_clean_stop_on_ctrl_c_logs_no_error(tmp_path: Path) -> None:
+    """Ctrl-C in a terminal signals the whole process group: the server, in a session of its own, outlives the
+    daemon's last flush, so Rerun's client logs no ERROR (it logged two at every such stop when the server died
+    first: "Write messages call failed: transport error", "Failed to flush previous sink")."""
+    code = (
+        "import time, sys\n"
+        "from ballbar.daemon.rerun import RerunViewer, ViewerOptions\n"
+        "v = RerunViewer(ViewerOptions(mode='serve', bind='127.0.0.1', port=int(sys.argv[1])))\n"
+        "try:\n"
+        "    while not v.connected:\n"
+        "        v.on_idle(); time.sleep(0.05)\n"
+        "    print('ready', flush=True)\n"
+        "    while True:\n"
+        "        v.on_idle(); time.sleep(0.05)\n"
+        "except KeyboardInterrupt:\n"
+        "    v.stop()\n"
+        "    print('stopped', flush=True)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code, str(free_port())], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(0.5)
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+    assert "stopped" in out, err[-2000:]
+    assert "ERROR" not in err, err[-2000:]

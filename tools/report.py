@@ -9,8 +9,10 @@ recording (CSV or the daemon's MCAP) or from the daemon's records by test id.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -106,6 +108,35 @@ def select_history(result: dict[str, Any], candidates: list[dict[str, Any]]) -> 
     return same, note
 
 
+OPEN_FILE_S = 60.0  # a record file modified this recently is taken as being written by a live daemon
+
+
+class _OpenFileNote(logging.Filter):
+    """The reader's 'writer was probably killed' for a file a live daemon is still writing (modified within
+    ``OPEN_FILE_S``): its open chunk is not there yet, nothing is wrong; said at INFO, not as a warning."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if record.levelno == logging.WARNING and msg.endswith("the writer was probably killed"):
+            path = msg.split(": ", 1)[0]
+            with contextlib.suppress(OSError):
+                if time.time() - os.stat(path).st_mtime < OPEN_FILE_S:
+                    log.info("%s: still being written; read up to its last whole chunk", path)
+                    return False
+        return True
+
+
+def _read_results(files: list[Path]) -> list[dict[str, Any]]:
+    """:func:`~ballbar.daemon.mcap_log.read_results`, a file a live daemon is writing noted as such."""
+    reader_log = logging.getLogger("ballbar.daemon.mcap_log")
+    note = _OpenFileNote()
+    reader_log.addFilter(note)
+    try:
+        return read_results(files)
+    finally:
+        reader_log.removeFilter(note)
+
+
 def _mcap_files(path: str) -> list[Path]:
     if os.path.isdir(path):
         return mcap_files(path)
@@ -140,12 +171,12 @@ def from_recording(
     """
     result = analyze_file(path, plan, machine, options, test, curves=True)
     curves = result.pop("curves")
-    candidates = read_results(_mcap_files(path))
+    candidates = _read_results(_mcap_files(path))
     recorded = [r for r in candidates if r.get("kind") == "test" and _same_test(result, r)]
     if recorded:
         _adopt_identity(result, recorded[-1])
     if records is not None:
-        candidates += read_results(_records_files(records))
+        candidates += _read_results(_records_files(records))
     history, note = select_history(result, _unique(candidates))
     attach_verdict(result, recorded_limits(path))
     return ReportData(result, curves, history, note, source=os.path.abspath(path), meta=recorded_meta(path))
@@ -256,7 +287,7 @@ def from_recorded_test(
         result.setdefault("warnings", []).append(drift)
     candidates = index.results()
     if records is not None and os.path.abspath(records) != os.path.abspath(index.path):
-        candidates += read_results(_records_files(records))
+        candidates += _read_results(_records_files(records))
     history, note = select_history(result, _unique(candidates))
     limits = index.config_for(test).get("limits")
     attach_verdict(result, dict(limits) if isinstance(limits, dict) else None)

@@ -100,6 +100,7 @@ MAX_PENDING_SAMPLES = 200_000  # samples waiting to be processed: at most this m
 MIN_SEND_POINTS = 8  # fewer new samples than this in a send_interval_s: sent every polar_update_s instead
 WAITING = "waiting for the next test (its feed-in)"
 SEED_FILES = 200  # the newest record files read for the earlier tests (one test each when rotated per test)
+OPEN_FILE_S = 10.0  # a record file modified this recently is being written
 
 
 def _epoch(t: Any) -> float | None:
@@ -243,8 +244,11 @@ class RerunViewer(Scene, Listener):
                     from ..mcap_log import list_recordings, read_results
 
                     machine_id = cfg.daemon.machine_id
-                    v.seed(r for r in read_results(list_recordings(directory)[-SEED_FILES:])
-                           if r.get("machine_id") in (None, machine_id))
+                    # the file this daemon is writing (modified in the last seconds) holds nothing earlier, and its
+                    # open chunk would read as a killed writer's
+                    files = [p for p in list_recordings(directory)[-SEED_FILES:]
+                             if p.stat().st_mtime < time.time() - OPEN_FILE_S]
+                    v.seed(r for r in read_results(files) if r.get("machine_id") in (None, machine_id))
             except Exception:  # the history is a convenience: the live view runs without it
                 log.exception("rerun viewer: could not read the earlier tests from %s", directory)
         return v

@@ -257,8 +257,11 @@ class ServerProcess:
                 "--bind", self.bind, "--port", str(self.port), "--server-memory-limit", self.memory_limit]
         env = {k: v for k, v in os.environ.items() if not k.startswith(("NOTIFY_SOCKET", "WATCHDOG_"))}
         env.setdefault("RUST_LOG", "warn")
+        # Its own session: a terminal's Ctrl-C, or a signal to the daemon's process group, must not end the server
+        # before the daemon has flushed its stream to it (the SDK then logged two ERROR lines at every clean stop:
+        # "Write messages call failed: transport error", "Failed to flush previous sink"); the daemon ends it.
         self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL, env=env, close_fds=True)
+                                     stderr=subprocess.DEVNULL, env=env, close_fds=True, start_new_session=True)
         self.generation += 1
         self.listening = False
         log.debug("rerun server started (pid %d) on %s:%d", self.proc.pid, self.bind, self.port)
