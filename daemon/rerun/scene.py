@@ -466,8 +466,11 @@ class Scene:
         self._log_bar("polar/verdict", STATUS_RGB.get(status, STATUS_RGB["none"]), text)
 
     def _log_status(self) -> None:
-        """What the test in progress is doing, above its plot."""
-        self._log_bar("live/status", (70, 74, 84), self._live_status)
+        """What the test in progress is doing, and since when (UTC): a viewer still replaying the server's buffer
+        (Rerun replays it oldest first, a bounded amount per frame) shows an old time here."""
+        from .findings import clock_text
+
+        self._log_bar("live/status", (70, 74, 84), f"{self._live_status} · {clock_text(time.time())[:8]}")
 
     def _log_bar(self, path: str, colour: tuple[int, int, int], text: str) -> None:
         self._log(
