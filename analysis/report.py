@@ -437,7 +437,8 @@ def setup_words(result: Mapping[str, Any]) -> list[str]:
     out = []
     cx, cy = _pv(result, "centre_x_um"), _pv(result, "centre_y_um")
     if cx is not None or cy is not None:
-        out.append(f"pivot off the programmed centre by ({cx or 0:+.1f}, {cy or 0:+.1f}) µm")
+        x, y = (round(v or 0.0, 1) + 0.0 for v in (cx, cy))  # + 0.0: no "-0.0"
+        out.append(f"pivot off the programmed centre by ({x:+.1f}, {y:+.1f}) µm")
     rad = _pv(result, "radius_um")
     if rad is not None and abs(rad) >= 0.05:
         out.append(f"circle {rad:+.2f} µm from the nominal radius")

@@ -472,3 +472,28 @@ def test_report_in_headless_chromium(
         assert f"{pixel_server}/pixel.png" in browser.requests(session)
         assert any("control error" in e for e in browser.errors(session))
     assert time.monotonic() - t0 < BROWSER_TIMEOUT_S
+
+
+def test_the_words_both_views_use() -> None:
+    """Uncertainties never round to zero, no negative zero, shares of the machine's error without the set-up,
+    the reversal spikes of an axis as one finding, limits in an engineer's words with their margin."""
+    from ballbar.analysis.report import limit_words, machine_ranking, quantity_label, share_text, value_text
+
+    assert value_text(3.0301, 0.0014) == "3.0301 ± 0.0014"  # the report printed "3.030 ± 0.00"
+    assert value_text(53.7, 0.71) == "53.70 ± 0.71" and value_text(2.0, None) == "2.00"
+    assert share_text(-0.001) == "< 0.1 %" and share_text(78.48) == "78 %" and share_text(2.04) == "2.0 %"
+    ranking = [{"pattern": "centre", "share_pct": 55.6, "significant": True},
+               {"pattern": "servo_mismatch", "share_pct": 41.6, "significant": True},
+               {"pattern": "radius", "share_pct": 2.0, "significant": True},
+               {"pattern": "reversal_spike_x_pos_ccw", "share_pct": 0.4, "significant": True, "p_value": 1e-5},
+               {"pattern": "reversal_spike_x_neg_cw", "share_pct": 0.4, "significant": False, "p_value": 0.2}]
+    ranked = machine_ranking({"ranking": ranking})
+    assert [r["pattern"] for r in ranked] == ["servo_mismatch", "reversal_spikes_x"]
+    assert ranked[0]["machine_share_pct"] == pytest.approx(100 * 41.6 / 42.4)
+    assert ranked[1]["members"] == ["reversal_spike_x_pos_ccw", "reversal_spike_x_neg_cw"]
+    assert ranked[1]["significant"] and ranked[1]["p_value"] == 1e-5
+    assert quantity_label("G_b_um") == "Circularity G(b)"
+    assert quantity_label("backlash_y_um", ("Z", "X")) == "Backlash X"
+    entry = {"name": "servo_mismatch_ms", "unit": "ms", "value": 3.0301, "uncertainty": 0.0028, "limit": 2.0,
+             "margin": -1.0301, "status": "fail", "warning_level": 1.6}
+    assert limit_words(entry) == "Servo mismatch 3.0301 ± 0.0028 ms, limit 2 ms: over by 1.0301 ms"

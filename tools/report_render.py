@@ -54,6 +54,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["envelope_indices", "forecast_words", "polar_scale_um", "render"]
 
+FORECAST_TESTS = 50  # the forecast's trend over the last tests at most (Theil-Sen and its bootstrap: all pairs)
+
 
 def _version() -> str:
     try:
@@ -79,7 +81,7 @@ def forecast_words(tests: Sequence[Mapping[str, Any]], axes: tuple[str, str]) ->
                                  tuple(str(x["name"]) for x in es), str(es[0].get("group") or "parameters"))
                    for name, es in groups.items())
     settings = monitor.MonitorSettings(limits=limits, coverage_k=float(v.get("coverage_k") or 2.0),
-                                       trend_tests=max(len(tests), 3))
+                                       trend_tests=min(max(len(tests), 3), FORECAST_TESTS))
     history = [monitor.history_entry(r, monitor.evaluate(r, settings), str(r.get("t_wall")))
                for r in tests if r.get("t_wall")]
     out = []

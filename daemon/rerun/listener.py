@@ -69,6 +69,7 @@ from .scene import (
     POINT_BYTES,
     ROW_BYTES,
     STRIP_BYTES,
+    TREND_FIT_TESTS,
     TREND_WIDTH,
     Curve,
     Scene,
@@ -264,10 +265,13 @@ class RerunViewer(Scene, Listener):
         tests = [r for r in results if r.get("kind") == "test" and _epoch(r.get("t_wall")) is not None
                  and (want is None or {k: (r.get("plan") or {}).get(k) for k in CONDITION_KEYS} == want)]
         tests = tests[-TRENDS_KEPT:]
+        recent: deque[FloatArray] = deque(maxlen=TREND_FIT_TESTS)
         for i, r in enumerate(tests):
-            row = self._trend_row(r, i - len(tests) + 1, float(_epoch(r.get("t_wall")) or 0.0))
+            before = np.concatenate(list(recent)) if recent else np.empty((0, TREND_WIDTH))
+            row = self._trend_row(r, i - len(tests) + 1, float(_epoch(r.get("t_wall")) or 0.0), before)
             if row is not None:
                 self._trends.extend(row)
+                recent.append(row)
         if tests:
             last = tests[-1]
             wall = float(_epoch(last.get("t_wall")) or 0.0)
@@ -677,8 +681,9 @@ class RerunViewer(Scene, Listener):
         if self.options.remove_setup and param(res, "centre_x_um") is not None:
             self._setup_result = res
         wall = time.time()
-        row = self._trend_row(res, idx, wall) if test and isinstance(idx, int) else None
-        before = self._trends.rows()
+        first = not len(self._trends)
+        row = self._trend_row(res, idx, wall, self._trends.rows()[-TREND_FIT_TESTS:]) \
+            if test and isinstance(idx, int) else None
         if row is not None:
             self._trends.extend(row)
         if test:
@@ -692,7 +697,7 @@ class RerunViewer(Scene, Listener):
             self._set_times(wall)
             self._log_status()
             if row is not None:
-                self._send_trends(row, before)
+                self._send_trends(row, pad=first)
                 self._rescale_trends()
         self._redraw_all(wall)  # cached even without a viewer: one that connects later gets this test
         if test:
@@ -709,7 +714,7 @@ class RerunViewer(Scene, Listener):
             lim = rows[-1, 2 + 2 * len(TRENDS) + 2 * j] if rows.shape[0] else math.nan
             if not np.isfinite(lim):
                 continue
-            ok = np.isfinite(rows[:, 2 + j])
+            ok = np.flatnonzero(np.isfinite(rows[:, 2 + j]))[-TREND_FIT_TESTS:]
             text = forecast_sentence(field, rows[ok, 1], rows[ok, 2 + j], float(lim))
             if text:
                 lines.append(f"- {text}")

@@ -91,10 +91,11 @@ HISTORY_SLICE_BYTES = 512 * 1024  # a periodic sending of the history: at most t
 STALL_FLUSH_S = 2.0  # serve mode: a flush to the (local) server that takes longer says it takes nothing
 STALL_RECHECK_S = 1.0  # ... and is tried again this much later; a second such flush restarts the server
 BAR_Y = -1.9 * R0  # the verdict bar and the status line, above the plot (+y is down in the view)
-# trend rows: test, wall time, the TRENDS values, their standard uncertainties, then per TRENDS entry its
-# limit and warning level (NaN: none) and the coverage factor k
+# trend rows: test, wall time, the TRENDS values, their standard uncertainties, per TRENDS entry its limit and
+# warning level (NaN: none), the Theil-Sen trend of each as it stood at that test, and the coverage factor k
 N_TRENDS = len(TRENDS)
-TREND_WIDTH = 2 + 4 * N_TRENDS + 1
+TREND_FIT_TESTS = 30  # the Theil-Sen trend and its forecast over the last tests (all pairs: O(n^2) each)
+TREND_WIDTH = 2 + 5 * N_TRENDS + 1
 
 
 @dataclass
@@ -285,7 +286,7 @@ class Scene:
         assert rec is not None
         for c in self._curves.values():  # a new viewer has none of the pieces
             c.pieces, c.stale = 0, False
-        self._trend_ranges = trend_ranges(self._trends.rows()) if len(self._trends) else {}
+        self._trend_ranges = self._ranges()
         self._blueprints.new_sink()
         self._blueprints.send(default_blueprint(self._trend_ranges))
         rec.send_recording_name(self._recording_name)
@@ -347,7 +348,7 @@ class Scene:
         self._set_times()
         self._log_scale("live")
         self._log_status()
-        if self._last is not None and self._last not in self._history:
+        if self._last is not None and not any(r is self._last for r in self._history):
             self._send_record(self._last)
         if emit:
             self._emit()
@@ -530,8 +531,11 @@ class Scene:
         return out
 
     @staticmethod
-    def _trend_row(res: Mapping[str, Any], idx: int, wall: float) -> FloatArray | None:
-        """One test's trend row (:data:`TREND_WIDTH` columns), None when it has no trend value."""
+    def _trend_row(res: Mapping[str, Any], idx: int, wall: float, before: FloatArray) -> FloatArray | None:
+        """One test's trend row (:data:`TREND_WIDTH` columns), None when it has no trend value; ``before``: the
+        rows of the tests before it (the last ``TREND_FIT_TESTS`` count for its trend)."""
+        from ballbar.analysis.monitor import theil_sen
+
         values = Scene._trend_values(res)
         if not values:
             return None
@@ -543,6 +547,12 @@ class Scene:
         for _p, field, _l, _c in TRENDS:
             e = limits.get(field) or {}
             row += [num(e.get("limit")) or math.nan, num(e.get("warning_level")) or math.nan]
+        for j in range(N_TRENDS):
+            v = row[2 + j]
+            ok = np.isfinite(before[:, 2 + j]) if before.shape[0] else np.zeros(0, bool)
+            t = np.append(before[ok, 1][-(TREND_FIT_TESTS - 1):], wall) / 86400.0
+            y = np.append(before[ok, 2 + j][-(TREND_FIT_TESTS - 1):], v)
+            row.append(theil_sen(t, y).at(float(t[-1])) if math.isfinite(v) and t.size >= 3 else math.nan)
         row.append(num((verdict or {}).get("coverage_k")) or 2.0)
         return np.array([row], dtype=float)
 
@@ -559,11 +569,15 @@ class Scene:
             out[field] = tuple(side * x for x in (lim, warn) if np.isfinite(x))
         return out
 
+    def _ranges(self) -> dict[str, tuple[float, float]]:
+        """The trend views' y ranges (:func:`trend_ranges`) for the kept rows, their limit lines and bars."""
+        rows = self._trends.rows()
+        return trend_ranges(rows, self._lines(), float(rows[-1, -1])) if rows.shape[0] else {}
+
     def _rescale_trends(self) -> None:
         """A new blueprint when a trend's y range (:func:`trend_ranges`) moved by more than a tenth of itself:
         once per test at most, and rarely once the trends have settled (the server keeps every blueprint)."""
-        rows = self._trends.rows()
-        new = trend_ranges(rows, self._lines(), float(rows[-1, -1])) if rows.shape[0] else {}
+        new = self._ranges()
         old = self._trend_ranges
 
         def moved(k: str) -> bool:
@@ -578,16 +592,12 @@ class Scene:
             self._trend_ranges = new
             self._blueprints.send(default_blueprint(new))
 
-    def _send_trends(self, rows: FloatArray, trend_from: FloatArray | None = None) -> None:
+    def _send_trends(self, rows: FloatArray, pad: bool = True) -> None:
         """Trend rows (:meth:`_trend_row`): each value with its uncertainty band (``k u``), its limit and warning
-        level, and the Theil-Sen trend as it stood at each test (over ``trend_from``'s rows and these, oldest
-        first: the kept history before them)."""
-        from ballbar.analysis.monitor import theil_sen
-
+        level, and the Theil-Sen trend as it stood at each test; ``pad``: the rows start the history (a transparent
+        point goes before them, so that no point sits on the plot's edge)."""
         rec = self._rec
         assert rec is not None
-        history = rows if trend_from is None else np.concatenate([trend_from, rows])
-        first = history.shape[0] - rows.shape[0]
         for j, (path, _field, _label, _c) in enumerate(TRENDS):
             vals, ses = rows[:, 2 + j], rows[:, 2 + N_TRENDS + j]
             m = np.isfinite(vals)
@@ -606,14 +616,8 @@ class Scene:
                 series.append(("/limit", (side * lim)[m]))
             if np.isfinite(warn[m]).all():
                 series.append(("/warning", (side * warn)[m]))
-            hv, ht = history[:, 2 + j], history[:, 1] / 86400.0
-            trend = []
-            for i in np.flatnonzero(m):
-                upto = np.isfinite(hv[: first + i + 1])
-                t, y = ht[: first + i + 1][upto], hv[: first + i + 1][upto]
-                trend.append(theil_sen(t, y).at(float(t[-1])) if t.size >= 3 else math.nan)
-            series.append(("/trend", np.asarray(trend)))
-            if first == 0:  # the history from its start: a transparent point before it, so no point is on the edge
+            series.append(("/trend", rows[m, 2 + 4 * N_TRENDS + j]))
+            if pad:
                 t0, t1 = rows[m, 1][0], rows[m, 1][-1]
                 rec.send_columns(
                     f"trends/{path}/pad",
