@@ -394,8 +394,9 @@ def test_the_reports_verdict_box_shows_the_limits(simulated_csv: Path, tmp_path:
                      "--feed-mm-min", f"{plan.feed_mm_min:g}", "--overshoot-deg", f"{plan.overshoot_deg:g}",
                      "--sample-hz", f"{plan.sample_hz:g}"]) == 0
     html = out.read_text()
-    assert '<div class="big" id="verdict-status">FAIL</div>' in html
-    assert "backlash_x_um" in html and "k = 2" in html
+    assert '<span class="badge" id="verdict-status">FAIL</span>' in html and 'data-status="fail"' in html
+    assert "Backlash X" in html and "limit 6 µm: over by" in html and "± 2 standard uncertainties" in html
+    assert "<code>backlash_x_um</code>" in html  # the field name, in the statistics
 
 
 def test_gcode_says_which_limits_apply(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -298,6 +298,7 @@ def check_stream(saved: Saved, script: Script, n_tests: int = 2) -> None:
           for ref in ("nominal", "band", "scale", "axes", "labels")),
         *(f"/{view}/{d}/{kind}" for view in ("polar", "live") for d in ("ccw", "cw") for kind in ("measured", "model")),
         "/polar/verdict",
+        "/polar/verdict/text",
         "/live/status",
         "/length",
         "/findings",
@@ -336,7 +337,7 @@ def check_stream(saved: Saved, script: Script, n_tests: int = 2) -> None:
     assert md.startswith(f"## NO LIMITS SET · test {n_tests} ") and "provisional" not in md.split("\n")[0]
     for part in ("What matters most", "Servo mismatch", "Backlash X", "ISO 230-4", "What to do", "G(b)"):
         assert part in md
-    assert texts(saved, "/polar/verdict", "LineStrips2D:labels")[-1].startswith(f"NO LIMITS SET · test {n_tests}")
+    assert texts(saved, "/polar/verdict/text", "Points2D:labels")[-1].startswith(f"NO LIMITS SET · test {n_tests}")
 
     # the raw length: every sample (100 Hz is below the 200 Hz cap), in millimetres
     lengths = np.concatenate([np.atleast_1d(v) for v in saved.columns["/length"]["Scalars:scalars"]])
@@ -932,8 +933,8 @@ def test_live_circle_is_sent_in_pieces(script: Script, receivers: list[Receiver]
     rx.finish()
     rows = read_rows(rx.rrd)
     piece = v._piece
-    result_1 = min(r.time for r in rows if r.entity == "/live/status" and r.time is not None
-                   and "CCW circle fitted" in str(r.values.get("LineStrips2D:labels")))
+    result_1 = min(r.time for r in rows if r.entity == "/live/status/text" and r.time is not None
+                   and "CCW circle fitted" in str(r.values.get("Points2D:labels")))
     live = [r for r in rows if r.entity.startswith("/live/ccw/measured") and r.time is not None
             and r.time < result_1 and r.values.get("LineStrips2D:strips")]
     assert len(live) > 20

@@ -52,14 +52,13 @@ TREND_VIEWS: tuple[tuple[str, str], ...] = (
     ("squareness_urad", "Squareness µrad"),
     ("scale_mismatch_ppm", "Scale mismatch ppm"),
 )
-# the lines drawn with each trend (children of its entity): name, colour, width (ui points)
-TREND_LINES: tuple[tuple[str, tuple[int, ...], float], ...] = (
-    ("limit", (215, 50, 40), 2.0),
-    ("warning", (215, 140, 30), 1.0),
-    ("upper", (120, 125, 135), 0.75),
-    ("lower", (120, 125, 135), 0.75),
-    ("trend", (150, 190, 255), 1.0),
-    ("pad", (0, 0, 0, 0), 0.0),  # transparent: a point before the first test, so that none sits on the edge
+# the lines drawn with each trend (children of its entity; two series in one entity where they come together,
+# one message a test for both): name, the series' names, colours and widths (ui points)
+TREND_LINES: tuple[tuple[str, tuple[str, ...], tuple[tuple[int, ...], ...], tuple[float, ...]], ...] = (
+    ("limits", ("limit", "warning level"), ((215, 50, 40), (215, 140, 30)), (2.0, 1.0)),
+    ("band", ("+k u", "-k u"), ((120, 125, 135), (120, 125, 135)), (0.75, 0.75)),
+    ("trend", ("trend",), ((150, 190, 255),), (1.0,)),
+    ("pad", ("",), ((0, 0, 0, 0),), (0.0,)),  # transparent: a point before the first test, so none is on the edge
 )
 
 

@@ -699,9 +699,15 @@ class RerunViewer(Scene, Listener):
             if row is not None:
                 self._send_trends(row, pad=first)
                 self._rescale_trends()
-        self._redraw_all(wall)  # cached even without a viewer: one that connects later gets this test
+        # cached even without a viewer: one that connects later gets this test.  A complete test goes to the last
+        # complete test's view alone: the view of the test in progress is cleared for the next
+        self._redraw_all(wall, emit=not test)
         if test:
             self._complete(res, wall)
+            self._curves.clear()
+            if self._sink_live:
+                for name in DIRECTIONS.values():
+                    self._log(f"live/{name}", rr.Clear(recursive=True))
             self._end_test()
 
     def _forecast_markdown(self) -> str:

@@ -419,11 +419,13 @@ class Scene:
         for path, _field, label, colour in TRENDS:
             self._log(f"trends/{path}", rr.SeriesLines(names=label, colors=[colour], widths=1.0), static=True)
             self._log(f"trends/{path}", rr.SeriesPoints(names=label, colors=[colour], marker_sizes=4.0), static=True)
-            for name, lc, width in TREND_LINES:
-                self._log(f"trends/{path}/{name}", rr.SeriesLines(names=f"{label} {name}", colors=[lc], widths=width),
+            for name, names, colours, widths in TREND_LINES:
+                self._log(f"trends/{path}/{name}", rr.SeriesLines(names=[f"{label} {n}" for n in names],
+                                                                  colors=list(colours), widths=list(widths)),
                           static=True)
                 if name == "pad":
-                    self._log(f"trends/{path}/{name}", rr.SeriesPoints(colors=[lc], marker_sizes=0.0), static=True)
+                    self._log(f"trends/{path}/{name}", rr.SeriesPoints(colors=list(colours), marker_sizes=[0.0]),
+                              static=True)
 
     def _log_scale(self, view: str, scale_um: float | None = None) -> None:
         """The scale-dependent references of ``view`` (``polar`` or ``live``): the tolerance band and the
@@ -609,13 +611,11 @@ class Scene:
             series: list[tuple[str, FloatArray]] = [("", vals[m])]
             band = m & np.isfinite(ses)
             if band.all() and band.any():
-                series += [("/upper", (vals + k * ses)[m]), ("/lower", (vals - k * ses)[m])]
+                series.append(("/band", np.column_stack([(vals + k * ses)[m], (vals - k * ses)[m]])))
             lim, warn = rows[:, 2 + 2 * N_TRENDS + 2 * j], rows[:, 3 + 2 * N_TRENDS + 2 * j]
             side = np.where(vals < 0, -1.0, 1.0)
-            if np.isfinite(lim[m]).all():
-                series.append(("/limit", (side * lim)[m]))
-            if np.isfinite(warn[m]).all():
-                series.append(("/warning", (side * warn)[m]))
+            if np.isfinite(lim[m]).all() and np.isfinite(warn[m]).all():
+                series.append(("/limits", np.column_stack([(side * lim)[m], (side * warn)[m]])))
             series.append(("/trend", rows[m, 2 + 4 * N_TRENDS + j]))
             if pad:
                 t0, t1 = rows[m, 1][0], rows[m, 1][-1]
@@ -627,7 +627,7 @@ class Scene:
                 )
                 self._sent_bytes += MSG_BYTES + ROW_BYTES
             for suffix, ys in series:
-                ok = np.isfinite(ys)
+                ok = np.isfinite(ys) if ys.ndim == 1 else np.isfinite(ys).all(axis=1)
                 if not ok.any():
                     continue
                 rec.send_columns(
@@ -636,7 +636,7 @@ class Scene:
                              rr.TimeColumn("time", timestamp=rows[m, 1][ok])] if not ok.all() else idx,
                     columns=rr.Scalars.columns(scalars=ys[ok]),
                 )
-                self._sent_bytes += MSG_BYTES + ROW_BYTES * int(ok.sum())
+                self._sent_bytes += 2 * MSG_BYTES + ROW_BYTES * ys[ok].size  # a column chunk's schema: on the high side
 
     # ------------------------------------------------------------------ polar plot
     #
@@ -657,8 +657,8 @@ class Scene:
         if paths and not self._fit_scale(grow_only=True):
             self._emit(paths, full=False)
 
-    def _redraw_all(self, wall: float | None = None) -> None:
-        """Recompute every curve of the current test that the kept samples allow, rescale, emit."""
+    def _redraw_all(self, wall: float | None = None, emit: bool = True) -> None:
+        """Recompute every curve of the current test that the kept samples allow, rescale, emit (``emit``)."""
         for d in DIRECTIONS:
             res = self._final.get(d)
             timing = result_timing(res, d) if res is not None else self._live.get(d)
@@ -666,8 +666,9 @@ class Scene:
                 self._update_measured(d, timing, live=res is None)
             if res is not None:
                 self._update_model(d, res)
-        self._fit_scale(grow_only=not any(r.get("kind") == "test" for r in self._final.values()), wall=wall)
-        self._emit(wall=wall)
+        if emit:
+            self._fit_scale(grow_only=not any(r.get("kind") == "test" for r in self._final.values()), wall=wall)
+            self._emit(wall=wall)
 
     def _measured(self, d: int, timing: ArcTiming) -> tuple[FloatArray, FloatArray, tuple[float, int] | None]:
         """Angles (rad), raw deviations ``L - R`` (um) of the kept samples of ``d``'s data arc, and their key."""
