@@ -99,7 +99,7 @@ TRENDS_KEPT = 5000  # tests whose trend points are re-sent to a viewer that (re)
 HISTORY_SHARE_WARN = 0.25  # warn when the history needs more than this share of the server's limit
 MAX_PENDING_SAMPLES = 200_000  # samples waiting to be processed: at most this many
 MIN_SEND_POINTS = 8  # fewer new samples than this in a send_interval_s: sent every polar_update_s instead
-WAITING = "waiting for the next test (its feed-in)"
+WAITING = "waiting for a test"  # short: the label must fit the view of the test in progress at 1280 px
 SEED_FILES = 200  # the newest record files read for the earlier tests (one test each when rotated per test)
 OPEN_FILE_S = 10.0  # a record file modified this recently is being written
 
@@ -657,7 +657,7 @@ class RerunViewer(Scene, Listener):
         self._live = {}
         self._keep_every = 1
         if self._live_status != WAITING:
-            self._live_status = f"{WAITING}; test {self._test_index} ended"
+            self._live_status = f"test {self._test_index} ended; waiting"
             if self._sink_live:
                 self._set_times()
                 self._log_status()
@@ -691,8 +691,7 @@ class RerunViewer(Scene, Listener):
             self._live_status = f"test {idx} complete: {str(res.get('verdict', {}).get('status', 'done')).upper()}" \
                 if isinstance(res.get("verdict"), Mapping) else f"test {idx} complete"
         else:
-            self._live_status = f"test {idx} in progress: {str(res.get('direction', '')).upper()} circle fitted " \
-                                "(provisional)"
+            self._live_status = f"test {idx}: {str(res.get('direction', '')).upper()} circle fitted"
         if self._sink_live:
             self._set_times(wall)
             self._log_status()
