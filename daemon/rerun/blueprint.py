@@ -56,8 +56,7 @@ TREND_VIEWS: tuple[tuple[str, str], ...] = (
 # one message a test for both): name, the series' names, colours and widths (ui points)
 TREND_LINES: tuple[tuple[str, tuple[str, ...], tuple[tuple[int, ...], ...], tuple[float, ...]], ...] = (
     ("limits", ("limit", "warning level"), ((215, 50, 40), (215, 140, 30)), (2.0, 1.0)),
-    ("band", ("+k u", "-k u"), ((120, 125, 135), (120, 125, 135)), (0.75, 0.75)),
-    ("trend", ("trend",), ((150, 190, 255),), (1.0,)),
+    ("band", ("+k u", "-k u", "trend"), ((120, 125, 135), (120, 125, 135), (150, 190, 255)), (0.75, 0.75, 1.0)),
     ("pad", ("",), ((0, 0, 0, 0),), (0.0,)),  # transparent: a point before the first test, so none is on the edge
 )
 

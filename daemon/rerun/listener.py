@@ -14,7 +14,7 @@ current test's samples are kept at ``buffer_hz``, at most ``max_buffer_samples``
 connects late gets is chosen: the last ``history_tests`` tests whole (polar plots, models, verdict,
 findings) at their own times, the trends of the last ``TRENDS_KEPT`` tests, the length at
 ``history_length_hz`` over ``history_length_s``, all kept here in fixed-size buffers and sent with the
-scene to every new sink; in ``serve`` mode sent again whenever half of ``server_memory_limit`` has been
+scene to every new sink; in ``serve`` mode sent again whenever ``REFRESH_FRACTION`` of ``server_memory_limit`` has been
 sent since (an estimate on the high side, ``MSG_BYTES``...), so that the server's buffer, which drops its
 oldest messages first, always holds them whole.
 

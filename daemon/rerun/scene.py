@@ -16,8 +16,8 @@ the test's number within this daemon run)::
                                   measured/<k>), the circles' provisional models; live/status says what
                                   the test is doing
     findings                    TextDocument: the last complete test's verdict in words, then the detail
-    trends/<quantity>           one point per test; children limit, warning, upper, lower (value +- k u),
-                                  trend (the Theil-Sen line as it stood at each test)
+    trends/<quantity>           one point per test; children limits (the limit and the warning level), band
+                                  (value +- k u, and the Theil-Sen trend as it stood at each test), pad
     length, events              the bar length (mm); feed-in/out, rejected tests, source events, alerts
 
 A curve is kept in micrometres (angle, raw dR = L - R, or the model's dR) and turned into display points
@@ -85,7 +85,10 @@ MSG_BYTES = 2000
 STRIP_BYTES = 800
 POINT_BYTES = 8
 ROW_BYTES = 24
-REFRESH_FRACTION = 0.5  # serve mode: the history is re-sent after this fraction of the server's limit
+# serve mode: the history is re-sent after this fraction of the server's limit; with the history at most
+# HISTORY_SHARE_WARN (0.25) of it, the last whole sending and all sent since fit (0.65 + 0.25 < 1). More often is
+# not safer: a small server lost part of the last sending more often at 0.5 and 0.35 (commit body).
+REFRESH_FRACTION = 0.65
 SCENE_REFRESH_S = 10.0  # serve mode: the references (static, a few kB) are re-sent this often
 HISTORY_SLICE_BYTES = 512 * 1024  # a periodic sending of the history: at most this much per flush
 STALL_FLUSH_S = 2.0  # serve mode: a flush to the (local) server that takes longer says it takes nothing
@@ -298,7 +301,7 @@ class Scene:
         """What a late viewer gets: the last tests whole, the trends, the length decimated; then the present.
 
         Each at its own place on the timelines (a viewer that has it already gets the same again).
-        In ``serve`` mode this is sent again whenever half the server's memory limit has been sent
+        In ``serve`` mode this is sent again whenever ``REFRESH_FRACTION`` of the server's memory limit has been sent
         since (:meth:`_refresh_if_due`), so that the server's bounded buffer, which drops the oldest
         messages first, always holds it whole; ``sliced``: then a slice of at most
         ``HISTORY_SLICE_BYTES`` at each flush (the SDK's buffers stay small), else all at once.
@@ -379,11 +382,13 @@ class Scene:
             log.debug("rerun viewer: sending the history again (%s)", why)
             self._send_history(sliced=True)
         if why or now - self._static_mono >= SCENE_REFRESH_S:
-            self._log_static()
+            self._log_static(styles=bool(why))
         self._continue_history()
 
-    def _log_static(self) -> None:
-        """The references that do not depend on the scale, in both polar views: static, a few kB."""
+    def _log_static(self, styles: bool = True) -> None:
+        """The references that do not depend on the scale, in both polar views: static, a few kB; ``styles``: the
+        series' names, colours and widths too (with the scene and the history; every SCENE_REFRESH_S only the
+        references, which another client's static data can evict: a lost style costs a colour, not a circle)."""
         self._static_mono = time.monotonic()
         ax1, ax2 = self.plan.axes if self.plan else ("X", "Y")
         e = 1.7 * R0
@@ -415,6 +420,8 @@ class Scene:
                 POINT_BYTES * len(rings) * 361,
                 static=True,
             )
+        if not styles:
+            return
         self._log("length", rr.SeriesLines(names="L (mm)", colors=[(150, 150, 150)]), static=True)
         for path, _field, label, colour in TRENDS:
             self._log(f"trends/{path}", rr.SeriesLines(names=label, colors=[colour], widths=1.0), static=True)
@@ -609,14 +616,12 @@ class Scene:
             idx = [rr.TimeColumn("test", sequence=rows[m, 0].astype(np.int64)),
                    rr.TimeColumn("time", timestamp=rows[m, 1])]
             series: list[tuple[str, FloatArray]] = [("", vals[m])]
-            band = m & np.isfinite(ses)
-            if band.all() and band.any():
-                series.append(("/band", np.column_stack([(vals + k * ses)[m], (vals - k * ses)[m]])))
+            trend = rows[:, 2 + 4 * N_TRENDS + j]
+            series.append(("/band", np.column_stack([(vals + k * ses)[m], (vals - k * ses)[m], trend[m]])))
             lim, warn = rows[:, 2 + 2 * N_TRENDS + 2 * j], rows[:, 3 + 2 * N_TRENDS + 2 * j]
             side = np.where(vals < 0, -1.0, 1.0)
             if np.isfinite(lim[m]).all() and np.isfinite(warn[m]).all():
                 series.append(("/limits", np.column_stack([(side * lim)[m], (side * warn)[m]])))
-            series.append(("/trend", rows[m, 2 + 4 * N_TRENDS + j]))
             if pad:
                 t0, t1 = rows[m, 1][0], rows[m, 1][-1]
                 rec.send_columns(
@@ -627,7 +632,7 @@ class Scene:
                 )
                 self._sent_bytes += MSG_BYTES + ROW_BYTES
             for suffix, ys in series:
-                ok = np.isfinite(ys) if ys.ndim == 1 else np.isfinite(ys).all(axis=1)
+                ok = np.isfinite(ys) if ys.ndim == 1 else np.isfinite(ys).any(axis=1)
                 if not ok.any():
                     continue
                 rec.send_columns(
@@ -636,7 +641,7 @@ class Scene:
                              rr.TimeColumn("time", timestamp=rows[m, 1][ok])] if not ok.all() else idx,
                     columns=rr.Scalars.columns(scalars=ys[ok]),
                 )
-                self._sent_bytes += 2 * MSG_BYTES + ROW_BYTES * ys[ok].size  # a column chunk's schema: on the high side
+                self._sent_bytes += MSG_BYTES + ROW_BYTES * ys[ok].size
 
     # ------------------------------------------------------------------ polar plot
     #
