@@ -10,7 +10,8 @@ cosine pair and reported as amplitude (``cyclic_x_um``) and phase
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import re
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -234,3 +235,397 @@ def trend_limits(
     mean = sum(v for v, _s in pairs) / len(pairs)
     half = span * float(np.median(errs))
     return min(lo, mean - half), max(hi, mean + half)
+
+
+# --------------------------------------------------------------------------- presentation: the words both the live
+# view and the report use, so that the two say the same thing about the same test
+
+STATUS_WORDS = {"fail": "FAIL", "warning": "WARNING", "pass": "PASS", "none": "NO LIMITS SET"}
+_STATUS_RANK = {"pass": 0, "warning": 1, "fail": 2}
+_REVERSAL_AT = {"x_pos": ("x", "+", 0), "y_pos": ("y", "+", 90), "x_neg": ("x", "−", 180), "y_neg": ("y", "−", 270)}
+_KIND = {p.name: p.kind for p in LIBRARY}
+ISO_WORDS = {"G_b_um": "Circularity G(b)", "G_ccw_um": "Circularity G CCW", "G_cw_um": "Circularity G CW",
+             "H_um": "Hysteresis H", "F_max_um": "Radial deviation F max", "F_min_um": "Radial deviation F min",
+             "G_um": "Circularity G"}
+
+
+def _axis(xy: str, axes: tuple[str, str]) -> str:
+    return axes[0] if xy == "x" else axes[1]
+
+
+def pattern_label(name: str, axes: tuple[str, str] = ("X", "Y")) -> str:
+    """A pattern's name as an engineer says it, with the plane's own axes (``servo_mismatch``: Servo mismatch)."""
+    a1, a2 = axes
+    m = re.fullmatch(r"reversal_spike_([xy]_(?:pos|neg))_(ccw|cw)", name)
+    if m:
+        xy, sign, at = _REVERSAL_AT[m[1]]
+        return f"Reversal spike {sign}{_axis(xy, axes)} ({at}°), {m[2].upper()}"
+    m = re.fullmatch(r"reversal_spikes_([xy])", name)
+    if m:
+        return f"Reversal spikes {_axis(m[1], axes)}"
+    m = re.fullmatch(r"(backlash|lateral_play|straightness|cyclic)_([xy])", name)
+    if m:
+        what = {"backlash": "Backlash", "lateral_play": "Lateral play", "straightness": "Straightness",
+                "cyclic": "Cyclic error"}[m[1]]
+        return f"{what} {_axis(m[2], axes)}"
+    return {
+        "centre": "Centre offset (set-up)",
+        "radius": "Radius / bar length (set-up)",
+        "servo_mismatch": "Servo mismatch",
+        "master_slave": "Master-slave changeover",
+        "squareness": f"Squareness {a1}{a2}",
+        "scale_mismatch": f"Scale mismatch {a1}/{a2}",
+        "drift": "Thermal drift",
+    }.get(name, name.replace("_", " ").capitalize())
+
+
+def field_label(key: str, axes: tuple[str, str] = ("X", "Y")) -> str:
+    """The short name of one field inside its pattern's row (``X``, ``a (45°/225°)``, ``phase``)."""
+    a1, a2 = axes
+    return {
+        "centre_x_um": a1, "centre_y_um": a2,
+        "master_slave_a_um": "a (45°/225°)", "master_slave_b_um": "b (135°/315°)",
+    }.get(key, "phase" if key.endswith("_phase_deg") else ("amplitude" if key.startswith("cyclic_") else ""))
+
+
+def quantity_label(name: str, axes: tuple[str, str] = ("X", "Y")) -> str:
+    """A limited or trended quantity (an ISO 230-4 key or a result field) in words: ``Backlash X``, ``Circularity
+    G(b)``, ``Servo mismatch``."""
+    if name in ISO_WORDS:
+        return ISO_WORDS[name]
+    for p in LIBRARY:
+        fields = [f"{p.name}_um", f"{p.name}_phase_deg"] if p.name.startswith("cyclic_") else list(p.fields)
+        if name in fields:
+            fl = field_label(name, axes)
+            label = pattern_label(p.name, axes)
+            return f"{label} {fl}" if fl and fl != "amplitude" else label
+    return name.replace("_", " ")
+
+
+def unit_text(unit: Any) -> str:
+    """A result unit for display: ``um`` is µm, ``urad`` µrad (the results' ASCII units)."""
+    return re.sub(r"\burad\b", "µrad", re.sub(r"\bum\b", "µm", str(unit or "")))
+
+
+def _finite(v: Any) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
+def uncertainty_decimals(u: float | None, default: int = 2) -> int:
+    """Decimals that show an uncertainty to two significant digits (0..4), so it never rounds to zero."""
+    if u is None or u <= 0:
+        return default
+    return int(min(max(1 - math.floor(math.log10(u)), 0), 4))
+
+
+def value_text(value: Any, u: Any = None, default_nd: int = 2) -> str:
+    """``3.030 ± 0.012``: the value to its uncertainty's second significant digit; without one, ``default_nd``."""
+    v, s = _finite(value), _finite(u)
+    if v is None:
+        return "–"
+    nd = uncertainty_decimals(s, default_nd)
+    if s is not None and s > 0:
+        return f"{v:.{nd}f} ± {s:.{nd}f}"
+    return f"{v:.{nd}f}"
+
+
+def pattern_kind(name: str) -> str:
+    """``setup``, ``machine`` or ``reversal`` (a grouped ``reversal_spikes_x``: ``reversal``)."""
+    return "reversal" if name.startswith("reversal_spikes_") else _KIND.get(name, "machine")
+
+
+def machine_ranking(result: Mapping[str, Any], group_spikes: bool = True) -> list[dict[str, Any]]:
+    """The ranked machine patterns, each with its share of the machine's explained error, set-up terms left out.
+
+    The published ``share_pct`` is each pattern's share of all the explained error, set-up (pivot offset, bar
+    length) included (analysis/README.md, "Ranking"); commercial software states the set-up apart and ranks the
+    machine's terms among themselves: ``machine_share_pct`` is ``share_pct`` over the sum of the machine terms'.
+    ``group_spikes``: the reversal spikes of one axis as one entry (``reversal_spikes_x``, shares summed, the
+    smallest p, significant when any is).  Entries keep the published keys (``pattern``, ``share_pct``, ``F``,
+    ``p_value``, ``significant``, ``effect_um``) and add ``machine_share_pct``, ``label`` and ``members``.
+    """
+    entries: list[dict[str, Any]] = []
+    groups: dict[str, dict[str, Any]] = {}
+    for r in result.get("ranking") or []:
+        if not isinstance(r, Mapping):
+            continue
+        name = str(r.get("pattern"))
+        if _KIND.get(name, "machine") == "setup":
+            continue
+        m = re.fullmatch(r"reversal_spike_([xy])_(?:pos|neg)_(?:ccw|cw)", name)
+        if group_spikes and m:
+            key = f"reversal_spikes_{m[1]}"
+            g = groups.get(key)
+            if g is None:
+                g = groups[key] = {"pattern": key, "share_pct": 0.0, "F": None, "p_value": None,
+                                   "significant": False, "effect_um": 0.0, "members": []}
+                entries.append(g)
+            g["share_pct"] += _finite(r.get("share_pct")) or 0.0
+            p = _finite(r.get("p_value"))
+            if p is not None and (g["p_value"] is None or p < g["p_value"]):
+                g["p_value"], g["F"] = p, r.get("F")
+            g["significant"] = bool(g["significant"] or r.get("significant"))
+            g["effect_um"] = max(g["effect_um"], _finite(r.get("effect_um")) or 0.0)
+            g["members"].append(name)
+            continue
+        entries.append({**dict(r), "members": [name]})
+    total = sum(_finite(e.get("share_pct")) or 0.0 for e in entries)
+    for e in entries:
+        s = _finite(e.get("share_pct"))
+        e["machine_share_pct"] = 100.0 * s / total if s is not None and total > 0 else None
+    entries.sort(key=lambda e: -(e["machine_share_pct"] or 0.0))
+    return entries
+
+
+def share_text(share: Any) -> str:
+    """A percentage for a ranking: ``78 %``, ``3.4 %``, ``< 0.1 %`` (never ``-0.00``)."""
+    x = _finite(share)
+    if x is None:
+        return "–"
+    if x < 0.05:
+        return "< 0.1 %"
+    return f"{x:.0f} %" if x >= 9.95 else f"{x:.1f} %"
+
+
+def _pv(result: Mapping[str, Any], key: str) -> float | None:
+    p = (result.get("parameters") or {}).get(key)
+    return _finite(p.get("value")) if isinstance(p, Mapping) else None
+
+
+def finding_words(name: str, result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> str:
+    """One machine pattern as a phrase with its value and sign spelt out (``X lags Y by 3.03 ms``)."""
+    a1, a2 = axes
+    params: Mapping[str, Any] = result.get("parameters") or {}
+    if name.startswith("reversal_spikes_"):
+        xy = name[-1]
+        spikes = [x for k in params if re.fullmatch(rf"reversal_spike_{xy}_(pos|neg)_(ccw|cw)_um", k)
+                  and (x := _pv(result, k)) is not None]
+        if spikes:
+            return f"reversal spikes of {_axis(xy, axes)} up to {max(spikes, key=abs):+.2f} µm"
+        return pattern_label(name, axes)
+    v = _pv(result, (list(LIBRARY_FIELDS.get(name, ())) or [""])[0])
+    if name == "servo_mismatch" and v is not None:
+        slow, fast = (a1, a2) if v > 0 else (a2, a1)
+        return f"{slow} lags {fast} by {abs(v):.2f} ms"
+    if name == "squareness" and v is not None:
+        return f"{a1} leans toward {'+' if v > 0 else '−'}{a2} by {abs(v):.1f} µrad"
+    if name == "scale_mismatch" and v is not None:
+        return f"{a1} scales {v:+.1f} ppm relative to {a2}"
+    if name.startswith("backlash_") and v is not None:
+        return f"backlash of {_axis(name[-1], axes)} {v:.2f} µm"
+    parts: list[str] = []
+    for key in LIBRARY_FIELDS.get(name, ()):
+        p = params.get(key)
+        if isinstance(p, Mapping) and _finite(p.get("value")) is not None:
+            fl = field_label(key, axes)
+            parts.append(f"{fl + ' ' if fl else ''}{float(p['value']):+.2f} {unit_text(p.get('unit'))}")
+    label = pattern_label(name, axes)
+    return f"{label[0].lower() + label[1:]} {', '.join(parts)}" if parts else label.lower()
+
+
+#: Each pattern's result fields (cyclic errors as amplitude and phase).
+LIBRARY_FIELDS: dict[str, tuple[str, ...]] = {
+    p.name: ((f"{p.name}_um", f"{p.name}_phase_deg") if p.name.startswith("cyclic_") else tuple(p.fields))
+    for p in LIBRARY
+}
+
+
+def setup_words(result: Mapping[str, Any]) -> list[str]:
+    """The set-up terms in words (removed from the plots and figures; not a machine error)."""
+    out = []
+    cx, cy = _pv(result, "centre_x_um"), _pv(result, "centre_y_um")
+    if cx is not None or cy is not None:
+        x, y = (round(v or 0.0, 1) + 0.0 for v in (cx, cy))  # + 0.0: no "-0.0"
+        out.append(f"pivot off the programmed centre by ({x:+.1f}, {y:+.1f}) µm")
+    rad = _pv(result, "radius_um")
+    if rad is not None and abs(rad) >= 0.05:
+        out.append(f"circle {rad:+.2f} µm from the nominal radius")
+    return out
+
+
+def limit_words(entry: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> str:
+    """One limit of a verdict in words: ``Circularity G(b) 53.7 ± 0.7 µm, limit 25 µm: over by 28.7 µm``."""
+    name = str(entry.get("name", ""))
+    unit = unit_text(entry.get("unit"))
+    label = quantity_label(name, axes)
+    lim = _finite(entry.get("limit"))
+    lim_t = f"{lim:g} {unit}" if lim is not None else "–"
+    if entry.get("status") == "not_evaluated" or _finite(entry.get("value")) is None:
+        return f"{label}: not evaluated ({entry.get('reason') or 'no value'}), limit {lim_t}"
+    value = value_text(entry.get("value"), entry.get("uncertainty"))
+    margin = _finite(entry.get("margin"))
+    if margin is None or lim is None:
+        return f"{label} {value} {unit}, limit {lim_t}"
+    nd = uncertainty_decimals(_finite(entry.get("uncertainty")), 2)
+    if margin < 0:
+        how = f"over by {-margin:.{nd}f} {unit}"
+    else:
+        how = f"{margin:.{nd}f} {unit} ({100 * margin / lim:.0f} %) below it"
+    if entry.get("within_uncertainty"):
+        how += ", within the uncertainty of the limit"
+    elif entry.get("status") == "warning":
+        how += f", above the warning level {_finite(entry.get('warning_level')) or 0:g} {unit}"
+    return f"{label} {value} {unit}, limit {lim_t}: {how}"
+
+
+def verdict_summary(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> dict[str, Any]:
+    """The first thing an engineer asks, in words: is this machine fine, by how much?
+
+    ``status``: ``pass``, ``warning``, ``fail`` (the result's verdict against its limits) or ``none`` (no limits
+    configured); ``word`` (``FAIL`` ...); ``headline``: the worst limit in words (what failed and by how much), or
+    without limits the circularity; ``limits``: every limit in words, worst first (``(status, text)``);
+    ``counts``: how many limits are in each status.
+    """
+    v = result.get("verdict")
+    iso = result.get("iso230_4") or {}
+    g = next(((k, _finite(iso.get(k))) for k in ("G_b_um", "G_ccw_um", "G_cw_um") if _finite(iso.get(k)) is not None),
+             None)
+    g_text = f"{ISO_WORDS[g[0]]} {g[1]:.1f} µm" if g is not None else "no circularity figure"
+    if not isinstance(v, Mapping) or not v.get("limits"):
+        return {"status": "none", "word": STATUS_WORDS["none"], "headline": f"{g_text}; no acceptance limits set",
+                "limits": [], "counts": {}, "worst": None}
+    entries = [e for e in v["limits"] if isinstance(e, Mapping)]
+
+    def badness(e: Mapping[str, Any]) -> tuple[int, float]:
+        pct = _finite(e.get("margin_pct"))
+        return (_STATUS_RANK.get(str(e.get("status")), -1), -(pct if pct is not None else 1e9))
+
+    ranked = sorted(entries, key=badness, reverse=True)
+    status = str(v.get("status", "pass"))
+    counts: dict[str, int] = {}
+    for e in entries:
+        counts[str(e.get("status"))] = counts.get(str(e.get("status")), 0) + 1
+    worst = ranked[0] if ranked else None
+    headline = limit_words(worst, axes) if worst is not None else g_text
+    return {"status": status, "word": STATUS_WORDS.get(status, status.upper()), "headline": headline,
+            "limits": [(str(e.get("status")), limit_words(e, axes)) for e in ranked], "counts": counts,
+            "worst": worst}
+
+
+def advice_lines(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> list[dict[str, Any]]:
+    """The result's advice for display: machine first, then set-up; the reversal spikes one line per axis.
+
+    Each ``{"kind", "text", "controller_parameter"}``; ``text`` with µm and µrad.
+    """
+    out: list[dict[str, Any]] = []
+    spikes: dict[str, list[tuple[str, float]]] = {}
+    cps: dict[str, str] = {}
+    for a in result.get("advice") or []:
+        if not isinstance(a, Mapping):
+            continue
+        m = re.fullmatch(r"reversal_spike_([xy])_(pos|neg)_(ccw|cw)_um", str(a.get("pattern", "")))
+        if m:
+            v = _finite(a.get("value"))
+            if v is not None:
+                spikes.setdefault(m[1], []).append((f"{_REVERSAL_AT[m[1] + '_' + m[2]][2]}° {m[3].upper()}", v))
+                if a.get("controller_parameter"):
+                    cps[m[1]] = str(a["controller_parameter"])
+            continue
+        text = unit_text(str(a.get("action", ""))).replace("+-", "±")
+        text = re.sub(r"(\d) deg\b", "\\1°", text)
+        out.append({"kind": str(a.get("kind") or "machine"), "text": text,
+                    "controller_parameter": a.get("controller_parameter")})
+    for xy, items in sorted(spikes.items()):
+        where = ", ".join(f"{w} {v:+.2f} µm" for w, v in items)
+        out.append({"kind": "machine", "text": f"reversal spikes of {_axis(xy, axes)} ({where}): adjust the friction / "
+                    f"quadrant-glitch compensation of {_axis(xy, axes)}", "controller_parameter": cps.get(xy)})
+    out.sort(key=lambda a: a["kind"] == "setup")
+    return out
+
+
+def significance_words(reason: str) -> str:
+    """Why a pattern whose F-test passed is still not counted, said without the contradiction ``no: statistically
+    significant``: ``too small: ...`` or ``not proven: ...``."""
+    m = re.match(r"statistically significant \(p = ([^)]+)\) but its largest radial effect, ([^ ]+) um, is below "
+                 r"the minimum effect of ([^ ]+) um", reason)
+    if m:
+        return f"too small: its largest effect {m[2]} µm is below the {m[3]} µm that counts (p = {m[1]})"
+    return "not proven: " + unit_text(reason)
+
+
+#: The polar plots (live view and report) draw the largest deviation within this many divisions of their scale.
+POLAR_DIVISIONS = 3
+
+
+def polar_division_um(max_abs_um: float) -> float:
+    """A polar plot's division: 1, 2 or 5 x 10^n um, so that the largest deviation spans at most
+    :data:`POLAR_DIVISIONS` divisions (the outermost ring then contains every point)."""
+    x = max_abs_um / POLAR_DIVISIONS if math.isfinite(max_abs_um) and max_abs_um > 0 else 1.0
+    x = max(x, 0.01)
+    e = 10.0 ** math.floor(math.log10(x))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        if m * e >= x * (1 - 1e-9):
+            return m * e
+    return 10.0 * e  # pragma: no cover - the loop always returns
+
+
+def trend_range(values: Sequence[float | None], stderrs: Sequence[float | None], k: float = 1.0,
+                lines: Sequence[float] = ()) -> tuple[float, float] | None:
+    """A trend's y range: :func:`trend_limits` (at least +-4 standard errors about the mean), widened to hold
+    every point with its error bar (``k`` standard errors) and the ``lines`` (limit, warning level), with 5 %
+    to spare."""
+    pts = [(float(v), abs(float(u)) if u is not None and math.isfinite(u) else None)
+           for v, u in zip(values, stderrs, strict=True) if v is not None and math.isfinite(v)]
+    if not pts:
+        return None
+    base = trend_limits([v for v, _u in pts], [u for _v, u in pts])
+    lo = min([v - k * (u or 0.0) for v, u in pts] + list(lines))
+    hi = max([v + k * (u or 0.0) for v, u in pts] + list(lines))
+    pad = 0.05 * (hi - lo) if hi > lo else max(abs(hi) * 0.05, 1e-3)
+    lo, hi = lo - pad, hi + pad
+    if base is not None:
+        lo, hi = min(lo, base[0]), max(hi, base[1])
+    return lo, hi
+
+
+def trend_line(x: Sequence[float], y: Sequence[float], ahead: float) -> tuple[list[float], list[float], bool] | None:
+    """The Theil-Sen line through a trend's points (analysis/monitor.py), from the first point to ``ahead``
+    past the last: ``([x0, x_last, x_end], [y0, y_last, y_end], significant)``; None with fewer than 3 points."""
+    from .monitor import theil_sen
+
+    if len(x) < 3:
+        return None
+    tr = theil_sen(x, y)
+    xs = [float(x[0]), float(x[-1]), float(x[-1]) + ahead]
+    return xs, [tr.at(v) for v in xs], tr.significant
+
+
+def forecast_sentence(name: str, wall_s: Sequence[float] | np.ndarray, values: Sequence[float] | np.ndarray,
+                      limit: float, axes: tuple[str, str] = ("X", "Y"), unit: str = "",
+                      confidence: float = 0.95) -> str:
+    """When the trend of ``name`` (values at wall-clock seconds) reaches ``|limit|``, in words: the Theil-Sen
+    line and its crossing as the monitor computes them (:func:`ballbar.analysis.monitor.theil_sen`,
+    :func:`~ballbar.analysis.monitor.crossing_days`, the interval from its bootstrap); empty with fewer than
+    3 tests."""
+    from datetime import UTC, datetime, timedelta
+
+    from .monitor import bootstrap_crossings, crossing_days, theil_sen
+
+    t = np.asarray(wall_s, dtype=float)
+    y = np.asarray(values, dtype=float)
+    if t.size < 3:
+        return ""
+    days = (t - t[0]) / 86400.0
+    tr = theil_sen(days, y, confidence)
+    label = quantity_label(name, axes)
+    unit = unit_text(unit or name.rsplit("_", 1)[-1])
+    slope = f"trend {tr.slope:+.3g} {unit}/day over {t.size} tests"
+    if not tr.significant:
+        return f"{label}: {slope}, flat within its uncertainty: no crossing forecast"
+    direction = 1 if tr.slope > 0 else -1
+    tc = crossing_days(tr, abs(limit))
+    if not math.isfinite(tc) or tc <= days[-1]:
+        return f"{label}: {slope}, heading away from its limit {abs(limit):g} {unit}"
+    boot = bootstrap_crossings(days, y, abs(limit), direction)
+    q = (1.0 - confidence) / 2.0
+    lo = float(np.quantile(boot, q, method="lower"))
+    hi = float(np.quantile(boot, 1.0 - q, method="higher"))
+    t0 = datetime.fromtimestamp(float(t[0]), UTC)
+
+    def when(d: float) -> str:
+        return (t0 + timedelta(days=d)).strftime("%Y-%m-%d") if math.isfinite(d) and abs(d) < 36500 else "never"
+
+    return (f"{label}: {slope}, reaches its limit {abs(limit):g} {unit} about {when(tc)} "
+            f"({100 * confidence:g} %: {when(lo)} .. {when(hi)})")

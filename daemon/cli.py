@@ -126,6 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
             rp.add_argument(flag, dest=dest, type=typ, help=help_)
     rp.add_argument("--test", type=int, help="with FILE: which test of the recording (1 = first; for a directory of "
                     "the daemon's records the N-th that analyze --list shows, default its newest complete test)")
+    for flag, dest, typ, help_ in REPORT_FLAGS:
+        rp.add_argument(flag, dest=dest, type=typ, help=help_)
 
     run = sub.add_parser("run", help="run the daemon (the service's main job)",
                          description="Sample the ball-bar, fit each circle and test, log to MCAP, publish on "
@@ -400,6 +402,18 @@ def cmd_gcode(args: argparse.Namespace) -> int:
     return 0
 
 
+REPORT_FLAGS: list[tuple[str, str, Any, str]] = [  # the report's [report] keys, from the command line
+    ("--operator", "operator", str, "who ran the test (default: [report] operator)"),
+    ("--bar-serial", "bar_serial", str, "the ball-bar's serial number"),
+    ("--bar-calibrated", "bar_calibrated", str, "the bar's last calibration date"),
+    ("--machine-temp", "machine_temperature_c", float, "machine temperature at the test, deg C"),
+    ("--air-temp", "air_temperature_c", float, "air temperature at the test, deg C"),
+    ("--notes", "notes", str, "notes printed in the report"),
+    ("--sign-off", "sign_off", lambda s: [r.strip() for r in s.split(",") if r.strip()],
+     "signature lines, comma-separated roles (default: Tested by, Approved by)"),
+]
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from ballbar.tools.report import from_recording, from_records
 
@@ -436,6 +450,10 @@ def cmd_report(args: argparse.Namespace) -> int:
         from ballbar.tools.report import attach_verdict
 
         attach_verdict(data.result, asdict(load(args.config).limits))
+    if args.config:  # the configuration's [report] over the recorded one, the flags over both
+        data.meta.update({k: v for k, v in asdict(load(args.config).report).items() if v not in (None, "")})
+    data.meta.update({dest: getattr(args, dest) for _f, dest, _t, _h in REPORT_FLAGS if getattr(args, dest, None)
+                      is not None})
     from ballbar.tools.report_render import render  # matplotlib: only once there is something to draw
 
     out = Path(args.output or f"ballbar-report-{_safe_name(default_name)}.html")

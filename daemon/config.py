@@ -116,6 +116,19 @@ class LimitsSection:
 
 
 @dataclass
+class ReportSection:
+    """What ``ballbar report`` states beside the results (its command-line flags override each)."""
+
+    operator: str = ""  # who ran the test
+    bar_serial: str = ""  # the ball-bar's serial number
+    bar_calibrated: str = ""  # the bar's last calibration, a date
+    machine_temperature_c: float | None = None
+    air_temperature_c: float | None = None
+    notes: str = ""
+    sign_off: list[str] = field(default_factory=lambda: ["Tested by", "Approved by"])  # the signature lines
+
+
+@dataclass
 class QueueSection:
     analysis: int = 6000  # batches (~20 ms each): two minutes; drop_newest, counted
     mcap: int = 6000  # drop_newest: a contiguous log, the gap counted
@@ -134,6 +147,7 @@ SECTIONS: dict[str, type] = {
     "rerun": RerunSection,
     "queues": QueueSection,
     "limits": LimitsSection,
+    "report": ReportSection,
 }
 
 
@@ -149,6 +163,7 @@ class Config:
     rerun: RerunSection
     queues: QueueSection
     limits: LimitsSection = field(default_factory=LimitsSection)
+    report: ReportSection = field(default_factory=ReportSection)
 
     @property
     def cal_mm(self) -> float:

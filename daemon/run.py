@@ -80,7 +80,7 @@ def _chain(*loaders: Callable[[], list[dict[str, Any]]]) -> Callable[[], list[di
 
 
 def _rerun_viewer(cfg: Config) -> Listener:
-    from .viewer import RerunViewer
+    from .rerun import RerunViewer
 
     return RerunViewer.from_config(cfg)
 
@@ -170,7 +170,7 @@ def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
         except BusConfigError as err:
             raise ConfigError(str(err)) from None
     if cfg.rerun.mode != "off":
-        from .viewer import ViewerConfigError, rerun_binary, viewer_options  # without Rerun itself
+        from .rerun import ViewerConfigError, rerun_binary, viewer_options  # without Rerun itself
 
         try:
             options = viewer_options(cfg)

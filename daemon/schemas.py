@@ -890,7 +890,15 @@ def config_schema() -> Schema:
             "queues": obj("[queues]: bounds, items", {
                 "analysis": integer("items"), "mcap": integer("items"), "zenoh": integer("items"),
                 "rerun": integer("items")}),
+            "report": obj("[report]: what ballbar report states beside the results (absent before it existed)", {
+                "operator": string("who ran the test"), "bar_serial": string("the ball-bar's serial number"),
+                "bar_calibrated": string("the bar's last calibration, a date"),
+                "machine_temperature_c": num("deg C (null: not given)", True),
+                "air_temperature_c": num("deg C (null: not given)", True), "notes": string("notes"),
+                "sign_off": {"type": "array", "items": {"type": "string"},
+                             "description": "a signature line per role"}}),
         },
+        required=["daemon", "source", "plan", "machine", "analysis", "mcap", "zenoh", "rerun", "limits", "queues"],
     )
     props = _envelope("config") | {"config": config}
     return _document("config", "ballbar.Config: the daemon's effective configuration, at start (ballbar/<m>/config, "

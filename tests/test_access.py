@@ -20,7 +20,7 @@ import pytest
 from test_viewer import RERUN, Receiver, read_rrd
 
 from ballbar.daemon.analysis_worker import child_role
-from ballbar.daemon.viewer import _ServerProcess
+from ballbar.daemon.rerun.server import ServerProcess as _ServerProcess
 
 HERE = Path(__file__).resolve().parent
 # A push the Rerun server stalls (its own backpressure, below the cap: seen with the blueprints) never ends by

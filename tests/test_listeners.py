@@ -224,10 +224,10 @@ def test_the_built_outputs_take_batches_as_their_listeners_say_and_the_reader_fo
     merged four times a second like the log, not woken for every batch; and the source read as often as the most
     pressed of them wants: every RELAXED_BATCH_S while the analysis merges too, every 20 ms once it wants each batch."""
     from ballbar.daemon.config import load
+    from ballbar.daemon.rerun import RerunViewer
     from ballbar.daemon.run import build_listeners
     from ballbar.daemon.service import MERGE_S, Daemon
     from ballbar.daemon.sources import DEFAULT_BATCH_S, RELAXED_BATCH_S, open_source
-    from ballbar.daemon.viewer import RerunViewer
 
     sets = ["zenoh.enabled=false", f'daemon.state_dir="{tmp_path}"', "daemon.analysis_worker=false"]
     cfg = load(None, [*sets, 'rerun.mode="connect"', 'rerun.url="rerun+http://127.0.0.1:9/proxy"'], env={})

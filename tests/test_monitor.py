@@ -394,8 +394,9 @@ def test_the_reports_verdict_box_shows_the_limits(simulated_csv: Path, tmp_path:
                      "--feed-mm-min", f"{plan.feed_mm_min:g}", "--overshoot-deg", f"{plan.overshoot_deg:g}",
                      "--sample-hz", f"{plan.sample_hz:g}"]) == 0
     html = out.read_text()
-    assert '<div class="big" id="verdict-status">FAIL</div>' in html
-    assert "backlash_x_um" in html and "k = 2" in html
+    assert '<span class="badge" id="verdict-status">FAIL</span>' in html and 'data-status="fail"' in html
+    assert "Backlash X" in html and "limit 6 µm: over by" in html and "± 2 standard uncertainties" in html
+    assert "<code>backlash_x_um</code>" in html  # the field name, in the statistics
 
 
 def test_gcode_says_which_limits_apply(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -409,15 +410,17 @@ def test_gcode_says_which_limits_apply(tmp_path: Path, capsys: pytest.CaptureFix
 
 
 def test_the_viewers_findings_and_the_subscribers_text_show_the_verdict() -> None:
-    from ballbar.daemon.viewer import findings_markdown
+    from ballbar.daemon.rerun import findings_markdown
     from ballbar.tools.subscribe import text_line
 
     r = fake_result(10.1, 0.1)
     r["verdict"] = mon.evaluate(r, settings(parameters={"backlash_x_um": 10.0}, G_b_um=4.0))
     md = findings_markdown(r)
-    assert "### Verdict: **FAIL**" in md  # G(b) 5.0 - 0.28 > 4
-    assert "| backlash_x_um | 10.100 | 0.200 | 10.000 | -0.100 | warning (within uncertainty of the limit) |" in md
-    assert "Verdict" not in findings_markdown(fake_result(1.0, 0.1))  # no limits, no verdict
+    assert md.startswith("## FAIL · test") and "### Limits: **FAIL**" in md  # G(b) 5.0 - 0.28 > 4
+    assert ("| **WARNING (within uncertainty)** | Backlash X (`backlash_x_um`) | 10.10 ± 0.20 | 10.000 | over by 0.1 |"
+            in md)
+    plain = findings_markdown(fake_result(1.0, 0.1))
+    assert plain.startswith("## NO LIMITS SET") and "### Limits" not in plain  # no limits, no verdict
     line = text_line({"kind": "alert", "t_wall": "T", "state": "fail", "cleared": False, "message": "m: x"})
     assert line == "T ALERT FAIL     m: x"
     assert text_line(r).startswith("2026-01-01T00:00:00Z TEST  m-2026-01-01T00:00:00Z: FAIL: ")

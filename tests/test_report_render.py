@@ -141,30 +141,35 @@ def test_html_is_self_contained_and_pngs_are_valid(data: ReportData, tmp_path: P
 def test_content_in_reading_order(data: ReportData, tmp_path: Path) -> None:
     text = render(data, tmp_path / "r.html", png=False)[0].read_text(encoding="utf-8")
     res = data.result
-    order = ["sec-conditions", "sec-verdict", "sec-polar", "sec-deviation", "sec-findings", "sec-iso230",
-             "sec-advice", "sec-noise", "sec-diagnostics", "sec-trend"]
+    order = ["sec-verdict", "sec-polar", "sec-conditions", "sec-deviation", "sec-findings", "sec-iso230",
+             "sec-advice", "sec-trend", "sec-noise", "sec-diagnostics", "sec-signoff"]
     pos = [text.index(f'id="{s}"') for s in order]
     assert pos == sorted(pos)
     assert text.index("<footer") > pos[-1]
     assert "<title>Ball-bar test report — mill-3 — mill-3-20260301T081500Z</title>" in text
     assert "2026-03-01 08:15:00 UTC" in text
-    # the verdict: G(b) to one decimal, the top machine finding in words
+    # the verdict: no limits here, said so; G(b) to one decimal; the top machine finding in words with its
+    # share of the machine's error
     g_b = res["iso230_4"]["G_b_um"]
-    assert f'id="verdict-g">{g_b:.1f} <small>µm' in text
-    assert "servo mismatch: X lags Y by" in text  # KX < KY: X lags
+    assert 'id="verdict-status">NO LIMITS SET<' in text and 'data-status="none"' in text
+    assert f'id="verdict-g"><b>G(b) {g_b:.1f} µm' in text
+    assert "<b>Servo mismatch</b>: X lags Y by" in text  # KX < KY: X lags
+    assert "of the machine's error)" in text
     # polar plot scale stated in the caption, in µm per division
     assert re.search(r"<b>\d+(\.\d+)? µm per division</b>", text)
-    # the findings table: ranking order, and every not-fitted parameter with its reason, greyed, at the end
-    rows = re.findall(r'<tr class="(sig|nsig)" data-pattern="([^"]+)"', text)
-    assert [name for _, name in rows[: len(res["ranking"])]] == [r["pattern"] for r in res["ranking"]]
-    assert [cls == "sig" for cls, _ in rows[: len(res["ranking"])]] == [r["significant"] for r in res["ranking"]]
-    absent = text[text.index('<tbody class="absent">'):]
-    assert "no X screw pitch configured" in absent and "Cyclic error X" in absent
+    # the statistics: every ranked pattern in the published order with its significance, the fields that were
+    # not fitted with their reason
+    rows = re.findall(r'<tr class="(sig|nsig)" data-stat="([^"]+)"', text)
+    assert [name for _, name in rows] == [r["pattern"] for r in res["ranking"]]
+    assert [cls == "sig" for cls, _ in rows] == [r["significant"] for r in res["ranking"]]
+    absent = text[text.index('<tr class="absent">'):]
+    assert "no X screw pitch configured" in absent and "cyclic_x_um" in absent
     # ISO figures with their conditions; advice; diagnostics
     assert f'<td id="iso-G_ccw_um">{res["iso230_4"]["G_ccw_um"]:.2f}</td>' in text
     assert "ISO 230-4:2022" in text
     for a in res["advice"]:
-        assert re.sub(r"\bum\b", "µm", a["action"])[:30] in text
+        if not a["pattern"].startswith("reversal_spike_"):
+            assert re.sub(r"\bum\b", "µm", a["action"])[:30] in text
     assert f'{res["timing"]["measured_feed_mm_min"]:.2f} mm/min' in text
     assert "ballbar " in text and "Source: simulated test" in text
 
@@ -222,7 +227,8 @@ def test_trend_with_history_and_without(data: ReportData, tmp_path: Path) -> Non
 def test_trend_axes_span_the_uncertainty(data: ReportData) -> None:
     """A figure that moves within its standard error plots flat (the axis spans +-4 of them about the mean);
     one that moves by many keeps the autoscaled range of its points."""
-    from ballbar.tools.report_render import _trend_figure, _trend_quantities
+    from ballbar.tools.report_plots import trend_figure as _trend_figure
+    from ballbar.tools.report_plots import trend_quantities as _trend_quantities
 
     tests = [*_history(data.result, 3), data.result]
     servo = [r["parameters"]["servo_mismatch_ms"] for r in tests]
@@ -466,3 +472,28 @@ def test_report_in_headless_chromium(
         assert f"{pixel_server}/pixel.png" in browser.requests(session)
         assert any("control error" in e for e in browser.errors(session))
     assert time.monotonic() - t0 < BROWSER_TIMEOUT_S
+
+
+def test_the_words_both_views_use() -> None:
+    """Uncertainties never round to zero, no negative zero, shares of the machine's error without the set-up,
+    the reversal spikes of an axis as one finding, limits in an engineer's words with their margin."""
+    from ballbar.analysis.report import limit_words, machine_ranking, quantity_label, share_text, value_text
+
+    assert value_text(3.0301, 0.0014) == "3.0301 ± 0.0014"  # the report printed "3.030 ± 0.00"
+    assert value_text(53.7, 0.71) == "53.70 ± 0.71" and value_text(2.0, None) == "2.00"
+    assert share_text(-0.001) == "< 0.1 %" and share_text(78.48) == "78 %" and share_text(2.04) == "2.0 %"
+    ranking = [{"pattern": "centre", "share_pct": 55.6, "significant": True},
+               {"pattern": "servo_mismatch", "share_pct": 41.6, "significant": True},
+               {"pattern": "radius", "share_pct": 2.0, "significant": True},
+               {"pattern": "reversal_spike_x_pos_ccw", "share_pct": 0.4, "significant": True, "p_value": 1e-5},
+               {"pattern": "reversal_spike_x_neg_cw", "share_pct": 0.4, "significant": False, "p_value": 0.2}]
+    ranked = machine_ranking({"ranking": ranking})
+    assert [r["pattern"] for r in ranked] == ["servo_mismatch", "reversal_spikes_x"]
+    assert ranked[0]["machine_share_pct"] == pytest.approx(100 * 41.6 / 42.4)
+    assert ranked[1]["members"] == ["reversal_spike_x_pos_ccw", "reversal_spike_x_neg_cw"]
+    assert ranked[1]["significant"] and ranked[1]["p_value"] == 1e-5
+    assert quantity_label("G_b_um") == "Circularity G(b)"
+    assert quantity_label("backlash_y_um", ("Z", "X")) == "Backlash X"
+    entry = {"name": "servo_mismatch_ms", "unit": "ms", "value": 3.0301, "uncertainty": 0.0028, "limit": 2.0,
+             "margin": -1.0301, "status": "fail", "warning_level": 1.6}
+    assert limit_words(entry) == "Servo mismatch 3.0301 ± 0.0028 ms, limit 2 ms: over by 1.0301 ms"

@@ -36,9 +36,7 @@ import rerun  # noqa: F401 - its runtime's descriptors (opened at import, once) 
 
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.plan import MachineConfig, TestPlan
-from ballbar.daemon import viewer as viewer_module
-from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
-from ballbar.daemon.viewer import (
+from ballbar.daemon.rerun import (
     R0,
     TREND_VIEWS,
     TRENDS,
@@ -53,6 +51,8 @@ from ballbar.daemon.viewer import (
     result_timing,
     trend_ranges,
 )
+from ballbar.daemon.rerun import scene as scene_module
+from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.tools.simulator import MachineModel, iter_chunks
 
 PLAN = TestPlan(radius_mm=50.0, feed_mm_min=3000.0, overshoot_deg=30.0, dwell_s=0.2, sample_hz=100.0)
@@ -283,25 +283,23 @@ def strip(saved: Saved, entity: str) -> np.ndarray:
     return np.asarray(strips[0], dtype=float)
 
 
-def scale_of(saved: Saved) -> float:
-    label = last(saved, "/polar/reference/labels", "Points2D:labels")[3]
-    m = re.match(r"\+([0-9.]+) µm", label)
+def scale_of(saved: Saved, view: str = "polar") -> float:
+    """The division of a polar view (um): its outermost ring is labelled with three of them."""
+    label = last(saved, f"/{view}/reference/labels", "Points2D:labels")[1]
+    m = re.fullmatch(r"\+([0-9.]+) µm", label)
     assert m, label
-    return float(m.group(1))
+    return float(m.group(1)) / 3
 
 
 def check_stream(saved: Saved, script: Script, n_tests: int = 2) -> None:
     """The entities of a whole run, with plausible content."""
     for ep in (
-        "/polar/reference/nominal",
-        "/polar/reference/band",
-        "/polar/reference/scale",
-        "/polar/reference/axes",
-        "/polar/reference/labels",
-        "/polar/ccw/measured",
-        "/polar/cw/measured",
-        "/polar/ccw/model",
-        "/polar/cw/model",
+        *(f"/{view}/reference/{ref}" for view in ("polar", "live")
+          for ref in ("nominal", "band", "scale", "axes", "labels")),
+        *(f"/{view}/{d}/{kind}" for view in ("polar", "live") for d in ("ccw", "cw") for kind in ("measured", "model")),
+        "/polar/verdict",
+        "/polar/verdict/text",
+        "/live/status",
         "/length",
         "/findings",
         "/events",
@@ -317,26 +315,29 @@ def check_stream(saved: Saved, script: Script, n_tests: int = 2) -> None:
     assert "time" in saved.timelines["/length"]
     assert saved.recordings and saved.recordings[0].application_id == "ballbar"
 
-    # the polar curves: measured and fitted agree, and span the test's circularity
+    # the last complete test's polar curves: measured and fitted agree, span the test's circularity, and lie
+    # inside the outermost ring (three divisions of the scale, each 0.2 R0)
     test = script.results[-1]
     s = scale_of(saved)
     for name in ("ccw", "cw"):
         meas, model = strip(saved, f"/polar/{name}/measured"), strip(saved, f"/polar/{name}/model")
         assert 500 <= len(meas) <= 2000 and len(model) == 2000
-        dr_meas = (np.hypot(meas[:, 0], meas[:, 1]) - R0) * 2 * s / R0
-        dr_model = (np.hypot(model[:, 0], model[:, 1]) - R0) * 2 * s / R0
+        dr_meas = (np.hypot(meas[:, 0], meas[:, 1]) - R0) * s / (0.2 * R0)
+        dr_model = (np.hypot(model[:, 0], model[:, 1]) - R0) * s / (0.2 * R0)
         G = test["iso230_4"][f"G_{name}_um"]
         assert np.ptp(dr_meas) == pytest.approx(G, rel=0.1)
         assert np.ptp(dr_model) == pytest.approx(G, rel=0.1)
-        assert np.abs(dr_meas).max() < 1.6 * s + 1e-9  # the automatic scale fits the curves
+        assert max(np.abs(dr_meas).max(), np.abs(dr_model).max()) <= 3 * s + 1e-6  # the scale holds the data
+        assert np.abs(dr_meas).max() > 3 * s / 2.5 - 1e-6  # and is not far too large (the next smaller would cut)
     mantissa = s / 10 ** math.floor(math.log10(s))
     assert min(abs(mantissa - m) for m in (1.0, 2.0, 5.0)) < 1e-9  # an automatic, round scale
 
     # the findings of the last test
     md = texts(saved, "/findings", "TextDocument:text")[-1]
-    assert md.startswith(f"## Test {n_tests}") and "provisional" not in md.split("\n")[0]
-    for part in ("Ranked findings", "servo_mismatch", "backlash_x", "ISO 230-4", "Advice", "G(b)"):
+    assert md.startswith(f"## NO LIMITS SET · test {n_tests} ") and "provisional" not in md.split("\n")[0]
+    for part in ("What matters most", "Servo mismatch", "Backlash X", "ISO 230-4", "What to do", "G(b)"):
         assert part in md
+    assert texts(saved, "/polar/verdict/text", "Points2D:labels")[-1].startswith(f"NO LIMITS SET · test {n_tests}")
 
     # the raw length: every sample (100 Hz is below the 200 Hz cap), in millimetres
     lengths = np.concatenate([np.atleast_1d(v) for v in saved.columns["/length"]["Scalars:scalars"]])
@@ -391,7 +392,7 @@ def test_connect_mode_stream_is_received_and_read_back(
     check_stream(saved, script)
     assert float(np.median(costs)) < 0.002 and max(costs) < 0.25
     # the circle grew live during its data arc, before its result came
-    sizes = [len(v[0]) for v in saved.columns["/polar/ccw/measured"]["LineStrips2D:strips"] if v]
+    sizes = [len(v[0]) for v in saved.columns["/live/ccw/measured"]["LineStrips2D:strips"] if v]
     assert len(sizes) > 4 and min(sizes) < 0.5 * max(sizes)
 
 
@@ -464,7 +465,7 @@ def test_a_late_viewer_gets_the_references_after_a_client_pushed_them_out_of_the
     """The server drops its oldest messages first, whoever sent the new ones: a client pushing four times its
     buffer of static data evicts the daemon's references (checked: without their timer, the static case fails).
     The daemon sends them again every SCENE_REFRESH_S (here shortened), whether or not it saw the client."""
-    monkeypatch.setattr(viewer_module, "SCENE_REFRESH_S", 0.5)
+    monkeypatch.setattr(scene_module, "SCENE_REFRESH_S", 0.5)
     port = free_port()
     v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=port, server_memory_limit="16MiB"), plan=PLAN)
     try:
@@ -632,7 +633,7 @@ def check_stream_after_restart(saved: Saved) -> None:
         assert saved.rows.get(ep), f"{ep} missing: {sorted(saved.rows)}"
     bx = np.concatenate(saved.columns["/trends/backlash_um/x"]["Scalars:scalars"])
     assert bx.size == 2  # test 1 re-sent on reconnection, test 2 live
-    assert texts(saved, "/findings", "TextDocument:text")[-1].startswith("## Test 2")
+    assert texts(saved, "/findings", "TextDocument:text")[-1].startswith("## NO LIMITS SET · test 2 ")
 
 
 def test_absent_viewer_then_present(script: Script, receivers: list[Receiver], tmp_path: Path) -> None:
@@ -661,7 +662,7 @@ def test_absent_viewer_then_present(script: Script, receivers: list[Receiver], t
     ):
         assert saved.rows.get(ep), f"{ep} missing: {sorted(saved.rows)}"
     assert len(strip(saved, "/polar/cw/measured")) > 500  # from the cache: its samples were let go
-    assert texts(saved, "/findings", "TextDocument:text")[-1].startswith("## Test 1 ")
+    assert texts(saved, "/findings", "TextDocument:text")[-1].startswith("## NO LIMITS SET · test 1 ")
     assert np.concatenate(saved.columns["/trends/backlash_um/x"]["Scalars:scalars"]).size == 1
 
 
@@ -703,11 +704,16 @@ def test_model_overlay_reproduces_the_fit(script: Script) -> None:
 
 def test_findings_markdown(script: Script) -> None:
     md = findings_markdown(script.results[0])
-    assert md.startswith("## Test 1: CCW circle (provisional)")
+    assert md.startswith("## Test 1 in progress: CCW circle (provisional)")
     md = findings_markdown(script.results[2])
-    assert md.startswith("## Test 1 · `m1-1`")
-    assert "| 1 | servo_mismatch |" in md and "### Advice" in md and "backlash" in md
-    assert "Warning" not in md
+    # the verdict in words first (no limits here), then what matters most in an engineer's words, what to do
+    assert md.startswith("## NO LIMITS SET · test 1\n")
+    most = md[md.index("### What matters most"):md.index("### What to do")]
+    assert most.split("\n")[2].startswith("1. **Servo mismatch** ") and "X lags Y by" in most
+    assert "centre" not in most and "Centre" not in most  # the set-up is stated apart
+    assert "Set-up, not the machine" in md and "### What to do" in md and "backlash" in md
+    assert "`servo_mismatch_ms`" in md  # the field name, for a service developer, in the detail
+    assert "Warning" not in md and "machine `" not in md and "lag –" not in md
     md = findings_markdown({**script.results[2], "warnings": ["timing model: the feed-in is too short"]})
     assert "**Warning:** timing model: the feed-in is too short" in md
 
@@ -726,7 +732,9 @@ def test_options() -> None:
         with pytest.raises(ViewerConfigError):
             ViewerOptions.from_dict(bad)
     assert ViewerOptions(bind="0.0.0.0", port=9877).address == "rerun+http://127.0.0.1:9877/proxy"
-    assert [nice_scale_um(x) for x in (0.1, 1.6, 1.7, 30.0, 80.0, 170.0)] == [1.0, 1.0, 2.0, 20.0, 50.0, 200.0]
+    xs = (0.1, 1.6, 3.1, 30.0, 80.0, 170.0)
+    assert [nice_scale_um(x) for x in xs] == [1.0, 1.0, 2.0, 10.0, 50.0, 100.0]
+    assert all(x <= 3 * nice_scale_um(x) for x in xs)  # within the outermost ring
 
 
 def test_off_mode_does_nothing(script: Script) -> None:
@@ -752,7 +760,7 @@ def test_from_daemon_config() -> None:
     )
     v = RerunViewer.from_config(cfg)
     try:
-        assert v.options.scale_um == pytest.approx(20.0)  # 500 R / M
+        assert v.options.scale_um == pytest.approx(8.0)  # 200 R / M: a division at 0.2 R0
         assert v.options.server_memory_limit == "64MiB"
         wait_connected(v)
         assert listening(port)
@@ -763,33 +771,35 @@ def test_from_daemon_config() -> None:
 def test_polar_geometry_and_layout() -> None:
     # +X to the right, +Y up: the view's y axis points down, so the second coordinate is negated
     pts = polar_points(np.array([0.0, math.pi / 2]), np.array([0.0, 20.0]), scale_um=20.0)
-    assert np.allclose(pts, [[R0, 0.0], [0.0, -1.5 * R0]])
-    assert np.allclose(polar_points(np.array([0.0]), np.array([-100.0]), 20.0), [[0.0, 0.0]])  # clamped at 0
+    assert np.allclose(pts, [[R0, 0.0], [0.0, -1.2 * R0]])  # a division at 0.2 R0
+    assert np.allclose(polar_points(np.array([0.0]), np.array([-200.0]), 20.0), [[0.0, 0.0]])  # clamped at 0
     default_blueprint()  # builds against the installed rerun
 
 
 def test_trend_views_scale_to_the_uncertainty_and_titles_fit() -> None:
     """A trend that moves within its standard errors gets a y range of at least +-4 of them about its mean (flat,
-    not a drift); one that moves far more keeps its points; G(b), without standard errors, autoscales."""
+    not a drift); one that moves far more keeps its points with their bars; a limit line is always in range."""
     n = len(TRENDS)
-    j_servo = [p for p, _f, _l in TRENDS].index("servo_mismatch_ms")
-    j_bx = [p for p, _f, _l in TRENDS].index("backlash_um/x")
+    j_servo = [p for p, _f, _l, _c in TRENDS].index("servo_mismatch_ms")
+    j_bx = [p for p, _f, _l, _c in TRENDS].index("backlash_um/x")
     rows = np.full((3, 2 + 2 * n), np.nan)
     rows[:, 0], rows[:, 1] = [1, 2, 3], [1000.0, 1100.0, 1200.0]
     rows[:, 2 + j_servo] = [3.0306, 3.0312, 3.0318]  # autoscaled, this filled the plot like a drift
     rows[:, 2 + n + j_servo] = 0.01
     rows[:, 2 + j_bx] = [4.0, 8.0, 12.0]  # a real change: 8 um against 0.1 um standard errors
     rows[:, 2 + n + j_bx] = 0.1
-    ranges = trend_ranges(rows)
+    ranges = trend_ranges(rows, k=1.0)
     lo, hi = ranges["servo_mismatch_ms"]
     assert lo <= 3.0312 - 0.04 + 1e-12 and hi >= 3.0312 + 0.04 - 1e-12 and hi - lo < 0.1
     lo, hi = ranges["backlash_um"]
     assert lo <= 4.0 - 0.1 and hi >= 12.0 + 0.1 and hi - lo < 9.5  # the points, not +-4 stderr, set it
     assert "circularity_um" not in ranges and "squareness_urad" not in ranges
+    lo, hi = trend_ranges(rows, {"servo_mismatch_ms": (2.0, 1.6)}, k=2.0)["servo_mismatch_ms"]
+    assert lo < 1.6 and hi > 3.0318 + 2 * 0.01  # the limit, the warning level and every bar inside
     default_blueprint(ranges)  # builds with the ranges
     # titles short enough for a third of the trends panel (the long ones were cut)
-    assert [t for _o, t in TREND_VIEWS] and all(len(t) <= 12 for _o, t in TREND_VIEWS)
-    assert {o for o, _t in TREND_VIEWS} == {p.split("/")[0] for p, _f, _l in TRENDS}
+    assert [t for _o, t in TREND_VIEWS] and all(len(t) <= 28 for _o, t in TREND_VIEWS)
+    assert {o for o, _t in TREND_VIEWS} == {p.split("/")[0] for p, _f, _l, _c in TRENDS}
 
 
 def test_layouts_sent_again_and_again_cost_no_thread_and_overwrite_each_other(tmp_path: Path) -> None:
@@ -797,7 +807,7 @@ def test_layouts_sent_again_and_again_cost_no_thread_and_overwrite_each_other(tm
     every layout on its one stream, each view and container keeping its id, so a new layout replaces the last."""
     import rerun as rr
 
-    from ballbar.daemon.viewer import _Blueprints
+    from ballbar.daemon.rerun.blueprint import Blueprints as _Blueprints
 
     def native_threads() -> int:
         return len(os.listdir("/proc/self/task"))
@@ -820,7 +830,7 @@ def test_layouts_sent_again_and_again_cost_no_thread_and_overwrite_each_other(tm
     assert len(stores) == 1  # one blueprint store, its info sent again to the new sink
     assert len(re.findall(r"BlueprintActivationCommand", out)) == 40
     views = set(re.findall(r" - (/view/[0-9a-f-]+) - ", out))
-    n_views = len(TREND_VIEWS) + 4  # the trends, the polar plot, the length, the findings and the events
+    n_views = len(TREND_VIEWS) + 5  # the trends, the two polar plots, the length, the findings and the events
     assert len(views) == n_views, sorted(views)  # the same views, overwritten: not 40 layouts' worth
     rec.disconnect()
 
@@ -923,29 +933,29 @@ def test_live_circle_is_sent_in_pieces(script: Script, receivers: list[Receiver]
     rx.finish()
     rows = read_rows(rx.rrd)
     piece = v._piece
-    result_1 = min(r.time for r in rows if r.entity == "/findings" and r.time is not None
-                   and "CCW circle" in text_of(r))
-    live = [r for r in rows if r.entity.startswith("/polar/ccw/measured") and r.time is not None
+    result_1 = min(r.time for r in rows if r.entity == "/live/status/text" and r.time is not None
+                   and "CCW circle fitted" in str(r.values.get("Points2D:labels")))
+    live = [r for r in rows if r.entity.startswith("/live/ccw/measured") and r.time is not None
             and r.time < result_1 and r.values.get("LineStrips2D:strips")]
     assert len(live) > 20
     assert max(len(r.values["LineStrips2D:strips"][0]) for r in live) <= piece + 1
-    children = [r.entity for r in live if r.entity != "/polar/ccw/measured"]
+    children = [r.entity for r in live if r.entity != "/live/ccw/measured"]
     # each completed piece sent once, and again only when the scale grew (everything is redrawn then)
-    feed_in = min(r.time for r in rows if r.entity == "/polar/ccw" and r.time is not None)
-    rescales = sum(1 for r in rows if r.entity == "/polar/reference/labels" and r.time is not None
+    feed_in = min(r.time for r in rows if r.entity == "/live/ccw" and r.time is not None)
+    rescales = sum(1 for r in rows if r.entity == "/live/reference/labels" and r.time is not None
                    and feed_in <= r.time < result_1)
     assert len(set(children)) >= 3 and len(children) <= len(set(children)) * (1 + rescales)
     # just before the result, the pieces join up into the circle so far: shared end points, in order
-    shown = visible_strips(rows, "/polar/ccw/measured", result_1 - 1)
-    parts = [shown[f"/polar/ccw/measured/{k}"] for k in range(len(shown) - 1)] + [shown["/polar/ccw/measured"]]
+    shown = visible_strips(rows, "/live/ccw/measured", result_1 - 1)
+    parts = [shown[f"/live/ccw/measured/{k}"] for k in range(len(shown) - 1)] + [shown["/live/ccw/measured"]]
     for a, b in itertools.pairwise(parts):
         assert len(a) == piece + 1 and np.allclose(a[-1], b[0])
     pts = np.concatenate([parts[0]] + [p[1:] for p in parts[1:]])
     angles = np.unwrap(np.arctan2(-pts[:, 1], pts[:, 0]))
     assert np.all(np.diff(angles) > 0)  # CCW, each point once, in order
     # after it, the whole circle alone (the pieces cleared)
-    shown = visible_strips(rows, "/polar/ccw/measured", result_1)
-    assert list(shown) == ["/polar/ccw/measured"] and len(shown["/polar/ccw/measured"]) > 500
+    shown = visible_strips(rows, "/live/ccw/measured", result_1)
+    assert list(shown) == ["/live/ccw/measured"] and len(shown["/live/ccw/measured"]) > 500
 
 
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
@@ -981,7 +991,7 @@ def test_length_series_is_decimated_and_coalesced(rate: float, receivers: list[R
 def test_a_slow_length_series_is_sent_at_the_polar_cadence(receivers: list[Receiver], tmp_path: Path) -> None:
     """At 15.625 Hz a send every send_interval_s would carry four points, each costing as much as a full one:
     the series goes every polar_update_s instead, every sample in it."""
-    from ballbar.daemon.viewer import MIN_SEND_POINTS
+    from ballbar.daemon.rerun.listener import MIN_SEND_POINTS
 
     port = free_port()
     rx = Receiver(tmp_path, "slow", port)
@@ -1010,7 +1020,7 @@ def test_a_slow_length_series_is_sent_at_the_polar_cadence(receivers: list[Recei
 
 def test_own_buffers_stay_bounded(script: Script, monkeypatch: pytest.MonkeyPatch) -> None:
     """After many tests the viewer holds no more than it is configured to."""
-    import ballbar.daemon.viewer as viewer_mod
+    import ballbar.daemon.rerun.listener as viewer_mod
 
     monkeypatch.setattr(viewer_mod, "TRENDS_KEPT", 8)
     opts = ViewerOptions(mode="serve", bind="127.0.0.1", port=free_port(), server_memory_limit="8MiB",
@@ -1074,13 +1084,13 @@ def test_late_viewer_gets_the_last_tests_whole(script: Script, receivers: list[R
         v.stop()
     assert st["errors"] == 0 and st["sent_mib"] > 4.0 and st["refreshes"] >= 3  # the server dropped a lot
     rows = read_rows(rx.rrd)
-    results = {int(text_of(r).split()[2]): r for r in rows if r.entity == "/findings"  # at each test's result
-               and text_of(r).startswith(f"## Test {r.test} ") and "circle" not in text_of(r).split("\n")[0]}
+    results = {r.test: r for r in rows if r.entity == "/findings"  # at each test's result
+               and r.test is not None and f" · test {r.test} · " in text_of(r).split("\n")[0]}
     whole = []
     for idx, r in sorted(results.items()):
         assert r.time is not None
         shown = visible_strips(rows, "/polar/", r.time)
-        curves = {e: len(p) for e, p in shown.items() if not e.startswith("/polar/reference")}
+        curves = {e: len(p) for e, p in shown.items() if not e.startswith(("/polar/reference", "/polar/verdict"))}
         if curves == {"/polar/ccw/measured": curves.get("/polar/ccw/measured"), "/polar/cw/measured":
                       curves.get("/polar/cw/measured"), "/polar/ccw/model": 2000, "/polar/cw/model": 2000} and min(
                 curves.values()) > 500 and "/polar/reference/band" in shown:
@@ -1100,3 +1110,37 @@ def test_late_viewer_gets_the_last_tests_whole(script: Script, receivers: list[R
     late = stamps[stamps > stamps[-1] - 10.0]
     assert early.size <= (run / 4) * v.options.history_length_hz * 1.1 + 2
     assert late.size >= 10.0 * v.options.length_hz * 0.9
+
+
+def test_a_clean_stop_on_ctrl_c_logs_no_error(tmp_path: Path) -> None:
+    """Ctrl-C in a terminal signals the whole process group: the server, in a session of its own, outlives the
+    daemon's last flush, so Rerun's client logs no ERROR (it logged two at every such stop when the server died
+    first: "Write messages call failed: transport error", "Failed to flush previous sink")."""
+    code = (
+        "import time, sys\n"
+        "from ballbar.daemon.rerun import RerunViewer, ViewerOptions\n"
+        "v = RerunViewer(ViewerOptions(mode='serve', bind='127.0.0.1', port=int(sys.argv[1])))\n"
+        "try:\n"
+        "    while not v.connected:\n"
+        "        v.on_idle(); time.sleep(0.05)\n"
+        "    print('ready', flush=True)\n"
+        "    while True:\n"
+        "        v.on_idle(); time.sleep(0.05)\n"
+        "except KeyboardInterrupt:\n"
+        "    v.stop()\n"
+        "    print('stopped', flush=True)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code, str(free_port())], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(0.5)
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+    assert "stopped" in out, err[-2000:]
+    assert "ERROR" not in err, err[-2000:]

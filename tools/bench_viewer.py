@@ -4,7 +4,7 @@
     python -m ballbar.tools.bench_viewer --quick          # a few minutes, smaller figures
     python -m ballbar.tools.bench_viewer --baseline none  # this viewer only
 
-A :class:`~ballbar.daemon.viewer.RerunViewer` in ``serve`` mode (its own
+A :class:`~ballbar.daemon.rerun.RerunViewer` in ``serve`` mode (its own
 ``rerun --serve-grpc`` child, as in the daemon) is fed as the daemon feeds it,
 through the daemon's :class:`~ballbar.daemon.listeners.ListenerQueue` (500
 items, drop oldest; it merges batches for a listener that asks for it):
@@ -266,9 +266,9 @@ class NullListener(Listener):
 
 
 def load_viewer_module(path: Path | None) -> ModuleType:
-    """``ballbar.daemon.viewer``, or the viewer module in file ``path`` (a baseline) under another name."""
+    """``ballbar.daemon.rerun``, or the viewer module in file ``path`` (a baseline) under another name."""
     if path is None:
-        import ballbar.daemon.viewer as mod
+        import ballbar.daemon.rerun as mod
 
         return mod
     name = "ballbar.daemon._bench_baseline_viewer"

@@ -9,8 +9,10 @@ recording (CSV or the daemon's MCAP) or from the daemon's records by test id.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +41,12 @@ class ReportData:
     machine's earlier test results under the same conditions (plane, radius,
     feed, data arc, directions), oldest first, each with ``t_wall`` and ``test_id``; empty
     when there are none.  ``history_note``: how the history was chosen (for the
-    report's text).  ``source``: what the report was made from.
+    report's text).  ``source``: what the report was made from.  ``meta``: who
+    tested, with which bar, at what temperatures, notes and the sign-off roles
+    (the ``[report]`` configuration's keys: ``operator``, ``bar_serial``,
+    ``bar_calibrated``, ``machine_temperature_c``, ``air_temperature_c``,
+    ``notes``, ``sign_off``), from the daemon's recorded configuration and the
+    command line.
     """
 
     result: dict[str, Any]
@@ -47,6 +54,7 @@ class ReportData:
     history: list[dict[str, Any]] = field(default_factory=list)
     history_note: str = ""
     source: str = ""
+    meta: dict[str, Any] = field(default_factory=dict)
 
 
 # Test conditions that must match for an earlier result to be comparable in the trend.
@@ -100,6 +108,35 @@ def select_history(result: dict[str, Any], candidates: list[dict[str, Any]]) -> 
     return same, note
 
 
+OPEN_FILE_S = 60.0  # a record file modified this recently is taken as being written by a live daemon
+
+
+class _OpenFileNote(logging.Filter):
+    """The reader's 'writer was probably killed' for a file a live daemon is still writing (modified within
+    ``OPEN_FILE_S``): its open chunk is not there yet, nothing is wrong; said at INFO, not as a warning."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if record.levelno == logging.WARNING and msg.endswith("the writer was probably killed"):
+            path = msg.split(": ", 1)[0]
+            with contextlib.suppress(OSError):
+                if time.time() - os.stat(path).st_mtime < OPEN_FILE_S:
+                    log.info("%s: still being written; read up to its last whole chunk", path)
+                    return False
+        return True
+
+
+def _read_results(files: list[Path]) -> list[dict[str, Any]]:
+    """:func:`~ballbar.daemon.mcap_log.read_results`, a file a live daemon is writing noted as such."""
+    reader_log = logging.getLogger("ballbar.daemon.mcap_log")
+    note = _OpenFileNote()
+    reader_log.addFilter(note)
+    try:
+        return read_results(files)
+    finally:
+        reader_log.removeFilter(note)
+
+
 def _mcap_files(path: str) -> list[Path]:
     if os.path.isdir(path):
         return mcap_files(path)
@@ -134,15 +171,23 @@ def from_recording(
     """
     result = analyze_file(path, plan, machine, options, test, curves=True)
     curves = result.pop("curves")
-    candidates = read_results(_mcap_files(path))
+    candidates = _read_results(_mcap_files(path))
     recorded = [r for r in candidates if r.get("kind") == "test" and _same_test(result, r)]
     if recorded:
         _adopt_identity(result, recorded[-1])
     if records is not None:
-        candidates += read_results(_records_files(records))
+        candidates += _read_results(_records_files(records))
     history, note = select_history(result, _unique(candidates))
     attach_verdict(result, recorded_limits(path))
-    return ReportData(result, curves, history, note, source=os.path.abspath(path))
+    return ReportData(result, curves, history, note, source=os.path.abspath(path), meta=recorded_meta(path))
+
+
+def recorded_meta(path: str) -> dict[str, Any]:
+    """The ``[report]`` table a daemon recording was made with (empty for a CSV or a recording without it)."""
+    from ballbar.daemon.recordings import recorded_config
+
+    table = recorded_config(path).get("report")
+    return {k: v for k, v in table.items() if v not in (None, "")} if isinstance(table, dict) else {}
 
 
 def recorded_limits(path: str) -> dict[str, Any] | None:
@@ -242,11 +287,14 @@ def from_recorded_test(
         result.setdefault("warnings", []).append(drift)
     candidates = index.results()
     if records is not None and os.path.abspath(records) != os.path.abspath(index.path):
-        candidates += read_results(_records_files(records))
+        candidates += _read_results(_records_files(records))
     history, note = select_history(result, _unique(candidates))
     limits = index.config_for(test).get("limits")
     attach_verdict(result, dict(limits) if isinstance(limits, dict) else None)
-    return ReportData(result, curves, history, note, source=f"{os.path.abspath(index.path)} test {result['test_id']}")
+    meta = index.config_for(test).get("report")
+    meta = {k: v for k, v in meta.items() if v not in (None, "")} if isinstance(meta, dict) else {}
+    return ReportData(result, curves, history, note, source=f"{os.path.abspath(index.path)} test {result['test_id']}",
+                      meta=meta)
 
 
 def published_difference(result: dict[str, Any], published: dict[str, Any], rel: float = 1e-6) -> str | None:

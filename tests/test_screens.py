@@ -1,0 +1,312 @@
+"""What an engineer sees first: screenshots of the live view (Rerun 0.41's own viewer, off-screen) and of the
+report (headless Chromium) for a passing machine, one in warning and a failing one, checked as the report's
+browser test checks the report: the verdict present and in its colour, every point inside its scale, nothing
+wider than the window.  And the live view's and the report's rankings of the same test agree.
+
+The scene is :mod:`livescene`: a simulated machine's tests as the daemon hands them to the viewer, each with a
+verdict against limits it passes, warns on or fails, after 20 earlier tests.  The viewer is
+:class:`~ballbar.daemon.rerun.RerunViewer` in serve mode; a real ``rerun`` viewer connects to it under Xvfb
+with Mesa's CPU Vulkan driver (lavapipe) and saves a screenshot (``--screenshot-to``) at 1600x1000 and
+1280x800.  The report is rendered from the same results and loaded at 1400 and 800 px.
+
+Needs Debian's ``xvfb`` (``xvfb-run``) and ``mesa-vulkan-drivers`` for the viewer and ``chromium`` for the
+report; without them those tests skip and say why, unless ``BALLBAR_REQUIRE_SCREENSHOTS=1`` (CI) makes that a
+failure.  ``BALLBAR_SCREENSHOTS=1`` writes the screenshots, small, to ``tests/screenshots/`` (the README's).
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import os
+import re
+import shutil
+import socket
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import livescene
+import numpy as np
+import pytest
+from browser import Chromium, find_chromium
+
+from ballbar.analysis.report import STATUS_WORDS, machine_ranking, pattern_label, share_text
+from ballbar.daemon.rerun import RerunViewer, ViewerOptions, findings_markdown, rerun_binary
+from ballbar.daemon.rerun.geometry import COLOURS, STATUS_RGB
+from ballbar.tools.report import ReportData
+from ballbar.tools.report_render import render
+
+STATUSES = ("pass", "warning", "fail")
+VIEWER_SIZES = ((1600, 1000), (1280, 800))
+REPORT_WIDTHS = (1400, 800)
+REPORT_HEIGHT = 900
+ARTEFACTS = Path(__file__).with_name("screenshots")
+LAVAPIPE = "/usr/share/vulkan/icd.d/lvp_icd.x86_64.json"
+
+
+def _required(what: str) -> None:
+    msg = f"{what}; BALLBAR_REQUIRE_SCREENSHOTS=1 makes this a failure"
+    if os.environ.get("BALLBAR_REQUIRE_SCREENSHOTS") == "1":
+        pytest.fail(f"{what}, and BALLBAR_REQUIRE_SCREENSHOTS=1 requires it")
+    pytest.skip(msg)
+
+
+def _pixels(blob: bytes, size: tuple[int, int] | None = None) -> np.ndarray:
+    from PIL import Image  # matplotlib's own dependency
+
+    with Image.open(io.BytesIO(blob)) as im:
+        im = im.convert("RGB")
+        if size is not None and im.size != size:  # the viewer renders at the screen's scale factor
+            im = im.resize(size, Image.Resampling.LANCZOS)
+        return np.asarray(im)
+
+
+def _keep(name: str, px: np.ndarray) -> None:
+    """With BALLBAR_SCREENSHOTS=1, the screenshot as a small PNG (96 colours) in tests/screenshots/."""
+    if os.environ.get("BALLBAR_SCREENSHOTS") != "1":
+        return
+    from PIL import Image
+
+    ARTEFACTS.mkdir(exist_ok=True)
+    Image.fromarray(px).quantize(colors=96, method=Image.Quantize.MEDIANCUT).save(ARTEFACTS / name, optimize=True)
+
+
+def _near(px: np.ndarray, rgb: tuple[int, ...], tol: float = 40.0) -> np.ndarray:
+    return np.asarray(np.linalg.norm(px.astype(float) - np.asarray(rgb[:3], float), axis=2) < tol)
+
+
+@pytest.fixture(scope="module")
+def scene() -> livescene.Scene:
+    return livescene.build()
+
+
+# --------------------------------------------------------------------------- the live view
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _viewer_or_skip() -> str:
+    exe = rerun_binary()
+    if exe is None:
+        _required("the rerun viewer binary (rerun-sdk's rerun_cli) is not installed")
+    if shutil.which("xvfb-run") is None:
+        _required("xvfb-run not found (Debian: apt-get install xvfb)")
+    if not os.path.exists(LAVAPIPE):
+        _required(f"no CPU Vulkan driver ({LAVAPIPE}; Debian: apt-get install mesa-vulkan-drivers)")
+    assert exe is not None
+    return exe
+
+
+@pytest.fixture
+def served(scene: livescene.Scene, request: pytest.FixtureRequest) -> Iterator[RerunViewer]:
+    """The daemon's viewer in serve mode, fed the scene with the verdicts of ``request.param``."""
+    items, earlier = livescene.annotated(scene, request.param)
+    v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=_free_port(), server_memory_limit="64MiB"),
+                    plan=livescene.PLAN)
+    try:
+        assert v.seed(earlier) == len(earlier)
+        deadline = time.monotonic() + 20.0
+        while not v.connected:
+            assert time.monotonic() < deadline, f"the viewer's server did not come up: {v.stats()}"
+            v.on_idle()
+            time.sleep(0.05)
+        for kind, x in items:
+            (v.on_batch if kind == "batch" else v.on_message)(x)
+        while v.stats()["history_pending"]:
+            v.on_idle()
+        v.on_idle()
+        assert v.stats()["errors"] == 0
+        yield v
+    finally:
+        v.stop()
+
+
+def _viewer_screenshot(exe: str, url: str, size: tuple[int, int], out: Path) -> np.ndarray:
+    w, h = size
+    env = {**os.environ, "VK_ICD_FILENAMES": LAVAPIPE, "RUST_LOG": "warn"}
+    cmd = ["xvfb-run", "-a", "-s", f"-screen 0 {w}x{h}x24 -dpi 96", exe, "--bind", "127.0.0.1", "--port",
+           str(_free_port()), "--window-size", f"{w}x{h}", "--screenshot-to", str(out), url]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env=env, check=False)
+    assert done.returncode == 0 and out.exists(), done.stderr[-3000:]
+    return _pixels(out.read_bytes(), size)
+
+
+def check_viewer_screenshot(px: np.ndarray, status: str) -> dict[str, float]:
+    """The first screen of the live view: the verdict bar in the status colour above the last complete test's
+    polar plot, its curves drawn and every one of their pixels inside the outermost ring (three divisions,
+    1.6 R0), the test in progress beside it with its status bar; nothing of them outside their views."""
+    h, w, _ = px.shape
+    left = px[:, : int(0.36 * w)]  # the last complete test's view: 3/5 of the width, 3/5 of that
+    bar = _near(left, STATUS_RGB[status], 30.0)
+    ys, xs = np.nonzero(bar[: int(0.3 * h)])
+    assert xs.size > 0.004 * w * h / 10, f"no {status} verdict bar ({xs.size} pixels)"
+    for other, rgb in STATUS_RGB.items():
+        if other != status:
+            assert _near(left[: int(0.3 * h)], rgb, 25.0).sum() < 0.2 * xs.size, f"{other} colour in the bar"
+    # the bar spans x = -1.5 R0 .. 1.5 R0 plus its round caps (radius 0.11 R0) at y = -1.9 R0: a ruler for R0
+    x0, x1 = float(np.percentile(xs, 0.5)), float(np.percentile(xs, 99.5))
+    r0 = (x1 - x0) / 3.22
+    cx, cy = (x0 + x1) / 2, float(np.median(ys)) + 1.9 * r0
+    assert x0 > 1 and x1 < left.shape[1] - 2, "the verdict bar is cut"
+    yy, xx = np.mgrid[0:h, 0 : left.shape[1]]
+    dist = np.hypot(xx - cx, yy - cy) / r0
+    curve = (_near(left, COLOURS["ccw"]) | _near(left, COLOURS["cw"])) & (dist < 2.2) & (yy > np.median(ys) + 0.2 * r0)
+    assert curve.sum() > 10 * r0, f"the polar curves are not drawn ({curve.sum()} pixels, R0 {r0:.0f} px)"
+    reach = float(np.percentile(dist[curve], 99.9))
+    assert reach <= 1.6 + 6.0 / r0, f"curves reach {reach:.3f} R0, beyond the outermost ring (1.6 R0)"
+    assert cy + 1.7 * r0 < 0.75 * h and cx - 1.7 * r0 > 0, "the polar plot is cut by its view"
+    live = px[: int(0.3 * h), int(0.36 * w) : int(0.6 * w)]
+    assert _near(live, (70, 74, 84), 12.0).sum() > 0.15 * xs.size, "no status bar over the test in progress"
+    return {"r0_px": r0, "reach_r0": reach}
+
+
+@pytest.mark.parametrize("served", STATUSES, indirect=True)
+def test_live_view_screenshots(served: RerunViewer, tmp_path: Path, request: pytest.FixtureRequest) -> None:
+    status = request.node.callspec.params["served"]
+    exe = _viewer_or_skip()
+    for size in VIEWER_SIZES:
+        px = _viewer_screenshot(exe, served.address, size, tmp_path / f"{size[0]}.png")
+        assert px.shape[:2] == (size[1], size[0])
+        check_viewer_screenshot(px, status)
+        _keep(f"viewer-{status}-{size[0]}x{size[1]}.png", px)
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def _report_data(scene: livescene.Scene, status: str) -> ReportData:
+    items, earlier = livescene.annotated(scene, status)
+    result = copy.deepcopy(next(x for k, x in reversed(items) if k == "message" and x.get("kind") == "test"))
+    curves = result.pop("curves", None)
+    if curves is None:  # the stream's results carry no curves: the report's come from a re-analysis
+        from ballbar.analysis.engine import analyze_recording
+
+        t = np.concatenate([x.t_device for k, x in items if k == "batch"])
+        L = np.concatenate([x.length_mm for k, x in items if k == "batch"])
+        tests = [r for r in analyze_recording(t, L, livescene.PLAN, curves=True) if r.get("kind") == "test"]
+        curves = tests[result["test_index"] - 1]["curves"]
+    result["t_wall"] = earlier[-1]["t_wall"][:10] + "T23:00:00+00:00"
+    return ReportData(result, curves, earlier, "20 earlier tests of mill-3 under the same conditions", "livescene",
+                      meta={"operator": "A. Jones", "bar_serial": "QC20-1234", "bar_calibrated": "2026-01-15",
+                            "machine_temperature_c": 21.5, "air_temperature_c": 20.5, "notes": "after the X gib"})
+
+
+REPORT_FACTS = """(() => {
+  const r = e => {
+    if (!e) return null;
+    const b = e.getBoundingClientRect();
+    return [b.left, b.top, b.right, b.bottom];
+  };
+  const de = document.documentElement, badge = document.getElementById('verdict-status');
+  const inside = (a, b) => a && b && a[0] >= b[0] - 1 && a[1] >= b[1] - 1 && a[2] <= b[2] + 1 && a[3] <= b[3] + 1;
+  const points = [...document.querySelectorAll('[id^="trend-"][id$="-points"]')].map(g => {
+    const area = document.getElementById(g.id.replace(/-points$/, '-area'));
+    return [g.id, inside(r(g), r(area))];
+  });
+  const ring = r(document.getElementById('polar-outer-ring'));
+  const curves = ['polar-ccw', 'polar-cw', 'polar-ccw-model', 'polar-cw-model'].map(
+    id => [id, inside(r(document.getElementById(id)), ring)]);
+  const wide = [...document.querySelectorAll('body *')].filter(e => {
+    if (e.closest('.wide') || e.closest('svg')) return false;
+    const b = e.getBoundingClientRect();
+    return b.width > 0 && (b.right > de.clientWidth + 1 || b.left < -1);
+  }).map(e => e.tagName + '#' + e.id + '.' + e.className);
+  return {
+    page: [de.scrollWidth, de.clientWidth],
+    wide: wide.slice(0, 5),
+    status: badge ? badge.textContent : null,
+    colour: badge ? getComputedStyle(badge).backgroundColor : null,
+    verdict: r(document.getElementById('verdict')),
+    most: r(document.getElementById('verdict-most')),
+    todo: r(document.getElementById('verdict-todo')),
+    curves, points,
+  };
+})()"""
+
+CSS_RGB = {"fail": "rgb(180, 35, 24)", "warning": "rgb(178, 94, 9)", "pass": "rgb(29, 122, 70)"}
+
+
+@pytest.fixture(scope="module")
+def reports(scene: livescene.Scene, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The three reports, rendered before any leak check starts watching (matplotlib keeps its fonts open)."""
+    d = tmp_path_factory.mktemp("reports")
+    return {s: render(_report_data(scene, s), d / f"{s}.html", png=False)[0] for s in STATUSES}
+
+
+def test_report_screenshots(reports: dict[str, Path], no_leaks: None) -> None:
+    exe = find_chromium()
+    if exe is None:
+        _required("Chromium not found ($BALLBAR_CHROMIUM, chromium on PATH or /usr/bin/chromium)")
+    assert exe is not None
+    with Chromium(exe, 120.0, window=(REPORT_WIDTHS[0], REPORT_HEIGHT)) as browser:
+        session = browser.open_page()
+        for status in STATUSES:
+            for width in REPORT_WIDTHS:
+                browser.call("Emulation.setDeviceMetricsOverride",
+                             {"width": width, "height": REPORT_HEIGHT, "deviceScaleFactor": 1, "mobile": False},
+                             session)
+                browser.load(session, reports[status].as_uri())
+                f = browser.evaluate(session, REPORT_FACTS)
+                where = f"{status} at {width} px"
+                assert f["page"][0] <= f["page"][1] and f["wide"] == [], (where, f["page"], f["wide"])
+                assert f["status"] == STATUS_WORDS[status] and f["colour"] == CSS_RGB[status], (where, f)
+                # the first screen says it: the verdict from the top, what matters most and what to do on it
+                assert f["verdict"][1] < 0.25 * REPORT_HEIGHT, (where, f["verdict"])
+                assert f["most"][3] < REPORT_HEIGHT and f["todo"][1] < REPORT_HEIGHT, (where, f["most"], f["todo"])
+                assert all(ok for _id, ok in f["curves"]) and len(f["curves"]) == 4, (where, f["curves"])
+                assert f["points"] and all(ok for _id, ok in f["points"]), (where, f["points"])
+                px = _pixels(browser.screenshot(session))
+                assert px.shape[:2] == (REPORT_HEIGHT, width)
+                want = np.array([int(c) for c in re.findall(r"\d+", CSS_RGB[status])])
+                assert (np.abs(px.astype(int) - want).sum(axis=2) < 20).sum() > 2000, where  # the badge, in colour
+                _keep(f"report-{status}-{width}.png", px)
+        assert browser.errors(session) == []
+
+
+# --------------------------------------------------------------------------- the same words, live and filed
+
+
+def test_live_view_and_report_rank_the_same_test_alike(reports: dict[str, Path], scene: livescene.Scene) -> None:
+    """For the same test, the live view's findings and the report name the same machine errors in the same order
+    with the same shares of the machine's error, and state the set-up apart in both."""
+    items, _earlier = livescene.annotated(scene, "fail")
+    result = next(x for k, x in reversed(items) if k == "message" and x.get("kind") == "test")
+    md = findings_markdown(result)
+    live = re.findall(r"^\d+\. \*\*(.+?)\*\* (.+?): ", md, flags=re.M)
+    html = reports["fail"].read_text(encoding="utf-8")
+    most = html[html.index('id="verdict-most"'):html.index("</ol>", html.index('id="verdict-most"'))]
+    filed = re.findall(r"<li><b>(.+?)</b>:.*?\((.+?) of the machine", most)
+    ranking = [r for r in machine_ranking(result) if r.get("significant")]
+    expected = [(pattern_label(str(r["pattern"])), share_text(r["machine_share_pct"])) for r in ranking]
+    assert live[: len(filed)] == filed == expected[: len(filed)] and len(filed) >= 2, (live, filed, expected)
+    assert len(live) == min(5, len(expected))
+    # set-up terms in neither ranking; shares of the machine's error sum to 100 % over the machine's patterns
+    assert not any("set-up" in name.lower() or "centre" in name.lower() for name, _s in live + filed)
+    assert abs(sum(r["machine_share_pct"] for r in machine_ranking(result)) - 100.0) < 1e-6
+    assert "Set-up, not the machine" in md and "Set-up, not the machine" in html
+
+
+def test_the_committed_screenshots_are_there_and_small() -> None:
+    """The README's pictures: every status and size, each a valid PNG of the window's size under 400 kB."""
+    for status in STATUSES:
+        for w, h in VIEWER_SIZES:
+            _check_png(ARTEFACTS / f"viewer-{status}-{w}x{h}.png", (w, h))
+        for width in REPORT_WIDTHS:
+            _check_png(ARTEFACTS / f"report-{status}-{width}.png", (width, REPORT_HEIGHT))
+
+
+def _check_png(path: Path, size: tuple[int, int]) -> None:
+    assert path.exists(), f"{path.name} missing: BALLBAR_SCREENSHOTS=1 pytest tests/test_screens.py makes it"
+    blob = path.read_bytes()
+    assert len(blob) < 400_000, (path.name, len(blob))
+    px = _pixels(blob)
+    assert px.shape[:2] == (size[1], size[0]), path.name
+    assert len(np.unique(px.reshape(-1, 3), axis=0)) > 16, f"{path.name} is nearly blank"
+
+
