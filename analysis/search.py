@@ -361,12 +361,40 @@ class Objective:
                     col = e.A[:, int(np.count_nonzero(use[:j]))]  # the servo column, weighted
                     s = s - col * (e.x[j] / V0) * ((V1 - V0) / steps[k])
                 out.append(s)
+            elif k == 2 and self.spikes:
+                # the width moves the spikes' columns alone (nothing else depends on it)
+                v = v0.copy()
+                v[k] += steps[k]
+                sc = np.flatnonzero(use & self.ctx.spike_cols)
+                at = np.searchsorted(np.flatnonzero(use), sc)  # their places among the columns used
+                A1 = self.spike_rows(Theta.of(v, tau_known))
+                out.append(-((A1[:, sc] - e.A[:, at]) @ e.x[sc]) / steps[k])
             else:
                 v = v0.copy()
                 v[k] += steps[k]
                 A1, y1 = self.rows(Theta.of(v, tau_known))
                 out.append(((y1 - A1[:, use] @ e.x[use]) - e.r) / steps[k])
         return out
+
+    def spike_rows(self, theta: Theta) -> np.ndarray:
+        """The weighted design's reversal-spike columns at ``theta`` (the others 0): what a change of the width
+        alone changes.  Counted as a design."""
+        self.designs += 1
+        ctx = self.ctx
+        timing = ctx.timing(theta)
+        lost = self.lost(theta) if callable(self.lost) else self.lost
+        w = math.radians(theta.w_deg)
+        A = np.zeros((self.weights.size, ctx.p))
+        i = 0
+        for d, b in self.bins.items():
+            mine, cols = ctx.by_direction[d]
+            spikes = [p for p in mine if p.reversal is not None]
+            if spikes:
+                g = ctx.geometry(b, timing, theta.tau, lost, self.smooth_rad, 0.0, self.aperture_scale)
+                A[i : i + len(b), cols[ctx.spike_cols[cols]]] = design(spikes, g, w)
+            i += len(b)
+        A *= self.weights[:, None]
+        return A
 
     def last_arc_feed(self, e: Evaluation, steps: dict[int, float], noise_var: float) -> tuple[float, float]:
         """How much faster the last arc ran than the first, as a share of the feed, and that estimate in its

@@ -818,17 +818,13 @@ class TestFit:
         timing_cov: np.ndarray | None
     ) -> dict[str, Any]:
         options = self.options
+        # the spikes are also tested by their likelihood ratio against the spike-free model at its own best
+        # timing (where the search made that model): the larger p counts
+        lr = self._spike_lr() if self.sized else math.nan
         final = solve(factor, self.patterns, rho=rho, significance=options.significance,
                       min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=colmax,
-                      exclude=self.exclude, family_dof={"reversal_spike": 1}, timing_cov=timing_cov)
-        term = next((t for n, t in final.terms.items() if n.startswith("reversal_spike")), None)
-        if self.sized and term is not None and any(t.significant for n, t in final.terms.items()
-                                                    if n.startswith("reversal_spike")):
-            lr = self._spike_lr()
-            final = solve(factor, self.patterns, rho=rho, significance=options.significance,
-                          min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=colmax,
-                          exclude=self.exclude, family_dof={"reversal_spike": 1},
-                          family_lr={"reversal_spike": lr}, timing_cov=timing_cov)
+                      exclude=self.exclude, family_dof={"reversal_spike": 1},
+                      family_lr={"reversal_spike": lr} if math.isfinite(lr) else None, timing_cov=timing_cov)
         res = result_body(self.plan, self.machine, options, final, self.patterns)
         if timing_cov is not None:
             res["fit"]["uncertainty_method"] += (
