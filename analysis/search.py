@@ -284,6 +284,7 @@ class Objective:
         self.ss = sum(b.ss for b in self.bins.values())
         self.samples = sum(b.samples for b in self.bins.values())
         self.aperture_scale = 1.0  # each bin's interval is integrated over this share of itself
+        self.colmax = np.zeros(ctx.p)  # the last design's columns' largest absolute values (unweighted)
 
     def angles(self, theta: Theta) -> dict[int, np.ndarray]:
         """Each bin's angle (rad) at ``theta``: no design, only the timing."""
@@ -313,13 +314,15 @@ class Objective:
                 block[:, cols[~ctx.spike_cols[cols]]] = design(steady, g, w)
             ys.append(b.y - offset(g) if offset is not None else b.y)
             i += len(b)
+        # each column's largest absolute value over the bins (two reductions, no copy of the design)
+        self.colmax = np.maximum(A.max(axis=0), -A.min(axis=0)) if A.size else np.zeros(A.shape[1])
         A *= self.weights[:, None]
         return A, np.concatenate(ys) * self.weights
 
     def evaluate(self, theta: Theta) -> Evaluation:
         self.misfits += 1
         A, y = self.rows(theta)
-        use = self.supported(A)
+        use = self.supported(A, self.colmax)
         A = A[:, use]
         normal = Normal(A)
         xu = normal.solve(A.T @ y)
@@ -443,11 +446,11 @@ class Objective:
         spans = [float(b.span_s.min()) for b in self.bins.values()]
         return omega * min(spans) * self.aperture_scale + self.smooth_rad
 
-    def supported(self, A: np.ndarray) -> np.ndarray:
-        """The columns with data to stand on: at least ``MIN_SUPPORT`` samples' worth of their own peak (the
-        rule of :func:`.fit.solve`), and values above ``MIN_PEAK`` (a spike decayed long before the window
-        would otherwise take any value)."""
-        peak = np.abs(A / self.weights[:, None]).max(axis=0) if A.size else np.zeros(A.shape[1])
+    def supported(self, A: np.ndarray, peak: np.ndarray) -> np.ndarray:
+        """The columns of the weighted design ``A`` with data to stand on: at least ``MIN_SUPPORT`` samples'
+        worth of their own ``peak`` (each column's largest absolute value, unweighted: the rule of
+        :func:`.fit.solve`), and values above ``MIN_PEAK`` (a spike decayed long before the window would
+        otherwise take any value)."""
         energy = np.einsum("ij,ij->j", A, A)
         return np.asarray((peak > MIN_PEAK) & (energy >= MIN_SUPPORT * peak * peak))
 
@@ -456,7 +459,7 @@ class Objective:
         the scatter within them as one more row of ``y`` alone, ``n`` the samples) and each column's largest
         absolute value over the bins (its largest radial effect per unit)."""
         A, y = self.rows(theta)
-        colmax = np.abs(A / self.weights[:, None]).max(axis=0) if A.size else np.zeros(A.shape[1])
+        colmax = self.colmax
         f = Factor(A.shape[1])
         f.add(np.vstack([A, np.zeros((1, A.shape[1]))]), np.append(y, math.sqrt(self.ss)))
         f.n = self.samples
