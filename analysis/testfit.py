@@ -681,9 +681,11 @@ class TestFit:
         res["timing"]["loop_lag_origin"] = origin
         res["fit"]["servo_model_note"] = source
         res["timing"]["loop_lag_radial_cos2u"] = self.lag.cos2
+        # the dead band's own take-up, from where the axis reverses (its lag moves that: reversal_onset_deg holds
+        # both)
         res["timing"]["backlash_takeup_deg"] = {
-            axis: math.degrees(o) if m == "deadband" else 0.0
-            for axis, m, o in zip("xy", lost.models, lost.onset_rad, strict=True)
+            axis: math.degrees(o - r) if m == "deadband" else 0.0
+            for axis, m, o, r in zip("xy", lost.models, lost.onset_rad, lost.reversal_rad, strict=True)
         }
         res["timing"]["reversal_onset_deg"] = {axis: math.degrees(o) for axis, o in zip("xy", lost.onset_rad,
                                                                                       strict=True)}
