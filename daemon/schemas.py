@@ -351,7 +351,8 @@ _TIMING_TEST = obj(
                                  "step the loops pass at once (velocity feed-forward), 0..0.98; their lag on the "
                                  "circle is (1 - this) times the settling's (null: not searched)", True),
         "loop_feed_forward_stderr": num("its standard error (null: not searched)", True),
-        "backlash_takeup_deg": obj("the travel over which each axis' dead band is taken up after the axis reverses, deg", _AXES),
+        "backlash_takeup_deg": obj("the travel over which each axis' dead band is taken up after the axis "
+                                   "reverses, deg", _AXES),
         "reversal_onset_deg": obj("where friction starts after each reversal point, deg", _AXES),
         **_POLLED,
     },
