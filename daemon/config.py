@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Any
 
 from ballbar.analysis.errors import BallbarError, PlanError
-from ballbar.analysis.monitor import MonitorSettings
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 
 from .secrets import REDACTED, is_secret_key
@@ -94,6 +93,15 @@ class RerunSection:
     history_tests: int = 50  # the last tests a viewer that connects later is sent whole
 
 
+def _monitor_default(name: str) -> Any:
+    """A default of :class:`~ballbar.analysis.monitor.MonitorSettings` (imported when a configuration is built, not
+    with this module: the monitor brings numpy, which ``ballbar analyze`` of a CSV without limits does not need
+    so early)."""
+    from ballbar.analysis.monitor import MonitorSettings
+
+    return getattr(MonitorSettings, name)
+
+
 @dataclass
 class LimitsSection:
     """Acceptance limits, verdicts, trends and alerts (:mod:`ballbar.analysis.monitor`); off by default."""
@@ -106,13 +114,13 @@ class LimitsSection:
     warn_fraction: float = 0.8
     warn_fractions: dict[str, float] = field(default_factory=dict)  # per limit, overrides warn_fraction
     # the monitor's own defaults (one place for them)
-    coverage_k: float = MonitorSettings.coverage_k
-    trend_tests: int = MonitorSettings.trend_tests
-    trend_days: float = MonitorSettings.trend_days
-    min_tests: int = MonitorSettings.min_tests
-    horizon_days: float = MonitorSettings.horizon_days
-    confidence: float = MonitorSettings.confidence
-    clear_after: int = MonitorSettings.clear_after
+    coverage_k: float = field(default_factory=lambda: _monitor_default("coverage_k"))
+    trend_tests: int = field(default_factory=lambda: _monitor_default("trend_tests"))
+    trend_days: float = field(default_factory=lambda: _monitor_default("trend_days"))
+    min_tests: int = field(default_factory=lambda: _monitor_default("min_tests"))
+    horizon_days: float = field(default_factory=lambda: _monitor_default("horizon_days"))
+    confidence: float = field(default_factory=lambda: _monitor_default("confidence"))
+    clear_after: int = field(default_factory=lambda: _monitor_default("clear_after"))
 
 
 @dataclass

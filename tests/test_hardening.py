@@ -208,6 +208,15 @@ def test_sigterm_right_after_start_exits_0(tmp_path: Path) -> None:
         assert proc.returncode == 0, (delay, installed, proc.returncode, err[-1500:])
 
 
+def test_the_entry_point_imports_nothing_before_the_handler() -> None:
+    """``ballbar run`` installs its handler in ``cli.main`` before importing the subcommands: ``cli`` itself must
+    bring in nothing but the package and the standard library's signal and threading."""
+    code = ("import sys; before = set(sys.modules); import ballbar.daemon.cli; "
+            "print(' '.join(sorted(set(sys.modules) - before)))")
+    new = set(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split())
+    assert new <= {"ballbar", "ballbar.daemon", "ballbar.daemon.cli", "signal", "threading", "_weakrefset"}, new
+
+
 # ----------------------------------------------------------------------------- one daemon per state dir
 
 

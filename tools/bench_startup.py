@@ -19,6 +19,10 @@ each, as an installation has it (pip compiles at install); ``--no-bytecode`` kee
 the variable, and every start compiles the package's modules (0.2 to 0.3 s).
 
 What the time goes to: ``python -X importtime -m ballbar.daemon.cli run --simulate``.
+
+``--handler`` times something else: from spawn to the SIGTERM handler being in place (the
+process's ``SigCgt`` in ``/proc``, polled every millisecond), and the exit code of a SIGTERM sent
+``--sigterm-at`` seconds after spawn (0: a clean stop; 143: no handler yet), with the outputs off.
 """
 
 from __future__ import annotations
@@ -114,6 +118,64 @@ def run_once(
         return out
 
 
+def _catches_sigterm(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            caught = next(int(line.split()[1], 16) for line in fh if line.startswith("SigCgt:"))
+    except (OSError, StopIteration):
+        return False
+    return bool(caught & (1 << (signal.SIGTERM - 1)))
+
+
+def handler_once(python: str, state: str, sigterm_at: float | None) -> tuple[float | None, int]:
+    """Seconds from spawn to the SIGTERM handler (None: not seen before the signal), and the exit code after a
+    SIGTERM at ``sigterm_at`` s (or once the handler is there)."""
+    cmd = [python, "-m", "ballbar.daemon.cli", "run", "--source", "sim:?rate=100", "--state-dir", state,
+           "--set", "mcap.enabled=false", "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"']
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    seen = None
+    while proc.poll() is None and time.monotonic() - t0 < 10.0:
+        if seen is None and _catches_sigterm(proc.pid):
+            seen = time.monotonic() - t0
+        due = seen is not None if sigterm_at is None else time.monotonic() - t0 >= sigterm_at
+        if due:
+            break
+        time.sleep(0.001)
+    proc.send_signal(signal.SIGTERM)
+    try:
+        return seen, proc.wait(20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def handler_main(args: argparse.Namespace) -> int:
+    variants = [("current", sys.executable)]
+    if args.baseline_python:
+        variants.insert(0, ("baseline", args.baseline_python))
+    at = [float(x) for x in args.sigterm_at.split(",") if x.strip()]
+    with tempfile.TemporaryDirectory(prefix="ballbar-bench-handler-") as tmp:
+        for _name, python in variants:  # bytecode written once, as installed
+            handler_once(python, tmp, None)
+        seen: dict[str, list[float]] = {n: [] for n, _ in variants}
+        codes: dict[str, dict[float, list[int]]] = {n: {a: [] for a in at} for n, _ in variants}
+        for i in range(args.runs):
+            for name, python in variants if i % 2 == 0 else variants[::-1]:
+                t, _code = handler_once(python, tmp, None)
+                if t is not None:
+                    seen[name].append(t)
+                for a in at:
+                    codes[name][a].append(handler_once(python, tmp, a)[1])
+    print(f"ballbar run: spawn to SIGTERM handler, median of {args.runs} (min..max); exit codes of a SIGTERM at")
+    for name, _ in variants:
+        xs = seen[name]
+        line = f"{name:<10} handler {statistics.median(xs):.3f} s ({min(xs):.3f}..{max(xs):.3f})" if xs else name
+        print(line + "   " + "   ".join(f"{a:g} s: {codes[name][a]}" for a in at))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_startup", description=__doc__.split("\n")[0])
     p.add_argument("--runs", type=int, default=5)
@@ -124,7 +186,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more configuration")
     p.add_argument("--no-bytecode", action="store_true",
                    help="keep $PYTHONDONTWRITEBYTECODE: every start compiles the package's modules again")
+    p.add_argument("--handler", action="store_true", help="time the SIGTERM handler instead (see the docstring)")
+    p.add_argument("--sigterm-at", default="0.05,0.1,0.15,0.2,0.25", help="with --handler: seconds after spawn")
     args = p.parse_args(argv)
+    if args.handler:
+        return handler_main(args)
     extra = [x for kv in args.set for x in ("--set", kv)]
     variants = [("current", sys.executable)]
     if args.baseline_python:
