@@ -313,7 +313,7 @@ def _analyze_records(args: argparse.Namespace, base: dict[str, Any]) -> dict[str
     files = [index.files[i] for i in run]
     base.update(next((config_sections(f.config) for f in reversed(files) if f.config), {}))
     plan, machine, options = configs_from_args(args, base=dict(base))
-    rec = recording(read_logs([f.path for f in files]), args.file)
+    rec = recording(read_logs([f.path for f in files], skip_bad=True, status=False), args.file)
     return pick_test(analyze(rec, plan, machine, options, only=args.test or 1), args.test or 1, args.file, plan)
 
 

@@ -125,10 +125,10 @@ from typing import IO, Any
 
 import numpy as np
 import zstandard
-from mcap.exceptions import McapError
+from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 from numpy.typing import NDArray
 
@@ -137,9 +137,10 @@ from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID
 
 from . import schemas as _schemas
+from .csvfile import open_recording
 from .listeners import MERGE_S, TEST_END_EVENTS, Listener, to_json
 from .listeners import Message as ListenerMessage
-from .recordings import Recording, open_recording
+from .recordings import Recording
 from .samples import SampleBatch, SourceEvent, break_reason, break_seq
 
 log = logging.getLogger(__name__)
@@ -162,6 +163,13 @@ MAX_ABS_LENGTH_MM = 1.0e6  # beyond this a length is stored as missing (it would
 RETENTION_EVERY_S = 60.0
 FLUSHER_MAX_WAIT_S = 1.0
 _MAGIC = b"\x89MCAP0\r\n"
+# Reading: a record (or a chunk's records, uncompressed) larger than this is not the logger's (a samples message
+# is at most MAX_BLOCK samples, ~2 MB; a chunk closes past chunk_size, 4 MiB): a corrupt length field stops the
+# reading there instead of taking gigabytes of memory.
+MAX_RECORD_BYTES = 16 << 20
+# ... and the events, results, configuration and status kept from one file at most this much JSON (beyond it,
+# they are left out with a warning; the samples are read on).  A daemon's file holds some kB to a few MB.
+SIDE_BYTES_MAX = 64 << 20
 _NAME_RE = re.compile(r"^(?P<machine>.+)_(?P<ts>\d{8}T\d{6}Z)_(?P<seq>\d+)\.mcap$")
 
 
@@ -1229,18 +1237,63 @@ _TOPIC_LISTS = {TOPIC_EVENTS: "events", TOPIC_RESULTS: "results", TOPIC_STATUS: 
                 TOPIC_CONFIG: "config", TOPIC_OTHER: "other"}
 
 
-def _read_one(path: str, samples: bool = True) -> McapLog:
+def _read_one(path: str, samples: bool = True, status: bool = True) -> McapLog:
     name = path
     with open_recording(name) as fh:
-        head = fh.read(len(_MAGIC))
-        if head != _MAGIC:
-            what = "empty file" if not head else "not an MCAP file (no MCAP magic at the start)"
-            raise DataError(f"{name}: {what}")
-        fh.seek(0)
-        if not samples and (indexed := _records_indexed(name, fh)) is not None:
-            return indexed
-        fh.seek(0)
-        return _parse(name, fh, samples)
+        try:
+            head = fh.read(len(_MAGIC))
+            if head != _MAGIC:
+                what = "empty file" if not head else "not an MCAP file (no MCAP magic at the start)"
+                raise DataError(f"{name}: {what}")
+            fh.seek(0)
+            if not samples and (indexed := _records_indexed(name, fh)) is not None:
+                return indexed
+            fh.seek(0)
+            return _parse(name, fh, samples, status)
+        except OSError as err:  # a read error (EIO), or a file that cannot seek
+            raise DataError(f"{name}: cannot read: {err.strerror or err}") from None
+
+
+class _BoundedReads:
+    """A binary file whose reads are refused beyond :data:`MAX_RECORD_BYTES`: the mcap library reads a record's
+    fields by the lengths the file states, so a corrupt length would read gigabytes into memory."""
+
+    def __init__(self, fh: IO[bytes]) -> None:
+        self._fh = fh
+
+    def read(self, n: int = -1) -> bytes:
+        if n < 0 or n > MAX_RECORD_BYTES:
+            raise McapError(f"a record field of {n} bytes, more than any the logger writes ({MAX_RECORD_BYTES})")
+        return self._fh.read(n)
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        return self._fh.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._fh.tell()
+
+    def seekable(self) -> bool:
+        return True
+
+
+def _records(fh: IO[bytes]) -> Iterator[Any]:
+    """The records of an MCAP file from its start, chunks broken up, none larger than :data:`MAX_RECORD_BYTES`
+    (an McapError where one is)."""
+    reader = StreamReader(_BoundedReads(fh), emit_chunks=True, record_size_limit=MAX_RECORD_BYTES)  # type: ignore[arg-type]
+    for rec in reader.records:
+        if isinstance(rec, Chunk):
+            _check_chunk(rec.uncompressed_size, rec.compression, rec.data)
+            yield from breakup_chunk(rec)
+        else:
+            yield rec
+
+
+def _check_chunk(size: int, compression: str, data: bytes | None = None) -> None:
+    """A chunk whose records, uncompressed, would be larger than :data:`MAX_RECORD_BYTES` is refused before it is
+    decompressed (the zstd frame states its own size, which a corrupt file can set to anything)."""
+    claimed = zstandard.frame_content_size(data) if data and compression == "zstd" else -1
+    if max(size, claimed) > MAX_RECORD_BYTES:
+        raise McapError(f"a chunk of {max(size, claimed)} bytes, more than any the logger writes ({MAX_RECORD_BYTES})")
 
 
 def _records_indexed(name: str, fh: IO[bytes]) -> McapLog | None:
@@ -1253,12 +1306,20 @@ def _records_indexed(name: str, fh: IO[bytes]) -> McapLog | None:
     """
     wanted = {TOPIC_EVENTS: "events", TOPIC_RESULTS: "results", TOPIC_CONFIG: "config", TOPIC_OTHER: "other"}
     try:
-        reader = make_reader(fh)
+        if os.fstat(fh.fileno()).st_size < 2 * len(_MAGIC) + 1 + 8:
+            return None  # no room for a footer: a cut file
+        reader = make_reader(_BoundedReads(fh))  # type: ignore[arg-type]
         summary = reader.get_summary()
         if summary is None or not summary.chunk_indexes:
             return None
+        if any(max(ci.uncompressed_size, ci.chunk_length) > MAX_RECORD_BYTES for ci in summary.chunk_indexes):
+            return None  # not the logger's: read through, up to such a chunk
         lists: dict[str, list[dict[str, Any]]] = {k: [] for k in wanted.values()}
+        kept = 0
         for _schema, channel, msg in reader.iter_messages(topics=list(wanted), log_time_order=False):
+            kept += len(msg.data)
+            if kept > SIDE_BYTES_MAX:
+                return None  # reading it through keeps what fits, and says so
             try:
                 obj = json.loads(msg.data)
             except (ValueError, RecursionError):  # deeply nested JSON: one bad record costs only itself
@@ -1266,7 +1327,8 @@ def _records_indexed(name: str, fh: IO[bytes]) -> McapLog | None:
             if isinstance(obj, dict):
                 lists[wanted[channel.topic]].append(obj)
         meta = next((dict(m.metadata) for m in reader.iter_metadata() if m.name == METADATA_NAME), {})
-    except (McapError, struct.error, ValueError, EOFError, KeyError, MemoryError, zstandard.ZstdError) as err:
+    except (McapError, struct.error, ValueError, EOFError, KeyError, MemoryError, zstandard.ZstdError,
+            OSError) as err:
         log.debug("%s: no usable summary (%s); reading it through", name, err)
         return None
     if meta and not meta.get("format", "").startswith("ballbar-mcap/1"):
@@ -1278,7 +1340,7 @@ def _records_indexed(name: str, fh: IO[bytes]) -> McapLog | None:
     return out
 
 
-def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
+def _parse(name: str, fh: IO[bytes], samples: bool = True, status: bool = True) -> McapLog:
     channels: dict[int, str] = {}
     lists: dict[str, list[dict[str, Any]]] = {k: [] for k in _TOPIC_LISTS.values()}
     meta: dict[str, str] = {}
@@ -1287,9 +1349,9 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
     problem = ""
     n_msg = 0
     skipped_blocks = 0  # sample records not decoded (samples=False)
-    reader = StreamReader(fh, record_size_limit=1 << 30)
+    side = 0  # bytes of JSON kept in ``lists``
     try:
-        for rec in reader.records:
+        for rec in _records(fh):
             if isinstance(rec, Channel):
                 channels[rec.id] = rec.topic
             elif isinstance(rec, Metadata) and rec.name == METADATA_NAME:
@@ -1309,7 +1371,13 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
                         raise DataError(
                             f"{name}: message {n_msg} on {TOPIC_SAMPLES} is not a ballbar.Samples record: {err}"
                         ) from None
-                elif topic in _TOPIC_LISTS:
+                elif topic in _TOPIC_LISTS and (status or topic != TOPIC_STATUS):
+                    side += len(rec.data)
+                    if side > SIDE_BYTES_MAX:
+                        if side - len(rec.data) <= SIDE_BYTES_MAX:
+                            log.warning("%s: more than %d MiB of events, results and status: the rest left out",
+                                        name, SIDE_BYTES_MAX >> 20)
+                        continue
                     try:
                         obj = json.loads(rec.data)
                     except (ValueError, RecursionError):  # deeply nested JSON: RecursionError
@@ -1322,12 +1390,15 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
                 pass
     except (McapError, struct.error, ValueError, EOFError, MemoryError, zstandard.ZstdError) as err:
         # A killed writer leaves a partial record: a short read, a torn zstd frame, a bad length.
-        detail = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+        detail = _why_stopped(err)
         what = f"{sum(d.seq.size for d in decoded)} samples" if samples else f"{skipped_blocks} sample records"
         problem = f"ends early after {what} ({detail})"
     if meta and not meta.get("format", "").startswith("ballbar-mcap/1"):
         raise DataError(f"{name}: format {meta.get('format')!r} is not one this version reads (ballbar-mcap/1)")
-    offset = int(meta.get("host_clock_offset_ns", "0") or 0)
+    try:
+        offset = int(meta.get("host_clock_offset_ns", "0") or 0)
+    except ValueError:
+        raise DataError(f"{name}: its metadata's host_clock_offset_ns is not a whole number") from None
     log_ = _assemble([name], decoded, offset)
     log_.metadata = meta
     log_.complete = complete
@@ -1336,6 +1407,13 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True) -> McapLog:
         setattr(log_, k, v)
     log_.file_events = [0] * len(log_.events)
     return log_
+
+
+def _why_stopped(err: BaseException) -> str:
+    """Why reading a file's records stopped, in words."""
+    if isinstance(err, struct.error | EOFError | EndOfFile):
+        return "a record cut short"
+    return f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
 
 
 def _assemble(paths: list[str], decoded: list[DecodedSamples], offset_ns: int) -> McapLog:
@@ -1363,18 +1441,23 @@ def _assemble(paths: list[str], decoded: list[DecodedSamples], offset_ns: int) -
     return McapLog(paths, batch, wall, pre)
 
 
-def read_log(path: str | os.PathLike[str], samples: bool = True) -> McapLog:
+def read_log(path: str | os.PathLike[str], samples: bool = True, status: bool = True) -> McapLog:
     """Everything in one log file; a truncated file (killed writer) is read up to its last whole chunk.
 
     ``samples=False`` leaves the samples and the status messages out (an empty
     batch, no status): reading only the events, results and configuration is
     then many times faster, the more so for a finished file, whose summary
-    says which chunks hold them.
+    says which chunks hold them.  ``status=False`` leaves the status messages
+    out (the analysis needs none).
+
+    Memory: the samples, and at most :data:`SIDE_BYTES_MAX` of the other
+    records' JSON; a record or chunk larger than :data:`MAX_RECORD_BYTES` ends
+    the reading as a cut file's end does.
 
     Raises :class:`DataError` (one line, naming the file) when the file is
-    missing, not MCAP, or holds a malformed samples record.
+    missing, unreadable, not MCAP, or holds a malformed samples record.
     """
-    out = _read_one(os.fspath(path), samples)
+    out = _read_one(os.fspath(path), samples, status)
     if out.problem:
         log.warning("%s: %s; the writer was probably killed", os.fspath(path), out.problem)
     return out
@@ -1395,11 +1478,29 @@ def read_results(paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]
     return out
 
 
-def read_logs(paths: Iterable[str | os.PathLike[str]]) -> McapLog:
-    """Several files in the given order, joined; preroll samples already in the file before are dropped."""
-    parts = [read_log(p) for p in paths]
+def read_logs(
+    paths: Iterable[str | os.PathLike[str]], skip_bad: bool = False, status: bool = True
+) -> McapLog:
+    """Several files in the given order, joined; preroll samples already in the file before are dropped.
+
+    ``skip_bad``: a file that cannot be read is left out with a warning naming it (one bad file in a directory
+    costs only itself); a DataError only when none can be read.
+    """
+    names = list(paths)
+    parts: list[McapLog] = []
+    errors: list[str] = []
+    for path in names:
+        try:
+            parts.append(read_log(path, status=status))
+        except DataError as err:
+            if not skip_bad:
+                raise
+            errors.append(str(err))
+            log.warning("%s; left out, the other files read", err)
     if not parts:
-        raise DataError("no MCAP files given")
+        raise DataError(errors[0] if len(errors) == 1 else
+                        f"none of the {len(names)} MCAP files could be read (the first: {errors[0]})" if errors else
+                        "no MCAP files given")
     keep_batches: list[SampleBatch] = []
     walls: list[NDArray[np.int64]] = []
     pres: list[NDArray[np.bool_]] = []
@@ -1443,9 +1544,9 @@ def read_mcap(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArra
         files = mcap_files(name)
         if not files:
             raise DataError(f"{name}: a directory without .mcap files")
-        lg = read_logs(files)
+        lg = read_logs(files, skip_bad=True, status=False)
     else:
-        lg = read_log(name)
+        lg = read_log(name, status=False)
     return valid_samples(lg, name)
 
 
@@ -1545,7 +1646,7 @@ def recover_file(path: Path) -> Recovered:
         w = Writer(dst, compression=CompressionType.ZSTD)
         w.start(profile="", library=f"ballbar {__version__} (recovered)")
         try:
-            for rec in StreamReader(src, record_size_limit=1 << 30).records:
+            for rec in _records(src):
                 if isinstance(rec, Schema):
                     schemas[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
                 elif isinstance(rec, Channel):
@@ -1568,8 +1669,8 @@ def recover_file(path: Path) -> Recovered:
                                     feed_in = obj
                                 elif obj.get("kind") == "test" or obj.get("event") in TEST_END_EVENTS:
                                     feed_in = None
-        except (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError) as err:
-            problem = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+        except (McapError, struct.error, ValueError, EOFError, MemoryError, zstandard.ZstdError) as err:
+            problem = _why_stopped(err)
         w.finish()
         dst.flush()
         os.fsync(dst.fileno())

@@ -1,41 +1,32 @@
-"""Reading recordings: CSV, and the daemon's MCAP logs (:mod:`.mcap_log`).
-
-CSV format: a header line naming at least the columns ``t_s`` (seconds, any
-origin, increasing) and ``length_mm`` (absolute bar length in millimetres), then
-one sample per line, comma separated.  Other columns are ignored; lines that
-start with ``#`` are comments.  Rows out of time order by no more than timestamp
-jitter (:data:`~ballbar.analysis.timeaxis.JITTER_PERIODS` median sample periods)
-are sorted, with a warning; a time that runs back further, or never advances,
-is an error.
+"""Reading recordings for the analysis: CSV (:mod:`.csvfile`) and the daemon's MCAP logs (:mod:`.mcap_log`).
 
 Every problem is raised as :class:`~ballbar.analysis.errors.DataError` with a
-one-line message that names the file and the line.
+one-line message that names the file (and, in a CSV, the line).
 """
 
 from __future__ import annotations
 
-import bisect
-import codecs
 import logging
-import math
 import os
-import stat
-import warnings
-from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, BinaryIO, NoReturn
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.errors import BallbarError, DataError
-from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
-from ballbar.analysis.timeaxis import JITTER_PERIODS, positive_steps
+
+from .csvfile import read_csv
+
+if TYPE_CHECKING:
+    from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 
 log = logging.getLogger(__name__)
 
-REQUIRED = ("t_s", "length_mm")
+# No ball-bar's transducer travels this far: a length further than this from the recording's typical one is not a
+# measurement of the bar (a corrupt value, 1e308 in a CSV), and is left out before the analysis (see screen()).
+TRAVEL_MM = 25.0
+MAX_BAR_MM = 1.0e4  # nor is a bar 10 m long, or one of no length: the typical length is taken among (0, this)
 
 
 @dataclass
@@ -59,264 +50,36 @@ class Recording:
     timing: list[tuple[float, float, float]] = field(default_factory=list)
 
 
-def open_recording(name: str) -> BinaryIO:
-    """Open a recording for reading; the reasons it cannot be, as one-line DataErrors."""
-    try:
-        return open(name, "rb")
-    except FileNotFoundError:
-        raise DataError(f"{name}: no such file") from None
-    except IsADirectoryError:
-        raise DataError(f"{name}: is a directory, not a recording") from None
-    except OSError as err:
-        raise DataError(f"{name}: cannot read: {err.strerror or err}") from err
+def screen(rec: Recording) -> tuple[Recording, str]:
+    """``rec`` without the samples whose length cannot be a measurement of the bar, and why (or "").
 
-
-BLOCK_BYTES = 1 << 20  # a CSV is read, decoded and parsed this many bytes (whole lines) at a time
-SCAN_ROWS = 1 << 20  # and its time axis checked this many samples at a time
-
-
-def read_csv(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Read ``(t_s, length_mm)`` from a CSV recording; sorted by time, all finite.
-
-    A bounded stream: the file is read, decoded and parsed :data:`BLOCK_BYTES`
-    at a time straight into the two output arrays (16 bytes a sample), then its
-    time axis is checked :data:`SCAN_ROWS` samples at a time.  Beyond the
-    output it holds one block's text and, for the check, the positive time
-    steps (8 bytes a sample).  The errors are those of the whole file, in the
-    same order: the first bad byte or line, whichever block it lies in.
+    Such a length lies more than :data:`TRAVEL_MM` from the median of the
+    recording's lengths within (0, :data:`MAX_BAR_MM`) mm (the median of all of
+    them if none is).  Those samples are left out, counted and named in the
+    returned warning (the analysis then sees a gap of one sample period per
+    sample, within what it takes for lost samples); the breaks keep their
+    place.  A finite but absurd value (``1e308``) would otherwise overflow the
+    fit's arithmetic.
     """
-    name = os.fspath(path)
-    with open_recording(name) as fh:
-        csv = _CsvParser(name, fh)
-        csv.parse()
-    t, length = csv.t, csv.L
-    csv.t = csv.L = np.empty(0)
-    if t.size < 2:
-        return t, length
-    pos = positive_steps(t)
-    if pos.size == 0:
-        what = f"is {t[0]:g} s in every one of the {t.size} samples" if np.all(t == t[0]) else "never increases"
-        raise DataError(f"{name}: t_s {what}: no time axis to analyse")
-    # backward_steps(t), a block at a time: its median period, and how far each sample lies behind the latest before
-    period = float(np.median(pos, overwrite_input=True))
-    del pos
-    jitter = JITTER_PERIODS * period if math.isfinite(period) else 0.0
-    latest, late, most = float(t[0]), 0, 0.0
-    for a in range(0, t.size, SCAN_ROWS):
-        seg = t[a : a + SCAN_ROWS]
-        prior = np.maximum.accumulate(np.concatenate(([latest], seg[:-1])))
-        latest = max(float(prior[-1]), float(seg[-1]))
-        behind = np.maximum(prior - seg, 0.0)
-        if np.any(behind > jitter):
-            j = int(np.argmax(behind > jitter))
-            raise DataError(
-                f"{name}:{csv.line_of(a + j)}: t_s runs backwards by {behind[j]:.6g} s (to {seg[j]:.6f} s), more "
-                f"than timestamp jitter ({JITTER_PERIODS:g} sample periods, {jitter:.3g} s): a clock that restarted "
-                "or jumped back, or rows out of order"
-            )
-        if np.any(behind > 0):
-            late += int(np.count_nonzero(behind))
-            most = max(most, float(behind.max()))
-    if late:
-        log.warning("%s: %d samples out of time order by at most %.3g s (timestamp jitter); sorted", name, late, most)
-        order = np.argsort(t, kind="stable")
-        t = t[order]
-        length = length[order]
-    return t, length
-
-
-class _CsvParser:
-    """One pass over a CSV file's blocks into ``t`` and ``L``; see :func:`read_csv`.
-
-    A block's lines are parsed by ``np.loadtxt``; only where it fails, or for
-    lines with a ``#`` past their start, does Python look at lines one by one
-    (:func:`_bad_line`), so that the error names the file's first bad line.
-    """
-
-    def __init__(self, name: str, fh: BinaryIO) -> None:
-        self.name = name
-        self.blocks = _text_blocks(fh, name)
-        try:
-            st = os.fstat(fh.fileno())
-            self.size = st.st_size if stat.S_ISREG(st.st_mode) else 0
-        except (OSError, AttributeError):  # no file descriptor: grow the arrays as the samples come
-            self.size = 0
-        self.lines = 0  # lines of the file before the block in hand
-        self.header: list[str] | None = None
-        self.use = (0, 1)
-        self.t = np.empty(0)
-        self.L = np.empty(0)
-        self.n = 0  # samples so far
-        # per block of samples: its first sample, the 0-based file line of its first line, and which of its
-        # lines hold no sample (None: all do)
-        self.spans: list[tuple[int, int, np.ndarray | None]] = []
-        self.nonfinite: str | None = None  # the first sample with a value that is not a finite number
-        self.suspect: str | None = None  # the first line loadtxt took that the line check does not (a "#" in it)
-
-    def parse(self) -> None:
-        nbytes = 0
-        for text, size in self.blocks:
-            nbytes += size
-            lines = text.splitlines()
-            first = self.lines
-            self.lines += len(lines)
-            if self.header is None:
-                at = next((i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")), None)
-                if at is None:
-                    continue
-                self._read_header(lines[at], first + at)
-                lines, first = lines[at + 1 :], first + at + 1
-            if lines:
-                self._block(lines, first, "#" in text, nbytes)
-        if self.header is None:
-            raise DataError(f"{self.name}: empty file, expected a header 't_s,length_mm' and samples")
-        if self.n == 0:
-            raise DataError(f"{self.name}: header but no samples")
-        if self.nonfinite is not None:
-            raise DataError(self.nonfinite)
-        if self.t.size != self.n:  # give back the spare capacity (in place: realloc)
-            self.t.resize(self.n, refcheck=False)
-            self.L.resize(self.n, refcheck=False)
-
-    def _read_header(self, line: str, index: int) -> None:
-        cols = [c.strip() for c in line.split(",")]
-        missing = [c for c in REQUIRED if c not in cols]
-        if missing:
-            self._fail(
-                f"{self.name}:{index + 1}: header must name the columns t_s,length_mm "
-                f"(missing {', '.join(missing)}; found {line.strip()[:60]!r})"
-            )
-        self.header = cols
-        self.use = (cols.index("t_s"), cols.index("length_mm"))
-
-    def _fail(self, message: str | None) -> NoReturn:
-        """Raise ``message`` once the rest of the file is read: a read or UTF-8 error there comes first."""
-        for text, _ in self.blocks:
-            if message is None:  # the first bad line after a block that loadtxt could not parse
-                lines = text.splitlines()
-                message = self._bad_line(lines, self.lines)
-                self.lines += len(lines)
-        raise DataError(message or f"{self.name}: malformed CSV")
-
-    def _bad_line(self, lines: list[str], first: int, hashed: bool = False) -> str | None:
-        """The error of the first line of ``lines`` (file line ``first`` + 1 on) with too few values or not a number.
-
-        ``hashed``: look only at lines with a ``#`` (loadtxt took the others as they are).
-        """
-        assert self.header is not None
-        for i, ln in enumerate(lines):
-            if hashed and "#" not in ln:
-                continue
-            s = ln.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.split(",")
-            if len(parts) < max(self.use) + 1:
-                return (f"{self.name}:{first + i + 1}: expected {len(self.header)} comma-separated values, "
-                        f"got {s[:60]!r}")
-            for j in self.use:
-                try:
-                    float(parts[j])
-                except ValueError:
-                    return f"{self.name}:{first + i + 1}: not a number: {parts[j].strip()[:40]!r}"
-        return None
-
-    def _block(self, lines: list[str], first: int, hashed: bool, nbytes: int) -> None:
-        """Parse the sample lines ``lines``, the first of them the file's line ``first`` + 1."""
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # "input contained no data": see parse()
-                data = np.loadtxt(lines, delimiter=",", comments="#", usecols=self.use, ndmin=2, dtype=float)
-        except ValueError:
-            self._fail(self.suspect or self._bad_line(lines, first))
-        k = data.shape[0]
-        if k == 0:
-            return
-        if hashed and self.suspect is None:
-            self.suspect = self._bad_line(lines, first, hashed=True)
-        # loadtxt skips exactly the lines that are blank or comments (where it takes the others, any other is
-        # an error), so where it gave fewer samples than lines, those are the lines without one
-        skip = None if k == len(lines) else np.array(
-            [i for i, ln in enumerate(lines) if not (s := ln.strip()) or s.startswith("#")], dtype=np.int64)
-        self.spans.append((self.n, first, skip))
-        if self.nonfinite is None:
-            bad = ~np.isfinite(data[:, 0]) | ~np.isfinite(data[:, 1])
-            if bad.any():
-                j = int(np.argmax(bad))
-                i = _nth_kept(skip, j)
-                what = "t_s" if not math.isfinite(data[j, 0]) else "length_mm"
-                self.nonfinite = (f"{self.name}:{first + i + 1}: {what} is not a finite number "
-                                  f"({lines[i].strip()[:60]!r})")
-        need = self.n + k
-        if need > self.t.size:
-            # room for the whole file at the bytes per sample so far (and a little more), or a quarter more
-            cap = need + need // 4
-            if self.size > nbytes:
-                cap = max(need + need // 8, int(need * self.size / nbytes * 1.01))
-            self.t.resize(cap, refcheck=False)
-            self.L.resize(cap, refcheck=False)
-        self.t[self.n : need] = data[:, 0]
-        self.L[self.n : need] = data[:, 1]
-        self.n = need
-
-    def line_of(self, k: int) -> int:
-        """The 1-based file line of sample ``k`` (as read, before any sorting)."""
-        b = bisect.bisect_right([s[0] for s in self.spans], k) - 1
-        start, first, skip = self.spans[b]
-        return first + _nth_kept(skip, k - start) + 1
-
-
-def _nth_kept(skip: np.ndarray | None, j: int) -> int:
-    """The index of the ``j``-th (from 0) index not in the sorted ``skip``."""
-    if skip is not None:
-        for s in skip.tolist():
-            if s > j:
-                break
-            j += 1
-    return j
-
-
-def _text_blocks(fh: BinaryIO, name: str) -> Iterator[tuple[str, int]]:
-    """The file as text, in whole lines of about :data:`BLOCK_BYTES` each, with their size in bytes.
-
-    A UTF-8 byte order mark at the start is dropped.  Invalid UTF-8 is a
-    DataError naming the byte and its line, raised once the rest of the file
-    is read (a read error anywhere comes first, as when it was read whole).
-    """
-    offset = newlines = 0  # bytes and b"\n" before the block
-    carry: list[bytes] = []  # the start of a line the last read cut
-    while True:
-        chunk = _read(fh, name)
-        if chunk:
-            cut = chunk.rfind(b"\n") + 1
-            if cut == 0:
-                carry.append(chunk)
-                continue
-            block = b"".join([*carry, chunk[:cut]]) if carry else chunk[:cut]
-            carry = [chunk[cut:]] if cut < len(chunk) else []
-        elif carry:
-            block, carry = b"".join(carry), []
-        else:
-            return
-        skip = len(codecs.BOM_UTF8) if offset == 0 and block.startswith(codecs.BOM_UTF8) else 0
-        try:
-            text = (block[skip:] if skip else block).decode("utf-8")
-        except UnicodeDecodeError as err:
-            at = skip + err.start
-            line = newlines + block[:at].count(b"\n") + 1
-            while _read(fh, name):
-                pass
-            raise DataError(f"{name}:{line}: not a text CSV file (byte {offset + at} is not UTF-8)") from None
-        offset += len(block)
-        newlines += block.count(b"\n")
-        yield text, len(block)
-
-
-def _read(fh: BinaryIO, name: str) -> bytes:
-    try:
-        return fh.read(BLOCK_BYTES)
-    except OSError as err:
-        raise DataError(f"{name}: cannot read: {err.strerror or err}") from err
+    L = rec.L
+    if not L.size:
+        return rec, ""
+    with np.errstate(over="ignore", invalid="ignore"):
+        plausible = L[(L > 0) & (L < MAX_BAR_MM)]
+        mid = float(np.median(plausible if plausible.size else L))
+        off = ~(np.abs(L - mid) <= TRAVEL_MM)
+    del plausible
+    n = int(np.count_nonzero(off))
+    if not n:
+        return rec, ""
+    gone = np.flatnonzero(off)
+    first = int(gone[0])
+    why = (f"{n} sample(s) left out: a length more than {TRAVEL_MM:g} mm from the recording's typical {mid:.4f} mm "
+           f"is not a measurement of the bar (the first: {L[first]:.6g} mm at t = {rec.t[first]:.6f} s)")
+    log.warning("%s: %s", rec.name, why)
+    keep = ~off
+    breaks = [(at - int(np.searchsorted(gone, at)), reason) for at, reason in rec.breaks]
+    return replace(rec, t=rec.t[keep], L=L[keep], breaks=breaks), why
 
 
 def is_mcap(path: str | os.PathLike[str]) -> bool:
@@ -339,8 +102,8 @@ def load_recording(path: str | os.PathLike[str]) -> Recording:
         from .mcap_log import mcap_files, read_log, read_logs, recording  # here: CSV needs no MCAP machinery
 
         if os.path.isdir(name):
-            return recording(read_logs(mcap_files(name)), name)
-        return recording(read_log(name), name)
+            return recording(read_logs(mcap_files(name), skip_bad=True, status=False), name)
+        return recording(read_log(name, status=False), name)
     t, L = read_csv(name)
     return Recording(t, L, [], "t_s", name)
 
@@ -464,13 +227,22 @@ def analyze(
     provisional circles: what the daemon published of them live is in the recording); its errors name the
     recording.  ``only``: fit that test alone (from 1), the others reported ``test_skipped``: its result is
     the one the whole analysis gives."""
+    from ballbar.analysis.engine import analyze_recording  # here: listing and reading need none of the fit
+
+    rec, left_out = screen(rec)
     try:
         out = analyze_recording(rec.t, rec.L, plan, machine, options, curves=curves, breaks=rec.breaks,
                                 circles=False, only=only)
     except DataError as err:
         if rec.name and not str(err).startswith(rec.name):
             err.args = (f"{rec.name}: {err}",)
+        if left_out and left_out not in str(err):
+            err.args = (f"{err.args[0]} ({left_out})",)
         raise
+    if left_out:
+        for r in out:
+            if r.get("kind") == "test":
+                r.setdefault("warnings", []).append(left_out)
     if rec.timing and rec.axis == "host":
         from ballbar.analysis.polled import state_span
 

@@ -1,7 +1,7 @@
-"""Reading a CSV recording in a bounded stream (:func:`ballbar.daemon.recordings.read_csv`).
+"""Reading a CSV recording in a bounded stream (:func:`ballbar.daemon.csvfile.read_csv`).
 
-The file is parsed a block of :data:`~ballbar.daemon.recordings.BLOCK_BYTES`
-at a time and its time axis checked :data:`~ballbar.daemon.recordings.SCAN_ROWS`
+The file is parsed a block of :data:`~ballbar.daemon.csvfile.BLOCK_BYTES`
+at a time and its time axis checked :data:`~ballbar.daemon.csvfile.SCAN_ROWS`
 samples at a time.  Both are shrunk here so that small files cross many
 blocks: the samples, the warnings and the errors (with their file lines) must
 be the same whatever the block size, as if the file had been read whole.
@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from ballbar.analysis.errors import DataError
-from ballbar.daemon import recordings
+from ballbar.daemon import csvfile
 from ballbar.daemon.recordings import read_csv
 
 SIZES = [(1, 1), (7, 2), (64, 5), (1 << 20, 1 << 20)]  # (BLOCK_BYTES, SCAN_ROWS)
@@ -40,8 +40,8 @@ def read_all_ways(path: Path, monkeypatch: pytest.MonkeyPatch) -> list[tuple[np.
     """read_csv's answer (the arrays, or the error's message) at each block size."""
     out: list[tuple[np.ndarray, np.ndarray] | str] = []
     for block, scan in SIZES:
-        monkeypatch.setattr(recordings, "BLOCK_BYTES", block)
-        monkeypatch.setattr(recordings, "SCAN_ROWS", scan)
+        monkeypatch.setattr(csvfile, "BLOCK_BYTES", block)
+        monkeypatch.setattr(csvfile, "SCAN_ROWS", scan)
         try:
             out.append(read_csv(path))
         except DataError as err:

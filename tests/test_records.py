@@ -96,9 +96,9 @@ def test_a_directory_of_two_runs_gives_its_newest_complete_test_from_its_own_fil
     decoded: list[list[str]] = []
     real = testindex.read_logs
 
-    def spy(paths: Any) -> Any:
+    def spy(paths: Any, **kw: Any) -> Any:
         decoded.append([Path(p).name for p in paths])
-        return real(paths)
+        return real(paths, **kw)
 
     monkeypatch.setattr(testindex, "read_logs", spy)
     t0 = time.perf_counter()
