@@ -142,6 +142,7 @@ from .listeners import MERGE_S, TEST_END_EVENTS, Listener, to_json
 from .listeners import Message as ListenerMessage
 from .recordings import Recording
 from .samples import SampleBatch, SourceEvent, break_reason, break_seq
+from .spool import SPOOL_NAME, empty_spool, read_spool, reserve_spool, spool_size, write_spool
 
 log = logging.getLogger(__name__)
 
@@ -380,18 +381,22 @@ def _open_output(path: Path) -> IO[bytes]:
     return open(path, "xb")
 
 
-def _free_bytes(path: Path) -> int | None:
-    """Bytes available to this process on the file system of ``path`` (None: cannot tell).  Cheap: one statvfs.
-    (Tests replace this together with ``_open_output``.)"""
+def _disk_space(path: Path) -> tuple[int, int] | None:
+    """Bytes available to this process, and the size, of the file system of ``path`` (None: cannot tell).  Cheap:
+    one statvfs.  (Tests replace this together with ``_open_output``.)"""
     try:
         st = os.statvfs(path)
     except OSError:
         return None
-    return st.f_bavail * st.f_frsize
+    return st.f_bavail * st.f_frsize, st.f_blocks * st.f_frsize
 
 
 _NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
 HELD_MAX = 2000  # results and events kept in memory while nothing can be written (oldest dropped, counted)
+# A new file needs room for its head (the schemas, ~20 kB compressed) and its first seconds of samples (10 kHz:
+# ~50 kB/s): after a full disk, writing resumes once this much is free, and at most headroom_bytes, and at most a
+# 64th of the file system (a small one never has 64 MiB free).
+FILE_NEEDS_BYTES = 256 << 10
 _HELD_TOPICS = (TOPIC_RESULTS, TOPIC_EVENTS, TOPIC_CONFIG)
 
 
@@ -492,7 +497,8 @@ class McapLogger(Listener):
         self.preroll_s = float(preroll_s)
         self.retry_min_s = float(retry_min_s)
         self.retry_max_s = float(retry_max_s)
-        # A full disk: retried as soon as a cheap probe sees this much free (never on a sliver of space).
+        # A full disk: retried as soon as a cheap probe sees this much free (never on a sliver of space), or less on
+        # a small file system (headroom()).
         self.headroom_bytes = int(headroom_bytes)
         self.space_probe_s = float(space_probe_s)
         self._no_space = False
@@ -531,6 +537,17 @@ class McapLogger(Listener):
             0,
         )
         self._last_error = ""
+        # Results and events a previous run held through a write outage until it stopped: written to this run's
+        # first file (then the spool is emptied), and given to the bus's history (spooled).
+        self.spool_path = self.state_dir / SPOOL_NAME
+        self._spool_reserved = False
+        held = read_spool(self.state_dir).entries
+        self._held.extend(held)
+        self._spool_pending = bool(held)
+        self.spooled: list[dict[str, Any]] = [dict(payload) for _t, payload, _l in held]
+        if held:
+            log.warning("mcap log: %d results and events the last run held through a write outage are in %s; "
+                        "writing them to this run's first file", len(held), self.spool_path)
 
         self._wake = threading.Event()
         self._flusher_until = math.inf
@@ -624,15 +641,15 @@ class McapLogger(Listener):
         with self._lock:
             if self._stopped:
                 return
+            if self._file is None and self._held:  # a write outage: one last try, whatever the headroom
+                self._open_file(time.monotonic())
             self._stopped = True
             if self._file is not None:
                 self._close_file()
             if self._pending.n:  # no file could take them
                 self._lose_pending()
             if self._held:
-                self._c["messages_lost"] += len(self._held)
-                log.warning("mcap log: %d results and events held during a write outage are lost", len(self._held))
-                self._held.clear()
+                self._spool_held()
             self._ring.clear()
         self._wake.set()
         if threading.current_thread() is not self._thread:
@@ -803,14 +820,24 @@ class McapLogger(Listener):
             if now < self._next_probe:
                 return False
             self._next_probe = now + self.space_probe_s
-            free = _free_bytes(self.directory if self.directory.exists() else self.state_dir)
-            if free is not None and free < self.headroom_bytes:
+            space = _disk_space(self.directory if self.directory.exists() else self.state_dir)
+            if space is not None and space[0] < self.headroom(space[1]):
                 return False
-            if free is None and now < self._retry_at:
+            if space is None and now < self._retry_at:
                 return False
         elif now < self._retry_at:
             return False
         return self._open_file(now)
+
+    def headroom(self, total: int | None = None) -> int:
+        """Bytes that must be free before writing resumes after a full disk, on a file system of ``total`` bytes
+        (None: the state directory's): :data:`FILE_NEEDS_BYTES`, up to ``headroom_bytes`` and a 64th of it."""
+        if total is None:
+            space = _disk_space(self.directory if self.directory.exists() else self.state_dir)
+            total = space[1] if space is not None else None
+        if total is None:
+            return self.headroom_bytes
+        return max(FILE_NEEDS_BYTES, min(self.headroom_bytes, total // 64))
 
     def _new_path(self) -> Path:
         ts = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
@@ -872,6 +899,10 @@ class McapLogger(Listener):
             self._flush_file()  # proves the disk takes data again, and makes the head readable at once
         if self._file is None:
             return False
+        if self._spool_pending and not self._held:  # what the spool held is in this file now
+            self._spool_pending = not empty_spool(self.spool_path)
+        if not self._spool_reserved:
+            self._spool_reserved = reserve_spool(self.spool_path, self._spool_bytes())
         if self._failing:
             log.warning(
                 "mcap log: writing again to %s after %.1f s; %d samples could not be logged",
@@ -974,6 +1005,31 @@ class McapLogger(Listener):
             if self._file is not None:
                 self._c["messages_held_written"] += 1
 
+    def _spool_bytes(self) -> int:
+        space = _disk_space(self.state_dir)
+        return spool_size(space[1] if space is not None else None)
+
+    def _spool_held(self) -> None:
+        """At stop, results and events held through a write outage that no file could take: into the spool, with
+        a ``log_gap`` event saying what the outage cost, for the next start to write (:func:`read_spool`)."""
+        now = time.monotonic()
+        entries = list(self._held)
+        if self._failing:
+            gap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
+                   "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
+            entries.append((TOPIC_EVENTS, gap, self._wall_ns(now)))
+        self._held.clear()
+        kept = write_spool(self.spool_path, self.run_id, entries, self._spool_bytes())
+        lost = len(entries) - kept
+        self._c["messages_lost"] += lost
+        if kept:
+            log.warning("mcap log: %d results and events held through a write outage are kept in %s; the next "
+                        "start writes them%s", kept, self.spool_path,
+                        f" ({lost} of the oldest did not fit and are lost)" if lost else "")
+        else:
+            log.error("mcap log: %d results and events held through a write outage are lost (%s could not be "
+                      "written either)", lost, self.spool_path)
+
     def _write_pending(self) -> None:
         if not self._pending.n:
             return
@@ -1063,7 +1119,7 @@ class McapLogger(Listener):
             self._fail_lost = 0
             self._fail_detail = detail
             when = (
-                f"when {self.headroom_bytes / 2**20:.0f} MiB are free (checked every {self.space_probe_s:g} s)"
+                f"when {self.headroom() / 2**20:.2g} MiB are free (checked every {self.space_probe_s:g} s)"
                 if self._no_space else f"in {self._backoff:.0f} s"
             )
             log.error(
@@ -1618,6 +1674,8 @@ class Recovered:
     messages: int
     cut_test: dict[str, Any] | None  # the feed_in event of a test the crash cut (no result, no verdict)
     problem: str
+    outage: str = ""  # the write error that made the logger drop the file ("": the daemon was killed)
+    outcome: bool = False  # the cut test's result (or rejection) is recorded after all: in a later file, the spool
 
 
 def _has_footer(path: Path) -> bool:
@@ -1699,12 +1757,46 @@ def recover_crashed(directory: str | os.PathLike[str]) -> list[Recovered]:
             with contextlib.suppress(OSError):
                 path.with_name(path.name + ".recovering").unlink()
             continue
-        log.warning(
-            "mcap log: %s was cut by a crash; rewrote its %d whole records with an index%s",
-            path.name, r.messages, f" (the test {r.cut_test.get('test_id')} was cut)" if r.cut_test else "",
-        )
+        _cut_by(r, d)
+        what = f"a write outage ({r.outage})" if r.outage else "a crash"
+        test = ""
+        if r.cut_test:
+            test = f" (the test {r.cut_test.get('test_id')} was cut{'; its result is recorded' if r.outcome else ''})"
+        log.warning("mcap log: %s was cut by %s; rewrote its %d whole records with an index%s",
+                    path.name, what, r.messages, test)
         out.append(r)
     return out
+
+
+def _cut_by(r: Recovered, directory: Path) -> None:
+    """Whether the logger dropped ``r``'s file after a write error (the next file of its run begins with a
+    ``log_gap``, or the run's spool holds one), and whether its cut test's outcome is recorded after all."""
+    try:
+        run_id = read_log(r.path, samples=False).metadata.get("run_id", "")
+    except BallbarError:
+        return
+    if not run_id:
+        return
+    test_id = r.cut_test.get("test_id") if r.cut_test else None
+    later: list[dict[str, Any]] = []
+    files = list_recordings(directory)
+    for p in files[files.index(r.path) + 1 :] if r.path in files else []:
+        try:
+            lg = read_log(p, samples=False)
+        except BallbarError:
+            continue
+        if lg.metadata.get("run_id") != run_id:
+            continue
+        later += [*lg.events, *lg.results]
+    spool = read_spool(directory.parent)
+    if spool.run_id == run_id:
+        later += [payload for _topic, payload, _t in spool.entries]
+    gaps = [e for e in later if e.get("event") == "log_gap"]
+    if gaps:
+        r.outage = str(gaps[0].get("detail", "")) or "a write error"
+    r.outcome = test_id is not None and any(
+        m.get("test_id") == test_id and (m.get("kind") == "test" or m.get("event") in TEST_END_EVENTS) for m in later
+    )
 
 
 __all__ = [
@@ -1728,6 +1820,7 @@ __all__ = [
     "read_logs",
     "read_mcap",
     "read_results",
+    "read_spool",
     "recording",
     "recover_crashed",
     "scaled_ints",

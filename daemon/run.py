@@ -45,11 +45,14 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
     """
     out: list[tuple[Listener, int, str]] = []
     try:
+        loader: Callable[[], list[dict[str, Any]]] | None = None
         if cfg.mcap.enabled:
             from .mcap_log import McapLogger
 
-            out.append((McapLogger.from_config(cfg), cfg.queues.mcap, "drop_newest"))
-        loader: Callable[[], list[dict[str, Any]]] | None = recorded_results(cfg) if cfg.mcap.enabled else None
+            logger = McapLogger.from_config(cfg)
+            out.append((logger, cfg.queues.mcap, "drop_newest"))
+            spooled = [m for m in logger.spooled if m.get("kind") in ("circle", "test")]  # held by the last run
+            loader = _chain(recorded_results(cfg), lambda: spooled)
         if cfg.limits.enabled:  # before the bus: its history/alert is seeded from the monitor's store
             from .monitor import MonitorListener
 
@@ -346,12 +349,17 @@ def _recover(cfg: Config) -> list[dict[str, Any]]:
 
     out = []
     for r in recover_crashed(os.path.join(cfg.daemon.state_dir, "recordings")):
-        if r.cut_test is not None:
-            out.append({
-                "kind": "event", "event": "test_incomplete", "origin": "recovery",
-                "test_id": r.cut_test.get("test_id"), "file": r.path.name,
-                "message": f"the daemon stopped (killed) during this test; its samples up to then are in {r.path.name}",
-            })
+        if r.cut_test is None or r.outcome:  # (a test whose result was recorded though its file was cut: complete)
+            continue
+        if r.outage:
+            why = f"the disk could not be written during this test ({r.outage}) and its outcome was never recorded"
+        else:
+            why = "the daemon stopped (killed) during this test"
+        out.append({
+            "kind": "event", "event": "test_incomplete", "origin": "recovery",
+            "test_id": r.cut_test.get("test_id"), "file": r.path.name,
+            "message": f"{why}; its samples up to then are in {r.path.name}",
+        })
     return out
 
 

@@ -758,7 +758,7 @@ def test_full_disk_resumes_within_2_s_of_space_with_headroom_and_keeps_the_resul
     and the results and events of the outage are written when it ends."""
     free = {"bytes": 1 << 30}
     monkeypatch.setattr(mcap_log, "_open_output", lambda p: io.BufferedWriter(_FullDiskRaw(p, "xb")))
-    monkeypatch.setattr(mcap_log, "_free_bytes", lambda _p: free["bytes"])
+    monkeypatch.setattr(mcap_log, "_disk_space", lambda _p: (free["bytes"], 64 << 30))
     monkeypatch.setattr(_Disk, "full", False)
     caplog.set_level(logging.INFO, logger="ballbar.daemon.mcap_log")
     lg = McapLogger(state, "m")  # retry_min_s 1, retry_max_s 60
