@@ -282,6 +282,50 @@ def zenoh_config(cfg: Any) -> ZenohConfig:
     )
 
 
+#: The link protocols of the eclipse-zenoh wheel (1.x): a locator with another scheme is refused by
+#: ``zenoh.open`` ("Unicast not supported"); ``tests/test_network_config.py`` checks the list against the wheel.
+ZENOH_SCHEMES = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream")
+_IP_SCHEMES = ("tcp", "udp", "tls", "quic", "ws")  # <scheme>/<host>:<port>
+
+
+def check_endpoints(config: ZenohConfig) -> None:
+    """Endpoints that can never work, as :class:`BusConfigError` naming the key, before a session opens.
+
+    Every endpoint (listen and connect; the config file's and ``options``' too) must name a scheme this
+    Zenoh has (:data:`ZENOH_SCHEMES`) and a valid port; every listen address must be one of this host's
+    (:func:`~ballbar.daemon.config.check_listen`).  An address on this host that another process holds now
+    is not an error: the session retries and says so.
+    """
+    from .config import ConfigError, check_listen
+
+    zcfg = config.to_zenoh_config()
+    mode = json.loads(zcfg.get_json("mode") or "null") or "peer"
+    for what in ("listen", "connect"):
+        given = getattr(config, what) is not None
+        key = (f"zenoh.{what}" if given else f"zenoh.options {what}/endpoints"
+               if any(k.startswith(what) for k in config.options) else
+               f"zenoh.config_file {config.config_file} ({what}/endpoints)" if config.config_file else
+               f"zenoh.{what} (default)")
+        for endpoint in _endpoints(zcfg.get_json(f"{what}/endpoints"), mode):
+            locator = re.split(r"[?#]", endpoint, maxsplit=1)[0]
+            scheme, _, address = locator.partition("/")
+            if scheme not in ZENOH_SCHEMES:
+                raise BusConfigError(f"{key}: {endpoint!r}: Zenoh has no {scheme!r} link "
+                                     f"(it has {', '.join(ZENOH_SCHEMES)})")
+            if scheme not in _IP_SCHEMES:
+                continue
+            m = re.fullmatch(r"\[(?P<v6>[^\]]+)\]:(?P<p6>\d+)|(?P<host>[^:\[\]]+):(?P<port>\d+)", address)
+            port = int(m["p6"] or m["port"]) if m else -1
+            if not 0 <= port <= 65535:
+                raise BusConfigError(f"{key}: {endpoint!r}: expected {scheme}/HOST:PORT with a port within 0..65535")
+            if what == "listen":
+                assert m is not None
+                try:
+                    check_listen(key, m["v6"] or m["host"], port, datagram=scheme in ("udp", "quic"))
+                except ConfigError as err:
+                    raise BusConfigError(str(err)) from None
+
+
 def check_machine(machine: str) -> str:
     """``machine`` as a key chunk, or :class:`BusConfigError`."""
     if not machine or _BAD_CHUNK.search(machine):
@@ -772,10 +816,12 @@ __all__ = [
     "HISTORY_LIMIT_MAX",
     "SCHEMA_VERSION",
     "TOPICS",
+    "ZENOH_SCHEMES",
     "BusConfigError",
     "BusError",
     "ZenohBus",
     "ZenohConfig",
+    "check_endpoints",
     "check_machine",
     "dumps",
     "parse_time_us",

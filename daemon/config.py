@@ -16,9 +16,11 @@ An unknown section or key, or a value of the wrong type, is one
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import re
+import socket
 import tomllib
 import types
 import typing
@@ -391,6 +393,48 @@ def _validate(cfg: Config) -> None:
         if not ok:
             raise ConfigError(message)
     monitor_settings(cfg)
+
+
+def check_listen(key: str, host: str, port: int, datagram: bool = False) -> None:
+    """A ConfigError naming ``key`` when ``host:port`` can never be listened on here: an address that is not one
+    of this host's, a name that does not resolve, a port the process may not take.
+
+    A port that another process holds now is not an error (it may be free later: the output retries and says
+    so), nor is a name the resolver cannot answer for now.  The check binds a socket to the address and closes
+    it at once, as the output's own listener would bind it (``SO_REUSEADDR``).
+    """
+    kind = socket.SOCK_DGRAM if datagram else socket.SOCK_STREAM
+    try:
+        infos = socket.getaddrinfo(host or None, port, type=kind, flags=socket.AI_PASSIVE)
+    except socket.gaierror as err:
+        if err.errno in (socket.EAI_NONAME, getattr(socket, "EAI_NODATA", socket.EAI_NONAME)):
+            raise ConfigError(f"{key}: {host!r} is not a name or address of this host ({err.strerror})") from None
+        return  # the resolver does not answer now: the output retries
+    except (UnicodeError, ValueError) as err:
+        raise ConfigError(f"{key}: {host!r} is not a host name or address ({err})") from None
+    why = ""
+    for family, type_, proto, _name, sockaddr in infos:
+        with socket.socket(family, type_, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(sockaddr)
+                return
+            except OSError as err:
+                if err.errno == errno.EADDRINUSE:
+                    return  # held by another process now: transient
+                why = ("not an address of this host" if err.errno == errno.EADDRNOTAVAIL
+                       else err.strerror or str(err))
+    raise ConfigError(f"{key}: cannot listen on {host}:{port}: {why}")
+
+
+def check_addresses(cfg: Config) -> None:
+    """The checks of :func:`check_listen` for the Rerun server's ``rerun.bind`` (``mode = "serve"``).
+
+    Made by ``ballbar run`` only, before anything opens: the other commands read a configuration that may
+    come from another host.
+    """
+    if cfg.rerun.mode == "serve":
+        check_listen("rerun.bind", cfg.rerun.bind, cfg.rerun.port)
 
 
 def monitor_settings(cfg: Config) -> Any:

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from .analysis_worker import freeze_long_lived
-from .config import Config, ConfigError, load
+from .config import Config, ConfigError, check_addresses, load
 from .errors import SourceClosed, SourceConfigError, SourceError
 from .listeners import MERGE_S, Listener, Message
 from .lock import StateLock
@@ -165,11 +165,11 @@ def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
     except SourceConfigError as err:
         raise ConfigError(f"source.url: {err}") from None
     if cfg.zenoh.enabled:
-        from .bus import BusConfigError, check_machine, zenoh_config
+        from .bus import BusConfigError, check_endpoints, check_machine, zenoh_config
 
         try:
             check_machine(cfg.daemon.machine_id)
-            zenoh_config(cfg).to_zenoh_config()
+            check_endpoints(zenoh_config(cfg))
         except BusConfigError as err:
             raise ConfigError(str(err)) from None
     if cfg.rerun.mode != "off":
@@ -181,6 +181,7 @@ def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
             raise ConfigError(str(err)) from None
         if options.mode == "serve" and rerun_binary() is None:
             raise ConfigError('rerun.mode = "serve" needs the rerun binary of rerun-sdk (rerun_cli)')
+        check_addresses(cfg)
     if cfg.mcap.enabled:
         _check_writable(os.path.join(cfg.daemon.state_dir, "recordings"))
 

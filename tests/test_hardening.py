@@ -70,6 +70,11 @@ def _one_line_exit_2(proc: subprocess.CompletedProcess[str], needle: str) -> Non
         (["--set", "rerun.tolerance_um=-5"], "rerun.tolerance_um"),
         (["--set", "rerun.port=0"], "rerun.port"),
         (["--set", "rerun.history_tests=-1"], "rerun.history_tests"),
+        # Network settings that can never work: these started, opened the port and retried for ever.
+        (["--set", 'zenoh.listen=["foo/bar"]'], "zenoh.listen: 'foo/bar': Zenoh has no 'foo' link"),
+        (["--set", 'zenoh.listen=["tcp/192.0.2.7:7447"]'], "zenoh.listen: cannot listen on 192.0.2.7:7447: not an"),
+        (["--set", 'zenoh.connect=["unixpipe//tmp/x"]'], "zenoh.connect: 'unixpipe//tmp/x': Zenoh has no"),
+        (["--set", 'rerun.bind="192.0.2.7"'], "rerun.bind: cannot listen on 192.0.2.7:"),
     ],
 )
 def test_a_bad_value_is_one_line_exit_2_before_anything_opens(tmp_path: Path, args: list[str], needle: str) -> None:
