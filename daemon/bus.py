@@ -76,7 +76,12 @@ the one pause), and the bus's queue (``drop_oldest``) absorbs the pause:
 sampling never waits.  The frozen subscriber stays connected and, once it
 reads again, receives live results again; those it missed are in ``history``.
 Status and samples are best effort (``DROP``, priorities ``DATA`` and
-``DATA_LOW``): the next one supersedes.
+``DATA_LOW``): the next one supersedes.  An event found at start (``origin:
+recovery``: a test that a crash cut) is put once a subscriber of ``event`` is
+there (checked with each message, at least every status interval; for at most
+``RECOVERY_WAIT_S``): the subscribers of the daemon before its restart are
+still reconnecting when it starts.  It is in ``last/event`` and
+``history/event`` at once.
 
 The history is the daemon's own: a bounded in-memory record of the results
 that went through :meth:`ZenohBus.on_message`, seeded at start by an optional
@@ -150,6 +155,7 @@ LAST_TOPICS = ("circle", "test", "event", "status", "config", "alert")
 HISTORY_TOPICS = ("circle", "test", "event", "alert")
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
+RECOVERY_WAIT_S = 60.0  # an event found at start waits this long for a subscriber to put it to
 _RELIABLE = ("circle", "test", "event", "config", "alert")
 _BAD_CHUNK = re.compile(r"[/*$?#\s]")
 
@@ -441,6 +447,7 @@ class ZenohBus(Listener):
         self._closed = threading.Event()
         self._opener: threading.Thread | None = None
         self._closer: threading.Thread | None = None
+        self._deferred: list[tuple[float, bytes]] = []  # (until when, payload): events found at start, see on_message
         if history_loader is not None:
             self._load_history(history_loader)
         try:
@@ -569,7 +576,24 @@ class ZenohBus(Listener):
             self._last[kind] = payload
             if kind in self._history:
                 self._history[kind].append((_record_time(body), payload))
+        if self._deferred:
+            self._put_deferred()
+        if kind == "event" and body.get("origin") == "recovery" and not self.has_subscribers("event"):
+            # Found at start (a test a crash cut): the subscribers that were connected before the restart are
+            # reconnecting now (a client retries every few seconds); put it once one is back.
+            self._deferred.append((time.monotonic() + RECOVERY_WAIT_S, payload))
+            return
         self._put(kind, payload)
+
+    def _put_deferred(self) -> None:
+        """The deferred events, once a subscriber of ``event`` is there; those older than RECOVERY_WAIT_S dropped
+        (``history/event`` has them)."""
+        now = time.monotonic()
+        self._deferred = [(t, p) for t, p in self._deferred if t > now]
+        if self._deferred and self.has_subscribers("event"):
+            for _t, payload in self._deferred:
+                self._put("event", payload)
+            self._deferred = []
 
     def on_batch(self, batch: SampleBatch) -> None:
         if not self.samples_hz or len(batch) == 0 or "samples" not in self._publishers:

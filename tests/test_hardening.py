@@ -421,6 +421,7 @@ def test_a_start_after_kill_9_recovers_the_file_once_and_reports_the_cut_test(tm
     port = free_port()
     proc, first_log = _daemon(tmp_path, port, "first.log")
     feed_in: list[dict[str, Any]] = []
+    live: subprocess.Popen[str] | None = None
     try:
         deadline = time.monotonic() + 30
         while "zenoh: publishing under" not in first_log.read_text():
@@ -441,6 +442,11 @@ def test_a_start_after_kill_9_recovers_the_file_once_and_reports_the_cut_test(tm
             sub.kill()
             sub.wait()
         assert feed_in, "no test started"
+        live = subprocess.Popen(  # a subscriber that stays across the crash and the restart
+            [sys.executable, "-m", "ballbar.tools.subscribe", "--machine", "crash", "--connect",
+             f"tcp/127.0.0.1:{port}", "--topic", "event", "--timeout", "90"],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        )
         time.sleep(1.0)
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
@@ -450,19 +456,31 @@ def test_a_start_after_kill_9_recovers_the_file_once_and_reports_the_cut_test(tm
             proc.wait()
     cut_id = feed_in[-1]["test_id"]
     logs = []
-    for run in ("second", "third"):
-        proc, log_path = _daemon(tmp_path, port, f"{run}.log")
-        try:
-            if run == "second":
-                events = _subscribe(port, "--topic", "event", "--history", "--count", "1", "--timeout", "30")
-                incomplete = [e for e in events if e.get("event") == "test_incomplete"]
-                assert incomplete and incomplete[0]["test_id"] == cut_id, events
-            else:
-                time.sleep(3.0)
-        finally:
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(15)
-        logs.append(log_path.read_text())
+    try:
+        for run in ("second", "third"):
+            proc, log_path = _daemon(tmp_path, port, f"{run}.log")
+            try:
+                if run == "second":
+                    assert live is not None and live.stdout is not None
+                    for line in live.stdout:  # the live subscriber receives it once the bus is up again
+                        if json.loads(line).get("event") == "test_incomplete":
+                            assert json.loads(line)["test_id"] == cut_id
+                            break
+                    else:
+                        raise AssertionError("the live subscriber never received test_incomplete")
+                    events = _subscribe(port, "--topic", "event", "--history", "--count", "1", "--timeout", "30")
+                    incomplete = [e for e in events if e.get("event") == "test_incomplete"]
+                    assert incomplete and incomplete[0]["test_id"] == cut_id, events
+                else:
+                    time.sleep(3.0)
+            finally:
+                proc.send_signal(signal.SIGTERM)
+                proc.wait(15)
+            logs.append(log_path.read_text())
+    finally:
+        if live is not None:
+            live.kill()
+            live.wait()
     assert sum(text.count("was cut by a crash") for text in logs) == 1, logs
     assert "ends early" not in "".join(logs)
     for f in (tmp_path / "state" / "recordings").glob("*.mcap"):
