@@ -15,6 +15,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -142,6 +143,44 @@ def test_invalid_utf8_anywhere_comes_first(tmp_path: Path, monkeypatch: pytest.M
     # header missing: still the bad byte first
     p.write_bytes(b"time,len\n" + data[data.index(b"\n") + 1 : at] + b"\xff\n")
     assert "not a text CSV file" in one_error(p, monkeypatch)
+
+
+def test_a_line_longer_than_the_limit_is_an_error_naming_it_at_any_block_size(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    long = "9" * (csvfile.MAX_LINE_BYTES + 1)
+    lines = ["t_s,length_mm", *rows(300)]
+    for at in (0, 1, 150, len(lines)):  # the header, the first sample, mid-file, the last (without its newline)
+        path = write(tmp_path, [*lines[:at], f"1.0,{long}", *lines[at:]])
+        if at == len(lines):
+            path.write_bytes(path.read_bytes().rstrip(b"\n"))
+        assert f"rec.csv:{at + 1}: a line longer than {csvfile.MAX_LINE_BYTES} bytes" in one_error(path, monkeypatch)
+    # a bad number before it: the long line, like a read error, comes first; invalid UTF-8 before it still first
+    bad = [*lines[:5], "0.04,abc", *lines[5:200], long, *lines[200:]]
+    assert ":202: a line longer than" in one_error(write(tmp_path, bad), monkeypatch)
+    data = ("\n".join([*lines[:5], *lines[5:200], long, *lines[200:]]) + "\n").encode()
+    at = data.index(b"\n1.0000,") + 3
+    p = tmp_path / "utf.csv"
+    p.write_bytes(data[:at] + b"\xff" + data[at:])
+    assert "not a text CSV file" in one_error(p, monkeypatch)
+
+
+def test_the_long_line_is_not_read_whole(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Read stops a block past the limit: the rest of a 64 MiB line is never read."""
+    path = tmp_path / "flat.csv"
+    path.write_bytes(b"t_s,length_mm\n" + b"\0" * (64 << 20))
+    reads: list[int] = []
+    real = csvfile._read
+
+    def counting(fh: Any, name: str) -> bytes:
+        chunk = real(fh, name)
+        reads.append(len(chunk))
+        return chunk
+
+    monkeypatch.setattr(csvfile, "_read", counting)
+    with pytest.raises(DataError, match=r"flat.csv:2: a line longer than"):
+        read_csv(path)
+    assert sum(reads) <= csvfile.MAX_LINE_BYTES + 2 * csvfile.BLOCK_BYTES
 
 
 def test_empty_and_headless_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

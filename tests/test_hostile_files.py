@@ -1,11 +1,10 @@
 """Nothing a file can hold takes ``ballbar analyze`` down: bounded memory on any shape, one-line errors.
 
-The memory cases run ``ballbar analyze`` as a real process on sparse files (a 2 GB file takes no disk), and
-read its peak resident set from the kernel (``wait4``), so that a process the old code would have blown up is
-measured too; each child's address space is capped (``RLIMIT_AS``) so that a regression fails the test instead
-of the machine.  The property-based tests cut, truncate and mutate a real daemon recording and a real CSV at
-random and hold the readers and the command to their contract: a :class:`DataError` (or a result), one line,
-exit code 1.
+The memory cases run ``ballbar analyze`` as a real process on sparse files (a 2 GB file takes no disk) and
+take its peak resident set (``VmHWM``) as ``tools/bench_csv.py`` does; each child's address space is capped
+(``RLIMIT_AS``) so that a regression fails the test instead of the machine.  The property-based tests cut,
+truncate and mutate a real daemon recording and a real CSV at random and hold the readers and the command to
+their contract: a :class:`DataError` (or a result), one line, exit code 1.
 """
 
 from __future__ import annotations
@@ -15,7 +14,6 @@ import io
 import json
 import os
 import re
-import resource
 import subprocess
 import sys
 import tempfile
@@ -34,6 +32,7 @@ from ballbar.daemon.cli import main
 from ballbar.daemon.csvfile import MAX_LINE_BYTES, read_csv
 from ballbar.daemon.mcap_log import MAX_RECORD_BYTES, list_recordings, read_log
 from ballbar.daemon.recordings import load_recording
+from ballbar.tools.bench_csv import peak_run
 from ballbar.tools.simulator import MachineModel, simulate, write_csv
 
 MB = 1 << 20
@@ -44,18 +43,8 @@ LOG_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} (INFO|WARNING) ")
 
 def analyze_process(path: Path, *args: str) -> tuple[int, str, str, int]:
     """``ballbar analyze PATH ARGS`` in a fresh process: exit code, stdout, stderr and peak RSS (bytes)."""
-
-    def cap() -> None:
-        resource.setrlimit(resource.RLIMIT_AS, (CAP_BYTES, CAP_BYTES))
-
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(path), *args],
-                                stdout=out, stderr=err, preexec_fn=cap)
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        out.seek(0)
-        err.seek(0)
-        return proc.returncode, out.read().decode(), err.read().decode(errors="replace"), usage.ru_maxrss * 1024
+    r = peak_run(sys.executable, "analyze", ["analyze", str(path), *args], CAP_BYTES)
+    return r["exit"], r["stdout"], r["stderr"], int(r["peak_rss_mb"] * MB)
 
 
 def one_line_error(code: int, err: str, needle: str) -> str:
