@@ -99,8 +99,22 @@ A full disk (``ENOSPC``) or any other ``OSError`` on write: one ``ERROR`` log
 line, the file is dropped (what reached it stays readable; an empty one is
 deleted), its unwritten samples and all that follow are counted as lost, and
 a new file is tried after a backoff (``retry_min_s`` doubling to
-``retry_max_s``).  The first file that works again starts with a ``log_gap``
-event and a ``WARNING`` log line.  Nothing is raised into the pipeline.
+``retry_max_s``); after a full disk, as soon as a ``statvfs`` every
+``space_probe_s`` sees :meth:`McapLogger.headroom` free (what one file needs,
+up to ``headroom_bytes`` and a 64th of the file system).  The first file that
+works again starts with a ``log_gap`` event and a ``WARNING`` log line.
+Results and events meanwhile are held in memory and written after it; at stop,
+what no file can take goes to the spool (:mod:`.spool`), which the next start
+writes.  Nothing is raised into the pipeline.
+
+Reading
+-------
+The readers take any file: a cut one up to its last whole record, a record or
+chunk larger than :data:`MAX_RECORD_BYTES` as the end of the file, at most
+:data:`SIDE_BYTES_MAX` of events, results and status from one file; anything
+else wrong is one :class:`~ballbar.analysis.errors.DataError` line naming the
+file (and, for a directory, :func:`read_logs` with ``skip_bad`` leaves such a
+file out with a warning).
 """
 
 from __future__ import annotations
