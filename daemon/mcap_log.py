@@ -1119,10 +1119,20 @@ class McapLogger(Listener):
         """A write error: drop the file, count what it did not get, retry later."""
         now = time.monotonic() if now is None else now
         f = self._file
-        lost = self._pending.n + (f.unflushed_samples if f is not None else 0)
+        unwritten = 0
+        if f is not None:
+            f.close_quietly()
+            if f.flushed_records <= 1:  # at most the head (metadata, config): nothing worth keeping
+                delete = f.path
+            elif f.unflushed_samples:  # a write cut short can have left whole chunks of them: those are not lost
+                unwritten = f.unflushed_samples - min(
+                    f.unflushed_samples, _samples_after(f.path, f.bytes_counted, f.channels[TOPIC_SAMPLES]))
+            if delete == f.path:
+                unwritten = f.unflushed_samples
+        lost = self._pending.n + unwritten
         self._pending.clear()
         self._c["write_errors"] += 1
-        self._c["samples"] -= f.unflushed_samples if f is not None else 0
+        self._c["samples"] -= unwritten
         detail = f"{err.strerror or err}" + (f" (errno {err.errno})" if err.errno else "")
         self._last_error = f"{path.name if path else self.directory}: {detail}"
         self._no_space = err.errno in _NO_SPACE
@@ -1144,10 +1154,6 @@ class McapLogger(Listener):
         else:
             log.debug("mcap log: still cannot write %s: %s", path or self.directory, detail)
         self._lose(lost)
-        if f is not None:
-            f.close_quietly()
-            if f.flushed_records <= 1:  # at most the head (metadata, config): nothing worth keeping
-                delete = f.path
         self._file = None
         self._dirty_since = None
         if delete is not None:
@@ -1195,6 +1201,22 @@ class McapLogger(Listener):
             self._c["deleted_files"] += 1
             self._c["deleted_bytes"] += sizes[p]
             log.info("mcap log: deleted %s (%s)", p.name, "older than keep_days" if old else "over quota")
+
+
+def _samples_after(path: Path, offset: int, channel: int) -> int:
+    """The samples (preroll copies aside) in the whole records of ``path`` from byte ``offset`` on: what a write
+    that failed part way got into the file after all."""
+    n = 0
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            for rec in _records(fh, skip_magic=offset > 0):
+                if isinstance(rec, Message) and rec.channel_id == channel:
+                    msg = json.loads(rec.data)
+                    n += 0 if msg.get("preroll") else int(msg["count"])
+    except (OSError, McapError, struct.error, ValueError, KeyError, TypeError, EOFError, zstandard.ZstdError):
+        pass  # the first record cut short: the end of what is readable
+    return n
 
 
 def _group_by_period(batches: Sequence[SampleBatch], period_s: float) -> list[list[SampleBatch]]:
@@ -1346,10 +1368,11 @@ class _BoundedReads:
         return True
 
 
-def _records(fh: IO[bytes]) -> Iterator[Any]:
-    """The records of an MCAP file from its start, chunks broken up, none larger than :data:`MAX_RECORD_BYTES`
-    (an McapError where one is)."""
-    reader = StreamReader(_BoundedReads(fh), emit_chunks=True, record_size_limit=MAX_RECORD_BYTES)  # type: ignore[arg-type]
+def _records(fh: IO[bytes], skip_magic: bool = False) -> Iterator[Any]:
+    """The records of an MCAP file from its start (or, ``skip_magic``, from where ``fh`` is), chunks broken up,
+    none larger than :data:`MAX_RECORD_BYTES` (an McapError where one is)."""
+    reader = StreamReader(_BoundedReads(fh), skip_magic=skip_magic, emit_chunks=True,  # type: ignore[arg-type]
+                          record_size_limit=MAX_RECORD_BYTES)
     for rec in reader.records:
         if isinstance(rec, Chunk):
             _check_chunk(rec.uncompressed_size, rec.compression, rec.data)
