@@ -435,6 +435,7 @@ class _LogFile:
     first_t: float = math.nan  # host time of the first and newest sample in it
     last_t: float = math.nan
     has_test: bool = False
+    holds_held: bool = False  # results and events held through an outage were written to it: never deleted
     header: int = 0  # the header and metadata
     overhead: int = 0  # the size with the first chunk (schemas, first records): not counted against rotate_bytes
 
@@ -662,7 +663,7 @@ class McapLogger(Listener):
                 self._close_file()
             if self._pending.n:  # no file could take them
                 self._lose_pending()
-            if self._held:
+            if self._held or self._failing:  # (the outage's log_gap alone tells the next start what cut this run)
                 self._spool_held()
             self._ring.clear()
         self._wake.set()
@@ -907,6 +908,7 @@ class McapLogger(Listener):
             self._write(TOPIC_EVENTS, gap, self._wall_ns(now))
         if self._held and self._file is not None:
             held = len(self._held)
+            self._file.holds_held = True
             self._write_held()
             log.info("mcap log: wrote %d results and events held in memory during the outage", held)
         if self._file is not None:
@@ -1027,18 +1029,21 @@ class McapLogger(Listener):
         """At stop, results and events held through a write outage that no file could take: into the spool, with
         a ``log_gap`` event saying what the outage cost, for the next start to write (:func:`read_spool`)."""
         now = time.monotonic()
-        entries = list(self._held)
-        if self._failing:
-            gap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
-                   "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
-            entries.append((TOPIC_EVENTS, gap, self._wall_ns(now)))
+        held = list(self._held)
         self._held.clear()
-        kept = write_spool(self.spool_path, self.run_id, entries, self._spool_bytes())
-        lost = len(entries) - kept
+        gap = []
+        if self._failing:
+            gap = [(TOPIC_EVENTS, {"event": "log_gap", "t_host": now, "count": self._fail_lost,
+                                   "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail},
+                    self._wall_ns(now))]
+        kept = write_spool(self.spool_path, self.run_id, [*held, *gap], self._spool_bytes())  # the newest first
+        lost = len(held) - max(0, kept - len(gap))
         self._c["messages_lost"] += lost
-        if kept:
+        if not held:
+            log.debug("mcap log: the write outage %s in %s", "noted" if kept else "could not be noted", self.spool_path)
+        elif lost < len(held):
             log.warning("mcap log: %d results and events held through a write outage are kept in %s; the next "
-                        "start writes them%s", kept, self.spool_path,
+                        "start writes them%s", len(held) - lost, self.spool_path,
                         f" ({lost} of the oldest did not fit and are lost)" if lost else "")
         else:
             log.error("mcap log: %d results and events held through a write outage are lost (%s could not be "
@@ -1122,7 +1127,7 @@ class McapLogger(Listener):
         unwritten = 0
         if f is not None:
             f.close_quietly()
-            if f.flushed_records <= 1:  # at most the head (metadata, config): nothing worth keeping
+            if f.flushed_records <= 1 and not f.holds_held:  # at most the head (metadata, config): nothing to keep
                 delete = f.path
             elif f.unflushed_samples:  # a write cut short can have left whole chunks of them: those are not lost
                 unwritten = f.unflushed_samples - min(

@@ -669,6 +669,48 @@ def test_a_write_cut_short_after_a_whole_chunk_counts_its_samples_as_written(
     assert len(out.samples) == 1300 and st["samples"] == 1300 and st["samples_lost"] == 0, st
 
 
+class _BudgetRaw(io.FileIO):
+    """A disk that is full (``full``), or takes only ``budget`` more writes."""
+
+    full = False
+    budget: int | None = None
+
+    def write(self, b: Any) -> int:
+        if _BudgetRaw.full or _BudgetRaw.budget == 0:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        if _BudgetRaw.budget is not None:
+            _BudgetRaw.budget -= 1
+        return super().write(b)
+
+
+def test_what_an_outage_held_survives_a_stop_whose_last_file_cannot_be_finished(
+    state: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """At stop, the held results go into a last file whose footer no longer fits: that file is kept (its chunk
+    holds them), and the spool says the run ended in an outage, so the next start names the cut file so."""
+    monkeypatch.setattr(mcap_log, "_open_output", lambda p: io.BufferedWriter(_BudgetRaw(p, "xb")))
+    monkeypatch.setattr(mcap_log, "_disk_space", lambda _p: (0, 64 << 30))  # no headroom: no resume before stop
+    monkeypatch.setattr(_BudgetRaw, "full", False)
+    monkeypatch.setattr(_BudgetRaw, "budget", None)
+    lg = McapLogger(state, "m", retry_min_s=60.0)
+    for k in range(0, 500, 50):
+        lg.on_batch(make_batch(k, 50))
+    lg.flush()
+    _BudgetRaw.full = True
+    lg.on_batch(make_batch(500, 50))
+    lg.flush()
+    lg.on_message({"kind": "test", "test_id": "m-held", "t_host": 101.0})
+    assert lg.stats()["held_messages"] == 1
+    _BudgetRaw.full, _BudgetRaw.budget = False, 2  # the last file's head and its held records fit, its footer not
+    lg.stop()
+    kept = [p for p in files(state) if any(r.get("test_id") == "m-held" for r in read_log(p, samples=False).results)]
+    assert kept, [p.name for p in files(state)]
+    spool = mcap_log.read_spool(state)
+    assert spool.run_id == lg.run_id and [p["event"] for _t, p, _l in spool.entries] == ["log_gap"]
+    (r,) = [r for r in mcap_log.recover_crashed(state / "recordings") if r.path == kept[0]]
+    assert r.outage and "No space left" in r.outage
+
+
 def test_full_disk_drops_the_file_counts_losses_and_resumes(
     state: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
