@@ -26,7 +26,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize
 
 from .plan import TestPlan
 
@@ -359,19 +358,16 @@ class TestDetector:
         if m.sum() < 6:
             return float("nan")
         x, y = seg_t[m], np.log(e[m])
-        k, c0 = np.polyfit(x, y, 1)
+        k, _ = np.polyfit(x, y, 1)
         if k >= 0:
             return float("nan")
         # refine with a free asymptote: the level itself carries the dwell's small errors
         use = (e < hi) & (seg_t >= x[0])
         tt, ee = seg_t[use] - x[0], e[use]
-        try:
-            (amp, tau, off), _ = optimize.curve_fit(
-                lambda q, a_, t_, o_: a_ * np.exp(-q / t_) + o_, tt, ee, p0=(math.exp(c0 + k * x[0]), -1 / k, 0.0),
-                maxfev=200,
-            )
-        except (RuntimeError, ValueError):
+        fitted = _exp_approach(tt, ee, -1.0 / k)
+        if fitted is None:
             return float("nan")
+        amp, tau, off = fitted
         resid = ee - (amp * np.exp(-tt / tau) + off)
         if not (tau > 0 and float(np.sqrt(np.mean(resid**2))) < 0.05 * amp):
             return float("nan")
@@ -432,3 +428,38 @@ def _last_near(L: np.ndarray, level: float, band: float, lo: int, hi: int) -> in
             return a + int(hit[-1])
         hi, w = a, min(2 * w, 1 << 20)
     raise AssertionError("no sample near the level")  # pragma: no cover - callers pass a range holding one
+
+
+def _exp_approach(t: np.ndarray, e: np.ndarray, tau0: float) -> tuple[float, float, float] | None:
+    """Least squares of ``e = amp exp(-t / tau) + off``: ``(amp, tau, off)``, or None where it has no minimum.
+
+    Separable: for each ``tau`` the amplitude and the asymptote are a linear solve, so only ``tau`` is
+    searched, by golden section on ``log tau`` within a factor of 8 of the log-linear start ``tau0``
+    (a minimum at either end is none).
+    """
+
+    def solve(tau: float) -> tuple[float, np.ndarray]:
+        a = np.column_stack((np.exp(-t / tau), np.ones_like(t)))
+        coef, *_ = np.linalg.lstsq(a, e, rcond=None)
+        r = e - a @ coef
+        return float(r @ r), coef
+
+    lo, hi = math.log(tau0 / 8.0), math.log(tau0 * 8.0)
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
+    f1, f2 = solve(math.exp(x1))[0], solve(math.exp(x2))[0]
+    while hi - lo > 1e-7:
+        if f1 <= f2:
+            hi, x2, f2 = x2, x1, f1
+            x1 = hi - g * (hi - lo)
+            f1 = solve(math.exp(x1))[0]
+        else:
+            lo, x1, f1 = x1, x2, f2
+            x2 = lo + g * (hi - lo)
+            f2 = solve(math.exp(x2))[0]
+    x = (lo + hi) / 2.0
+    if min(x - math.log(tau0 / 8.0), math.log(tau0 * 8.0) - x) < 1e-3:
+        return None
+    tau = math.exp(x)
+    _, (amp, off) = solve(tau)
+    return float(amp), tau, float(off)

@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from . import stats
+
 STICK_SLIP_WINDOW_DEG = 5.0
 STICK_SLIP_MIN_UM = 0.1
 VIBRATION_MIN_UM = 0.1
@@ -48,11 +50,24 @@ def _highpass(r: np.ndarray, arc_deg: float, cutoff_cpr: float) -> tuple[np.ndar
     return np.fft.irfft(spec, n), np.abs(spec), int(np.searchsorted(cpr, cutoff_cpr))
 
 
+def _prev_fast_len(n: int) -> int:
+    """The largest length up to ``n`` whose prime factors are 2, 3, 5, 7 and 11 (``scipy.fft.prev_fast_len``'s
+    rule; that module costs more to import than the rest of the analysis' start)."""
+    m = n
+    while m > 1:
+        k = m
+        for p in (2, 3, 5, 7, 11):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m -= 1
+    return max(n, 1)
+
+
 def _fast_length(u: np.ndarray, r: np.ndarray, arc_deg: float) -> tuple[np.ndarray, np.ndarray, float]:
     """The arc's first samples up to the longest length with a fast FFT, and the arc they span."""
-    from scipy.fft import prev_fast_len  # here: only a test's fit needs it, not the daemon's start
-
-    m = prev_fast_len(r.size)
+    m = _prev_fast_len(r.size)
     return u[:m], r[:m], arc_deg * m / r.size
 
 
@@ -72,8 +87,6 @@ def findings(
     circles: list[tuple[np.ndarray, np.ndarray, float, float]], cutoff_cpr: float, level: float = 0.05
 ) -> dict[str, Any]:
     """From ``[(u_rad, residual_um, arc_deg, sample_hz), ...]`` per data arc; ``level``: the stick-slip test's."""
-    from scipy import stats  # here: only a test's fit needs it, not the daemon's start
-
     hp_sq, hp_n = 0.0, 0
     best_amp, best_cpr, best_hz, best_line, best_stands = 0.0, float("nan"), float("nan"), 0.0, False
     near_sq = {"x": [0.0, 0], "y": [0.0, 0]}

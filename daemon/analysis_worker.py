@@ -105,11 +105,6 @@ def _die_with(parent: int) -> None:
 
 def _warm_up() -> int:
     """Import the analysis in the child before the first test needs it; its process id."""
-    # the analysis, and what its noise findings import only when a test's fit needs them (the daemon's own start
-    # does not): imported on the first test instead, they delayed its result by about a second
-    import scipy.fft
-    import scipy.stats  # noqa: F401
-
     import ballbar.analysis.engine  # noqa: F401
 
     freeze_long_lived()

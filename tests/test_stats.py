@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -44,3 +47,26 @@ def test_random_arguments(seed: int) -> None:
         assert stats.chi2.sf(x, d1) == float(sps.chi2.sf(x, d1))
         q = float(rng.uniform())
         assert stats.chi2.isf(q, d1) == float(sps.chi2.isf(q, d1))
+
+
+def test_a_tests_analysis_imports_no_heavy_scipy_subpackage(tmp_path: Path) -> None:
+    """``ballbar analyze`` pays for every import at every run: a whole test's analysis (settling fit, noise
+    findings, p-values) must not pull in scipy.stats, scipy.optimize or scipy.fft, which together cost more
+    to import than the analysis of a 15.625 Hz test takes."""
+    from ballbar.analysis.plan import TestPlan
+    from ballbar.tools.simulator import MachineModel, simulate
+
+    s = simulate(TestPlan(sample_hz=1000.0), MachineModel(noise_um=0.1, backlash_x_um=3.0), seed=1)
+    np.savez(tmp_path / "test.npz", t=s.t_s, L=s.length_mm)
+    code = (
+        "import sys, numpy as np\n"
+        "from ballbar.analysis.engine import analyze_recording\n"
+        "from ballbar.analysis.plan import TestPlan\n"
+        f"d = np.load({str(tmp_path / 'test.npz')!r})\n"
+        "out = analyze_recording(d['t'], d['L'], TestPlan(sample_hz=1000.0))\n"
+        "assert any(r['kind'] == 'test' and r['timing']['loop_lag_ms'] for r in out), out\n"
+        "print(' '.join(sorted(sys.modules)))\n"
+    )
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    heavy = [m for m in loaded if m.split(".")[:2] in (["scipy", "stats"], ["scipy", "optimize"], ["scipy", "fft"])]
+    assert not heavy, heavy

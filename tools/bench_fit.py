@@ -81,6 +81,19 @@ def _wall(cmd: Sequence[str]) -> float:
     return time.perf_counter() - t0
 
 
+_COMPILE = (
+    "import compileall, pathlib, re, ballbar.daemon as d\n"
+    "root = pathlib.Path(d.__file__).resolve().parents[1]\n"
+    "compileall.compile_dir(root, quiet=1, rx=re.compile(r'[/\\\\](\\.venv|\\.git|tests)[/\\\\]'))\n"
+)
+
+
+def _compile(python: str) -> None:
+    """Write the checkout's bytecode, so that each command is timed as it runs installed (``PYTHONDONTWRITEBYTECODE``
+    or a read-only tree would otherwise have it compile every module at every run)."""
+    subprocess.run([python, "-c", _COMPILE], capture_output=True, check=True)
+
+
 def _command(python: str, csv: Path, fs: float, repeats: int) -> tuple[float, float]:
     """Median wall times (s) of ``ballbar analyze`` on ``csv`` and of starting Python with numpy and scipy.linalg,
     alternated."""
@@ -108,6 +121,7 @@ def bench(fs: float, repeats: int, pythons: dict[str, str], work: Path) -> dict[
         out[name]["evaluations"] = float(got["evaluations"]) if got["evaluations"] is not None else float("nan")
         out[name]["designs"] = float(got["designs"]) if got["designs"] is not None else float("nan")
     for name, python in pythons.items():
+        _compile(python)
         total, start = _command(python, csv, fs, max(3, repeats // 2))
         out[name]["command_s"] = total
         out[name]["start_s"] = start
