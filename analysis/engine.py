@@ -401,6 +401,12 @@ class TestAnalyzer:
         except DataError as err:
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
                      "message": str(err)}]
+        except Exception as err:  # a bug in the fit costs its test only, never the daemon or the next tests
+            what = f"{type(err).__name__}: {err}"
+            log.error("test %d: the analysis failed (%s); the test is rejected", index, what)
+            log.debug("test %d: the analysis' traceback", index, exc_info=True)
+            return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
+                     "message": f"the analysis failed on this test ({what}): please report it with the recording"}]
         result["test_index"] = index
         hints = TimingHints.learnt(result["timing"], self.hints)
         if hints is None:

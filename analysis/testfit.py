@@ -922,13 +922,23 @@ def _merge(polished: Found, earlier: Found, keep: Sequence[int]) -> Found:
     (``keep``: their indices in ``earlier.active``): the covariance of all, the held ones' cross terms as
     the earlier stage found them."""
     active = list(polished.active) + [earlier.active[i] for i in keep]
-    n = len(active)
-    order = [earlier.active.index(k) for k in active]
-    jtj = earlier.jtj[np.ix_(order, order)].copy()
-    m = len(polished.active)
-    jtj[:m, :m] = polished.jtj
-    hprior = earlier.hprior[np.ix_(order, order)].copy()
-    hprior[:m, :m] = polished.hprior
+    n, m = len(active), len(polished.active)
+    held = list(keep)
+    # a coordinate the last stage searched and the earlier one did not (the loops' feed-forward, once an
+    # over-set compensation shows) has no cross terms with the held ones: zero
+    mine = [(i, earlier.active.index(k)) for i, k in enumerate(polished.active) if k in earlier.active]
+
+    def merged(last: np.ndarray, before: np.ndarray) -> np.ndarray:
+        out = np.zeros((n, n))
+        out[:m, :m] = last
+        out[m:, m:] = before[np.ix_(held, held)]
+        for i, j in mine:
+            out[i, m:] = before[j, held]
+            out[m:, i] = before[held, j]
+        return out
+
+    jtj = merged(polished.jtj, earlier.jtj)
+    hprior = merged(polished.hprior, earlier.hprior)
     if np.linalg.eigvalsh(jtj).min() < -1e-9 * max(float(np.abs(jtj).max()), 1e-300):
         # the earlier stage's cross terms do not fit the new block: the two blocks alone (each is a curvature)
         jtj[:m, m:] = 0.0

@@ -278,3 +278,45 @@ def test_an_analysis_without_provisional_circles_gives_the_same_tests() -> None:
     offline = analyze_recording(t, L, plan, options=MASKS, circles=False)
     assert any(r["kind"] == "circle" for r in live)
     assert [r for r in live if r["kind"] != "circle"] == offline
+
+
+def test_a_fit_that_fails_unexpectedly_costs_its_test_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bug in a test's fit (anything but a DataError) rejects that test with the reason, and the next test is
+    analysed as usual: the live daemon keeps running (it once exited on a ValueError from the fit)."""
+    plan = TestPlan(sample_hz=100)
+    t1, L1 = mask_recording(plan, FULL_TRUTH, fs=100.0, noise_um=0.2)
+    t = np.concatenate([t1, t1 + t1[-1] + 5.0])
+    L = np.concatenate([L1, L1])
+    real, calls = engine.analyze_test, []
+
+    def first_fails(*args: object, **kw: object) -> dict:
+        calls.append(1)
+        if len(calls) == 1:
+            raise ValueError("4 is not in list")
+        return real(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(engine, "analyze_test", first_fails)
+    out = analyze_recording(t, L, plan, options=MASKS)
+    rejected = [r for r in out if r.get("event") == "test_rejected"]
+    tests = [r for r in out if r["kind"] == "test"]
+    assert len(rejected) == 1 and "ValueError: 4 is not in list" in rejected[0]["message"], rejected
+    assert len(tests) == 1 and tests[0]["test_index"] == 2
+
+
+def test_the_last_stage_may_search_a_coordinate_the_earlier_did_not() -> None:
+    """The polish can add the loops' feed-forward (once an over-set compensation shows) to what the earlier stage
+    searched: the merged curvature keeps the polish's block, the held coordinates' own block, the cross terms
+    both stages share, and none for the new one (it crashed with "4 is not in list" on a 500 Hz YZ test)."""
+    from ballbar.analysis.search import Found
+    from ballbar.analysis.testfit import _merge
+
+    def found(active: list[int], h: np.ndarray) -> Found:
+        return Found(None, h, 0.1 * h, np.ones((3, len(active))) * np.arange(len(active)), active, 1.0, 1)  # type: ignore[arg-type]
+
+    earlier = found([0, 1, 2], np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]]))
+    polished = found([0, 4], np.array([[5.0, 0.3], [0.3, 1.5]]))
+    m = _merge(polished, earlier, keep=[2])
+    assert m.active == [0, 4, 2]
+    assert np.allclose(m.jtj, [[5.0, 0.3, 0.5], [0.3, 1.5, 0.0], [0.5, 0.0, 2.0]])
+    assert np.allclose(m.hprior, 0.1 * m.jtj)
+    assert np.allclose(m.dx[:, :2], polished.dx) and np.allclose(m.dx[:, 2], earlier.dx[:, 2])
