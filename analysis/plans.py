@@ -79,6 +79,7 @@ SIGNATURE_ON_S = 0.6  # dwell at each depth
 SIGNATURE_OFF_S = 0.6  # dwell back at R + f between excursions
 SIGNATURE_REST_S = 1.0  # dwell at R + f after the last excursion, before the feed-in
 SIGNATURE_WINDOW_S = 15.0  # how far before a feed-in the signature is looked for
+SIGNATURE_MIN_S = 0.5 * SIGNATURE_ON_S  # an excursion shorter than this is a move's samples, not a dwell
 _SLACK_S = 1.0  # beyond the programmed dwells: moves, acceleration, feed override, the sample period
 _SYMBOL_TOL = 0.3  # of a depth step: how far a plateau may read from its symbol's depth
 
@@ -165,7 +166,8 @@ def read_signature(t: np.ndarray, L: np.ndarray, t_end: float, rest_mm: float, f
 
     Each sample is at rest (within half a depth step of the level), in an excursion (deeper, but short of the
     detector's band about R) or neither (the test before, the bar off its cups): only what follows the last
-    such sample counts.  An excursion is a run between rest samples; the signature is the chain of
+    such sample counts.  An excursion is a run between rest samples at least :data:`SIGNATURE_MIN_S` long
+    (shorter runs are samples of a move, reordered by jitter); the signature is the chain of
     excursions ending within the rest's time before ``t_end``, each at most the programmed gap after the one
     before.  Its depths must read within a third of a step of a symbol.
     """
@@ -188,7 +190,9 @@ def read_signature(t: np.ndarray, L: np.ndarray, t_end: float, rest_mm: float, f
         j = i
         while j < n and exc[j]:
             j += 1
-        if i > start and j < n:  # bounded by rest on both sides
+        # bounded by rest on both sides, and as long as a dwell at a depth: not a sample or two of a move
+        # through the threshold (timestamp jitter reorders them there)
+        if i > start and j < n and tw[j - 1] - tw[i] >= SIGNATURE_MIN_S:
             runs.append((i, j))
         i = j
     if not runs:
