@@ -508,6 +508,7 @@ class TestAnalyzer:
                 return [{"kind": "event", "event": "test_unrecognised", "test_index": self.test_index,
                          "t_s": fo.t_s, "reason": rec.reason, "candidates": list(rec.candidates),
                          "signature": rec.signature, "message": rec.message}]
+            log.debug("test %d recognised as %s by %s", self.test_index, rec.name, rec.method)
             if self._early is None or rec.name != self._early.name:
                 self._use_plan(rec.name)
             steps = self._steps_as(rec.name, fi, fo)

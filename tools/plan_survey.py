@@ -95,7 +95,17 @@ def recognise(p: NamedPlan, machine: Machine3D, fs: float, seed: int, signed: bo
     program = program_of(p if signed else NamedPlan(p.name, p.plan, None))
     sim = simulate(plan, machine.project(plan.plane), fs, seed=seed, program=program)
     L = sim.length_mm - (p.plan.radius_mm - LIBRARY.first.plan.radius_mm)  # the bar assembled for the plan
-    out = analyze_recording(sim.t_s, L, LIBRARY.detection_plan(), library=LIBRARY, circles=False)
+    seen = _Recognised()
+    engine_log = logging.getLogger(analyze_recording.__module__)
+    engine_log.addHandler(seen)
+    try:
+        out = analyze_recording(sim.t_s, L, LIBRARY.detection_plan(), library=LIBRARY, circles=False)
+    except Exception as err:  # a failure of the fit after the recognition: the recognition still counts
+        if seen.plans:
+            return "plan", seen.plans[0][0], f"{seen.plans[0][1]} (then the fit failed: {type(err).__name__}: {err})"
+        return "other", None, f"{type(err).__name__}: {err}"
+    finally:
+        engine_log.removeHandler(seen)
     tests = [r for r in out if r["kind"] == "test"]
     if tests:
         return "plan", str(tests[0]["plan"]["name"]), str(tests[0]["recognition"]["method"])
@@ -107,12 +117,27 @@ def recognise(p: NamedPlan, machine: Machine3D, fs: float, seed: int, signed: bo
     return "other", None, "; ".join(why)[:200]
 
 
+class _Recognised(logging.Handler):
+    """The plans the analysis recognised (its debug record), kept where a fit fails after the recognition."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.plans: list[tuple[str, str]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.msg == "test %d recognised as %s by %s":
+            self.plans.append((str(record.args[1]), str(record.args[2])))  # type: ignore[index]
+
+
 Row = tuple[int, str, float, float, list[tuple[str, str, str | None, str]]]
 
 
 def _one(job: tuple[int, int, int]) -> Row:
     i, seed, foreign = job
     logging.getLogger("ballbar.analysis").setLevel(logging.ERROR)  # the hints' warnings at overrides off 100 %
+    engine_log = logging.getLogger(analyze_recording.__module__)
+    engine_log.setLevel(logging.DEBUG)  # its record of each recognition (see _Recognised), and no more
+    engine_log.propagate = False
     rng = np.random.default_rng([seed, i])
     machine, fs = random_machine(rng)
     if foreign:
@@ -152,7 +177,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         wrong = [(name, got, fs, k) for name, fs, k, o, got, _h in runs if o == "plan" and got != name]
         none = Counter(got for _n, _fs, _k, o, got, _h in runs if o == "unrecognised")
         other = [(name, fs, how) for name, fs, _k, o, _g, how in runs if o == "other"]
-        methods = Counter(how for _n, _fs, _k, o, _g, how in runs if o == "plan")
+        methods = Counter(how.split(" ")[0] for _n, _fs, _k, o, _g, how in runs if o == "plan")
+        failed = [(i, name, fs, how) for i, name, fs, _k, rs in rows for v, o, _g, how in rs
+                  if v == variant and o == "plan" and "the fit failed" in how]
         lo, hi = wilson(len(wrong), n)
         nm = sum(none.values())
         lo2, hi2 = wilson(nm, n)
@@ -162,6 +189,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"  wrong plan      {len(wrong):4d} = {100 * len(wrong) / n:5.1f} %  [{100 * lo:.1f}, {100 * hi:.1f}]")
         print(f"  no match        {nm:4d} = {100 * nm / n:5.1f} %  [{100 * lo2:.1f}, {100 * hi2:.1f}]  {dict(none)}")
         print(f"  other outcome   {len(other):4d}")
+        for i, name, fs, how in failed:
+            print(f"    test {i} ({name} at {fs:g} Hz), recognised by {how}")
         for name, got, fs, k in wrong:
             print(f"    {name} taken for {got} at {fs:g} Hz, override {100 * k:.1f} %")
         for name, fs, how in other:
