@@ -11,10 +11,12 @@ from typing import Any
 
 import pytest
 import zenoh
+from schemacheck import validate
 from test_bus import client, running_bus, wait_until, zenoh_runtime  # noqa: F401 - its runtime, made once
+from test_monitor import _Recorder as Recorder
 
+from ballbar.analysis.plans import PlanLibrary
 from ballbar.daemon.config import load
-from ballbar.daemon.listeners import Listener
 from ballbar.daemon.service import Daemon
 from ballbar.daemon.sources import open_source
 
@@ -35,21 +37,6 @@ overshoot_deg = 5.0
 data_arc_deg = 220.0
 sample_hz = 100.0
 """
-
-
-class Recorder(Listener):
-    name = "recorder"
-    batch_period_s = None
-    idle_s = None
-
-    def __init__(self) -> None:
-        self.messages: list[dict[str, Any]] = []
-
-    def on_message(self, msg: dict[str, Any]) -> None:
-        self.messages.append(msg)
-
-    def stop(self) -> None:
-        pass
 
 
 def test_a_put_on_the_control_key_reaches_the_daemon() -> None:
@@ -90,3 +77,25 @@ def test_the_chosen_plan_is_the_next_tests_and_a_bad_name_is_refused(tmp_path: P
     assert tests[0]["recognition"]["signature"] == cfg.library.get("zx").signature
     feed_ins = [m for m in rec.messages if m.get("event") == "feed_in"]
     assert [e["plan"] for e in feed_ins] == ["yz", "zx"]
+
+
+def test_a_live_test_of_no_plan_gets_no_result_and_an_event_with_the_candidates(tmp_path: Path) -> None:
+    """The daemon, live: a program of another configuration (its signature no plan carries, zx's timing) is
+    analysed as no plan; its event says why and names the plans its timing fits, and matches its schema."""
+    f = tmp_path / "set.toml"
+    f.write_text(SET)
+    cfg = load(str(f), ["mcap.enabled=false", "zenoh.enabled=false", 'rerun.mode="off"',
+                        "daemon.analysis_worker=false", f'daemon.state_dir="{tmp_path}"'], env={})
+    zx = cfg.library.get("zx")
+    code = next(c for c in range(125) if cfg.library.by_signature(c) is None)
+    other = PlanLibrary.from_plans({"other": zx.plan, "xy": zx.plan.with_(plane="XY")},
+                                   {"other": code, "xy": None})  # the simulated device runs a library of two
+    rec = Recorder()
+    src = open_source("sim:?speedup=max&rate=100&repeat=1", library=other, run_plans=["other"])
+    d = Daemon(cfg, src, [(rec, 10_000, "drop_newest")])
+    d.run(threading.Event(), duration_s=600)
+    assert not [m for m in rec.messages if m.get("kind") in ("test", "circle")]
+    (ev,) = [m for m in rec.messages if m.get("event") == "test_unrecognised"]
+    validate(ev)
+    assert ev["reason"] == "no_match" and ev["signature"] == code and sorted(ev["candidates"]) == ["yz", "zx"]
+    assert f"code {code}" in ev["message"]
