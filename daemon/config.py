@@ -37,13 +37,15 @@ import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ballbar.analysis.errors import BallbarError, PlanError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
-from ballbar.analysis.plans import NamedPlan, PlanLibrary, default_signature
 
 from .secrets import REDACTED, is_secret_key
+
+if TYPE_CHECKING:  # the plans' module (numpy) comes in with a library: a single [plan] needs none of it
+    from ballbar.analysis.plans import PlanLibrary
 
 DEFAULT_FILE = Path(__file__).with_name("default.toml")
 SYSTEM_FILE = Path("/etc/ballbar/ballbar.toml")
@@ -220,6 +222,8 @@ class Config:
     @property
     def library(self) -> PlanLibrary:
         """The plans the daemon recognises: ``[plans.*]`` in order, else ``[plan]`` named ``default``."""
+        from ballbar.analysis.plans import NamedPlan, PlanLibrary
+
         if not self.plans:
             return PlanLibrary.single(self.plan)
         return PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature) for n, e in self.plans.items()))
@@ -427,6 +431,8 @@ def load(
 def library_of(sections: Mapping[str, Any]) -> PlanLibrary | None:
     """The library of a configuration's tables (a recorded one: ``plan``, ``plans``, ``limits``), None where
     it has no ``plans`` (its ``plan`` alone).  A bad table is a :class:`ConfigError`."""
+    from ballbar.analysis.plans import NamedPlan, PlanLibrary
+
     tables = sections.get("plans")
     if not isinstance(tables, Mapping) or not tables:
         return None
@@ -439,6 +445,8 @@ def build_plans(base: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]]
     """The ``[plans.<name>]`` tables as a library: each ``base`` (``[plan]``) with its keys changed, its
     signature (given, else :func:`~ballbar.analysis.plans.default_signature` of its name where there are
     several), its limits over ``limits`` (``[limits]``).  Errors name the plan and key."""
+    from ballbar.analysis.plans import NamedPlan, PlanLibrary, default_signature
+
     out: dict[str, PlanEntry] = {}
     for name, table in tables.items():
         where = f"plans.{name}"
