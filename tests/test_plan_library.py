@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 
 from ballbar.analysis.plans import SIGNATURE_STEP, PlanLibrary, default_signature, signature_code
+from ballbar.analysis.program import arc_start_deg
 from ballbar.daemon import config as cfgmod
 from ballbar.daemon.cli import main
 from ballbar.tools.gcode import DIALECTS
-from ballbar.tools.machine3d import Machine3D, set_tests
-from ballbar.tools.ncinterp import check_against_plan, interpret, signatures
+from ballbar.tools.machine3d import Machine3D, program_of, set_tests
+from ballbar.tools.ncinterp import check_against_plan, interpret, program_moves, signatures
 from ballbar.tools.simulator import write_csv
 
 SET_TOML = """
@@ -128,6 +129,24 @@ def test_every_plans_program_carries_its_signature_through_the_interpreter(set_t
         assert [signature_code([round(d / step) for d in depths]) for depths in found] == [p.signature] * 2
         for depths in found:  # each depth within the rounding of its symbol's, none near R
             assert all(abs(d / step - round(d / step)) < 0.02 and d < 0.75 * p.plan.feed_in_mm for d in depths)
+
+
+@pytest.mark.parametrize("dialect", sorted(DIALECTS))
+def test_the_simulated_programs_are_those_ballbar_gcode_writes(set_toml: Path, dialect: str) -> None:
+    """What the recognition survey and the simulated device run (:func:`~ballbar.tools.machine3d.program_of`)
+    is, move by move, what the controller runs of ``ballbar gcode``'s program: the signature's excursions and
+    dwells, then the test, at the plan's feed (to the program's decimals)."""
+    lib = cfgmod.load(str(set_toml), env={}).library
+    for p in lib.plans:
+        text = ballbar("gcode", "--dialect", dialect, "--config", str(set_toml), "--plan", p.name).stdout
+        ran = program_moves(interpret(text, dialect), p.plan.plane,
+                            start_deg=arc_start_deg(p.plan, p.plan.direction_list[0]))
+        want = program_of(p)
+        ran = ran[: len(want)]  # then the move away from the pivot, which the test does not time
+        assert [m.kind for m in ran] == [m.kind for m in want], p.name
+        for a, b in zip(ran, want, strict=True):
+            assert math.dist(a.start, b.start) < 1e-3 and math.dist(a.end, b.end) < 1e-3, (p.name, a, b)
+            assert a.duration_s == b.duration_s, (p.name, a, b)
 
 
 def test_gcode_of_a_set_writes_one_program_per_plan(set_toml: Path, tmp_path: Path) -> None:

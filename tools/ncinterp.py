@@ -741,6 +741,15 @@ def _split_tests(segs: list[_Seg], start_deg: float) -> list[list[_Seg]]:
     return tests
 
 
+def program_moves(program: Program, plane: str, *, origin: Sequence[float] = (0.0, 0.0, 0.0),
+                  start_deg: float = 0.0) -> list[Move]:
+    """The whole program from its first feed move on (signatures, tests, the moves between) as rest-to-rest
+    moves in the plane's frame, as :func:`test_moves` takes each test's; arcs' angles unwound from
+    ``start_deg``.  Names are the program's (``line``, ``arc`` as ``ccw``/``cw``, ``dwell``, ``rapid``,
+    ``stop``), not the plan's."""
+    return [s.move for s in _segments(program, plane, origin, start_deg)]
+
+
 def signatures(program: Program, plane: str, *, origin: Sequence[float] = (0.0, 0.0, 0.0)) -> list[list[float]]:
     """Per test, the depths (mm toward the pivot) of the excursions before its feed-in: its signature
     (:mod:`ballbar.analysis.plans`); an empty list where a test has none.  An excursion is an inward line
