@@ -157,6 +157,19 @@ def survey(tests: int, seed: int, jobs: int = 1, foreign: float = 0.0) -> list[R
         return sorted(pool.imap_unordered(_one, work), key=lambda r: r[0])
 
 
+OVERRIDE_EDGES = (90.0, 110.0)
+OVERRIDE_BANDS = ("80..90 %", "90..110 %", "110..120 %")
+
+
+def _split(runs: list[tuple[str, str, bool]]) -> str:
+    """``(group, outcome, right plan)`` per test: per group (in the order of their first numbers), how many,
+    how many right, how many without a match."""
+    groups = sorted({g for g, _o, _r in runs}, key=lambda g: (float(g.split()[0].split("..")[0]), g))
+    return ", ".join(f"{g} {sum(x == g for x, _o, _r in runs)} "
+                     f"({sum(x == g and o == 'plan' and r for x, o, r in runs)} right, "
+                     f"{sum(x == g and o == 'unrecognised' for x, o, _r in runs)} no match)" for g in groups)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m ballbar.tools.plan_survey", description=__doc__.splitlines()[0])
     ap.add_argument("--tests", type=int, default=200)
@@ -195,6 +208,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"    {name} taken for {got} at {fs:g} Hz, override {100 * k:.1f} %")
         for name, fs, how in other:
             print(f"    {name} at {fs:g} Hz: {how}")
+        print("  per rate: " + _split([(f"{fs:g} Hz", o, got == name) for name, fs, _k, o, got, _h in runs]))
+        band = [OVERRIDE_BANDS[int(np.searchsorted(OVERRIDE_EDGES, 100 * k))] for _n, _fs, k, _o, _g, _h in runs]
+        print("  per override: " + _split([(b, o, got == name) for b, (name, _fs, _k, o, got, _h) in zip(band, runs,
+                                                                                                       strict=True)]))
         if variant == "unsigned":
             pairs = Counter((name, how) for name, _fs, _k, o, _g, how in runs if o == "unrecognised")
             for (name, cands), c in sorted(pairs.items()):
