@@ -37,7 +37,7 @@ import concurrent.futures as cf
 import logging
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -48,6 +48,7 @@ from .errors import DataError, DetectionError
 from .fit import FitResult, solve
 from .patterns import Pattern, select
 from .plan import AnalysisOptions, MachineConfig, TestPlan
+from .plans import PlanLibrary, RecentSamples, Recognition, SignatureReading, at_feed_in, at_feed_out, read_signature
 from .result import result_body
 from .testfit import DEFAULT_SPIKE_WIDTH_DEG, analyze_test, feed_accel
 from .timeaxis import Break, TimeAxis
@@ -58,6 +59,7 @@ FOLD_SAMPLES = 256  # a live circle folds new samples in blocks of at least this
 # A measured feed this far from the programmed one is not the machine's habit (controls hold the feed to well
 # under 1 % at 100 % override): something else went wrong, and the next test must not assume it.
 HINT_MAX_FEED_DEVIATION = 0.1
+RECENT_PIECE_S = 5.0  # a library of several takes a long chunk in pieces of this many seconds (the signature's)
 
 
 @dataclass
@@ -120,6 +122,17 @@ class TestAnalyzer:
     A test's fit does not depend on the tests before it (only the
     provisional circles take the hints they teach), so its result is the
     one the whole analysis gives; ``only`` needs ``circles=False``.
+
+    ``library``: the plans the tests may run (:mod:`.plans`); by default
+    ``plan`` alone, named ``default``.  Of a library of several, each test's
+    plan is recognised (:func:`~.plans.at_feed_in`: a chosen plan or the
+    program's signature; :func:`~.plans.at_feed_out`: the timing), its steps
+    timed with that plan and its samples read at its radius
+    (:meth:`~.plans.PlanLibrary.offset_mm`); a test that matches no plan or
+    several gives a ``test_unrecognised`` event instead of a result.  The
+    provisional circles run only where the plan is known at the feed-in.
+    :meth:`choose` names the next test's plan.  Every result says its plan:
+    ``plan.name``, ``plan.axes`` and ``recognition``.
     """
 
     __test__ = False
@@ -135,6 +148,8 @@ class TestAnalyzer:
         on_submit: Callable[[cf.Future[dict[str, Any]]], None] | None = None,
         circles: bool = True,
         only: int | None = None,
+        library: PlanLibrary | None = None,
+        plan_hints: dict[str, TimingHints] | None = None,
     ) -> None:
         if only is not None and circles:
             raise ValueError("only: a test's provisional circles take the hints the tests before it teach; "
@@ -144,12 +159,27 @@ class TestAnalyzer:
         self.only = only
         self.executor = executor
         self.on_submit = on_submit
-        self._pending: tuple[int, StepEvent, cf.Future[dict[str, Any]]] | None = None
+        self._pending: tuple[int, StepEvent, cf.Future[dict[str, Any]], Recognition | None] | None = None
         self.curves = curves
         self.machine = machine or MachineConfig()
         self.options = options or AnalysisOptions()
         self.hints = hints or TimingHints()
-        self.detector = TestDetector(plan)
+        self.library = library if library is not None else PlanLibrary.single(plan)
+        self.multi = len(self.library) > 1
+        self.plan_name = self.library.first.name
+        if self.multi:
+            plan = self.plan = self.library.detection_plan()
+        elif library is not None:
+            self.plan = self.library.first.plan
+        self.plan_hints: dict[str, TimingHints] = dict(plan_hints or {})
+        self._recent = RecentSamples() if self.multi else None
+        self._pre: tuple[np.ndarray, np.ndarray] = (np.empty(0), np.empty(0))
+        self._chosen: str | None = None
+        self._chosen_always = False
+        self._reading: SignatureReading | None = None
+        self._early: Recognition | None = None
+        self._offset = 0.0
+        self.detector = TestDetector(self.plan)
         self.axis = TimeAxis()
         self.patterns = select(
             self.options.patterns, plan.direction_list, self.machine.pitch_x_mm, self.machine.pitch_y_mm
@@ -177,11 +207,34 @@ class TestAnalyzer:
         if t.size and not (np.isfinite(t).all() and np.isfinite(L).all()):
             k = int(np.argmax(~(np.isfinite(t) & np.isfinite(L))))
             raise DataError(f"sample {self.detector.n_seen + k}: time or length is not a finite number")
+        if self._recent is not None and t.size > 1 and t[-1] - t[0] > RECENT_PIECE_S:
+            # in pieces: the samples before each feed-in must still be at hand when it is found
+            cuts = np.searchsorted(t, np.arange(t[0] + RECENT_PIECE_S, t[-1], RECENT_PIECE_S)).tolist()
+            out: list[dict[str, Any]] = []
+            for a, b in zip([0, *cuts], [*cuts, t.size], strict=True):
+                if b > a:
+                    out.extend(self.feed(t[a:b], L[a:b], borrow))
+            return out
         self._breaks.extend(self.axis.check(t))
         if t.size:
             self.last_t = float(t[-1])
+        if self._recent is not None:
+            self._recent.add(t, L)
         self.detector.feed(t, L, borrow)
         return self._drain()
+
+    def choose(self, name: str | None, every_test: bool = False) -> None:
+        """Analyse the next test (the next feed-in; ``every_test``: every test from then on) as plan ``name``,
+        whatever its signature or timing say: an operator's or a service's explicit choice (None: none).
+        Raises :class:`~.errors.PlanError` for a name the library does not have."""
+        if name is not None:
+            self.library.get(name)
+        self._chosen, self._chosen_always = name, every_test
+
+    @property
+    def chosen(self) -> str | None:
+        """The plan chosen for the next test (None: it is recognised)."""
+        return self._chosen
 
     def mark_break(self, reason: str) -> None:
         """A discontinuity between the samples fed so far and the next ones, which the times may not show.
@@ -239,7 +292,7 @@ class TestAnalyzer:
         process that died rejects its test."""
         if self._pending is None:
             return []
-        index, fo, fut = self._pending
+        index, fo, fut, rec = self._pending
         if not fut.done():
             if not wait:
                 return []
@@ -248,7 +301,7 @@ class TestAnalyzer:
                 return []
         self._pending = None
         try:
-            return self._settle(index, fo, fut.result)
+            return self._settle(index, fo, fut.result, rec)
         except (cf.BrokenExecutor, cf.CancelledError) as err:
             why = f"ended before its result ({err})" if str(err) else "was stopped before its result"
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
@@ -267,7 +320,10 @@ class TestAnalyzer:
             if ev.kind == "feed_in":
                 out.extend(self.collect(wait=True))  # its hints are the next test's
                 self._start(ev)
-                out.append(_event(ev, self.test_index))
+                event = _event(ev, self.test_index)
+                if self.multi:  # the plan where the feed-in tells it (a signature, a choice), else null
+                    event["plan"] = self._early.name if self._early is not None else None
+                out.append(event)
                 continue
             assert self._fi is not None
             if not self._rejected and (brk := self._break_in(self._fi.t_begin_s, ev.t_end_s)) is not None:
@@ -317,10 +373,68 @@ class TestAnalyzer:
             ev["gap_s"] = gap_s
         return ev
 
+    def _recognise_start(self, fi: StepEvent) -> StepEvent | None:
+        """A library of several: read the signature before the feed-in, and what it (or a choice) says; the
+        feed-in timed with the plan where that is known, else None (no provisional circles)."""
+        assert self._recent is not None
+        self._pre = self._recent.before(fi.t_begin_s)
+        self._reading = read_signature(*self._pre, fi.t_begin_s, fi.level_before_mm, self.library.first.plan.feed_in_mm)
+        self._early = at_feed_in(self.library, self._reading, self._chosen)
+        if not self._chosen_always:
+            self._chosen = None
+        if self._early is None or self._early.name is None:
+            return None
+        self._use_plan(self._early.name)
+        steps = self._steps_as(self._early.name, fi, None)
+        return steps[0] if steps is not None else None
+
+    def _use_plan(self, name: str) -> None:
+        p = self.library.get(name)
+        self.plan, self.plan_name = p.plan, name
+        self._offset = self.library.offset_mm(name)
+        self.hints = self.plan_hints.get(name, TimingHints())
+        self.patterns = select(self.options.patterns, self.plan.direction_list, self.machine.pitch_x_mm,
+                               self.machine.pitch_y_mm)
+
+    def _steps_as(self, name: str, fi: StepEvent, fo: StepEvent | None) -> tuple[StepEvent, StepEvent | None] | None:
+        """The test's feed-in (and feed-out) as the detector times them for plan ``name`` at its radius: the
+        detection's own, moved by the plan's offset, where its feed and dwell are the detection plan's;
+        else found again by a detector of that plan in the samples (from before the feed-in on).  None
+        where that detector does not find them."""
+        off = self._offset
+        if self.library.same_steps(name):
+            return _moved(fi, off), (_moved(fo, off) if fo is not None else None)
+        tb, Lb = self.detector.samples()
+        pre_t, pre_L = self._pre
+        t = np.concatenate([pre_t, tb])
+        L = np.concatenate([pre_L, Lb]) + off
+        det = TestDetector(self.library.get(name).plan)
+        det.feed(t, L, borrow=True)
+        if fo is not None:
+            det.finish()
+        steps = []
+        while (ev := det.poll()) is not None:
+            steps.append(ev)
+        fi2 = next((e for e in steps if e.kind == "feed_in" and abs(e.t_s - fi.t_s) < 1.0), None)
+        if fi2 is None:
+            return None
+        if fo is None:
+            return fi2, None
+        fo2 = next((e for e in steps if e.kind == "feed_out" and abs(e.t_s - fo.t_s) < 1.0), None)
+        return (fi2, fo2) if fo2 is not None else None
+
     def _start(self, fi: StepEvent) -> None:
         self.test_index += 1
         self._fi = fi
         self._rejected = False
+        if self.multi:
+            fi_plan = self._recognise_start(fi)
+            if fi_plan is None:
+                self._circles = []
+                self._emitted = set()
+                self._added = 0
+                return
+            fi = fi_plan
         V = self.plan.feed_mm_s * self.hints.feed_ratio
         timing = make_timing(self.plan, fi.t_s, V, self.hints.overhead_s, accel_s=feed_accel(self.plan, [fi], V))
         self._circles = [
@@ -338,6 +452,8 @@ class TestAnalyzer:
         due = final or any(c.d not in self._emitted and t_last >= c.t_end for c in self._circles)
         if self._added < tb.size and (due or tb.size - self._added >= FOLD_SAMPLES):
             t_new, L_new = tb[self._added :], Lb[self._added :]
+            if self._offset:
+                L_new = L_new + self._offset
             for c in self._circles:
                 c.add(t_new, L_new)
             self._added = tb.size
@@ -360,6 +476,7 @@ class TestAnalyzer:
 
     def _circle_result(self, c: CircleFit, fit: FitResult) -> dict[str, Any]:
         res = result_body(self.plan, self.machine, self.options, fit, c.patterns)
+        self._name_plan(res, self._early)
         res.update(
             kind="circle",
             direction="ccw" if c.d > 0 else "cw",
@@ -383,18 +500,38 @@ class TestAnalyzer:
         if self.only is not None and self.test_index != self.only:
             return [{"kind": "event", "event": "test_skipped", "test_index": self.test_index, "t_s": fo.t_s,
                      "message": f"not analysed (test {self.only} was asked for)"}]
+        rec: Recognition | None = None
+        if self.multi:
+            rec = at_feed_out(self.library, self._early, self._reading, fo.t_s - fi.t_s)
+            if rec.name is None:
+                log.info("test %d not recognised: %s", self.test_index, rec.message)
+                return [{"kind": "event", "event": "test_unrecognised", "test_index": self.test_index,
+                         "t_s": fo.t_s, "reason": rec.reason, "candidates": list(rec.candidates),
+                         "signature": rec.signature, "message": rec.message}]
+            log.debug("test %d recognised as %s by %s", self.test_index, rec.name, rec.method)
+            if self._early is None or rec.name != self._early.name:
+                self._use_plan(rec.name)
+            steps = self._steps_as(rec.name, fi, fo)
+            if steps is None or steps[1] is None:
+                return [self._reject(fo.t_s, None, f"the steps of the test, recognised as {rec.name}, are not found "
+                                     f"again with that plan's feed and dwell")]
+            fi, fo = steps[0], steps[1]
         tb, Lb = self.detector.samples()
+        if self.multi and not self.library.same_steps(self.plan_name):
+            tb, Lb = np.concatenate([self._pre[0], tb]), np.concatenate([self._pre[1], Lb])
         m = (tb >= fi.t_begin_s) & (tb <= fo.t_end_s)
-        args = (self.plan, self.machine, self.options, tb[m], Lb[m], fi, fo, self.curves)
+        L_test = Lb[m] + self._offset if self._offset else Lb[m]
+        args = (self.plan, self.machine, self.options, tb[m], L_test, fi, fo, self.curves)
         if self.executor is None:
-            return self._settle(self.test_index, fo, lambda: analyze_test(*args))
+            return self._settle(self.test_index, fo, lambda: analyze_test(*args), rec)
         fut = self.executor.submit(analyze_test, *args)
-        self._pending = (self.test_index, fo, fut)
+        self._pending = (self.test_index, fo, fut, rec)
         if self.on_submit is not None:
             self.on_submit(fut)
         return []
 
-    def _settle(self, index: int, fo: StepEvent, fit: Callable[[], dict[str, Any]]) -> list[dict[str, Any]]:
+    def _settle(self, index: int, fo: StepEvent, fit: Callable[[], dict[str, Any]], rec: Recognition | None = None,
+                ) -> list[dict[str, Any]]:
         """A test's fit, done: its result, and the hints it teaches; or its rejection."""
         try:
             result = fit()
@@ -408,6 +545,9 @@ class TestAnalyzer:
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
                      "message": f"the analysis failed on this test ({what}): please report it with the recording"}]
         result["test_index"] = index
+        self._name_plan(result, rec)
+        if self.multi:
+            self.hints = self.plan_hints.get(self.plan_name, TimingHints())
         hints = TimingHints.learnt(result["timing"], self.hints)
         if hints is None:
             log.warning("test %d: a measured feed of %.1f mm/min (programmed %g) is no timing hint for the next "
@@ -415,7 +555,21 @@ class TestAnalyzer:
                         self.plan.feed_mm_min)
         else:
             self.hints = hints
+            self.plan_hints[self.plan_name] = hints
         return [result]
+
+    def _name_plan(self, res: dict[str, Any], rec: Recognition | None) -> None:
+        """The plan's name, its axes and how it was recognised, beside the plan's keys."""
+        res["plan"]["name"] = self.plan_name
+        res["plan"]["axes"] = list(self.library.get(self.plan_name).axes)
+        res["recognition"] = (rec or Recognition(self.plan_name, "only")).to_dict()
+
+
+def _moved(ev: StepEvent, offset_mm: float) -> StepEvent:
+    """A step's levels read at another radius (the plan's offset)."""
+    if not offset_mm:
+        return ev
+    return replace(ev, level_before_mm=ev.level_before_mm + offset_mm, level_after_mm=ev.level_after_mm + offset_mm)
 
 
 def _event(ev: StepEvent, test_index: int) -> dict[str, Any]:
@@ -443,8 +597,13 @@ def analyze_recording(
     breaks: Sequence[tuple[int, str]] = (),
     circles: bool = True,
     only: int | None = None,
+    library: PlanLibrary | None = None,
+    chosen: str | None = None,
 ) -> list[dict[str, Any]]:
     """Everything :class:`TestAnalyzer` reports on a whole recording, in order.
+
+    ``library``: the plans its tests may run (see :class:`TestAnalyzer`);
+    ``chosen``: analyse every test as that plan of the library.
 
     ``curves``: see :func:`analyze_test`.  ``breaks``: ``(index, reason)``, a
     discontinuity the times may not show (a device reset) just before sample
@@ -457,7 +616,10 @@ def analyze_recording(
     if t.size >= 2 and np.all(np.isfinite(t)) and not np.any(t[1:] > t[:-1]):  # no full-length np.diff
         what = f"all {t.size} samples have t={t[0]:g} s" if np.all(t == t[0]) else "it never increases"
         raise DataError(f"the time axis does not advance ({what}): no test can be timed")
-    an = TestAnalyzer(plan, machine, options, curves=curves, circles=circles, only=only)
+    an = TestAnalyzer(plan, machine, options, curves=curves, circles=circles, only=only, library=library)
+    if chosen is not None and an.multi:
+        an.choose(chosen, every_test=True)
+    plan = an.plan
     out: list[dict[str, Any]] = []
     i = 0
     for j, reason in sorted(breaks, key=lambda b: b[0]):

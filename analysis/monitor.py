@@ -41,7 +41,7 @@ verdict says so.
 
 Trends and forecasts
 --------------------
-Per machine and test conditions (plane, radius, feed, data arc, directions:
+Per machine, plan and test conditions (the plan's name; plane, radius, feed, data arc, directions:
 the report's trend selection), the history of each limited quantity over the
 last ``trend_tests`` valid tests (and, if ``trend_days`` > 0, the last so many
 days).  A test whose analysis warned about its own validity (a timing model
@@ -95,6 +95,8 @@ from .errors import PlanError
 
 #: Test conditions that must match for results to share a trend (the report's selection too).
 CONDITION_KEYS = ("plane", "radius_mm", "feed_mm_min", "data_arc_deg", "directions")
+#: The plan of a result without a name (a single [plan], or one logged before plans were a library).
+DEFAULT_PLAN = "default"
 #: ISO 230-4 limits and the result fields (``iso230_4``) each applies to.
 ISO_LIMITS: dict[str, tuple[str, ...]] = {
     "G_um": ("G_ccw_um", "G_cw_um"),
@@ -320,14 +322,22 @@ def verdict_text(status: str, entries: Sequence[Mapping[str, Any]]) -> str:
 
 
 def conditions(result: Mapping[str, Any]) -> dict[str, Any]:
-    """The test conditions that select a trend (:data:`CONDITION_KEYS`)."""
+    """The test conditions that select a trend: the plan's name (:data:`DEFAULT_PLAN` where a result has
+    none, as before plans were a library) and :data:`CONDITION_KEYS`."""
     plan = result.get("plan", {})
-    return {k: plan.get(k) for k in CONDITION_KEYS}
+    return {"plan": plan.get("name") or DEFAULT_PLAN, **{k: plan.get(k) for k in CONDITION_KEYS}}
+
+
+def plan_of(result: Mapping[str, Any]) -> str:
+    """The name of the plan a result (or a history entry's conditions) is about."""
+    plan = result.get("plan")
+    name = plan.get("name") if isinstance(plan, Mapping) else plan
+    return str(name) if name else DEFAULT_PLAN
 
 
 def condition_key(cond: Mapping[str, Any]) -> str:
-    """A stable text key of the conditions (for grouping and storage)."""
-    return ";".join(f"{k}={cond.get(k)!r}" for k in CONDITION_KEYS)
+    """A stable text key of the conditions (for grouping and storage): per plan, then per conditions."""
+    return f"plan={plan_of(cond)!r};" + ";".join(f"{k}={cond.get(k)!r}" for k in CONDITION_KEYS)
 
 
 def validity(result: Mapping[str, Any]) -> str | None:
@@ -619,6 +629,9 @@ def _clearly_not_due(f: Mapping[str, Any]) -> bool:
 def alert_text(alert: Mapping[str, Any]) -> str:
     """One readable line of an alert message."""
     m = alert.get("machine_id", "?")
+    plan = plan_of(alert.get("conditions") or {})
+    if plan != DEFAULT_PLAN:  # a library of plans: whose alert
+        m = f"{m} plan {plan}"
     if alert.get("alert") == "verdict":
         v = alert.get("verdict") or {}
         head = f"{m}: verdict {alert['previous']} -> {alert['state']}" + (" (cleared)" if alert.get("cleared") else "")
@@ -634,6 +647,7 @@ def alert_text(alert: Mapping[str, Any]) -> str:
 
 __all__ = [
     "CONDITION_KEYS",
+    "DEFAULT_PLAN",
     "ISO_LIMITS",
     "AlertTracker",
     "Limit",
@@ -648,6 +662,7 @@ __all__ = [
     "evaluate",
     "forecast",
     "history_entry",
+    "plan_of",
     "points",
     "settings_from_dict",
     "theil_sen",

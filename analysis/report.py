@@ -131,6 +131,9 @@ def summary(result: dict[str, Any]) -> str:
         "Ranked findings (extra sum of squares):",
         f"  {'pattern':<28} {'share %':>8} {'p-value':>10}  significant",
     ]
+    name, rec = plan.get("name"), result.get("recognition") or {}
+    if name and rec.get("method") not in (None, "only"):  # a library of plans: which, and how it was known
+        lines.insert(1, f"Plan {name} (axes {'/'.join(plan.get('axes') or [])}): {rec.get('message', '')}")
     for r in result["ranking"]:
         lines.append(
             f"  {r['pattern']:<28} {r['share_pct']:8.2f} {r['p_value']:10.2e}  {'yes' if r['significant'] else 'no'}"

@@ -51,6 +51,12 @@ key                               how         what
                                               ``limit``. With it: the oldest ``limit`` after it;
                                               ``more: true`` means ask again with ``since`` = the
                                               last ``t_wall`` received.
+``ballbar/<m>/control/next_plan`` subscribed  an explicit choice of the next test's plan, put by a
+                                              service: ``{"plan": NAME}`` (or the bare name; ``null``
+                                              withdraws it); the daemon answers with a ``plan_chosen``
+                                              or ``plan_choice_refused`` event.  In the secure setup
+                                              only the subjects that ``systemd/zenoh-daemon.json5``
+                                              lets put there may
 ``ballbar/<m>/alive``             liveliness  a token while the daemon runs: withdrawn at once on
                                               a clean stop or a crash, after the lease (10 s) when
                                               the host vanishes
@@ -153,6 +159,7 @@ TOPICS: dict[str, str] = {
 }
 LAST_TOPICS = ("circle", "test", "event", "status", "config", "alert")
 HISTORY_TOPICS = ("circle", "test", "event", "alert")
+CONTROL_NEXT_PLAN = "control/next_plan"  # a service names the next test's plan here (subscribed)
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
 RECOVERY_WAIT_S = 60.0  # an event found at start waits this long for a subscriber to put it to
@@ -394,6 +401,7 @@ class _Counters:
     queries: int = 0
     query_errors: int = 0
     skipped: int = 0
+    controls: int = 0
 
 
 class ZenohBus(Listener):
@@ -448,6 +456,7 @@ class ZenohBus(Listener):
         self._opener: threading.Thread | None = None
         self._closer: threading.Thread | None = None
         self._deferred: list[tuple[float, bytes]] = []  # (until when, payload): events found at start, see on_message
+        self._control: Callable[[str | None], None] | None = None
         if history_loader is not None:
             self._load_history(history_loader)
         try:
@@ -504,6 +513,7 @@ class ZenohBus(Listener):
             keep: list[Any] = [
                 session.declare_queryable(f"{self.prefix}/last/*", self._on_last, complete=True),
                 session.declare_queryable(f"{self.prefix}/history/*", self._on_history, complete=True),
+                session.declare_subscriber(f"{self.prefix}/{CONTROL_NEXT_PLAN}", self._on_control),
             ]
             token = session.liveliness().declare_token(f"{self.prefix}/alive")
         except zenoh.ZError as err:
@@ -642,6 +652,23 @@ class ZenohBus(Listener):
             c.slow_puts += 1
             log.warning("zenoh: a put on %s took %.2f s (a subscriber is not reading)", TOPICS[kind], took)
 
+    def bind_control(self, choose: Callable[[Any], None]) -> None:
+        """Where a choice of the next plan put on ``control/next_plan`` goes (the daemon's analysis)."""
+        self._control = choose
+
+    def _on_control(self, sample: zenoh.Sample) -> None:
+        """``{"plan": NAME}``, the bare name, or null: handed on as it is (the analysis checks the name)."""
+        self._counters.controls += 1
+        text = sample.payload.to_bytes().decode("utf-8", "replace").strip()
+        try:
+            body = json.loads(text)
+            name = body.get("plan") if isinstance(body, dict) else body
+        except ValueError:
+            name = text
+        log.info("zenoh: %s: %r", CONTROL_NEXT_PLAN, name)
+        if self._control is not None:
+            self._control(name)
+
     def stats(self) -> dict[str, Any]:
         """Counters for the status: connection, peers, what went out, what could not."""
         c = self._counters
@@ -656,6 +683,7 @@ class ZenohBus(Listener):
             "queries": c.queries,
             "query_errors": c.query_errors,
             "skipped": c.skipped,
+            "controls": c.controls,
             "history": {k: len(v) for k, v in self._history.items()},
         }
         session = self._session

@@ -25,6 +25,7 @@ from ballbar.analysis.errors import BallbarError, PlanError
 
 if TYPE_CHECKING:
     from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+    from ballbar.analysis.plans import PlanLibrary
 
 # numpy, scipy, the analysis, MCAP and the bus come in with the command that needs them (``ballbar analyze`` of
 # a CSV imports no MCAP, Zenoh or Rerun; ``ballbar run`` has its SIGTERM handler from :mod:`.cli` already).
@@ -69,7 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
                         description="Analyse a ball-bar recording: ranked findings, ISO 230-4, advice.")
     an.add_argument("file", help="recording: CSV with header t_s,length_mm, or the daemon's MCAP "
                     "(a file, or a directory of them: its newest complete test; its recorded plan is the default)")
-    an.add_argument("--plan", dest="plan_file", help="TOML or JSON file with [plan], [machine], [analysis]")
+    an.add_argument("--plan", dest="plan_arg", metavar="NAME|FILE",
+                    help="a plan of the library (the recording's, or --config's [plans.*]) by name: every test "
+                    "analysed as it; or a TOML or JSON file with [plan], [machine], [analysis]")
     for flags in (PLAN_FLAGS, MACHINE_FLAGS):
         for flag, dest, typ, help_ in flags:
             an.add_argument(flag, dest=dest, type=typ, help=help_)
@@ -98,7 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="controller dialect (fanuc also suits compatible controls)")
     gc.add_argument("-o", "--output", help="write the program to this file (default: standard output)")
     gc.add_argument("--config", help="the daemon's TOML configuration, whose [plan] to use")
-    gc.add_argument("--plan", dest="plan_file", help="TOML or JSON file with [plan] (overrides --config)")
+    gc.add_argument("--plan", dest="plan_arg", metavar="NAME|FILE",
+                    help="a plan of the configuration's library, or a set (its programs into -o DIR), by name; or "
+                    "a TOML or JSON file with [plan] (overrides --config)")
     for flag, dest, typ, help_ in PLAN_FLAGS:
         gc.add_argument(flag, dest=dest, type=typ, help=help_)
     gc.add_argument("--decimals", type=int, help="decimals of coordinates (default: 3 for fanuc, else 4)")
@@ -120,7 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--config", help="the daemon's TOML configuration (for its state_dir)")
     rp.add_argument("-o", "--output", help="HTML file to write (default: ballbar-report-<test>.html)")
     rp.add_argument("--no-png", action="store_true", help="do not write the plots as PNG files beside the HTML")
-    rp.add_argument("--plan", dest="plan_file", help="TOML or JSON file with [plan], [machine], [analysis]")
+    rp.add_argument("--plan", dest="plan_arg", metavar="FILE",
+                    help="TOML or JSON file with [plan], [machine], [analysis] (default: the recorded plans)")
     for flags in (PLAN_FLAGS, MACHINE_FLAGS):
         for flag, dest, typ, help_ in flags:
             rp.add_argument(flag, dest=dest, type=typ, help=help_)
@@ -163,6 +169,61 @@ def load_config_file(path: str) -> dict[str, Any]:
     return data
 
 
+def resolve_plan_arg(args: argparse.Namespace, names: Sequence[str]) -> None:
+    """``--plan NAME|FILE``: ``args.plan_name`` where it names a plan (or set) of ``names``, else
+    ``args.plan_file``; a value that is neither a name nor a file, with names to choose from, is a usage error."""
+    value = getattr(args, "plan_arg", None)
+    args.plan_name, args.plan_file = None, None
+    if value is None:
+        return
+    if value in names:
+        args.plan_name = value
+    elif names and not os.path.exists(value):
+        raise UsageError(f"--plan {value}: no plan of that name ({', '.join(names)}) and no such file")
+    else:
+        args.plan_file = value
+
+
+def own_plan(args: argparse.Namespace) -> bool:
+    """A plan given by ``--plan FILE`` or plan flags: the library of the configuration is set aside."""
+    return bool(getattr(args, "plan_file", None)) or any(
+        getattr(args, dest, None) is not None for _f, dest, _t, _h in PLAN_FLAGS)
+
+
+def library_from_args(
+    args: argparse.Namespace, sections: dict[str, Any], plan: TestPlan,
+) -> tuple[PlanLibrary, str | None]:
+    """The plans a recording's tests may run (``sections``' ``plans``: the recorded or --config's), and the one
+    ``--plan NAME`` chose.  A plan of one's own (``--plan FILE``, plan flags) is a library of that plan alone."""
+    from ballbar.analysis.plans import PlanLibrary
+
+    from .config import ConfigError, library_of
+
+    if own_plan(args):
+        if getattr(args, "plan_name", None):
+            raise UsageError(f"--plan {args.plan_name} names a plan of the library: plan flags cannot change it")
+        return PlanLibrary.single(plan), None
+    try:
+        library = library_of(sections)
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    if library is None:
+        return PlanLibrary.single(plan), None
+    return library, getattr(args, "plan_name", None)
+
+
+def library_sections(args: argparse.Namespace, base: dict[str, Any]) -> dict[str, Any]:
+    """Where the library comes from: ``--config``'s ``[plans.*]`` where it has some, else ``base`` (the
+    recorded configuration)."""
+    if getattr(args, "config", None):
+        from .config import load
+
+        cfg = load(args.config, env={})
+        if cfg.plans:
+            return cfg.to_dict()
+    return base
+
+
 def configs_from_args(
     args: argparse.Namespace, base: dict[str, Any] | None = None
 ) -> tuple[TestPlan, MachineConfig, AnalysisOptions]:
@@ -174,7 +235,7 @@ def configs_from_args(
 
     if base is None:
         base = recorded_config(args.file) if getattr(args, "file", None) else {}
-    if args.plan_file:
+    if getattr(args, "plan_file", None):
         for key, value in load_config_file(args.plan_file).items():
             base.setdefault(key, {}).update(value)
     plan_d = dict(base.get("plan", {}))
@@ -229,9 +290,9 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         from .recordings import recorded_config
 
         base = recorded_config(args.file)
-        plan, machine, options = configs_from_args(args, base=dict(base))
-        result = analyze_file(args.file, plan, machine, options, args.test or 1)
-    limits = limits_table(args, base)
+        plan, machine, options, library, chosen = _configs_and_library(args, base)
+        result = analyze_file(args.file, plan, machine, options, args.test or 1, library=library, chosen=chosen)
+    limits = limits_table(args, base, result.get("plan", {}).get("name"))
     if limits is not None:
         result["verdict"] = verdict_of(result, limits)
     if args.json:
@@ -251,18 +312,22 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     return 0
 
 
-def limits_table(args: argparse.Namespace, base: dict[str, Any]) -> dict[str, Any] | None:
-    """The ``[limits]`` that give an offline verdict: ``--config``'s, else ``--plan``'s, else the recorded ones;
-    None when none of them turns limits on."""
+def limits_table(args: argparse.Namespace, base: dict[str, Any], plan: str | None = None) -> dict[str, Any] | None:
+    """The ``[limits]`` that give an offline verdict: ``--config``'s, else ``--plan``'s, else the recorded ones
+    (of plan ``plan``, where it has its own); None when none of them turns limits on."""
     from .config import load
 
     table: dict[str, Any] | None = None
     if getattr(args, "config", None):
-        table = asdict(load(args.config, env={}).limits)
+        table = asdict(load(args.config, env={}).limits_of(plan or ""))
     elif getattr(args, "plan_file", None) and "limits" in load_config_file(args.plan_file):
         table = dict(load_config_file(args.plan_file)["limits"])
-    elif isinstance(base.get("limits"), dict):
-        table = dict(base["limits"])
+    else:
+        own = (base.get("plans") or {}).get(plan or "", {}).get("limits")
+        if isinstance(own, dict):
+            table = dict(own)
+        elif isinstance(base.get("limits"), dict):
+            table = dict(base["limits"])
     return table if table and table.get("enabled") else None
 
 
@@ -305,16 +370,41 @@ def _analyze_records(args: argparse.Namespace, base: dict[str, Any]) -> dict[str
     if index.tests or args.test_id is not None:
         test = index.select(args.test_id, args.test)
         base.update(index.config_for(test))
-        plan, machine, options = configs_from_args(args, base=dict(base))
-        return analyze_recorded(index, test, plan, machine, options)
+        plan, machine, options, library, chosen = _configs_and_library(args, base)
+        return analyze_recorded(index, test, plan, machine, options, library=library, chosen=chosen)
     # Files without test records (the daemon's analysis off, or not the daemon's): the newest run's samples.
     run = index.runs()[-1]
     log.info("%s: no test recorded; analysing the samples of its newest daemon run (%d file(s))", args.file, len(run))
     files = [index.files[i] for i in run]
     base.update(next((config_sections(f.config) for f in reversed(files) if f.config), {}))
-    plan, machine, options = configs_from_args(args, base=dict(base))
+    plan, machine, options, library, chosen = _configs_and_library(args, base)
     rec = recording(read_logs([f.path for f in files], skip_bad=True, status=False), args.file)
-    return pick_test(analyze(rec, plan, machine, options, only=args.test or 1), args.test or 1, args.file, plan)
+    return pick_test(analyze(rec, plan, machine, options, only=args.test or 1, library=library, chosen=chosen),
+                     args.test or 1, args.file, plan)
+
+
+def _configs_and_library(
+    args: argparse.Namespace, base: dict[str, Any],
+) -> tuple[TestPlan, MachineConfig, AnalysisOptions, PlanLibrary, str | None]:
+    """The plan, machine and options (:func:`configs_from_args`) and the library with the plan chosen
+    (:func:`library_from_args`) of a recording whose configuration is ``base``."""
+    sections = library_sections(args, base)
+    names = library_from_sections(sections).names if sections.get("plans") else ()
+    resolve_plan_arg(args, names)
+    plan, machine, options = configs_from_args(args, base=dict(base))
+    library, chosen = library_from_args(args, sections, plan)
+    return plan, machine, options, library, chosen
+
+
+def library_from_sections(sections: dict[str, Any]) -> PlanLibrary:
+    from .config import ConfigError, library_of
+
+    try:
+        library = library_of(sections)
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    assert library is not None
+    return library
 
 
 def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
@@ -330,11 +420,12 @@ def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
         index = index_recordings(args.file)
         rows = [index.describe(t) for t in index.tests]
     else:
-        plan, machine, options = configs_from_args(args)
+        plan, machine, options, library, chosen = _configs_and_library(args, {})
         rows = [
             {"number": e["number"], "feed_in_s": e["feed_in_s"], "status": e["status"], "message": e["message"],
              "headline": headline(e["result"]) if e["result"] is not None else None}
-            for e in outcomes(analyze(load_recording(args.file), plan, machine, options))
+            for e in outcomes(analyze(load_recording(args.file), plan, machine, options, library=library,
+                                      chosen=chosen))
         ]
     if args.json:
         json.dump(rows, sys.stdout, allow_nan=False)
@@ -346,7 +437,8 @@ def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
         what = headline_text(r["headline"]) if r["headline"] else r["message"]
         if mcap:
             files = r["files"][0] + (f" +{len(r['files']) - 1}" if len(r["files"]) > 1 else "")
-            print(f"{r['number']:>3}  {r['test_id']}  {r['start'] or '-'}  {files}  {r['status']}  {what}")
+            plan = f"  {r['plan']}" if r.get("plan") else ""
+            print(f"{r['number']:>3}  {r['test_id']}  {r['start'] or '-'}  {files}{plan}  {r['status']}  {what}")
         else:
             print(f"{r['number']:>3}  feed-in at t={r['feed_in_s']:.3f} s  {r['status']}  {what}")
     return 0
@@ -364,42 +456,120 @@ def _origin(text: str | None) -> tuple[float, float, float]:
     return (xyz[0], xyz[1], xyz[2])
 
 
-def cmd_gcode(args: argparse.Namespace) -> int:
-    from ballbar.tools.gcode import generate
-    from ballbar.tools.ncinterp import check_against_plan, model_limits
+PROGRAM_SUFFIX = {"fanuc": ".nc", "siemens": ".mpf", "heidenhain": ".h", "linuxcnc": ".ngc"}
 
-    from .config import load
+
+def cmd_gcode(args: argparse.Namespace) -> int:
+    from .config import load, monitor_settings
     from .output import write_atomic
 
     cfg = load(args.config)
-    plan, _machine, _options = configs_from_args(args, base={"plan": cfg.plan.to_dict()})
+    library = cfg.library
+    names = (*library.names, *cfg.sets) if cfg.plans else ()
+    resolve_plan_arg(args, names)
     if args.repeat < 1:
         raise UsageError("--repeat must be at least 1")
+    chosen: list[str] = []
+    if args.plan_name is not None:
+        chosen = list(cfg.sets[args.plan_name].plans) if args.plan_name in cfg.sets else [args.plan_name]
+        if own_plan(args):
+            raise UsageError(f"--plan {args.plan_name} names a plan of the configuration: plan flags would change its "
+                             f"program, not its plan; change [plans.{chosen[0]}] instead")
+    elif len(library) > 1 and not own_plan(args):
+        sets = f"; sets: {', '.join(cfg.sets)}" if cfg.sets else ""
+        raise UsageError(f"the configuration holds {len(library)} plans ({', '.join(library.names)}{sets}): "
+                         "choose one with --plan NAME")
+    if not chosen:  # one plan: the configuration's only one, or one of its own (a file, flags)
+        plan, _machine, _options = configs_from_args(args, base={"plan": cfg.plan.to_dict()})
+        text = _program(args, plan, None, None, args.program_name)
+        _write_program(args, text, plan)
+        _say_limits(monitor_settings(cfg))
+        return 0
+    many = args.plan_name in cfg.sets
+    if many and args.output is None:
+        raise UsageError(f"--plan {args.plan_name} is a set of {len(chosen)} plans: give -o DIR for its programs")
+    out_dir = Path(args.output) if many else None
+    if out_dir is not None:
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise UsageError(f"-o {args.output}: cannot make the directory: {err.strerror or err}") from err
+    number = _program_number(args)
+    for k, name in enumerate(chosen):
+        p = library.get(name)
+        signature = p.signature if len(library) > 1 else None
+        program_name = (name if args.dialect == "heidenhain" else str(number + k) if number is not None
+                        else args.program_name)
+        text = _program(args, p.plan, signature, name, program_name)
+        if out_dir is None:
+            _write_program(args, text, p.plan, name)
+        else:
+            path = out_dir / f"{name}{PROGRAM_SUFFIX[args.dialect]}"
+            write_atomic(str(path), text.encode("utf-8"))
+            print(f"wrote {path}: {args.dialect} program of plan {name}, plane {p.plan.plane}, R "
+                  f"{p.plan.radius_mm:g} mm, F {p.plan.feed_mm_min:g} mm/min"
+                  + (f", signature {signature}" if signature is not None else ""), file=sys.stderr)
+        _say_limits(monitor_settings(cfg, name), name)
+    return 0
+
+
+def _program_number(args: argparse.Namespace) -> int | None:
+    """FANUC: the O-number of a set's first program (the next ones count on); else None."""
+    if args.dialect != "fanuc":
+        return None
+    text = (args.program_name or "O2304").strip().lstrip("Oo")
+    return int(text) if text.isdigit() else None
+
+
+def _program(args: argparse.Namespace, plan: TestPlan, signature: int | None, name: str | None,
+             program_name: str | None) -> str:
+    """One plan's program, read back by the interpreter: it must run the plan (where the plan is inside the
+    timing model) and carry its signature."""
+    from ballbar.analysis.plans import SIGNATURE_STEP, signature_code
+    from ballbar.tools.gcode import generate
+    from ballbar.tools.ncinterp import check_against_plan, interpret, model_limits, signatures
+
     origin = _origin(args.origin)
     text = generate(plan, args.dialect, decimals=args.decimals, origin=origin, work_offset=args.work_offset,
-                    program_name=args.program_name, mount_stop=not args.no_stop, repeat=args.repeat)
+                    program_name=program_name, mount_stop=not args.no_stop, repeat=args.repeat, signature=signature,
+                    plan_name=name)
     # Where the plan itself leaves the analyzer's timing model (an overshoot too short to reach the feed), no
     # program can match it: say so and write the program; otherwise a mismatch is the generator's bug.
     limits = model_limits(plan)
     for why in limits:
-        log.warning("the plan is outside the analyzer's timing model: %s", why)
-    from .config import monitor_settings
-
-    settings = monitor_settings(cfg)
+        log.warning("the plan%s is outside the analyzer's timing model: %s", f" {name}" if name else "", why)
     problems = check_against_plan(text, args.dialect, plan, origin=origin)
     if problems and not limits:
         raise BallbarError(f"the {args.dialect} program does not run the plan: {problems[0]}")
+    if signature is not None:
+        step = SIGNATURE_STEP * plan.feed_in_mm
+        found = signatures(interpret(text, args.dialect), plan.plane, origin=origin)
+        if len(found) != args.repeat:
+            raise BallbarError(f"the {args.dialect} program of plan {name} holds {len(found)} tests, not {args.repeat}")
+        for depths in found:
+            if signature_code([round(d / step) for d in depths]) != signature:
+                raise BallbarError(f"the {args.dialect} program of plan {name} does not carry its signature "
+                                   f"{signature}: it reads {[round(d, 4) for d in depths]} mm")
+    return text
+
+
+def _write_program(args: argparse.Namespace, text: str, plan: TestPlan, name: str | None = None) -> None:
+    from .output import write_atomic
+
     if args.output is None:
         sys.stdout.write(text)
-    else:
-        write_atomic(args.output, text.encode("utf-8"))
-        print(f"wrote {args.output}: {args.dialect} program, plane {plan.plane}, R {plan.radius_mm:g} mm, "
-              f"F {plan.feed_mm_min:g} mm/min", file=sys.stderr)
+        return
+    write_atomic(args.output, text.encode("utf-8"))
+    print(f"wrote {args.output}: {args.dialect} program" + (f" of plan {name}" if name else "")
+          + f", plane {plan.plane}, R {plan.radius_mm:g} mm, F {plan.feed_mm_min:g} mm/min", file=sys.stderr)
+
+
+def _say_limits(settings: Any, name: str | None = None) -> None:
     if settings.enabled:  # what the daemon will hold this test to
-        print(f"limits that apply to this test's results ([limits], k = {settings.coverage_k:g}):", file=sys.stderr)
+        which = f"plan {name}'s" if name else "this test's"
+        print(f"limits that apply to {which} results ([limits], k = {settings.coverage_k:g}):", file=sys.stderr)
         for line in settings.describe():
             print(f"  {line}", file=sys.stderr)
-    return 0
 
 
 REPORT_FLAGS: list[tuple[str, str, Any, str]] = [  # the report's [report] keys, from the command line
@@ -415,6 +585,7 @@ REPORT_FLAGS: list[tuple[str, str, Any, str]] = [  # the report's [report] keys,
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from ballbar.analysis.plans import PlanLibrary
     from ballbar.tools.report import from_recording, from_records
 
     from .config import load
@@ -423,6 +594,7 @@ def cmd_report(args: argparse.Namespace) -> int:
         raise UsageError("--test counts from 1")
     if (args.file is None) == (args.test_id is None):
         raise UsageError("give a recording FILE or --test-id (one of the two)")
+    resolve_plan_arg(args, ())  # a file: the report of a library's test takes the recorded library
     records = args.records
     index = None
     if args.file is not None and os.path.isdir(args.file):
@@ -435,11 +607,13 @@ def cmd_report(args: argparse.Namespace) -> int:
 
         test = index.select(None, args.test)
         plan, machine, options = configs_from_args(args, base=index.config_for(test))
-        data = from_recorded_test(index, test, plan, machine, options, records=records)
+        data = from_recorded_test(index, test, plan, machine, options, records=records,
+                                  library=PlanLibrary.single(plan) if own_plan(args) else None)
         default_name = test.test_id
     elif args.file is not None:
         plan, machine, options = configs_from_args(args)
-        data = from_recording(args.file, plan, machine, options, args.test or 1, records=records)
+        data = from_recording(args.file, plan, machine, options, args.test or 1, records=records,
+                              library=PlanLibrary.single(plan) if own_plan(args) else None)
         default_name = Path(args.file.rstrip("/")).stem
     else:
         if records is None:

@@ -10,6 +10,16 @@ Layers, later ones winning:
    and taken as a plain string when it is not valid TOML);
 4. the command line: ``--set section.key=value`` (TOML value) and the named flags.
 
+Plans and sets.  ``[plan]`` is the test plan; ``[plans.<name>]`` tables make a
+library of several (analysis/plans.py), each ``[plan]`` with the keys it
+gives changed, plus ``signature`` (the code its program carries; default: from
+its name) and its own ``[plans.<name>.limits]`` over ``[limits]``.  Without
+them the library is ``[plan]`` alone, named ``default``.  ``[sets.<name>]``:
+``plans`` (names of the library) and ``window_minutes`` (the time within which
+a set's tests must all have run).  ``--set plans.NAME.KEY=VALUE`` sets one key
+of one plan.  :attr:`Config.plan` is the library's first plan: the bar's
+calibration ``cal_mm`` is for the bar as assembled for it.
+
 An unknown section or key, or a value of the wrong type, is one
 :class:`ConfigError` naming it (the command exits with code 2).
 """
@@ -27,12 +37,15 @@ import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ballbar.analysis.errors import BallbarError, PlanError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 
 from .secrets import REDACTED, is_secret_key
+
+if TYPE_CHECKING:  # the plans' module (numpy) comes in with a library: a single [plan] needs none of it
+    from ballbar.analysis.plans import PlanLibrary
 
 DEFAULT_FILE = Path(__file__).with_name("default.toml")
 SYSTEM_FILE = Path("/etc/ballbar/ballbar.toml")
@@ -139,6 +152,31 @@ class ReportSection:
 
 
 @dataclass
+class SetSection:
+    """A set of tests (``[sets.<name>]``): the plans it holds, and the time within which its tests must all
+    have run to count as one picture of the machine."""
+
+    plans: list[str] = field(default_factory=list)
+    window_minutes: float = 240.0
+
+
+@dataclass(frozen=True)
+class PlanEntry:
+    """One plan of the library as configured: the plan, its program's signature, its own limits (the
+    effective ``[limits]`` for its tests; None: the global one)."""
+
+    plan: TestPlan
+    signature: int | None = None
+    limits: LimitsSection | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {**self.plan.to_dict(), "signature": self.signature}
+        if self.limits is not None:
+            out["limits"] = asdict(self.limits)
+        return out
+
+
+@dataclass
 class QueueSection:
     analysis: int = 6000  # batches (~20 ms each): two minutes; drop_newest, counted
     mcap: int = 6000  # drop_newest: a contiguous log, the gap counted
@@ -174,10 +212,31 @@ class Config:
     queues: QueueSection
     limits: LimitsSection = field(default_factory=LimitsSection)
     report: ReportSection = field(default_factory=ReportSection)
+    plans: dict[str, PlanEntry] = field(default_factory=dict)  # [plans.<name>]; empty: [plan] alone
+    sets: dict[str, SetSection] = field(default_factory=dict)
 
     @property
     def cal_mm(self) -> float:
         return self.source.cal_mm if self.source.cal_mm is not None else self.plan.radius_mm
+
+    @property
+    def library(self) -> PlanLibrary:
+        """The plans the daemon recognises: ``[plans.*]`` in order, else ``[plan]`` named ``default``."""
+        from ballbar.analysis.plans import NamedPlan, PlanLibrary
+
+        if not self.plans:
+            return PlanLibrary.single(self.plan)
+        return PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature) for n, e in self.plans.items()))
+
+    @property
+    def limits_enabled(self) -> bool:
+        """Limits on for any plan: the monitor runs."""
+        return self.limits.enabled or any(e.limits is not None and e.limits.enabled for e in self.plans.values())
+
+    def limits_of(self, name: str) -> LimitsSection:
+        """The limits that plan ``name``'s tests are held to."""
+        entry = self.plans.get(name)
+        return entry.limits if entry is not None and entry.limits is not None else self.limits
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -187,6 +246,10 @@ class Config:
         for k, v in list(out["analysis"].items()):
             if isinstance(v, tuple):
                 out["analysis"][k] = list(v)
+        if self.plans:  # a single [plan] leaves its configuration as it was
+            out["plans"] = {n: e.to_dict() for n, e in self.plans.items()}
+        if self.sets:
+            out["sets"] = {n: asdict(s) for n, s in self.sets.items()}
         return out
 
 
@@ -266,13 +329,27 @@ def _build(name: str, cls: type, data: Mapping[str, Any]) -> Any:
         raise ConfigError(f"[{name}] {err}") from err
 
 
+NESTED = ("plans", "sets")  # tables of named tables
+
+
 def _merge(base: dict[str, dict[str, Any]], layer: Mapping[str, Any], origin: str) -> None:
     for section, values in layer.items():
-        if section not in SECTIONS:
-            raise ConfigError(f"{origin}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
+        if section not in SECTIONS and section not in NESTED:
+            raise ConfigError(f"{origin}: unknown section [{section}] (known: {', '.join([*SECTIONS, *NESTED])})")
         if not isinstance(values, Mapping):
             raise ConfigError(f"{origin}: [{section}] must be a table")
-        base.setdefault(section, {}).update(values)
+        if section not in NESTED:
+            base.setdefault(section, {}).update(values)
+            continue
+        for name, table in values.items():
+            if not isinstance(table, Mapping):
+                raise ConfigError(f"{origin}: [{section}.{name}] must be a table")
+            into = base.setdefault(section, {}).setdefault(name, {})
+            for key, value in table.items():
+                if key == "limits" and isinstance(value, Mapping) and isinstance(into.get(key), dict):
+                    into[key].update(value)
+                else:
+                    into[key] = dict(value) if isinstance(value, Mapping) else value
 
 
 def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -306,6 +383,16 @@ def parse_assignment(item: str, origin: str) -> tuple[str, str, Any]:
     return section, name, parse_value(value.strip())
 
 
+def _assignment_layer(section: str, name: str, value: Any) -> dict[str, Any]:
+    """``--set`` of one key: ``plans.NAME.KEY`` (and ``plans.NAME.limits.KEY``) reach into a named table."""
+    if section in NESTED and "." in name:
+        table, _, key = name.partition(".")
+        if section == "plans" and key.startswith("limits."):
+            return {section: {table: {"limits": {key.partition(".")[2]: value}}}}
+        return {section: {table: {key: value}}}
+    return {section: {name: value}}
+
+
 def load(
     config_file: str | None = None,
     sets: Sequence[str] = (),
@@ -328,13 +415,65 @@ def load(
         _merge(merged, {parts[0]: {parts[1]: parse_value(text)}}, f"environment {var}")
     for item in sets:
         section, name, value = parse_assignment(item, "--set")
-        _merge(merged, {section: {name: value}}, "--set")
+        _merge(merged, _assignment_layer(section, name, value), "--set")
     if overrides:
         _merge(merged, overrides, "command line")
     built = {name: _build(name, cls, merged.get(name, {})) for name, cls in SECTIONS.items()}
     cfg = Config(**built)
+    cfg.plans = build_plans(merged.get("plan", {}), merged.get("plans", {}), merged.get("limits", {}))
+    if cfg.plans:
+        cfg.plan = next(iter(cfg.plans.values())).plan
+    cfg.sets = {name: _build(f"sets.{name}", SetSection, table) for name, table in merged.get("sets", {}).items()}
     _validate(cfg)
     return cfg
+
+
+def library_of(sections: Mapping[str, Any]) -> PlanLibrary | None:
+    """The library of a configuration's tables (a recorded one: ``plan``, ``plans``, ``limits``), None where
+    it has no ``plans`` (its ``plan`` alone).  A bad table is a :class:`ConfigError`."""
+    from ballbar.analysis.plans import NamedPlan, PlanLibrary
+
+    tables = sections.get("plans")
+    if not isinstance(tables, Mapping) or not tables:
+        return None
+    entries = build_plans(sections.get("plan") or {}, tables, sections.get("limits") or {})
+    return PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature) for n, e in entries.items()))
+
+
+def build_plans(base: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]], limits: Mapping[str, Any],
+                ) -> dict[str, PlanEntry]:
+    """The ``[plans.<name>]`` tables as a library: each ``base`` (``[plan]``) with its keys changed, its
+    signature (given, else :func:`~ballbar.analysis.plans.default_signature` of its name where there are
+    several), its limits over ``limits`` (``[limits]``).  Errors name the plan and key."""
+    from ballbar.analysis.plans import NamedPlan, PlanLibrary, default_signature
+
+    out: dict[str, PlanEntry] = {}
+    for name, table in tables.items():
+        where = f"plans.{name}"
+        data = dict(table)
+        known = {f.name for f in fields(TestPlan)} | {"signature", "limits"}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"unknown key {where}.{unknown[0]} (known: {', '.join(sorted(known))})")
+        signature = data.pop("signature", None)
+        own = data.pop("limits", None)
+        plan = _build(where, TestPlan, {**base, **data})
+        if signature is not None:
+            signature = _check_type(f"{where}.signature", signature, int)
+        elif len(tables) > 1:
+            signature = default_signature(name)
+        entry_limits = None
+        if own is not None:
+            if not isinstance(own, Mapping):
+                raise ConfigError(f"[{where}.limits] must be a table")
+            entry_limits = _build(f"{where}.limits", LimitsSection, {**limits, **own})
+        out[name] = PlanEntry(plan, signature, entry_limits)
+    if out:
+        try:
+            PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature) for n, e in out.items()))
+        except PlanError as err:
+            raise ConfigError(f"[plans] {err}") from None
+    return out
 
 
 _BAD_CHUNK = re.compile(r"[/*$?#\s]")
@@ -392,7 +531,22 @@ def _validate(cfg: Config) -> None:
     for ok, message in checks:
         if not ok:
             raise ConfigError(message)
+    names = cfg.library.names
+    for set_name, st in cfg.sets.items():
+        where = f"sets.{set_name}"
+        if not st.plans:
+            raise ConfigError(f"{where}.plans must name at least one plan")
+        for p in st.plans:
+            if p not in names:
+                raise ConfigError(f"{where}.plans: no plan {p!r} (plans: {', '.join(names)})")
+        if len(set(st.plans)) != len(st.plans):
+            raise ConfigError(f"{where}.plans names a plan twice: {st.plans}")
+        if not st.window_minutes > 0:
+            raise ConfigError(f"{where}.window_minutes must be > 0, not {st.window_minutes}")
     monitor_settings(cfg)
+    for name, entry in cfg.plans.items():
+        if entry.limits is not None:
+            monitor_settings(cfg, name)
 
 
 def check_listen(key: str, host: str, port: int, datagram: bool = False) -> None:
@@ -437,15 +591,18 @@ def check_addresses(cfg: Config) -> None:
         check_listen("rerun.bind", cfg.rerun.bind, cfg.rerun.port)
 
 
-def monitor_settings(cfg: Config) -> Any:
-    """The :class:`~ballbar.analysis.monitor.MonitorSettings` of ``[limits]``; a bad value is a ConfigError."""
+def monitor_settings(cfg: Config, plan: str | None = None) -> Any:
+    """The :class:`~ballbar.analysis.monitor.MonitorSettings` of ``[limits]`` (of plan ``plan``'s own limits,
+    where it has them); a bad value is a ConfigError."""
     from ballbar.analysis.monitor import check_parameter_names, settings_from_dict
     from ballbar.analysis.patterns import LIBRARY
     from ballbar.analysis.report import _report_fields
 
+    limits = cfg.limits if plan is None else cfg.limits_of(plan)
     try:
-        settings = settings_from_dict(asdict(cfg.limits) | {"enabled": True})
+        settings = settings_from_dict(asdict(limits) | {"enabled": True})
         check_parameter_names(settings, (f for p in LIBRARY for f, _u in _report_fields(p)))
-        return settings if cfg.limits.enabled else settings_from_dict(asdict(cfg.limits))
+        return settings if limits.enabled else settings_from_dict(asdict(limits))
     except PlanError as err:
-        raise ConfigError(str(err)) from None
+        where = f"plans.{plan}.limits: " if plan is not None and cfg.plans.get(plan) is not None else ""
+        raise ConfigError(f"{where}{err}") from None

@@ -63,7 +63,7 @@ Message = dict[str, Any]
 # result can be due): four times a second, not once per 20 ms batch.
 MERGE_S = 0.25
 # Events that end a test without a result (test_aborted: an older name, still read back from recordings).
-TEST_END_EVENTS = frozenset({"test_rejected", "test_incomplete", "test_aborted"})
+TEST_END_EVENTS = frozenset({"test_rejected", "test_incomplete", "test_aborted", "test_unrecognised"})
 DropPolicy = Literal["drop_oldest", "drop_newest"]
 
 

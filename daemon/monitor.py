@@ -23,6 +23,10 @@ State on disk, under ``<state_dir>/monitor/`` (one daemon per state directory):
 - ``<machine>-state.json``: the alert states (replaced atomically), so a
   restart neither repeats an alert nor forgets one.
 
+Everything is per plan (a library of several: analysis/plans.py): each test
+is held to its plan's limits (``[plans.<name>.limits]`` over ``[limits]``),
+its trend is its plan's tests', and each plan has its own alert states.
+
 On the first start with limits (no history file yet) the history is seeded from
 the test results in the daemon's MCAP records, if a loader is given: the trend
 then starts from the machine's past.  Seeding sends no alerts.
@@ -35,7 +39,7 @@ import json
 import logging
 import os
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -115,18 +119,52 @@ class MonitorStore:
 
 
 class Monitor:
-    """Verdicts, history, trends and alert states of one machine, without threads (the listener drives it)."""
+    """Verdicts, history, trends and alert states of one machine, without threads (the listener drives it).
 
-    def __init__(self, settings: mon.MonitorSettings, machine: str, store: MonitorStore | None = None) -> None:
+    Per plan (``result["plan"]["name"]``; :data:`~ballbar.analysis.monitor.DEFAULT_PLAN` where a result has
+    none): its limits (``plan_settings``, else ``settings``), its trends (the history's conditions carry the
+    plan) and its alert states (``trackers``; the default plan's are saved as ``tracker``, as before plans
+    were a library, the others under ``trackers``).
+    """
+
+    def __init__(self, settings: mon.MonitorSettings, machine: str, store: MonitorStore | None = None,
+                 plan_settings: Mapping[str, mon.MonitorSettings] | None = None) -> None:
         self.settings = settings
+        self.plan_settings = dict(plan_settings or {})
         self.machine = machine
         self.store = store
         self.history: list[dict[str, Any]] = store.history() if store is not None else []
-        self.tracker = mon.AlertTracker(settings.clear_after)
+        self.trackers: dict[str, mon.AlertTracker] = {}
         saved = store.state() if store is not None else None
-        if saved is not None and isinstance(saved.get("tracker"), dict):
-            self.tracker.state = saved["tracker"]
+        if saved is not None:
+            states = dict(saved.get("trackers") or {})
+            if isinstance(saved.get("tracker"), dict):
+                states[mon.DEFAULT_PLAN] = saved["tracker"]
+            for name, state in states.items():
+                if isinstance(state, dict):
+                    self.tracker_of(name).state = state
         self.alert_count = int(saved.get("alerts", 0)) if saved else 0
+
+    def settings_of(self, result: Message) -> mon.MonitorSettings:
+        """The limits the result's plan is held to."""
+        return self.plan_settings.get(mon.plan_of(result), self.settings)
+
+    def tracker_of(self, plan: str) -> mon.AlertTracker:
+        if plan not in self.trackers:
+            self.trackers[plan] = mon.AlertTracker(self.plan_settings.get(plan, self.settings).clear_after)
+        return self.trackers[plan]
+
+    @property
+    def tracker(self) -> mon.AlertTracker:
+        """The default plan's alert states (a single [plan])."""
+        return self.tracker_of(mon.DEFAULT_PLAN)
+
+    def _state(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"tracker": self.tracker.state}
+        others = {n: t.state for n, t in self.trackers.items() if n != mon.DEFAULT_PLAN}
+        if others:
+            out["trackers"] = others
+        return out | {"alerts": self.alert_count}
 
     def seed(self, results: Iterable[Message]) -> int:
         """Earlier test results (oldest first) into an empty history; no alerts.  Returns how many."""
@@ -134,7 +172,7 @@ class Monitor:
         for r in results:
             if r.get("kind") != "test" or not r.get("t_wall") or r.get("machine_id") not in (None, self.machine):
                 continue
-            entry = mon.history_entry(r, r.get("verdict") or mon.evaluate(r, self.settings), str(r["t_wall"]))
+            entry = mon.history_entry(r, r.get("verdict") or mon.evaluate(r, self.settings_of(r)), str(r["t_wall"]))
             self.history.append(entry)
             if self.store is not None:
                 self.store.append_history(entry)
@@ -142,7 +180,7 @@ class Monitor:
         return n
 
     def verdict(self, result: Message) -> dict[str, Any]:
-        v = mon.evaluate(result, self.settings)
+        v = mon.evaluate(result, self.settings_of(result))
         why = mon.validity(result)
         if why is not None:
             v["trend_excluded"] = why
@@ -150,10 +188,11 @@ class Monitor:
 
     def forecasts(self, result: Message) -> list[dict[str, Any]]:
         cond = mon.conditions(result)
+        settings = self.settings_of(result)
         out = []
-        for lim, name in self.settings.quantities():
-            pts = mon.points(self.history, name, cond, self.settings)
-            out.append(mon.forecast(pts, lim, name, self.settings))
+        for lim, name in settings.quantities():
+            pts = mon.points(self.history, name, cond, settings)
+            out.append(mon.forecast(pts, lim, name, settings))
         return out
 
     def on_test(self, result: Message) -> list[dict[str, Any]]:
@@ -162,12 +201,12 @@ class Monitor:
         t_wall = str(result.get("t_wall") or mon.time_text(datetime.now(UTC)))
         entry = mon.history_entry(result, verdict, t_wall)
         self.history.append(entry)
-        del self.history[:-mon_history_keep(self.settings)]
+        del self.history[:-mon_history_keep(self.settings_of(result))]
         if self.store is not None:
             self.store.append_history(entry)
         # An invalid test gives a verdict but changes no trend: its forecasts would be the previous test's.
         forecasts = self.forecasts(result) if entry["invalid"] is None else []
-        changes = self.tracker.update(verdict, forecasts)
+        changes = self.tracker_of(mon.plan_of(result)).update(verdict, forecasts)
         by_name = {f["name"]: f for f in forecasts}
         alerts = []
         for ch in changes:
@@ -192,7 +231,7 @@ class Monitor:
             if self.store is not None:
                 self.store.append_alert(a)
         if self.store is not None:
-            self.store.save_state({"tracker": self.tracker.state, "alerts": self.alert_count})
+            self.store.save_state(self._state())
         return alerts
 
 
@@ -222,9 +261,10 @@ class MonitorListener(Listener):
         from .config import monitor_settings
 
         settings = monitor_settings(cfg)
+        plan_settings = {name: monitor_settings(cfg, name) for name in cfg.plans if cfg.plans[name].limits}
         store = MonitorStore(os.path.join(cfg.daemon.state_dir, "monitor"), cfg.daemon.machine_id)
         fresh = not store.has_history()
-        monitor = Monitor(settings, cfg.daemon.machine_id, store)
+        monitor = Monitor(settings, cfg.daemon.machine_id, store, plan_settings)
         if fresh and seed is not None:
             try:
                 n = monitor.seed(seed())
@@ -235,8 +275,10 @@ class MonitorListener(Listener):
                     log.info("monitor: history seeded with %d earlier test results", n)
         with contextlib.suppress(OSError):
             store.history_path.touch()
-        log.info("monitor: limits %s; %d tests in the history", "; ".join(settings.describe()),
+        log.info("monitor: limits %s; %d tests in the history", "; ".join(settings.describe()) or "none",
                  len(monitor.history))
+        for name, ps in plan_settings.items():
+            log.info("monitor: plan %s's own limits %s", name, "; ".join(ps.describe()))
         return cls(monitor, None)
 
     def bind(self, emit: Callable[[Message], None]) -> None:
@@ -244,7 +286,7 @@ class MonitorListener(Listener):
 
     def annotate(self, msg: Message) -> Message:
         """The test result with its ``verdict`` (other messages as they are)."""
-        if msg.get("kind") != "test" or "verdict" in msg:
+        if msg.get("kind") != "test" or "verdict" in msg or not self.monitor.settings_of(msg).enabled:
             return msg
         out = dict(msg)
         try:

@@ -20,6 +20,7 @@ from .csvfile import read_csv
 
 if TYPE_CHECKING:
     from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+    from ballbar.analysis.plans import PlanLibrary
 
 log = logging.getLogger(__name__)
 
@@ -135,21 +136,25 @@ def recorded_config(path: str) -> dict[str, Any]:
 
 
 def config_sections(configs: list[dict[str, Any]]) -> dict[str, Any]:
-    """The ``plan``, ``machine``, ``analysis`` (and ``limits``) tables of the newest of a log's config records."""
+    """The ``plan``, ``machine``, ``analysis`` (and ``limits``, ``plans``, ``sets``) tables of the newest of a log's
+    config records."""
     cfg = configs[-1].get("config", {}) if configs else {}
-    return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis", "limits") if isinstance(cfg.get(k), dict)}
+    return {k: dict(cfg[k]) for k in ("plan", "machine", "analysis", "limits", "plans", "sets")
+            if isinstance(cfg.get(k), dict)}
 
 
-OUTCOME_EVENTS = {"test_rejected": "rejected", "test_incomplete": "incomplete", "test_skipped": "skipped"}
+OUTCOME_EVENTS = {"test_rejected": "rejected", "test_incomplete": "incomplete", "test_skipped": "skipped",
+                  "test_unrecognised": "unrecognised"}
 
 
 def outcomes(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One entry per test an analysis found, in order.
 
     Each: ``number`` (from 1), ``feed_in_s``, ``status`` (``complete``,
-    ``rejected``, ``incomplete``, or ``skipped``: not fitted, another test
-    was asked for), ``message`` (why not complete) and ``result`` (the test
-    result, or None).
+    ``rejected``, ``incomplete``, ``unrecognised`` (its plan is not known:
+    analysis/plans.py), or ``skipped``: not fitted, another test was asked
+    for), ``message`` (why not complete) and ``result`` (the test result, or
+    None).
     """
     tests: dict[int, dict[str, Any]] = {}
     for r in results:
@@ -208,11 +213,27 @@ def analyze_file(
     options: AnalysisOptions,
     test: int = 1,
     curves: bool = False,
+    library: PlanLibrary | None = None,
+    chosen: str | None = None,
 ) -> dict[str, Any]:
     """Read a recording (:func:`load_recording`), analyse it and return its ``test``-th test result (the
-    other tests are found, not fitted)."""
+    other tests are found, not fitted).  ``library``, ``chosen``: see :func:`analyze`."""
     rec = load_recording(path)
-    return pick_test(analyze(rec, plan, machine, options, curves, only=test), test, path, plan)
+    if library is None:
+        library = recorded_library(recorded_config(path))
+    return pick_test(analyze(rec, plan, machine, options, curves, only=test, library=library, chosen=chosen),
+                     test, path, plan)
+
+
+def recorded_library(sections: dict[str, Any]) -> PlanLibrary | None:
+    """The library of plans a recording's configuration held (None: its plan alone); a recorded library the
+    analysis cannot take is a :class:`DataError`."""
+    from .config import ConfigError, library_of
+
+    try:
+        return library_of(sections)
+    except ConfigError as err:
+        raise DataError(f"the recorded plans: {err}") from err
 
 
 def analyze(
@@ -222,17 +243,20 @@ def analyze(
     options: AnalysisOptions,
     curves: bool = False,
     only: int | None = None,
+    library: PlanLibrary | None = None,
+    chosen: str | None = None,
 ) -> list[dict[str, Any]]:
     """:func:`~ballbar.analysis.engine.analyze_recording` of a recording, its tests' results and events (no
     provisional circles: what the daemon published of them live is in the recording); its errors name the
     recording.  ``only``: fit that test alone (from 1), the others reported ``test_skipped``: its result is
-    the one the whole analysis gives."""
+    the one the whole analysis gives.  ``library``: the plans the tests may run (None: ``plan`` alone), each
+    test's recognised as the daemon does; ``chosen``: every test analysed as that plan of the library."""
     from ballbar.analysis.engine import analyze_recording  # here: listing and reading need none of the fit
 
     rec, left_out = screen(rec)
     try:
         out = analyze_recording(rec.t, rec.L, plan, machine, options, curves=curves, breaks=rec.breaks,
-                                circles=False, only=only)
+                                circles=False, only=only, library=library, chosen=chosen)
     except DataError as err:
         if rec.name and not str(err).startswith(rec.name):
             err.args = (f"{rec.name}: {err}",)

@@ -35,6 +35,13 @@ SIM_MACHINE = (
     "centre_x_um=12", "centre_y_um=-6", "backlash_x_um=4", "backlash_y_um=2.5", "kv_x_per_s=30",
     "kv_y_per_s=33", "squareness_urad=15", "spike_x_um=2", "spike_tau_x_s=0.2", "noise_um=0.1",
 )
+# The demo machine of a set (tools/machine3d.py): each axis its own lost motion and gain, the three squareness
+# errors, the pivot a little off in each axis.
+SIM_MACHINE_3D = (
+    "centre_x_um=12", "centre_y_um=-6", "centre_z_um=5", "backlash_x_um=4", "backlash_y_um=2.5", "backlash_z_um=3",
+    "kv_x_per_s=30", "kv_y_per_s=33", "kv_z_per_s=28", "squareness_xy_urad=15", "squareness_yz_urad=-10",
+    "squareness_zx_urad=20", "spike_x_um=2", "spike_tau_x_s=0.2", "noise_um=0.1",
+)
 
 
 def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
@@ -53,7 +60,7 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
             out.append((logger, cfg.queues.mcap, "drop_newest"))
             spooled = [m for m in logger.spooled if m.get("kind") in ("circle", "test")]  # held by the last run
             loader = _chain(recorded_results(cfg), lambda: spooled)
-        if cfg.limits.enabled:  # before the bus: its history/alert is seeded from the monitor's store
+        if cfg.limits_enabled:  # before the bus: its history/alert is seeded from the monitor's store
             from .monitor import MonitorListener
 
             monitor = MonitorListener.from_config(cfg, seed=recorded_results(cfg) if cfg.mcap.enabled else None)
@@ -210,9 +217,25 @@ def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[
     return load
 
 
+def simulated_plans(cfg: Config) -> list[str]:
+    """What ``--simulate`` runs of a library of several plans: its first set's plans, else all its plans, in
+    turn; empty for a single plan (the demo machine runs it)."""
+    if len(cfg.library) < 2:
+        return []
+    return list(next(iter(cfg.sets.values())).plans) if cfg.sets else list(cfg.library.names)
+
+
 def simdevice_args(cfg: Config, speedup: float) -> list[str]:
-    """``python -m ballbar.tools.simdevice`` arguments: the demo machine running the configured plan, forever."""
+    """``python -m ballbar.tools.simdevice`` arguments: the demo machine running the configured plan, forever;
+    with a library of several plans, the 3D demo machine running its set (:func:`simulated_plans`), each
+    program with its signature."""
     p = cfg.plan
+    if simulated_plans(cfg):
+        args = ["--rate", f"{p.sample_hz:g}", "--speedup", f"{speedup:g}", "--repeat", "0", "--gap-s", "5",
+                "--library", json.dumps(cfg.to_dict()["plans"]), "--run-plans", ",".join(simulated_plans(cfg))]
+        for item in SIM_MACHINE_3D:
+            args += ["--set", item]
+        return args
     args = [
         "--rate", f"{p.sample_hz:g}", "--speedup", f"{speedup:g}", "--repeat", "0", "--gap-s", "5",
         "--radius-mm", f"{p.radius_mm:g}", "--feed-mm-min", f"{p.feed_mm_min:g}", "--plane", p.plane,
@@ -370,7 +393,8 @@ def _source_options(cfg: Config, url: str) -> dict[str, Any]:
     except SourceConfigError as err:
         raise ConfigError(f"source.url: {err}") from None
     if url.startswith("sim:"):
-        return {"plan": cfg.plan}
+        names = simulated_plans(cfg)
+        return {"plan": cfg.plan, "library": cfg.library, "run_plans": names} if names else {"plan": cfg.plan}
     return {} if "cal_mm" in query or not url.startswith("serial") else {"cal_mm": cfg.cal_mm}
 
 

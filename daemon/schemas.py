@@ -221,6 +221,32 @@ _PLAN = obj(
         "sample_hz": num("the expected sample rate, Hz"),
     },
 )
+_PLAN_FIELDS = dict(_PLAN["properties"])
+
+#: A result's plan: the keys of its plan, its name in the library and its machine axes (analysis/plans.py).
+_RESULT_PLAN = obj(
+    "the test plan the analysis assumed: one of the library's (daemon [plan] or [plans.<name>], analysis/README.md)",
+    {**_PLAN_FIELDS,
+     "name": string("the plan's name in the library (default: a single [plan])"),
+     "axes": {"type": "array", "items": {"enum": ["X", "Y", "Z"]}, "minItems": 2, "maxItems": 2,
+              "description": "the machine axes of the plane's first and second axis: every _x field is about the "
+                             "first, every _y field about the second"}},
+    required=list(_PLAN_FIELDS),  # name and axes: in every result since plans became a library (not in older logs)
+)
+
+_RECOGNITION = obj(
+    "how the test's plan was known (analysis/plans.py)",
+    {"method": string("only: a library of one; signature: the code before its feed-in (checked against its "
+                      "timing); timing: the only plan whose timing fits; chosen: named by an operator or service",
+                      enum=["only", "signature", "timing", "chosen"]),
+     "signature": integer("the signature's code read before the feed-in (null: none read)", nullable=True),
+     "feed_ratio": num("the feed-in to feed-out span's feed over the plan's (a feed override), at no per-move "
+                       "overhead (null: not computed)", True),
+     "candidates": {"type": "array", "items": {"type": "string"},
+                    "description": "the plans whose timing fits the test at a feed override of 80..120 %"},
+     "message": string("in words")},
+    required=["method", "signature", "feed_ratio", "candidates", "message"],
+)
 
 _MACHINE = obj(
     "what the analysis knows of the machine ([machine])",
@@ -440,7 +466,8 @@ def _analysis_props(kind: str) -> dict[str, Schema]:
         "schema_version": {"const": SCHEMA_VERSION, "description": "version of these payloads' shapes"},
         "kind": {"const": kind, "description": "circle: one direction's fit, provisional; test: the whole test"},
         "test_index": integer("the test's number in this stream (daemon run or file), from 1"),
-        "plan": _PLAN,
+        "plan": _RESULT_PLAN,
+        "recognition": _RECOGNITION,
         "machine": _MACHINE,
         "parameters": {"$ref": "#/$defs/parameters"},
         "ranking": _RANKING,
@@ -573,7 +600,10 @@ _TEST_FIELDS: dict[str, Schema] = {
 PIPELINE_EVENTS: dict[str, tuple[str, dict[str, Schema], list[str]]] = {
     "feed_in": ("a test began: the feed-in step was recognised",
                 {**_TEST_FIELDS, "height_mm": num("the step's height, mm"),
-                 "method": string("how it was timed (centroid, ...)")}, ["test_index", "t_s"]),
+                 "method": string("how it was timed (centroid, ...)"),
+                 "plan": string("a library of several plans: the plan the feed-in tells (its program's signature, "
+                                "a choice); null: the timing decides at the feed-out", True)},
+                ["test_index", "t_s"]),
     "feed_out": ("the test's feed-out step; the test result follows",
                  {**_TEST_FIELDS, "height_mm": num("the step's height, mm"),
                   "method": string("how it was timed")}, ["test_index", "t_s"]),
@@ -587,6 +617,21 @@ PIPELINE_EVENTS: dict[str, tuple[str, dict[str, Schema], list[str]]] = {
                          "file": string("origin recovery: the recording that holds its samples")}, ["message"]),
     "analysis_reset": ("the analysis could not take the time axis and started afresh (the test in progress is "
                        "rejected)", {"message": string("why")}, ["message"]),
+    "test_unrecognised": ("the test matches no plan of the library, or more than one: it is not analysed as any "
+                          "of them (analysis/plans.py)",
+                          {**_TEST_FIELDS,
+                           "reason": string("no_match or ambiguous", enum=["no_match", "ambiguous"]),
+                           "candidates": {"type": "array", "items": {"type": "string"},
+                                          "description": "the plans whose timing fits the test"},
+                           "signature": integer("the signature's code read before the feed-in (null: none)",
+                                                nullable=True),
+                           "message": string("why, with the candidates")},
+                          ["test_index", "reason", "candidates", "message"]),
+    "plan_chosen": ("an explicit choice of the next test's plan was taken (ballbar/<m>/control/next_plan)",
+                    {"plan": string("the plan's name (null: the choice was withdrawn)", True),
+                     "message": string("in words")}, ["plan", "message"]),
+    "plan_choice_refused": ("a choice of the next plan named no plan of the library, or was not understood",
+                            {"message": string("why")}, ["message"]),
 }
 
 LOGGER_EVENTS: dict[str, tuple[str, dict[str, Schema], list[str]]] = {
@@ -697,6 +742,7 @@ _ZENOH_STATS = obj(
         "queries": integer("last/history queries answered"),
         "query_errors": integer("replies that failed"),
         "skipped": integer("messages of a kind with no topic"),
+        "controls": integer("choices of the next plan received on control/next_plan"),
         "history": counts("results and events held for history/<topic>, by topic"),
         "zid": string("this session's Zenoh id"),
         "links": counts("sessions connected to this one, by kind (peer, client, router)"),
@@ -852,6 +898,21 @@ def config_schema() -> Schema:
                 "url": string("the source actually read: with --simulate, the simulated device's pty"),
                 "cal_mm": num("the bar's length at zero displacement, mm (null: the plan's radius)", True)}),
             "plan": _PLAN,
+            "plans": {"type": "object", "description": "[plans.<name>]: the library of plans, in order (absent: "
+                      "[plan] alone, named default)", "additionalProperties": obj(
+                          "one plan: [plan]'s keys, its program's signature and its own limits",
+                          {**_PLAN_FIELDS,
+                           "signature": integer("the code its program carries before the feed-in, 0..124 (null: "
+                                                "none, a library of one)", nullable=True),
+                           "limits": {"type": "object", "description": "its own [limits] (over the global one; "
+                                      "absent: the global one)"}},
+                          required=[*_PLAN_FIELDS, "signature"])},
+            "sets": {"type": "object", "description": "[sets.<name>]: tests that together give one picture of the "
+                     "machine (absent: none)", "additionalProperties": obj(
+                         "one set", {"plans": {"type": "array", "items": {"type": "string"},
+                                               "description": "the names of its plans"},
+                                     "window_minutes": num("the time within which its tests must all have run, "
+                                                           "min")})},
             "machine": _MACHINE,
             "analysis": obj("[analysis]", analysis_opts),
             "mcap": obj("[mcap]", {

@@ -64,6 +64,7 @@ log = logging.getLogger(__name__)
 FINISH_ANALYSIS_S = 120.0  # after a finite source's end, at most this for the analysis to catch up
 STOP_RESULT_S = 1.0  # at a stop, at most this for a test's fit still running in the worker
 WAKE = "analysis_done"  # the message the worker's callback posts to the analysis queue
+PLAN_CHOICE = "plan_choice"  # the message the bus posts to the analysis queue: {"kind", "plan": name or None}
 
 
 def utc_now() -> str:
@@ -126,9 +127,10 @@ class AnalysisListener(Listener):
         self._timings: collections.deque[Timing] = collections.deque(maxlen=256)  # a polled source's timing events
         self._lock = threading.Lock()
 
-    def _new_analyzer(self, hints: TimingHints | None = None) -> TestAnalyzer:
+    def _new_analyzer(self, hints: TimingHints | None = None,
+                      plan_hints: dict[str, TimingHints] | None = None) -> TestAnalyzer:
         return TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, hints, executor=self.executor,
-                            on_submit=self._submitted)
+                            on_submit=self._submitted, library=self.cfg.library, plan_hints=plan_hints)
 
     def _submitted(self, fut: cf.Future[dict[str, Any]]) -> None:
         fut.add_done_callback(lambda _f: self.wake() if self.wake is not None else None)
@@ -156,6 +158,23 @@ class AnalysisListener(Listener):
     def on_message(self, msg: Message) -> None:
         if msg.get("kind") == WAKE:
             self.settle()
+        elif msg.get("kind") == PLAN_CHOICE:
+            with self._lock:
+                self._emit_all([self._choose(msg.get("plan"))])
+
+    def _choose(self, name: Any) -> Message:
+        """An explicit choice of the next test's plan (from the bus): taken, or refused with the reason."""
+        library = self.cfg.library
+        if name is not None and (not isinstance(name, str) or name not in library.names):
+            why = (f"no plan {name!r} in the library ({', '.join(library.names)})" if isinstance(name, str)
+                   else f"a plan's name is a string, not {name!r}")
+            log.warning("the choice of the next plan was refused: %s", why)
+            return {"kind": "event", "event": "plan_choice_refused", "message": why}
+        self.analyzer.choose(name)
+        text = (f"the next test is analysed as plan {name}, whatever its signature or timing say" if name is not None
+                else "the choice of the next plan is withdrawn: the next test's plan is recognised")
+        log.info("%s", text)
+        return {"kind": "event", "event": "plan_chosen", "plan": name, "message": text}
 
     def settle(self, timeout: float = 0.0) -> None:
         """Emit the result of the test fitted in the worker, if it is done (waiting up to ``timeout``)."""
@@ -228,7 +247,10 @@ class AnalysisListener(Listener):
             log.warning("analysis: %s; restarting test detection", err)
             out.extend(self.analyzer.abort(f"the analysis restarted: {err}"))
             out.append({"kind": "event", "event": "analysis_reset", "message": str(err)})
-            self.analyzer = self._new_analyzer(self.analyzer.hints)
+            chosen = self.analyzer.chosen
+            self.analyzer = self._new_analyzer(self.analyzer.hints, self.analyzer.plan_hints)
+            if chosen is not None:  # a choice not yet used holds for the next test still
+                self.analyzer.choose(chosen)
         if start < t.size:
             self._feed(t[start:], L[start:], out)
 
@@ -282,6 +304,9 @@ class LogListener(Listener):
             ranked = [r for r in msg.get("ranking", []) if r["significant"] and r["pattern"] not in setup]
             top = ", ".join(_finding(msg, r["pattern"]) for r in ranked[:5]) or "nothing significant"
             what = f"{msg.get('direction', '').upper()} circle" if kind == "circle" else "test"
+            name = (msg.get("plan") or {}).get("name")
+            if name and name != "default":  # a library of plans: which
+                what += f" of plan {name}"
             extra = ""
             if kind == "test":
                 iso = msg.get("iso230_4", {})
@@ -293,7 +318,7 @@ class LogListener(Listener):
                 log.info("%s verdict: %s", msg.get("test_id"), verdict.get("summary"))
         elif kind == "event" and msg.get("event") in (
             "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
-            "test_incomplete", "analysis_reset",
+            "test_incomplete", "analysis_reset", "test_unrecognised", "plan_choice_refused",
         ):
             log.warning("%s", event_sentence(msg))
 
@@ -319,6 +344,8 @@ def event_sentence(msg: Message) -> str:
         "test_rejected": f"{test} rejected: {msg.get('message')}",
         "test_incomplete": f"{test} incomplete: {msg.get('message')}",
         "analysis_reset": f"the analysis restarted: {msg.get('message')}",
+        "test_unrecognised": f"{test} not recognised: {msg.get('message')}",
+        "plan_choice_refused": f"a choice of the next plan was refused: {msg.get('message')}",
     }
     return texts.get(name, f"event {name}: {detail or msg.get('message') or ''}".rstrip(": "))
 
@@ -364,6 +391,11 @@ class Daemon:
         self.analysis = AnalysisListener(cfg, self.broadcast, self.worker)
         self.analysis_queue = ListenerQueue(self.analysis, cfg.queues.analysis, "drop_newest")
         self.analysis.wake = functools.partial(self.analysis_queue.put_message, {"kind": WAKE})
+        # An explicit choice of the next plan that an output receives (the bus's control key) reaches the
+        # analysis through its queue, in order with the batches.
+        for lst, _c, _p in listeners:
+            if callable(getattr(lst, "bind_control", None)):
+                lst.bind_control(self.choose_plan)  # type: ignore[attr-defined]
         # Batches go only where they are wanted (the log and, without samples_hz, the bus take none).  The
         # analysis last: its thread wakes at once, and the reader is then about to sleep, not to contend for
         # the GIL with it (the merging queues before it only append).
@@ -380,6 +412,11 @@ class Daemon:
         self.tests_seen = 0
         self.startup_messages: list[Message] = []  # events found at start (a test a crash cut), sent after config
         self._count_lock = threading.Lock()
+
+    def choose_plan(self, name: str | None) -> None:
+        """Analyse the next test as plan ``name`` (None: withdraw the choice); taken on the analysis thread,
+        which says so in a ``plan_chosen`` (or ``plan_choice_refused``) event."""
+        self.analysis_queue.put_message({"kind": PLAN_CHOICE, "plan": name})
 
     def broadcast(self, msg: Message) -> None:
         """Hand a message to every output (never blocks: each queue has its policy)."""

@@ -102,7 +102,12 @@ URL scheme
     fast as possible), ``seed`` (0), ``repeat`` (number of tests, default 1;
     0 = forever), ``gap_s`` (between tests, 0), ``batch_s``.  Keyword options
     ``plan`` (:class:`~ballbar.analysis.plan.TestPlan`) and ``machine``
-    (``MachineModel``) say what to simulate.  Samples carry ``SIMULATED``.
+    (``MachineModel``) say what to simulate; or ``library`` (a
+    :class:`~ballbar.analysis.plans.PlanLibrary` of several), ``run_plans``
+    (which of its plans, in turn; default all) and ``machine`` (a
+    ``Machine3D``: ``ballbar.tools.machine3d``), a set of tests on a machine
+    with X, Y and Z errors, each program with its signature, the lengths as
+    the bar assembled for each plan reads them.  Samples carry ``SIMULATED``.
 
 ``replay:PATH[?options]``
     A recording (CSV ``t_s,length_mm`` now; the daemon's MCAP later):
@@ -1048,6 +1053,8 @@ class SimSource(_PacedSource):
         *,
         plan: Any = None,
         machine: Any = None,
+        library: Any = None,
+        run_plans: Any = None,
         rate_hz: float | None = None,
         speedup: float = 1.0,
         seed: int = 0,
@@ -1057,15 +1064,25 @@ class SimSource(_PacedSource):
     ) -> None:
         # Imported here: the simulator is a tool, and only this source needs it.
         from ballbar.analysis.plan import TestPlan
-        from ballbar.tools.simulator import MachineModel, iter_tests
+        from ballbar.tools.simulator import MachineModel, SimResult, iter_tests
 
-        plan = plan if plan is not None else TestPlan()
-        machine = machine if machine is not None else MachineModel()
+        several = library is not None and len(library) > 1
+        plan = plan if plan is not None else library.first.plan if several else TestPlan()
         rate = float(rate_hz if rate_hz is not None else plan.sample_hz)
         super().__init__(url, rate, speedup, batch_s, int(Status.SIMULATED))
+        times = None if repeat == 0 else repeat
+        results: Iterator[SimResult]
+        if several:
+            from ballbar.tools.machine3d import Machine3D, set_tests
+
+            names = list(run_plans) if run_plans else list(library.names)
+            m3 = machine if isinstance(machine, Machine3D) else Machine3D()
+            results = (res for _n, res in set_tests(library, names, m3, rate, seed, times, gap_s))
+        else:
+            results = iter_tests(plan, machine if machine is not None else MachineModel(), rate, seed, times, gap_s)
 
         def chunks() -> Iterator[Chunk]:
-            for res in iter_tests(plan, machine, rate, seed, None if repeat == 0 else repeat, gap_s):
+            for res in results:
                 seq = np.rint(res.t_s * rate).astype(np.int64)
                 yield res.t_s, res.length_mm, seq
 
@@ -1306,6 +1323,8 @@ def _open_sim(url: str, target: str, opt: _Options) -> Source:
     kwargs = {
         "plan": opt.get("plan", lambda v: v),
         "machine": opt.get("machine", lambda v: v),
+        "library": opt.get("library", lambda v: v),
+        "run_plans": opt.get("run_plans", lambda v: v),
         "rate_hz": opt.get("rate", _rate),
         "speedup": opt.get("speedup", _speed, 1.0),
         "seed": opt.get("seed", _nonneg_int, 0),

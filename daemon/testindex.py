@@ -35,10 +35,11 @@ import numpy as np
 
 from ballbar.analysis.errors import BallbarError, DataError, DetectionError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
 
 from .mcap_log import McapLog, mcap_files, read_log, read_logs, recording
-from .recordings import Recording, analyze, config_sections, outcomes, with_source
+from .recordings import Recording, analyze, config_sections, outcomes, recorded_library, with_source
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,8 @@ class RecordedTest:
     ``t_wall`` (ISO 8601 UTC) of its ``feed_in`` event.  ``feed_in_s`` and
     ``time_axis``: the feed-in's time on the live analysis's clock, and which
     clock that was.  ``status``: ``complete`` (a test result was recorded),
-    ``rejected`` or ``incomplete``; ``message``: why not complete.
+    ``rejected``, ``unrecognised`` (no plan of the library, or several, fitted
+    it) or ``incomplete``; ``message``: why not complete.
     ``files``: indices into :attr:`TestIndex.files` of the files that hold it.
     """
 
@@ -81,6 +83,7 @@ class RecordedTest:
     status: str = "incomplete"
     message: str = NO_OUTCOME
     result: dict[str, Any] | None = None
+    plan: str | None = None  # the plan's name (a library of several: from its result or its feed-in)
 
 
 @dataclass
@@ -155,6 +158,7 @@ class TestIndex:
             "message": test.message if test.status != "complete" else "",
             "files": [self.files[i].path.name for i in test.files],
             "time_axis": test.time_axis,
+            "plan": test.plan,
             "headline": headline(test.result) if test.result is not None else None,
         }
 
@@ -202,14 +206,16 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
                     by_key[key] = RecordedTest(
                         len(by_key) + 1, tid, ev.get("machine_id"), ev.get("t_wall"),
                         float(t_s) if isinstance(t_s, int | float) else None, ev.get("time_axis"), f.run, [fi],
+                        plan=ev.get("plan") if isinstance(ev.get("plan"), str) else None,
                     )
                 continue
             test = by_key.get(key)
             if test is None:
                 continue
             _holds(test, fi)
-            if what == "test_rejected" and test.status != "complete":
-                test.status, test.message = "rejected", str(ev.get("message", ""))
+            if what in ("test_rejected", "test_unrecognised") and test.status != "complete":
+                test.status = "rejected" if what == "test_rejected" else "unrecognised"
+                test.message = str(ev.get("message", ""))
             elif what == "test_incomplete" and test.status == "incomplete":
                 test.message = str(ev.get("message", "")) or NO_OUTCOME
         for r in f.results:
@@ -220,6 +226,8 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
             _holds(test, fi)
             if r.get("kind") == "test":
                 test.status, test.message, test.result = "complete", "", r
+                named = (r.get("plan") or {}).get("name")
+                test.plan = named if isinstance(named, str) else test.plan
     last_of_run = {f.run: i for i, f in enumerate(files)}
     for test in by_key.values():
         end = last_of_run[test.run] if test.status == "incomplete" else test.files[-1]
@@ -240,13 +248,20 @@ def analyze_recorded(
     machine: MachineConfig,
     options: AnalysisOptions,
     curves: bool = False,
+    library: PlanLibrary | None = None,
+    chosen: str | None = None,
 ) -> dict[str, Any]:
     """Analyse one recorded test from the files that hold it (see the module docstring).
+
+    ``library``: the plans its test may run (None: those its daemon run recorded, if any, else ``plan``
+    alone); ``chosen``: analysed as that plan of the library.
 
     Returns its result with ``source`` (``file``: its first file, ``files``,
     ``test_id``, ``machine_id``, ``time_axis``).  A test the analysis rejects,
     or whose samples are gone, is a :class:`DataError` with the reason.
     """
+    if library is None:
+        library = recorded_library(index.config_for(test))
     tries = [test.files]
     before = test.files[0] - 1
     if before >= 0 and index.files[before].run == test.run:
@@ -259,7 +274,7 @@ def analyze_recorded(
         name = os.fspath(paths[own]) if len(paths) == 1 else f"{paths[own]} (+{len(paths) - 1} file(s))"
         rec = recording(lg, name)
         try:
-            found = outcomes(analyze(rec, plan, machine, options, curves))
+            found = outcomes(analyze(rec, plan, machine, options, curves, library=library, chosen=chosen))
         except DetectionError as err:
             problem = err
             continue

@@ -424,3 +424,48 @@ def test_the_viewers_findings_and_the_subscribers_text_show_the_verdict() -> Non
     line = text_line({"kind": "alert", "t_wall": "T", "state": "fail", "cleared": False, "message": "m: x"})
     assert line == "T ALERT FAIL     m: x"
     assert text_line(r).startswith("2026-01-01T00:00:00Z TEST  m-2026-01-01T00:00:00Z: FAIL: ")
+
+
+# ----------------------------------------------------------------------------- per plan
+
+
+def test_each_plan_has_its_limits_trend_and_alert_states(tmp_path: Path) -> None:
+    """Two plans of a library: each test is held to its plan's limits, its trend is its plan's tests', its
+    alerts are its plan's (a failing plan's alert neither repeats on nor clears by another plan's tests), and
+    the states survive a restart; a single plan's saved states (before plans) still load."""
+    glob = settings(parameters={"backlash_x_um": 10.0}, min_tests=3)
+    tight = {"zx": settings(parameters={"backlash_x_um": 2.0}, min_tests=3)}
+    t0 = datetime(2026, 1, 1, tzinfo=UTC)
+
+    def result(plan: str, backlash: float, day: int) -> dict[str, Any]:
+        r = fake_result(backlash, 0.01, mon.time_text(t0 + timedelta(days=day)))
+        r["plan"] = {**r["plan"], "name": plan, "plane": "ZX" if plan == "zx" else "XY"}
+        r["test_id"] = f"m-{plan}-{day}"
+        return r
+
+    sent: list[dict[str, Any]] = []
+    m = Monitor(glob, "m", MonitorStore(tmp_path, "m"), tight)
+    for day, (plan, b) in enumerate([("xy", 3.0), ("zx", 3.0), ("xy", 3.1), ("zx", 3.0), ("xy", 3.2)]):
+        r = result(plan, b, day)
+        r["verdict"] = m.verdict(r)
+        assert r["verdict"]["status"] == ("fail" if plan == "zx" else "pass")  # 3 um: over zx's 2, under 10
+        sent.extend(m.on_test(r))
+    assert [(a["conditions"]["plan"], a["state"]) for a in sent] == [("zx", "fail")]  # once, though xy passed between
+    assert "m plan zx: verdict pass -> fail" in sent[0]["message"]
+    (f,) = m.forecasts(result("xy", 0.0, 9))
+    assert f["n"] == 3 and all("-xy-" in tid for tid in f["test_ids"])  # xy's trend: xy's tests alone
+    state = json.loads((tmp_path / "m-state.json").read_text())
+    assert state["trackers"]["zx"]["verdict"] == "fail" and state["tracker"]["verdict"] == "pass"
+    again = Monitor(glob, "m", MonitorStore(tmp_path, "m"), tight)  # a restart: zx's fail is not sent again
+    r = result("zx", 3.0, 7)
+    r["verdict"] = again.verdict(r)
+    assert again.on_test(r) == []
+    for a in sent:
+        validate(a)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "m-state.json").write_text(json.dumps({"tracker": {"verdict": "warning", "better": [], "forecast": {}},
+                                                  "alerts": 4}))
+    m = Monitor(glob, "m", MonitorStore(old, "m"))
+    assert m.tracker.state["verdict"] == "warning" and m.alert_count == 4
+    assert mon.conditions(fake_result(1.0, 0.1))["plan"] == "default"  # a result of before names no plan

@@ -40,7 +40,8 @@ def _openssl(*args: str) -> None:
 
 
 def make_certs(d: Path) -> None:
-    """A plant CA, the daemon's certificate (for localhost and 127.0.0.1), a service's, and a stranger CA's."""
+    """A plant CA, the daemon's certificate (for localhost and 127.0.0.1), a service's, an operator's (who may
+    choose the next test's plan), and a stranger CA's."""
     d.mkdir()
     for ca in ("ca", "stranger-ca"):
         _openssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-days", "2",
@@ -48,7 +49,7 @@ def make_certs(d: Path) -> None:
     ext = d / "leaf.ext"
     ext.write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\nextendedKeyUsage=serverAuth,clientAuth\n")
     for name, cn, ca in (("daemon", "ballbar-daemon", "ca"), ("service", "plant-service", "ca"),
-                         ("stranger", "plant-service", "stranger-ca")):
+                         ("stranger", "plant-service", "stranger-ca"), ("operator", "plant-operator", "ca")):
         _openssl("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj", f"/CN={cn}",
                  "-keyout", str(d / f"{name}-key.pem"), "-out", str(d / f"{name}.csr"))
         _openssl("x509", "-req", "-in", str(d / f"{name}.csr"), "-CA", str(d / f"{ca}.pem"), "-CAkey",
@@ -174,3 +175,30 @@ def test_a_service_cannot_publish_or_answer_in_the_daemons_place(plant: dict[str
     assert not any(b'"fake"' in h for h in heard), "a service's put reached a subscriber"
     assert replies and not any(b'"fake"' in r for r in replies), replies
     assert all(json.loads(r)["kind"] == "status" for r in replies)
+
+
+def test_only_an_operator_may_choose_the_next_plan(plant: dict[str, Any]) -> None:
+    """A put on control/next_plan from the plant service's certificate is dropped; the same put from an
+    operator's is taken: the daemon says so in a plan_chosen event."""
+    import zenoh
+
+    key = f"ballbar/{MACHINE}/control/next_plan"
+    with zenoh.open(client_config(plant, "service")) as service, zenoh.open(client_config(plant, "service")) as ear:
+        heard: list[dict[str, Any]] = []
+        sub = ear.declare_subscriber(f"ballbar/{MACHINE}/event",
+                                     lambda s: heard.append(json.loads(s.payload.to_bytes())))
+        time.sleep(1.0)
+        for _ in range(5):
+            service.put(key, json.dumps({"plan": "default"}))
+            time.sleep(0.1)
+        time.sleep(1.5)
+        assert not [e for e in heard if e.get("event") in ("plan_chosen", "plan_choice_refused")], heard
+        with zenoh.open(client_config(plant, "operator")) as operator:
+            time.sleep(0.5)
+            operator.put(key, json.dumps({"plan": "default"}))
+            deadline = time.monotonic() + 10
+            while not any(e.get("event") == "plan_chosen" for e in heard) and time.monotonic() < deadline:
+                time.sleep(0.1)
+        sub.undeclare()
+    chosen = [e for e in heard if e.get("event") == "plan_chosen"]
+    assert len(chosen) == 1 and chosen[0]["plan"] == "default", heard

@@ -17,7 +17,12 @@ The program
 3. Rapid to the wait point at ``R + f`` on the first arc's start angle: first
    the horizontal axes, then Z (the approach comes from above); the third axis
    of the plane goes to the pivot's level and stays there.
-4. Optional program stop (``mount_stop``) for mounting the bar.
+4. Optional program stop (``mount_stop``) for mounting the bar.  With a
+   ``signature`` (a plan of a library of several), before each feed-in: four
+   radial excursions from the wait point toward the pivot (1..5 eighths of
+   the feed-in) and back, each with a dwell, that tell the monitor which plan
+   runs (:mod:`ballbar.analysis.plans`); none reaches within a quarter of the
+   feed-in of ``R``.
 5. Continuous-path mode (FANUC G64, SINUMERIK G64, LinuxCNC G64 P..): the
    tangent arc blocks of one arc blend into one move without stopping.  The
    moves that the plan starts and ends at rest are separated by dwells (also
@@ -61,6 +66,13 @@ from decimal import Decimal
 
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.plan import PLANE_AXES, TestPlan
+from ballbar.analysis.plans import (
+    SIGNATURE_OFF_S,
+    SIGNATURE_ON_S,
+    SIGNATURE_REST_S,
+    signature_depths_mm,
+    signature_symbols,
+)
 from ballbar.analysis.program import arc_start_deg, moves
 
 DIALECTS: dict[str, str] = {
@@ -224,6 +236,23 @@ class _Op:
     first_feed: bool = False
 
 
+def _signature_ops(plan: TestPlan, pts: _Points, code: int, name: str | None) -> list[_Op]:
+    """The plan's signature (analysis/plans.py): from the wait point, four excursions toward the pivot and back,
+    each with its dwell, then the rest before the feed-in."""
+    R, f = plan.radius_mm, plan.feed_in_mm
+    u = arc_start_deg(plan, plan.direction_list[0])
+    wait = pts.abs3(pts.rel(R + f, u))
+    depths = signature_depths_mm(code, f)
+    ops = [_Op("comment", text=f"signature {code}" + (f" of plan {name}" if name else "")
+               + ": " + " ".join(f"{d:g}" for d in depths) + " mm toward the pivot")]
+    for k, depth in enumerate(depths):
+        point = pts.abs3(pts.rel(R + f - depth, u))
+        ops += [_Op("line", end=point, start=wait, first_feed=k == 0), _Op("dwell", seconds=SIGNATURE_ON_S),
+                _Op("line", end=wait, start=point),
+                _Op("dwell", seconds=SIGNATURE_REST_S if k == len(depths) - 1 else SIGNATURE_OFF_S)]
+    return ops
+
+
 def _test_ops(plan: TestPlan, pts: _Points) -> tuple[Point3, list[_Op], Point3]:
     """The wait point, the ops from feed-in to feed-out, and where the feed-out ends."""
     R, f = plan.radius_mm, plan.feed_in_mm
@@ -348,7 +377,7 @@ def lowest_point_mm(plan: TestPlan) -> float:
 
 def _header_lines(
     plan: TestPlan, dialect: str, decimals: int, origin: tuple[float, float, float], work_offset: str | None,
-    repeat: int, mount_stop: bool, depth: PathDepth,
+    repeat: int, mount_stop: bool, depth: PathDepth, signature: int | None = None, plan_name: str | None = None,
 ) -> list[str]:
     first, second = plan.axes
     third = AXES[PLANE_INDEX[plan.plane][2]]
@@ -380,6 +409,10 @@ def _header_lines(
     ]
     if mount_stop:
         lines.append("At the program stop: mount the bar, then restart")
+    if signature is not None:
+        lines.append(f"Plan {plan_name}: before each feed-in its signature {signature}, four short moves toward the "
+                     "pivot and back, tells the monitor which plan runs" if plan_name else
+                     f"Before each feed-in the signature {signature}: four short moves toward the pivot and back")
     if plan.plane != "XY":
         lines.append(f"Lowest point of the path: Z {depth.low_mm:+.{decimals}f} mm relative to the pivot")
         if depth.low_mm < 0.0:
@@ -679,6 +712,8 @@ def generate(
     program_name: str | None = None,
     mount_stop: bool = True,
     repeat: int = 1,
+    signature: int | None = None,
+    plan_name: str | None = None,
 ) -> str:
     """The NC program of ``plan`` for ``dialect`` (one of :data:`DIALECTS`), as text ending in a newline.
 
@@ -692,7 +727,10 @@ def generate(
     elsewhere.  ``mount_stop``: a program stop after the approach for mounting
     the bar.  ``repeat``: tests in a row (feed-in .. feed-out), with
     :data:`REPEAT_DWELL_S` between them; needs a program that ends where it
-    starts.  Raises :class:`GcodeError` for a request that cannot be met.
+    starts.  ``signature``: the code of the plan in its library
+    (:mod:`ballbar.analysis.plans`), written before each feed-in so that the
+    monitor knows which plan runs; ``plan_name`` names it in the comments.
+    Raises :class:`GcodeError` for a request that cannot be met.
     """
     if dialect not in DIALECTS:
         raise GcodeError(f"unknown dialect {dialect!r} (known: {', '.join(DIALECTS)})")
@@ -726,14 +764,21 @@ def generate(
     exact_number(plan.feed_mm_min, "feed")
     exact_number(plan.dwell_s, "dwell")
 
+    if signature is not None:
+        try:
+            signature_symbols(signature)
+        except BallbarError as err:
+            raise GcodeError(str(err)) from None
     pts = _Points(plan, dec, origin)
     wait = (0, 0, 0)
     tests: list[list[_Op]] = []
     for _ in range(repeat):
         wait, ops, _end = _test_ops(plan, pts)
+        depth = PathDepth(0.0, 0.0, 0.0, ()) if plan.plane == "XY" else _depth(plan, pts, wait, ops)
+        if signature is not None:
+            ops = _signature_ops(plan, pts, signature, plan_name) + ops
         tests.append(ops)
-    depth = PathDepth(0.0, 0.0, 0.0, ()) if plan.plane == "XY" else _depth(plan, pts, wait, tests[0])
-    header = _header_lines(plan, dialect, dec, origin, work_offset, repeat, mount_stop, depth)
+    header = _header_lines(plan, dialect, dec, origin, work_offset, repeat, mount_stop, depth, signature, plan_name)
     writer: _Writer
     if dialect == "heidenhain":
         hw = _Heidenhain(plan, dec)

@@ -19,6 +19,10 @@ stop, a rapid, the end of a block in exact-stop mode, a corner and a feed
 change.  Rapids are taken to end at rest (positioning; the generated program
 approaches in exact-stop mode anyway).
 
+:func:`signatures` reads the signature each test's program carries before its
+feed-in (radial excursions that do not reach the circle; :mod:`ballbar.analysis.plans`),
+which the split into tests leaves out.
+
 :func:`check_against_plan` compares a program with the plan and with the
 timing the analyzer assumes (:func:`ballbar.analysis.program.schedule`).
 :func:`model_limits` says where the plan itself breaks that timing model at a
@@ -720,6 +724,9 @@ def _split_tests(segs: list[_Seg], start_deg: float) -> list[list[_Seg]]:
                 cur = [replace(s, move=replace(mv, name="feed_in"))]
             continue
         if radial > 0:
+            if not any(x.move.kind == "arc" for x in cur):  # in and out with no arc: a signature's excursion
+                cur = None
+                continue
             cur.append(replace(s, move=replace(mv, name="feed_out")))
             tests.append(_rewind(cur, math.radians(start_deg)))
             cur = None
@@ -732,6 +739,44 @@ def _split_tests(segs: list[_Seg], start_deg: float) -> list[list[_Seg]]:
             s = replace(s, move=replace(mv, name="feed_in"))
         cur.append(s)
     return tests
+
+
+def program_moves(program: Program, plane: str, *, origin: Sequence[float] = (0.0, 0.0, 0.0),
+                  start_deg: float = 0.0) -> list[Move]:
+    """The whole program from its first feed move on (signatures, tests, the moves between) as rest-to-rest
+    moves in the plane's frame, as :func:`test_moves` takes each test's; arcs' angles unwound from
+    ``start_deg``.  Names are the program's (``line``, ``arc`` as ``ccw``/``cw``, ``dwell``, ``rapid``,
+    ``stop``), not the plan's."""
+    return [s.move for s in _segments(program, plane, origin, start_deg)]
+
+
+def signatures(program: Program, plane: str, *, origin: Sequence[float] = (0.0, 0.0, 0.0)) -> list[list[float]]:
+    """Per test, the depths (mm toward the pivot) of the excursions before its feed-in: its signature
+    (:mod:`ballbar.analysis.plans`); an empty list where a test has none.  An excursion is an inward line
+    followed by an outward one with only dwells between; a test begins at an inward line followed by an arc."""
+    out: list[list[float]] = []
+    pending: list[float] = []
+    segs = _segments(program, plane, origin, 0.0)
+    k = 0
+    while k < len(segs):
+        mv = segs[k].move
+        if mv.kind == "line" and mv.name == "line" and math.hypot(*mv.end) < math.hypot(*mv.start):
+            j = k + 1
+            while j < len(segs) and segs[j].move.kind == "dwell":
+                j += 1
+            nxt = segs[j].move if j < len(segs) else None
+            if nxt is not None and nxt.kind == "line" and math.hypot(*nxt.end) > math.hypot(*nxt.start):
+                pending.append(math.hypot(*mv.start) - math.hypot(*mv.end))
+                k = j + 1
+                continue
+            if nxt is not None and nxt.kind == "arc":
+                out.append(pending)
+                pending = []
+                while k < len(segs) and not (segs[k].move.kind == "line"
+                                             and math.hypot(*segs[k].move.end) > math.hypot(*segs[k].move.start)):
+                    k += 1  # to the test's feed-out
+        k += 1
+    return out
 
 
 def _rewind(test: list[_Seg], u_ref: float) -> list[_Seg]:
@@ -985,4 +1030,5 @@ def _comparable(test: list[_Seg]) -> bool:
     )
 
 
-__all__ = ["Block", "NcError", "Program", "check_against_plan", "interpret", "model_limits", "test_moves"]
+__all__ = ["Block", "NcError", "Program", "check_against_plan", "interpret", "model_limits", "signatures",
+           "test_moves"]

@@ -21,6 +21,7 @@ import numpy as np
 
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.plans import PlanLibrary
 from ballbar.daemon.mcap_log import mcap_files, read_results
 from ballbar.daemon.recordings import analyze_file
 from ballbar.daemon.testindex import RecordedTest, TestIndex
@@ -161,15 +162,17 @@ def from_recording(
     options: AnalysisOptions,
     test: int = 1,
     records: str | None = None,
+    library: PlanLibrary | None = None,
 ) -> ReportData:
-    """Analyse a recording (CSV, or the daemon's MCAP file or directory) and gather its ``test``-th test.
+    """Analyse a recording (CSV, or the daemon's MCAP file or directory) and gather its ``test``-th test
+    (``library``: the plans its tests may run; None: the recorded ones, else ``plan`` alone).
 
     A daemon recording names the test (machine, test id, time) through the
     result it published for the same feed-in.  The trend comes from the results
     in the recording itself and, with ``records``, in that directory of the
     daemon's records.
     """
-    result = analyze_file(path, plan, machine, options, test, curves=True)
+    result = analyze_file(path, plan, machine, options, test, curves=True, library=library)
     curves = result.pop("curves")
     candidates = _read_results(_mcap_files(path))
     recorded = [r for r in candidates if r.get("kind") == "test" and _same_test(result, r)]
@@ -264,8 +267,10 @@ def from_recorded_test(
     machine: MachineConfig,
     options: AnalysisOptions,
     records: str | None = None,
+    library: PlanLibrary | None = None,
 ) -> ReportData:
-    """Gather one test of an index of the daemon's records (:func:`~ballbar.daemon.testindex.analyze_recorded`).
+    """Gather one test of an index of the daemon's records (:func:`~ballbar.daemon.testindex.analyze_recorded`;
+    ``library``: as there).
 
     It takes the published result's identity, says where the re-analysis
     differs from it, and draws the trend from the index's results (and those in
@@ -273,7 +278,7 @@ def from_recorded_test(
     """
     from ballbar.daemon.testindex import analyze_recorded
 
-    result = analyze_recorded(index, test, plan, machine, options, curves=True)
+    result = analyze_recorded(index, test, plan, machine, options, curves=True, library=library)
     curves = result.pop("curves")
     published = test.result or {}
     _adopt_identity(result, published)

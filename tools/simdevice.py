@@ -242,9 +242,59 @@ class BlockEncoder:
         return data[off[i0 - b0] : off[i1 - b0]]
 
 
+def plans_of(text: str) -> Any:
+    """``--library``: a JSON table of plans as the daemon's configuration records them (``config["plans"]``)."""
+    from ballbar.analysis.errors import PlanError
+    from ballbar.daemon.config import ConfigError, library_of
+
+    try:
+        tables = json.loads(text)
+        if not isinstance(tables, dict) or not tables:
+            raise ValueError("not a table of plans")
+        return library_of({"plans": tables})
+    except (ValueError, ConfigError) as err:
+        raise PlanError(f"--library: {err}") from None
+
+
+def simulated_set(args: argparse.Namespace) -> Iterator[Chunk]:
+    """A set's plans in turn on the 3D machine (:mod:`ballbar.tools.machine3d`), as the bar reads them."""
+    from ballbar.analysis.errors import PlanError
+    from ballbar.tools.machine3d import Machine3D, set_tests
+
+    library = plans_of(args.library)
+    names = [n.strip() for n in args.run_plans.split(",") if n.strip()] if args.run_plans else list(library.names)
+    machine = Machine3D.from_settings(_floats(args.set, "--set"))
+    drift = _floats(getattr(args, "drift", None) or [], "--drift")
+    if args.rate != library.first.plan.sample_hz:
+        log.info("the plans sample at %g Hz; the device at %g Hz", library.first.plan.sample_hz, args.rate)
+    if not names:
+        raise PlanError("--run-plans names no plan")
+    repeat = None if args.repeat == 0 else args.repeat
+    for _name, res in set_tests(library, names, machine, args.rate, args.seed, repeat, args.gap_s, drift):
+        yield res.t_s, res.length_mm, np.rint(res.t_s * args.rate).astype(np.int64)
+
+
+def _floats(items: Sequence[str], what: str) -> dict[str, float]:
+    from ballbar.analysis.errors import PlanError
+
+    out: dict[str, float] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError(item)
+            out[key.strip()] = float(text)
+        except ValueError:
+            raise PlanError(f"{what} needs KEY=NUMBER, not {item!r}") from None
+    return out
+
+
 def simulator_tests(args: argparse.Namespace) -> Iterator[Chunk]:
     from ballbar.tools.simulator import MachineModel, iter_tests, parse_set, plan_from_args
 
+    if getattr(args, "library", None):
+        yield from simulated_set(args)
+        return
     plan = plan_from_args(args, args.rate)
     machine = MachineModel(**parse_set(args.set))
     drift = {k: float(v) for k, v in parse_set(getattr(args, "drift", None) or []).items()}
@@ -999,7 +1049,8 @@ def _parser() -> argparse.ArgumentParser:
                    "(a machine that wears; repeatable)")
     p.add_argument("--repeat", type=int, default=1, help="tests in a row (0: forever)")
     p.add_argument("--gap-s", type=float, default=0.0, help="device seconds between tests")
-    p.add_argument("--cal-mm", type=float, help="bar length at zero displacement (default: the plan's radius)")
+    p.add_argument("--cal-mm", type=float, help="bar length at zero displacement (default: the plan's radius; "
+                   "with --library the first plan's)")
     p.add_argument("--range-mm", type=float, default=2.5, help="LVDT linear range, +- mm")
     p.add_argument("--wait", action="store_true", help="stream only after the 'start' command")
     p.add_argument("--exit-when-done", action="store_true", help="exit once every test is sent")
@@ -1017,6 +1068,11 @@ def _parser() -> argparse.ArgumentParser:
     from ballbar.tools.simulator import add_plan_arguments
 
     add_plan_arguments(p.add_argument_group("test plan and machine (the simulator)"))
+    g = p.add_argument_group("a set of plans on a 3D machine (tools/machine3d.py)")
+    g.add_argument("--library", help="the plans, as JSON: the daemon's recorded config['plans'] (each plan's keys and "
+                   "signature); the device runs them in turn on a machine with X, Y and Z errors, each program with "
+                   "its signature; --set then takes the 3D machine's keys (backlash_z_um, squareness_yz_urad, ...)")
+    g.add_argument("--run-plans", help="with --library: which plans, in this order, comma-separated (default: all)")
     p.add_argument("-v", "--verbose", action="store_true")
     return p
 
@@ -1092,7 +1148,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             mode=args.mode,
             rate=args.rate,
             speedup=args.speedup,
-            cal_mm=args.cal_mm if args.cal_mm is not None else args.radius_mm,
+            cal_mm=args.cal_mm if args.cal_mm is not None else (
+                plans_of(args.library).first.plan.radius_mm if args.library else args.radius_mm),
             range_mm=args.range_mm,
             fmt=fmt,
             seed=args.seed,

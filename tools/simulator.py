@@ -112,7 +112,7 @@ import json
 import logging
 import math
 import sys
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
@@ -770,7 +770,7 @@ def _events(plan: TestPlan, segs: list[_Segment], t0: float) -> dict[str, float]
             s1 = s0 + math.radians(plan.data_arc_deg) * seg.move.radius
             ev[f"data_start_{seg.move.name}"] = t0 + seg.t_start + seg.profile.time_at(s0)
             ev[f"data_end_{seg.move.name}"] = t0 + seg.t_start + seg.profile.time_at(s1)
-    fi = segs[0]
+    fi = next(s for s in segs if s.move.name == "feed_in")  # after a signature, where there is one
     ev["feed_in_centroid"] = t0 + fi.t_start + 0.5 * fi.duration
     fo = segs[-1]
     ev["feed_out_centroid"] = t0 + fo.t_start + 0.5 * fo.duration
@@ -960,6 +960,29 @@ def iter_tests(
         yield res
 
 
+def iter_programs(
+    tests: Iterable[tuple[TestPlan, MachineModel, Sequence[Move] | None]],
+    sample_hz: float,
+    seed: int = 0,
+    gap_s: float = 0.0,
+    *,
+    step_s: float = 1.0e-4,
+) -> Iterator[SimResult]:
+    """Tests of several plans in turn on one sample clock (a set): each ``(plan, machine, program)`` of
+    ``tests`` run as :func:`simulate` runs it, ``gap_s`` between them as in :func:`iter_tests` (test ``i``
+    draws its random effects from ``(seed, i)``).  Each program starts and ends at its plan's wait point: a
+    set's programs move between planes during the gap (the operator re-mounts the bar), not simulated."""
+    fs = float(sample_hz)
+    if not gap_s >= 0:
+        raise PlanError(f"gap_s must be >= 0, not {gap_s!r}")
+    k0 = 0
+    for i, (plan, m, program) in enumerate(tests):
+        _check_rate(plan, fs)
+        res = _run(plan, m, fs, seed, i, k0, gap_s, step_s, program)
+        k0 += res.n_slots
+        yield res
+
+
 def iter_chunks(
     plan: TestPlan,
     machine: MachineModel,
@@ -1114,6 +1137,7 @@ __all__ = [
     "MachineModel",
     "SimResult",
     "iter_chunks",
+    "iter_programs",
     "iter_tests",
     "main",
     "parse_set",

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from ballbar.analysis.patterns import LIBRARY, Geometry, Pattern, design
 from ballbar.analysis.physics import LostMotion, make_offset
 from ballbar.analysis.plan import MachineConfig, TestPlan
+from ballbar.analysis.plans import plan_of_result
 from ballbar.analysis.program import arc_start_deg, data_start_deg, schedule
 from ballbar.analysis.report import POLAR_DIVISIONS, polar_division_um
 
@@ -171,7 +172,7 @@ def model_deviation_um(result: Mapping[str, Any], direction: int, u: FloatArray)
     timing = result_timing(result, direction)
     if timing is None or "plan" not in result:
         return None
-    plan = TestPlan.from_dict(dict(result["plan"]))
+    plan = plan_of_result(result["plan"])
     machine = MachineConfig.from_dict(dict(result.get("machine") or {}))
     patterns = _patterns_for(plan, machine, direction)
     u = np.asarray(u, dtype=float)

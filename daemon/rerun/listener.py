@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 
 from ballbar.analysis.engine import TimingHints
 from ballbar.analysis.plan import MachineConfig, TestPlan
+from ballbar.analysis.plans import plan_of_result
 from ballbar.protocol import INVALID
 
 from ..listeners import MERGE_S, TEST_END_EVENTS, Listener, Message
@@ -557,7 +558,7 @@ class RerunViewer(Scene, Listener):
 
     def _set_plan(self, plan: Mapping[str, Any], machine: Any) -> None:
         try:
-            new = TestPlan.from_dict(dict(plan))
+            new = plan_of_result(plan)
             mach = MachineConfig.from_dict(dict(machine)) if isinstance(machine, Mapping) else self.machine
         except (TypeError, ValueError) as err:
             log.warning("rerun viewer: ignoring a plan it cannot read: %s", err)

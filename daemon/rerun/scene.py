@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ballbar.analysis.plan import MachineConfig, TestPlan
+from ballbar.analysis.plans import plan_of_result
 from ballbar.analysis.program import data_start_deg
 
 from .blueprint import TREND_LINES, TRENDS, Blueprints, default_blueprint, trend_ranges
@@ -708,7 +709,7 @@ class Scene:
         return True
 
     def _update_model(self, d: int, res: Mapping[str, Any]) -> None:
-        plan = TestPlan.from_dict(dict(res["plan"]))
+        plan = plan_of_result(res["plan"])
         u_ds = math.radians(data_start_deg(plan, d))
         u = u_ds + d * np.linspace(0.0, math.radians(plan.data_arc_deg), self.options.polar_points)
         dr = model_deviation_um(res, d, u)
