@@ -23,6 +23,8 @@ name           payload                                              where
 ``config``     the effective configuration (secrets redacted)       ``ballbar/<m>/config``, MCAP
 ``samples``    decimated samples                                    ``ballbar/<m>/samples``
 ``history``    a ``history/<topic>`` reply                          ``ballbar/<m>/history/*``
+``set``        a test set combined into the machine's axes          ``ballbar/<m>/result/set``, MCAP
+               (``kind: "set"``, :mod:`ballbar.analysis.sets`)      ``/ballbar/results``
 =============  ===================================================  ==================================
 
 Every object whose shape is the daemon's own is closed (``additionalProperties:
@@ -47,7 +49,7 @@ from typing import Any
 from ballbar import SCHEMA_VERSION
 
 DRAFT = "https://json-schema.org/draft/2020-12/schema"
-NAMES = ("result", "analysis", "event", "mcap-event", "status", "config", "samples", "history", "alert")
+NAMES = ("result", "analysis", "event", "mcap-event", "status", "config", "samples", "history", "alert", "set")
 
 Schema = dict[str, Any]
 
@@ -526,10 +528,11 @@ def result_schema() -> Schema:
         "result",
         "ballbar.Result: an analysis result, a circle's (kind circle, provisional timing, after each data arc) or "
         "a test's (kind test): the `ballbar analyze --json` object plus the daemon's machine_id, test_id, t_wall, "
-        "t_host, last_sample_t, last_sample_t_host, latency_ms and time_axis.",
-        {"oneOf": [{"$ref": "#/$defs/circle"}, {"$ref": "#/$defs/test"}]},
-        {"circle": _daemon_result("circle"), "test": _daemon_result("test"),
-         "parameter": _PARAMETER, "parameters": _parameters(), **_monitor_defs()},
+        "t_host, last_sample_t, last_sample_t_host, latency_ms and time_axis; or a set's (kind set, the set "
+        "schema).",
+        {"oneOf": [{"$ref": "#/$defs/circle"}, {"$ref": "#/$defs/test"}, {"$ref": "#/$defs/set"}]},
+        {"circle": _daemon_result("circle"), "test": _daemon_result("test"), "set": _set_object(),
+         "parameter": _PARAMETER, "parameters": _parameters(), **_monitor_defs(), **_set_defs()},
     )
 
 
@@ -1003,6 +1006,154 @@ def history_schema() -> Schema:
     return _document("history", "A reply of ballbar/<m>/history/<topic>.", obj("a history reply", props))
 
 
+# --------------------------------------------------------------------------- the set result (analysis/sets.py)
+
+
+def _figure_props(unit: str) -> dict[str, Schema]:
+    return {
+        "value": num(f"the figure, {unit} (null: none; reasons say why)", True),
+        "stderr": num(f"its standard uncertainty, {unit} (null: none)", True),
+        "unit": string("the unit"),
+        "trusted": boolean("false where no value, a check behind it failed, or a test behind it is invalid"),
+        "reasons": {"type": "array", "items": {"type": "string"},
+                    "description": "why it is not trusted, or observations left out (may be empty)"},
+    }
+
+
+_OBSERVATION = obj(
+    "one test's estimate of the quantity",
+    {
+        "plan": string("the test's plan"),
+        "plane": string("its plane", enum=["XY", "YZ", "ZX"]),
+        "test_id": string("the test's id", True),
+        "field": string("the test's parameter it is (in the plane's first/second axis naming)"),
+        "value": num("its value (null: not fitted)", True),
+        "stderr": num("its standard error (null: none)", True),
+        "used": boolean("entered the combination"),
+        "reason": string("why not used", True),
+    },
+)
+
+
+def _combined(desc: str) -> Schema:
+    return obj(desc, {
+        **_figure_props("unit"),
+        "observations": {"type": "array", "items": {"$ref": "#/$defs/observation"},
+                         "description": "each test's estimate"},
+        "check": string("the name of its consistency check (null: seen by one test)", True),
+    })
+
+
+def _loop_schema(what: str) -> Schema:
+    pair = _combined(f"the pair's {what} (e_a - e_b for the pair ab)")
+    pair["properties"]["adjusted"] = {"$ref": "#/$defs/figure",
+                                      "description": "the least-squares value once the loop's closure is enforced"}
+    pair["required"].append("adjusted")
+    return obj(f"{what}: per pair, the loop's closure, each axis against the three axes' mean", {
+        "unit": string("ppm or ms"),
+        "pairs": obj("per axis pair", {p: pair for p in ("XY", "YZ", "ZX")}),
+        "closure": string("the name of the closure check in checks"),
+        "axes": obj("each axis against the mean of the three", {a: {"$ref": "#/$defs/figure"} for a in "XYZ"}),
+    })
+
+
+SET_DESCRIPTION = (
+    "ballbar.Set: a test set combined into the machine's axes (kind set, ballbar/<m>/result/set, and the MCAP "
+    "results channel): analysis/sets.py, analysis/README.md \"Test sets\"."
+)
+
+
+def _set_defs() -> dict[str, Schema]:
+    return {"figure": obj("a set figure", _figure_props("unit")), "observation": _OBSERVATION}
+
+
+def _set_object() -> Schema:
+    check = obj("a check of the whole set", {
+        "name": string("its name"),
+        "kind": string("consistency (two tests see one quantity) or closure (a loop of three pairs)",
+                       enum=["consistency", "closure"]),
+        "quantity": string("what is checked"),
+        "status": string("passed, failed or not_checked", enum=["passed", "failed", "not_checked"]),
+        "value": num("the discrepancy: consistency, the difference (more than two: the largest from the mean); "
+                     "closure, the sum of the three pairs (null: not checked)", True),
+        "stderr": num("its standard error (null: not checked)", True),
+        "z": num("value / stderr (more than two tests: sqrt of chi-square per degree of freedom)", True),
+        "coverage_k": num("fails beyond this many standard errors ..."),
+        "min_discrepancy": num("... and above this, in unit"),
+        "unit": string("the unit"),
+        "message": string("the check in words"),
+    })
+    member = obj("one plan's test in the set", {
+        "plan": string("the plan"),
+        "plane": string("its plane"),
+        "test_id": string("the test's id", True),
+        "t_wall": string("when its result was published (ISO 8601 UTC)", True),
+        "radius_mm": num("its radius, mm", True),
+        "feed_mm_min": num("its programmed feed, mm/min", True),
+        "data_arc_deg": num("its data arc, deg", True),
+        "valid": boolean("its fit's checks held (fit.valid)"),
+        "invalid_reasons": {"type": "array", "items": {"type": "string"}, "description": "why not valid"},
+        "verdict": string("its own verdict against its plan's limits; not_evaluated without limits",
+                          enum=["pass", "warning", "fail", "not_evaluated"]),
+        "verdict_summary": string("its verdict in one line", True),
+        "G_b_um": num("its G(b), um", True),
+    })
+    extreme = obj("the largest circular deviation of the set's valid tests", {
+        **_figure_props("um"),
+        "plan": string("the plan whose test has it", True),
+        "test_id": string("that test", True),
+        "figure": string("G_b_um, or G_ccw_um / G_cw_um for a one-direction test", True),
+    })
+    sphere = obj("the geometric sphericity: the range of the radial deviation the squareness and relative scale "
+                 "errors make over the sphere", {
+                     **_figure_props("um"),
+                     "interval": {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 2,
+                                  "maxItems": 2, "description": "its 95 % interval, um (null: no value)"},
+                     "radius_mm": num("the sphere's radius: the set's largest, mm", True),
+                 })
+    verdict = obj("the set's verdict", {
+        "status": string("pass, warning or fail", enum=["pass", "warning", "fail"]),
+        "trusted": boolean("every check passed and every test is valid"),
+        "plans": {"type": "array", "description": "each plan's own verdict", "items": obj("a plan's verdict", {
+            "plan": string("the plan"), "status": string("its test's verdict"),
+            "summary": string("in one line", True)})},
+        "failed_checks": {"type": "array", "items": {"type": "string"}, "description": "names of failed checks"},
+        "reasons": {"type": "array", "items": {"type": "string"}, "description": "why not trusted"},
+        "summary": string("the verdict in one line"),
+        "rule": string("how the verdict is made, in words"),
+    })
+    props: dict[str, Schema] = {
+        **_envelope("set"),
+        "set_id": string("<set name>@<the newest member test's id>"),
+        "set": obj("the set's definition ([sets.<name>])", {
+            "name": string("its name"),
+            "plans": {"type": "array", "items": {"type": "string"}, "description": "its plans"},
+            "window_s": num("its tests must all lie within this, s"),
+        }),
+        "tests": {"type": "array", "items": member, "description": "the latest test of each plan, in the set's order"},
+        "span_s": num("from the oldest to the newest member test, s", True),
+        "lost_motion": obj("lost motion per axis, um", {a: _combined(f"the {a} axis' lost motion, um") for a in "XYZ"}),
+        "squareness": obj("squareness per pair, urad (+: +a and +b enclose less than 90 deg)",
+                          {p: _combined(f"the {p} squareness, urad") for p in ("XY", "YZ", "ZX")}),
+        "scale": _loop_schema("relative scale, ppm"),
+        "servo": _loop_schema("servo lag mismatch, ms"),
+        "volumetric": obj("volumetric figures", {
+            "largest_circular_deviation": extreme,
+            "geometric_sphericity": sphere,
+            "method": string("how both are computed, in words"),
+        }),
+        "checks": {"type": "array", "items": check, "description": "every consistency and closure check"},
+        "verdict": verdict,
+        "conventions": counts("the sign conventions, in words", "string"),
+        "method": string("how the figures are combined, in words"),
+    }
+    return obj("a set result as the daemon publishes it", props)
+
+
+def set_schema() -> Schema:
+    return _document("set", SET_DESCRIPTION, _set_object(), _set_defs())
+
+
 # --------------------------------------------------------------------------- documents
 
 
@@ -1024,7 +1175,7 @@ def _built(name: str) -> str:
     makers = {
         "result": result_schema, "analysis": analysis_schema, "event": event_schema,
         "mcap-event": lambda: event_schema(mcap=True), "status": status_schema, "config": config_schema,
-        "samples": samples_schema, "history": history_schema, "alert": alert_schema,
+        "samples": samples_schema, "history": history_schema, "alert": alert_schema, "set": set_schema,
     }
     if name not in makers:
         raise KeyError(f"no schema {name!r} (one of {', '.join(NAMES)})")
