@@ -51,6 +51,8 @@ MACHINE_FLAGS: tuple[tuple[str, str, type, str], ...] = (
     ("--kv-y", "kv_y_per_s", float, "configured position-loop gain of the second axis (1/s)"),
     ("--controller", "controller", str, "generic, fanuc, siemens or heidenhain (names in the advice)"),
 )
+#: analysis.plan.STANDARDS, written out: the parser is built before anything slow is imported.
+STANDARD_CHOICES = ("iso230_4", "jis_b6190_4", "asme_b5_54")
 
 
 class UsageError(BallbarError, ValueError):
@@ -82,6 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="per axis a dead band or over-set compensation through the loop (physical, default), "
                     "or the seed's step")
     an.add_argument("--patterns", help="comma-separated pattern names to fit (default: all that apply)")
+    an.add_argument("--standard", dest="standards", action="append", choices=STANDARD_CHOICES,
+                    help="also the circular-test figures of this standard (repeatable; ISO 230-4's always; default: "
+                    "the configuration's [analysis] standards)")
     an.add_argument("--test", type=int, help="which test: the N-th in a file (default 1), the N-th that "
                     "--list shows for a directory")
     an.add_argument("--test-id", help="a test id from the daemon's records (MCAP file or directory), or 'latest' "
@@ -134,6 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "the daemon's records the N-th that analyze --list shows, default its newest complete test)")
     for flag, dest, typ, help_ in REPORT_FLAGS:
         rp.add_argument(flag, dest=dest, type=typ, help=help_)
+    rp.add_argument("--standard", dest="standards", action="append", choices=STANDARD_CHOICES,
+                    help="the circular-test standards the report states (repeatable; default: the configuration's "
+                    "[analysis] standards, ISO 230-4 always)")
 
     run = sub.add_parser("run", help="run the daemon (the service's main job)",
                          description="Sample the ball-bar, fit each circle and test, log to MCAP, publish on "
@@ -252,6 +260,8 @@ def configs_from_args(
         analysis_d["servo_model"] = args.servo_model
     if getattr(args, "lost_motion", None) is not None:
         analysis_d["lost_motion"] = args.lost_motion
+    if getattr(args, "standards", None):
+        analysis_d["standards"] = tuple(dict.fromkeys(("iso230_4", *args.standards)))
     if getattr(args, "patterns", None):
         names = tuple(n.strip() for n in args.patterns.split(",") if n.strip())
         bad = [n for n in names if n not in BY_NAME]
@@ -300,11 +310,14 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         from ballbar.analysis.report import summary
+        from ballbar.analysis.standards import lines as standards_lines
 
         src = result.get("source", {})
         if src.get("test_id"):
             print(f"Test {src['test_id']} ({Path(src['file']).name})")
         print(summary(result))
+        for line in standards_lines(result):
+            print(line)
         for w in result.get("warnings", []):
             print(f"warning: {w}")
         if "verdict" in result:

@@ -431,6 +431,37 @@ _ISO = obj(
     },
 )
 
+def _standard(title: str, figures: dict[str, Schema]) -> Schema:
+    return obj(f"{title}'s circular-test figures (analysis/standards.py)", {
+        "standard": string("the standard and its edition"),
+        **figures,
+        "centre_removal": string("how the centre was removed, in words"),
+        "computes": string("what the figures are, in words"),
+        "differs_from_iso230_4": string("where they differ from ISO 230-4's (iso230_4), in words"),
+        "assumption": string("what was assumed of the standard's text (empty: nothing)"),
+    })
+
+
+_STANDARDS = obj(
+    "the other standards chosen ([analysis] standards), each under its id; ISO 230-4's are iso230_4",
+    {
+        "jis_b6190_4": _standard("JIS B 6190-4:2008 (ISO 230-4:2005)", {
+            "G_ccw_um": num("circular deviation G, CCW, um", True),
+            "G_cw_um": num("circular deviation G, CW, um", True),
+            "G_b_um": num("bidirectional circular deviation G(b), um", True),
+            "F_max_um": num("largest radial deviation F, um", True),
+            "F_min_um": num("smallest radial deviation F, um", True)}),
+        "asme_b5_54": _standard("ASME B5.54-2005", {
+            "circular_deviation_ccw_um": num("circular deviation about the minimum-zone centre, CCW, um", True),
+            "circular_deviation_cw_um": num("the same, CW, um", True),
+            "circular_deviation_b_um": num("both directions about one minimum-zone centre, um", True),
+            "H_um": num("circular hysteresis, um", True),
+            "F_max_um": num("largest radial deviation, um", True),
+            "F_min_um": num("smallest radial deviation, um", True)}),
+    },
+    required=[],
+)
+
 _NOISE = obj(
     "vibration and stick-slip",
     {
@@ -480,7 +511,7 @@ def _analysis_props(kind: str) -> dict[str, Schema]:
         "warnings": _WARNINGS,
     }
     if kind == "test":
-        props |= {"iso230_4": _ISO, "noise": _NOISE, "samples": _SAMPLES,
+        props |= {"iso230_4": _ISO, "standards": _STANDARDS, "noise": _NOISE, "samples": _SAMPLES,
                   "verdict": {"$ref": "#/$defs/verdict",
                               "description": "with [limits] on: pass, warning or fail against each limit"}}
     else:
@@ -888,6 +919,9 @@ def config_schema() -> Schema:
         "max_lag_s": num("its search range, +- s"),
         "patterns": {"type": ["array", "null"], "items": {"type": "string"},
                      "description": "the patterns fitted (null: all)"},
+        "standards": {"type": "array", "items": {"type": "string", "enum": ["iso230_4", "jis_b6190_4", "asme_b5_54"]},
+                      "description": "the circular-test standards whose figures a test result carries (absent "
+                                     "before it existed)"},
     }
     assert set(analysis_opts) >= set(AnalysisOptions.__dataclass_fields__)  # kept in step with the dataclass
     config = obj(
@@ -917,7 +951,7 @@ def config_schema() -> Schema:
                                      "window_minutes": num("the time within which its tests must all have run, "
                                                            "min")})},
             "machine": _MACHINE,
-            "analysis": obj("[analysis]", analysis_opts),
+            "analysis": obj("[analysis]", analysis_opts, required=[k for k in analysis_opts if k != "standards"]),
             "mcap": obj("[mcap]", {
                 "enabled": boolean("log to MCAP"), "rotate_per_test": boolean("a new file at each feed-in"),
                 "rotate_mb": num("MB"), "rotate_minutes": num("min"), "quota_mb": num("MB"),
