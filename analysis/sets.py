@@ -217,6 +217,20 @@ class SetDefinition:
             raise PlanError(f"sets.{self.name}: the window must be a positive number of seconds, not {self.window_s!r}")
 
 
+def definitions(table: Mapping[str, Any] | None) -> list[SetDefinition]:
+    """The sets of a configuration's ``sets`` table (``{name: {"plans": [...], "window_minutes": m}}``, as the
+    configuration records it)."""
+    out = []
+    for name, body in (table or {}).items():
+        if not isinstance(body, Mapping):
+            raise PlanError(f"sets.{name} must be a table with plans and window_minutes")
+        minutes = body.get("window_minutes")
+        if not (isinstance(minutes, int | float) and not isinstance(minutes, bool)):
+            raise PlanError(f"sets.{name}.window_minutes must be a number of minutes, not {minutes!r}")
+        out.append(SetDefinition(str(name), tuple(str(p) for p in body.get("plans") or ()), 60.0 * float(minutes)))
+    return out
+
+
 @dataclass(frozen=True)
 class SetOptions:
     """How the set's checks judge.
@@ -344,7 +358,7 @@ def _observe(tests: Mapping[str, Mapping[str, Any]], field_of: Any) -> dict[str,
     for plan, r in tests.items():
         plane = str((r.get("plan") or {}).get("plane", "XY"))
         valid, reasons = _test_validity(r)
-        for key, field in field_of(plane):
+        for key, field in field_of(plane, _axes(r)):
             v, se, why = _param(r, field)
             if why is None and not valid:
                 why = f"plan {plan}'s test is invalid: {'; '.join(reasons)}"
@@ -354,12 +368,23 @@ def _observe(tests: Mapping[str, Mapping[str, Any]], field_of: Any) -> dict[str,
     return out
 
 
+def _axes(result: Mapping[str, Any]) -> tuple[str, str]:
+    """The machine axes of the test's first and second axis: ``plan.axes`` where the result names them, else
+    its plane's (``XY``: X, Y; ``YZ``: Y, Z; ``ZX``: Z, X)."""
+    plan = result.get("plan") or {}
+    axes = plan.get("axes")
+    if isinstance(axes, list | tuple) and len(axes) == 2 and all(a in AXES for a in axes):
+        return str(axes[0]), str(axes[1])
+    return PLANE_AXES[str(plan.get("plane", "XY"))]
+
+
 def _axis_fields(field_x: str, field_y: str) -> Any:
-    return lambda plane: [(PLANE_AXES[plane][0], field_x), (PLANE_AXES[plane][1], field_y)]
+    return lambda plane, axes: [(axes[0], field_x), (axes[1], field_y)]
 
 
 def _pair_field(field: str) -> Any:
-    return lambda plane: [(plane, field)]
+    """The pair a plane's field is about, named in the cyclic order (its first axis first)."""
+    return lambda plane, axes: [(axes[0] + axes[1], field)]
 
 
 # --------------------------------------------------------------------------- combining
@@ -807,6 +832,7 @@ __all__ = [
     "SetOptions",
     "SetResult",
     "combine",
+    "definitions",
     "plan_name",
     "select",
     "sphericity_um",

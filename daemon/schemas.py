@@ -768,7 +768,8 @@ _ZENOH_STATS = obj(
     {
         "connected": boolean("the session is open (not whether anyone listens)"),
         "open_error": string("why it could not open (retrying in the background)", True),
-        "published": counts("puts by topic (result/circle, result/test, event, status, config, samples)"),
+        "published": counts("puts by topic (result/circle, result/test, result/set, event, status, config, samples, "
+                            "alert)"),
         "put_errors": integer("puts that failed"),
         "not_connected": integer("messages kept for last/history while the session was not open"),
         "slow_puts": integer("puts that took longer than 0.1 s (a subscriber not reading)"),
@@ -1029,7 +1030,7 @@ def history_schema() -> Schema:
     props: dict[str, Schema] = {
         "schema_version": {"const": SCHEMA_VERSION, "description": "version of these payloads' shapes"},
         "kind": {"const": "history", "description": "a history reply"},
-        "topic": string("circle, test or event", enum=["circle", "test", "event"]),
+        "topic": string("circle, test, set, event or alert", enum=["circle", "test", "set", "event", "alert"]),
         "machine_id": string("the daemon's machine_id"),
         "count": integer("results in this reply"),
         "more": boolean("more after the last: ask again with since = its t_wall"),
