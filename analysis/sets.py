@@ -796,6 +796,31 @@ def _member(plan: str, r: Mapping[str, Any]) -> Member:
                   G_b_um=float(g) if _finite(g) else None)
 
 
+STATUS_WORDS = {"fail": "FAIL", "warning": "WARNING", "pass": "PASS", "none": "NO LIMITS SET"}
+
+
+def set_words(s: Mapping[str, Any]) -> dict[str, Any]:
+    """The set's verdict in words, for the live view and the report: ``status`` (``pass``, ``warning``,
+    ``fail``; ``none`` where no plan has limits and every check passed), ``word``, ``headline`` (one line:
+    each plan's verdict, the checks), ``plans`` (``(plan, plane, status)``), ``problems`` (why not trusted)."""
+    v = s.get("verdict") or {}
+    members = s.get("tests") or []
+    status = str(v.get("status", "pass"))
+    if v.get("trusted", True) and members and all(m.get("verdict") == "not_evaluated" for m in members):
+        status = "none"
+    checks = s.get("checks") or []
+    failed = [c for c in checks if c.get("status") == "failed"]
+    parts = [f"{m.get('plan')} {STATUS_WORDS.get(str(m.get('verdict')), 'no limits').lower()}"
+             + ("" if m.get("valid", True) else " (invalid)") for m in members]
+    tail = (f"{len(failed)} check{'s' if len(failed) > 1 else ''} failed" if failed
+            else f"{sum(c.get('status') == 'passed' for c in checks)} of {len(checks)} checks passed")
+    name = (s.get("set") or {}).get("name", "?")
+    return {"status": status, "word": STATUS_WORDS[status],
+            "headline": f"set {name}: " + ", ".join(parts) + f"; {tail}",
+            "plans": [(m.get("plan"), m.get("plane"), m.get("verdict")) for m in members],
+            "problems": list(v.get("reasons") or [])}
+
+
 def summary_lines(s: Mapping[str, Any]) -> list[str]:
     """The set result in a few readable lines (the log, ``ballbar analyze --set``)."""
     out = [f"Set {s['set']['name']} ({', '.join(s['set']['plans'])}): {s['verdict']['summary']}"]
@@ -835,6 +860,7 @@ __all__ = [
     "definitions",
     "plan_name",
     "select",
+    "set_words",
     "sphericity_um",
     "summary_lines",
 ]

@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "--list shows for a directory")
     an.add_argument("--test-id", help="a test id from the daemon's records (MCAP file or directory), or 'latest' "
                     "(the newest complete test: a directory's default)")
+    an.add_argument("--set", dest="set_name", metavar="NAME",
+                    help="the daemon's records: make the set NAME again ([sets.NAME] as recorded) from the latest "
+                    "recorded test of each of its plans, each analysed again from its samples")
     an.add_argument("--list", action="store_true", help="list the tests (number, id, start, status, file, "
                     "headline) instead of analysing one; with --json a JSON list")
     an.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
@@ -293,6 +296,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         raise UsageError(f"--test-id picks a test from the daemon's MCAP records; {args.file} is not one")
     if args.list:
         return _list_tests(args, mcap)
+    if args.set_name is not None:
+        return _analyze_set(args, mcap)
     base: dict[str, Any] = {}
     if mcap and (os.path.isdir(args.file) or args.test_id is not None):
         result = _analyze_records(args, base)
@@ -322,6 +327,23 @@ def cmd_analyze(args: argparse.Namespace) -> int:
             print(f"warning: {w}")
         if "verdict" in result:
             print(verdict_lines(result["verdict"]))
+    return 0
+
+
+def _analyze_set(args: argparse.Namespace, mcap: bool) -> int:
+    """``--set NAME``: the set made again from the daemon's records (:mod:`.setrecords`)."""
+    from ballbar.analysis.sets import summary_lines
+
+    from .setrecords import set_from_records
+
+    if not (mcap and os.path.isdir(args.file)):
+        raise UsageError(f"--set makes a set from a directory of the daemon's MCAP records; {args.file} is not one")
+    result = set_from_records(args.file, args.set_name)
+    if args.json:
+        json.dump(result, sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(summary_lines(result)))
     return 0
 
 
