@@ -142,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "the daemon's records the N-th that analyze --list shows, default its newest complete test)")
     for flag, dest, typ, help_ in REPORT_FLAGS:
         rp.add_argument(flag, dest=dest, type=typ, help=help_)
+    rp.add_argument("--set", dest="set_name", metavar="NAME",
+                    help="with a directory of the daemon's records: the report of the set NAME (its verdict first, "
+                    "then each plan's test), made again from the latest recorded test of each of its plans")
     rp.add_argument("--standard", dest="standards", action="append", choices=STANDARD_CHOICES,
                     help="the circular-test standards the report states (repeatable; default: the configuration's "
                     "[analysis] standards, ISO 230-4 always)")
@@ -627,6 +630,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     if args.test is not None and args.test < 1:
         raise UsageError("--test counts from 1")
+    if args.set_name is not None:
+        return _report_set(args)
     if (args.file is None) == (args.test_id is None):
         raise UsageError("give a recording FILE or --test-id (one of the two)")
     resolve_plan_arg(args, ())  # a file: the report of a library's test takes the recorded library
@@ -667,6 +672,28 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     out = Path(args.output or f"ballbar-report-{_safe_name(default_name)}.html")
     for path in render(data, out, png=not args.no_png):
+        print(path)
+    return 0
+
+
+def _report_set(args: argparse.Namespace) -> int:
+    """``ballbar report DIR --set NAME``: the set's report (:mod:`ballbar.tools.report_set`)."""
+    from .config import load
+
+    records = args.file or args.records or (os.path.join(load(args.config).daemon.state_dir, "recordings")
+                                            if args.config else None)
+    if records is None or not os.path.isdir(records):
+        raise UsageError("--set makes the report of a set from a directory of the daemon's MCAP records: give it "
+                         "(DIR, --records DIR or --config FILE)")
+    from ballbar.tools.report_set import from_set_records, render_set
+
+    data = from_set_records(records, args.set_name)
+    if args.config:
+        data.meta.update({k: v for k, v in asdict(load(args.config).report).items() if v not in (None, "")})
+    data.meta.update({dest: getattr(args, dest) for _f, dest, _t, _h in REPORT_FLAGS if getattr(args, dest, None)
+                      is not None})
+    out = Path(args.output or f"ballbar-set-report-{_safe_name(args.set_name)}.html")
+    for path in render_set(data, out, png=not args.no_png):
         print(path)
     return 0
 

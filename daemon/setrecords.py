@@ -17,6 +17,7 @@ import dataclasses
 import logging
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from ballbar import SCHEMA_VERSION
@@ -62,9 +63,22 @@ def limits_for(cfg: Mapping[str, Any], own: Mapping[str, Any] | None) -> dict[st
     return table if table.get("enabled") else None
 
 
-def set_from_records(path: str | os.PathLike[str], name: str, options: AnalysisOptions | None = None,
-                     ) -> dict[str, Any]:
-    """The set ``name`` from a directory of the daemon's records, as the daemon made it (module docstring).
+@dataclass
+class RecordedSet:
+    """A set's members as the records hold them, analysed again: ``results`` by plan (with curves when asked),
+    ``tests`` the recorded tests, ``config`` the records' newest configuration."""
+
+    definition: aset.SetDefinition
+    index: TestIndex
+    tests: dict[str, RecordedTest]
+    results: dict[str, dict[str, Any]]
+    config: dict[str, Any]
+
+
+def recorded_set(path: str | os.PathLike[str], name: str, options: AnalysisOptions | None = None,
+                 curves: bool = False) -> RecordedSet:
+    """The members of set ``name`` in a directory of the daemon's records, each analysed again from its samples
+    (module docstring); ``curves``: with each data arc's samples and model (the report's plots).
 
     A set the configuration does not name, or whose tests are not all there
     within its window, is a :class:`DataError` saying which.
@@ -85,14 +99,14 @@ def set_from_records(path: str | os.PathLike[str], name: str, options: AnalysisO
     if not sel.complete:
         raise DataError(f"{path}: set {name}: {sel.why_not}")
     members: dict[str, dict[str, Any]] = {}
+    tests: dict[str, RecordedTest] = {}
     for plan_name, recorded in sel.tests.items():
         test = _recorded(done, recorded)
         tcfg = index.config_for(test)
         plan, own = plan_config(cfg, plan_name)
         machine = MachineConfig.from_dict(dict(tcfg.get("machine") or cfg.get("machine") or {}))
         opts = options or AnalysisOptions.from_dict(dict(tcfg.get("analysis") or cfg.get("analysis") or {}))
-        result = analyze_recorded(index, test, plan, machine, opts)
-        result.pop("source", None)
+        result = analyze_recorded(index, test, plan, machine, opts, curves=curves)
         result["plan"]["name"] = plan_name
         if "axes" in recorded.get("plan", {}):
             result["plan"]["axes"] = recorded["plan"]["axes"]
@@ -100,18 +114,30 @@ def set_from_records(path: str | os.PathLike[str], name: str, options: AnalysisO
             result[key] = recorded.get(key)
         table = limits_for(cfg, own)
         if table is not None:
-            settings = monitor.settings_from_dict(table)
-            result["verdict"] = monitor.evaluate(result, settings)
+            result["verdict"] = monitor.evaluate(result, monitor.settings_from_dict(table))
         members[plan_name] = result
+        tests[plan_name] = test
         log.info("set %s: plan %s is test %s", name, plan_name, test.test_id)
-    body = aset.combine(d, members)
-    newest = max((m for m in members.values()), key=lambda r: str(r.get("t_wall")))
-    return {"schema_version": SCHEMA_VERSION, "machine_id": newest.get("machine_id") or "", "t_wall": newest["t_wall"],
-            **body}
+    return RecordedSet(d, index, tests, members, cfg)
+
+
+def combined(rs: RecordedSet) -> dict[str, Any]:
+    """The set message of a :class:`RecordedSet`, as the daemon publishes it (its curves and sources left out)."""
+    plain = {p: {k: v for k, v in r.items() if k not in ("curves", "source")} for p, r in rs.results.items()}
+    body = aset.combine(rs.definition, plain)
+    newest = max(plain.values(), key=lambda r: str(r.get("t_wall")))
+    return {"schema_version": SCHEMA_VERSION, "machine_id": newest.get("machine_id") or "",
+            "t_wall": newest["t_wall"], **body}
+
+
+def set_from_records(path: str | os.PathLike[str], name: str, options: AnalysisOptions | None = None,
+                     ) -> dict[str, Any]:
+    """The set ``name`` from a directory of the daemon's records, as the daemon made it (module docstring)."""
+    return combined(recorded_set(path, name, options))
 
 
 def _recorded(done: list[RecordedTest], result: Mapping[str, Any]) -> RecordedTest:
     return next(t for t in done if t.result is result)
 
 
-__all__ = ["limits_for", "newest_config", "plan_config", "set_from_records"]
+__all__ = ["RecordedSet", "combined", "limits_for", "newest_config", "plan_config", "recorded_set", "set_from_records"]

@@ -15,6 +15,7 @@ import copy
 import datetime as dt
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import livescene
@@ -130,3 +131,29 @@ def earlier(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
 def config() -> dict[str, Any]:
     return {"plans": {n: p.to_dict() for n, p in PLANS.items()},
             "sets": {SET.name: {"plans": list(SET.plans), "window_minutes": SET.window_s / 60}}}
+
+
+def write_records(scene: Scene, state_dir: Path) -> Path:
+    """The scene as the daemon records it, through the real MCAP logger: its configuration (each plan with its
+    own limits, those the scene's verdicts come from), each plan's earlier tests (results only: their samples
+    are older than the records keep), then the set's three tests and the set; the recordings directory."""
+    from ballbar.daemon.mcap_log import McapLogger
+
+    cfg = config()
+    for name, body in cfg["plans"].items():
+        body["limits"] = livescene.limits_for(STATUS[name], scene.results[name])
+    logger = McapLogger(state_dir, "mill-3")
+    try:
+        logger.on_message({"kind": "config", "config": cfg})
+        for r in scene.earlier[:-1]:
+            logger.on_message(r)
+        for kind, x in scene.items:
+            if kind == "batch":
+                logger.on_batch(x)
+            else:
+                logger.on_message(x)
+                if x.get("kind") == "set":
+                    break
+    finally:
+        logger.stop()
+    return state_dir / "recordings"
