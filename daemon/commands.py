@@ -664,16 +664,23 @@ def cmd_report(args: argparse.Namespace) -> int:
         from ballbar.tools.report import attach_verdict
 
         attach_verdict(data.result, asdict(load(args.config).limits))
-    if args.config:  # the configuration's [report] over the recorded one, the flags over both
-        data.meta.update({k: v for k, v in asdict(load(args.config).report).items() if v not in (None, "")})
-    data.meta.update({dest: getattr(args, dest) for _f, dest, _t, _h in REPORT_FLAGS if getattr(args, dest, None)
-                      is not None})
+    _report_meta(data.meta, args)
     from ballbar.tools.report_render import render  # matplotlib: only once there is something to draw
 
     out = Path(args.output or f"ballbar-report-{_safe_name(default_name)}.html")
     for path in render(data, out, png=not args.no_png):
         print(path)
     return 0
+
+
+def _report_meta(meta: dict[str, Any], args: argparse.Namespace) -> None:
+    """Who tested, with which bar, ...: the configuration's [report] over the recorded one, the flags over both."""
+    from .config import load
+
+    if args.config:
+        meta.update({k: v for k, v in asdict(load(args.config).report).items() if v not in (None, "")})
+    meta.update({dest: getattr(args, dest) for _f, dest, _t, _h in REPORT_FLAGS if getattr(args, dest, None)
+                 is not None})
 
 
 def _report_set(args: argparse.Namespace) -> int:
@@ -688,10 +695,7 @@ def _report_set(args: argparse.Namespace) -> int:
     from ballbar.tools.report_set import from_set_records, render_set
 
     data = from_set_records(records, args.set_name)
-    if args.config:
-        data.meta.update({k: v for k, v in asdict(load(args.config).report).items() if v not in (None, "")})
-    data.meta.update({dest: getattr(args, dest) for _f, dest, _t, _h in REPORT_FLAGS if getattr(args, dest, None)
-                      is not None})
+    _report_meta(data.meta, args)
     out = Path(args.output or f"ballbar-set-report-{_safe_name(args.set_name)}.html")
     for path in render_set(data, out, png=not args.no_png):
         print(path)

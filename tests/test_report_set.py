@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import collections
 import json
-import os
 import re
 import shutil
 from pathlib import Path
@@ -23,7 +22,8 @@ from typing import Any
 
 import pytest
 import setscene
-from browser import Chromium, find_chromium
+from browser import Chromium
+from test_report_render import _chromium_or_skip
 from test_screens import CSS_RGB
 
 from ballbar.analysis.sets import STATUS_WORDS
@@ -140,16 +140,6 @@ REPORT_FACTS = """(() => {
     plans, resources: performance.getEntriesByType('resource').map(e => e.name),
   };
 })()"""
-
-
-def _chromium_or_skip() -> str:
-    exe = find_chromium()
-    if exe is None:
-        msg = "Chromium not found ($BALLBAR_CHROMIUM, chromium on PATH or /usr/bin/chromium)"
-        if os.environ.get("BALLBAR_REQUIRE_BROWSER") == "1":
-            pytest.fail(f"{msg}, and BALLBAR_REQUIRE_BROWSER=1 requires it")
-        pytest.skip(f"{msg}; set BALLBAR_REQUIRE_BROWSER=1 to make this a failure")
-    return exe
 
 
 def test_the_set_report_in_headless_chromium(report: Path, records: Path, no_leaks: None) -> None:

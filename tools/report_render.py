@@ -213,14 +213,20 @@ def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]
         f"<span>ballbar {H.e(_version())} · result schema {H.e(result.get('schema_version', H.MISSING))}</span>"
         f"<span>Generated {H.e(H.generated_text())}</span></footer>"
     )
+    header = (f'<div><h1>Ball-bar test report</h1><div class="sub">{" · ".join(sub)}</div></div>'
+              '<div class="brand"><b>BALLBAR</b><br>Circular test, ISO 230-4<br>Suh &amp; Lee pattern fit</div>')
+    return write_page(html_path, title, header, "\n".join(doc.parts) + footer, pngs)
+
+
+def write_page(html_path: Path, title: str, header: str, body: str, pngs: list[tuple[Path, bytes]]) -> list[Path]:
+    """The report's document around ``header`` and ``body``, written with its PNGs (each through a temporary
+    file and a rename, the HTML last); the paths written, the HTML first."""
     page = (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
         f'<meta name="generator" content="ballbar {H.e(_version())}">'
         f"<title>{H.e(title)}</title><style>{H.CSS}</style></head>\n<body>"
-        f'<header class="top"><div><h1>Ball-bar test report</h1><div class="sub">{" · ".join(sub)}</div></div>'
-        f'<div class="brand"><b>BALLBAR</b><br>Circular test, ISO 230-4<br>Suh &amp; Lee pattern fit</div></header>\n'
-        + "\n".join(doc.parts) + footer + "</body></html>\n"
+        f'<header class="top">{header}</header>\n{body}</body></html>\n'
     )
     written = []
     for path, blob in pngs:

@@ -12,7 +12,6 @@ sections of a test's report.
 
 from __future__ import annotations
 
-import logging
 import os
 import re
 from collections.abc import Mapping
@@ -21,12 +20,9 @@ from pathlib import Path
 from typing import Any
 
 from ballbar.analysis.sets import AXES, PAIRS, set_words
-from ballbar.daemon.output import write_atomic
 
 from . import report_html as H
 from .report import ReportData, _unique, select_history
-
-log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -233,7 +229,7 @@ def _prefixed(html: str, prefix: str) -> str:
 def render_set(data: SetReportData, html_path: Path, *, png: bool = True) -> list[Path]:
     """Write the set's report to ``html_path`` (and every plan's plots as PNGs beside it when ``png``): the set's
     verdict first, then each plan's test (module docstring).  The paths written, the HTML first."""
-    from .report_render import _version, report_sections
+    from .report_render import _version, report_sections, write_page
 
     html_path = Path(html_path)
     s = data.result
@@ -261,22 +257,10 @@ def render_set(data: SetReportData, html_path: Path, *, png: bool = True) -> lis
     footer = (f'<footer><span>Source: {H.e(data.source or H.MISSING)}</span>'
               f"<span>ballbar {H.e(_version())} · set schema {H.e(s.get('schema_version', H.MISSING))}</span>"
               f"<span>Generated {H.e(H.generated_text())}</span></footer>")
-    page = (
-        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-        '<meta name="viewport" content="width=device-width, initial-scale=1">'
-        f'<meta name="generator" content="ballbar {H.e(_version())}">'
-        f"<title>{H.e(title)}</title><style>{H.CSS}</style></head>\n<body>"
-        f'<header class="top"><div><h1>Ball-bar set report</h1><div class="sub">{" · ".join(x for x in sub if x)}'
-        f'</div></div><div class="brand"><b>BALLBAR</b><br>Test set: {len(members)} plans<br>ISO 230-4 and '
-        "the machine's axes</div></header>\n" + "\n".join(doc.parts) + footer + "</body></html>\n"
-    )
-    written = []
-    for path, blob in pngs:
-        write_atomic(path, blob)
-        written.append(path)
-    write_atomic(html_path, page.encode("utf-8"))
-    log.info("set report written to %s (%d bytes, %d PNGs)", html_path, len(page.encode("utf-8")), len(written))
-    return [html_path, *written]
+    header = (f'<div><h1>Ball-bar set report</h1><div class="sub">{" · ".join(x for x in sub if x)}</div></div>'
+              f'<div class="brand"><b>BALLBAR</b><br>Test set: {len(members)} plans<br>ISO 230-4 and the '
+              "machine's axes</div>")
+    return write_page(html_path, title, header, "\n".join(doc.parts) + footer, pngs)
 
 
 __all__ = ["SetReportData", "from_set_records", "render_set"]
