@@ -24,7 +24,7 @@ import pytest
 import setscene
 from browser import Chromium
 from test_report_render import _chromium_or_skip
-from test_screens import CSS_RGB
+from test_screens import CSS_RGB, _check_png, _keep, _pixels
 
 from ballbar.analysis.sets import STATUS_WORDS
 from ballbar.daemon.cli import main
@@ -164,6 +164,9 @@ def test_the_set_report_in_headless_chromium(report: Path, records: Path, no_lea
                 assert len(p["curves"]) == 4 and all(p["curves"]), (where, p["curves"])
                 assert p["points"] and all(p["points"]), (where, p["points"])
             assert all(u.startswith("file:") or u.startswith("data:") for u in f["resources"]), f["resources"]
+            px = _pixels(browser.screenshot(session))
+            assert px.shape[:2] == (HEIGHT, width)
+            _keep(f"report-set-{width}.png", px)
         assert browser.errors(session) == []
 
 
@@ -185,3 +188,9 @@ def test_a_set_the_records_cannot_make_is_a_one_line_error(
         code, _out, err = run(cmd, capsys)
         assert code == 1 and "set machine" in err and "yz" in err and len(err.strip().splitlines()) == 1, (cmd, err)
     assert not (tmp_path / "x.html").exists()
+
+
+def test_the_committed_screenshots_are_there_and_small() -> None:
+    """The README's picture of a set's report: each width, a valid PNG of the window's size under 400 kB."""
+    for width in WIDTHS:
+        _check_png(Path(__file__).with_name("screenshots") / f"report-set-{width}.png", (width, HEIGHT))
