@@ -865,7 +865,11 @@ def status_schema() -> Schema:
     )
     outputs = obj(
         "each output's own counters",
-        {"mcap": _MCAP_STATS, "zenoh": _ZENOH_STATS, "rerun": _rerun_stats()},
+        {"mcap": _MCAP_STATS, "zenoh": _ZENOH_STATS, "rerun": _rerun_stats(),
+         "sets": obj("the test sets' (absent: no [sets])", {
+             "tests": integer("test results of a set's plan taken in"),
+             "sets": integer("set results sent"),
+             "errors": integer("sets not combined, or their state not written (the log says why)")})},
         required=[],
     )
     props = _envelope("status") | {
