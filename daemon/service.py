@@ -584,7 +584,8 @@ class Daemon:
             log.warning("the analysis did not finish within %.0f s of the source's end", limit_s)
 
     def shutdown(self, budget_s: float = 4.0) -> None:
-        """Stop within ``budget_s``: the source, then the analysis, then the outputs in parallel."""
+        """Stop within ``budget_s``: the source, the analysis, the outputs that send (alerts, sets), then the rest
+        in parallel."""
         self.notifier.stopping()
         t0 = time.monotonic()
         with contextlib.suppress(Exception):
@@ -592,11 +593,15 @@ class Daemon:
         self.analysis_queue.close(timeout=budget_s * 0.4)
         if self.worker is not None:
             self.worker.shutdown(wait=False)
-        left = max(0.5, budget_s - (time.monotonic() - t0))
-        threads = [threading.Thread(target=q.close, args=(left * 0.9,), daemon=True) for q in self.outputs]
-        for th in threads:
-            th.start()
-        for th in threads:
-            th.join(left)
+        # Outputs that send messages of their own first (the monitor's alerts, the sets): what they send as they
+        # drain (the set a run's last test completes) must find the other outputs still open.
+        senders = [q for q in self.outputs if callable(getattr(q.listener, "bind", None))]
+        for group, share in ((senders, 0.3), ([q for q in self.outputs if q not in senders], 1.0)):
+            left = max(0.5, (budget_s - (time.monotonic() - t0)) * share)
+            threads = [threading.Thread(target=q.close, args=(left * 0.9,), daemon=True) for q in group]
+            for th in threads:
+                th.start()
+            for th in threads:
+                th.join(left)
         log.info("stopped in %.2f s", time.monotonic() - t0)
         self.notifier.close()

@@ -128,3 +128,24 @@ def test_the_mcap_log_records_the_set(tests3: dict[str, dict[str, Any]], tmp_pat
     assert validate_recordings(tmp_path / "recordings")["/ballbar/results"] == 2
     back = [r for r in read_results(files) if r.get("kind") == "set"]
     assert [r["set_id"] for r in back] == [s["set_id"] for s in made]
+
+
+def test_a_set_made_as_the_daemon_stops_is_still_recorded(tests3: dict[str, dict[str, Any]], tmp_path: Path) -> None:
+    """``ballbar run --tests N`` stops at its last test: the set that test completes still reaches the outputs
+    (here the real MCAP log), though the set's listener sends it while the daemon shuts them down."""
+    from ballbar.daemon.config import load
+    from ballbar.daemon.service import Daemon
+    from ballbar.daemon.sources import open_source
+
+    cfg = load(None, ["mcap.enabled=false", "zenoh.enabled=false", 'rerun.mode="off"', "daemon.analysis_worker=false",
+                      "daemon.machine_id=m"], env={})
+    logger = McapLogger(tmp_path, "m")
+    daemon = Daemon(cfg, open_source("sim:?speedup=max&rate=100"),
+                    [(logger, 1000, "drop_newest"), (SetListener(DEFS, "m", tmp_path), 1000, "drop_newest")])
+    try:
+        for t in tests3.values():
+            daemon.broadcast({**t, "kind": "test", "machine_id": "m"})
+    finally:
+        daemon.shutdown()
+    recorded = [r for r in read_results(list_recordings(tmp_path / "recordings")) if r["kind"] == "set"]
+    assert sorted(r["set"]["name"] for r in recorded) == ["horizontal", "machine"]
