@@ -5,7 +5,9 @@ latest recorded complete test of each of its plans, as the daemon chose them
 (:func:`ballbar.analysis.sets.select` over the recorded test results, by the
 ``plan.name`` each carries and the time it was published).  Each member is
 analysed again from its own samples (:func:`~.testindex.analyze_recorded`)
-with its plan as the daemon ran it, given the recorded test's id and time,
+with its plan as the daemon ran it (recognised again from the recording as
+the daemon did, a different plan an error; as that plan where a service
+chose it, or the records predate recognition), given the recorded test's id and time,
 and its verdict against its plan's limits; then combined exactly as the
 daemon does (:func:`ballbar.analysis.sets.combine`).  The figures are the
 live set's: the analysis is the same code on the same samples.
@@ -106,7 +108,15 @@ def recorded_set(path: str | os.PathLike[str], name: str, options: AnalysisOptio
         plan, own = plan_config(cfg, plan_name)
         machine = MachineConfig.from_dict(dict(tcfg.get("machine") or cfg.get("machine") or {}))
         opts = options or AnalysisOptions.from_dict(dict(tcfg.get("analysis") or cfg.get("analysis") or {}))
-        result = analyze_recorded(index, test, plan, machine, opts, curves=curves)
+        # the plan the daemon took it for: recognised again as the daemon did, or (chosen by a service, or
+        # recorded before plans were recognised) as that plan
+        method = (recorded.get("recognition") or {}).get("method")
+        result = analyze_recorded(index, test, plan, machine, opts, curves=curves,
+                                  chosen=plan_name if method in (None, "chosen") else None)
+        again = (result.get("plan") or {}).get("name")
+        if again not in (None, plan_name):
+            raise DataError(f"{path}: set {name}: test {test.test_id} was plan {plan_name} live, plan {again} "
+                            "analysed again")
         result["plan"]["name"] = plan_name
         if "axes" in recorded.get("plan", {}):
             result["plan"]["axes"] = recorded["plan"]["axes"]

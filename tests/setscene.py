@@ -26,6 +26,7 @@ from ballbar.analysis import monitor
 from ballbar.analysis import sets as aset
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.plan import PLANE_AXES, MachineConfig, TestPlan
+from ballbar.analysis.plans import NamedPlan, PlanLibrary, default_signature
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.tools.simulator import MachineModel, iter_chunks
 
@@ -36,6 +37,7 @@ PLANS = {
     "zx": TestPlan(plane="ZX", start_deg=-115.0, data_arc_deg=220.0, overshoot_deg=5.0, **BASE),  # type: ignore[arg-type]
     "yz": TestPlan(plane="YZ", start_deg=-25.0, data_arc_deg=220.0, overshoot_deg=5.0, **BASE),  # type: ignore[arg-type]
 }
+LIBRARY = PlanLibrary(tuple(NamedPlan(n, p, default_signature(n)) for n, p in PLANS.items()))
 SET = aset.SetDefinition("machine", tuple(PLANS), 3600.0)
 KV = {"X": 30.0, "Y": 33.0, "Z": 27.0}
 LOST = {"X": 4.0, "Y": 2.5, "Z": 3.0}
@@ -66,7 +68,10 @@ def build() -> Scene:
     first = True
     for index, name in enumerate(("xy", "zx", "yz", "xy")):
         plan = PLANS[name]
-        an = TestAnalyzer(plan, MachineConfig())
+        # the scene's programs carry no signature and zx, yz take the same time: each plan is chosen, as a
+        # service chooses it on the bus (the daemon's explicit choice)
+        an = TestAnalyzer(plan, MachineConfig(), library=LIBRARY)
+        an.choose(name)
         last = name == "xy" and "xy" in results
         for t, L in iter_chunks(plan, machine(plan.plane), plan.sample_hz, seed=7, repeat=1, chunk=4):
             t = t + t0
@@ -129,7 +134,7 @@ def earlier(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def config() -> dict[str, Any]:
-    return {"plans": {n: p.to_dict() for n, p in PLANS.items()},
+    return {"plans": {n: p.to_dict() | {"signature": default_signature(n)} for n, p in PLANS.items()},
             "sets": {SET.name: {"plans": list(SET.plans), "window_minutes": SET.window_s / 60}}}
 
 
