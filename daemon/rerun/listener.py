@@ -322,18 +322,7 @@ class RerunViewer(Scene, Listener):
                 self._trends.extend(row)
                 recent.append(row)
         if tests:
-            last = tests[-1]
-            wall = float(_epoch(last.get("t_wall")) or 0.0)
-            self._findings_md = findings_markdown(last, wall) + self._forecast_markdown()
-            self._final = {}
-            self._curves.clear()
-            for d in DIRECTIONS:
-                if result_timing(last, d) is not None and "plan" in last:
-                    self._update_model(d, last)
-            if self.options.remove_setup and param(last, "centre_x_um") is not None:
-                self._setup_result = last
-            self._complete(last, wall, index=0)
-            self._curves.clear()
+            self._seed_complete(tests[-1])
         log.info("rerun viewer: %d earlier tests from the records", len(tests))
         return len(tests)
 
@@ -369,7 +358,9 @@ class RerunViewer(Scene, Listener):
         log.info("rerun viewer: %d earlier tests of %d plans from the records", len(tests), len(by_plan))
         return len(tests)
 
-    def _seed_complete(self, last: Mapping[str, Any], rows: FloatArray) -> None:
+    def _seed_complete(self, last: Mapping[str, Any], rows: FloatArray | None = None) -> None:
+        """The latest of the records' tests drawn as the last complete one (``rows``: its plan's trend; None:
+        the one trend)."""
         wall = float(_epoch(last.get("t_wall")) or 0.0)
         self._findings_md = findings_markdown(last, wall) + self._forecast_markdown(rows)
         self._final = {}
