@@ -4,7 +4,8 @@
 each member test's :class:`~.report.ReportData` (its curves and its plan's
 earlier tests); :func:`render_set` writes one self-contained HTML file as
 :func:`~.report_render.render` does: first the set's verdict in a word and a
-colour (each plan's verdict, the set's checks), then the machine's axes (lost
+colour (each plan's verdict, the set's checks, the machine's figures, what to
+do, worst plan first), then the machine's axes (lost
 motion, squareness, relative scale and servo lag with their closure), the
 volumetric figures and every check, and then each plan's test with all the
 sections of a test's report.
