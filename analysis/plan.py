@@ -17,6 +17,8 @@ Plane = Literal["XY", "YZ", "ZX"]
 Directions = Literal["both", "ccw", "cw"]
 
 PLANE_AXES: dict[str, tuple[str, str]] = {"XY": ("X", "Y"), "YZ": ("Y", "Z"), "ZX": ("Z", "X")}
+#: The circular-test standards whose figures a result can carry (analysis/standards.py).
+STANDARDS = ("iso230_4", "jis_b6190_4", "asme_b5_54")
 
 
 @dataclass(frozen=True)
@@ -153,6 +155,9 @@ class AnalysisOptions:
     separated from the others in this data and is left out with the reason.
     ``vibration_cutoff_cpr``: residual content above this many cycles per
     revolution counts as vibration.
+    ``standards``: the circular-test standards whose figures a test result
+    carries (:data:`STANDARDS`): ISO 230-4's always (``iso230_4``), the others'
+    under ``standards.<id>`` (:mod:`.standards`).
     """
 
     significance: float = 0.05
@@ -166,6 +171,7 @@ class AnalysisOptions:
     estimate_lag: bool = True
     max_lag_s: float = 0.5
     patterns: tuple[str, ...] | None = None  # None: the whole library that the data supports
+    standards: tuple[str, ...] = ("iso230_4",)  # whose circular-test figures a test result carries (ISO always)
 
     def __post_init__(self) -> None:
         if not 0 < self.significance < 1:
@@ -183,6 +189,9 @@ class AnalysisOptions:
             raise PlanError(f"vif_limit must be a number > 1, not {self.vif_limit!r}")
         if not _pos(self.max_lag_s):
             raise PlanError(f"max_lag_s must be a number > 0, not {self.max_lag_s!r}")
+        for name in self.standards:
+            if name not in STANDARDS:
+                raise PlanError(f"standards: unknown standard {name!r} (known: {', '.join(STANDARDS)})")
         if not _pos(self.vibration_cutoff_cpr):
             raise PlanError(f"vibration_cutoff_cpr must be a number > 0, not {self.vibration_cutoff_cpr!r}")
 
@@ -190,8 +199,9 @@ class AnalysisOptions:
     def from_dict(cls, data: dict[str, Any]) -> AnalysisOptions:
         """From a configuration table (``patterns`` may be a list, as TOML and JSON give it)."""
         data = dict(data)
-        if isinstance(data.get("patterns"), list):
-            data["patterns"] = tuple(data["patterns"])
+        for key in ("patterns", "standards"):
+            if isinstance(data.get(key), list):
+                data[key] = tuple(data[key])
         return _from_dict(cls, data, "analysis")
 
 
@@ -219,4 +229,4 @@ def _from_dict(cls: Any, data: dict[str, Any], what: str) -> Any:
     return cls(**kwargs)
 
 
-__all__ = ["PLANE_AXES", "AnalysisOptions", "Directions", "MachineConfig", "Plane", "TestPlan"]
+__all__ = ["PLANE_AXES", "STANDARDS", "AnalysisOptions", "Directions", "MachineConfig", "Plane", "TestPlan"]

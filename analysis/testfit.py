@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from . import iso230, noise
+from . import iso230, noise, standards
 from .advice import advise
 from .circle import Timing
 from .detect import StepEvent
@@ -699,6 +699,8 @@ class TestFit:
         measured = {d: (u, y) for d, (u, y, _) in per_dir.items()}
         res["iso230_4"] = iso230.figures(measured)
         res["iso230_4"]["conditions"] = iso230.conditions(plan.to_dict(), V * 60.0, self.sample_hz)
+        if any(name != standards.ISO for name in options.standards):
+            res["standards"] = standards.figures(measured, options.standards, res["iso230_4"])
         res["noise"] = noise.findings(
             [(per_dir[d][0], per_dir[d][2], plan.data_arc_deg, self.sample_hz) for d in per_dir],
             options.vibration_cutoff_cpr, options.significance,

@@ -18,6 +18,8 @@ key                               how         what
                                               its data arc is complete (provisional timing)
 ``ballbar/<m>/result/test``       put         each test's result (``kind: "test"``): the
                                               ``ballbar analyze --json`` object plus ``test_id``
+``ballbar/<m>/result/set``        put         a test set combined into the machine's axes (``kind:
+                                              "set"``, :mod:`.sets`), when a set's tests are in
 ``ballbar/<m>/event``             put         ``kind: "event"``; ``event`` says which: feed_in,
                                               feed_out, test_rejected, test_incomplete, unplugged,
                                               replugged, lost, stall, resumed, device_reset,
@@ -36,12 +38,13 @@ key                               how         what
                                               ``t_device``, ``length_mm``,
                                               ``seq``, ``status``; the first sample of each
                                               1/``samples_hz`` slot, unfiltered: for display only
-``ballbar/<m>/last/<topic>``      queryable   the last payload put on ``circle``, ``test``
-                                              (results), ``event``, ``status``, ``config``,
+``ballbar/<m>/last/<topic>``      queryable   the last payload put on ``circle``, ``test``,
+                                              ``set`` (results), ``event``, ``status``, ``config``,
                                               ``alert``; no
                                               reply when there is none yet. ``last/*`` gives all.
 ``ballbar/<m>/history/test``      queryable   results (and events) kept by the daemon, one reply:
 ``ballbar/<m>/history/circle``                ``{"kind": "history", "topic", "machine_id",
+``ballbar/<m>/history/set``
 ``ballbar/<m>/history/event``                 "count", "more", "results": [...]}``, oldest first.
 ``ballbar/<m>/history/alert``
                                               Parameters (``;``-separated; ``&`` accepted):
@@ -156,14 +159,15 @@ TOPICS: dict[str, str] = {
     "config": "config",
     "samples": "samples",
     "alert": "alert",
+    "set": "result/set",
 }
-LAST_TOPICS = ("circle", "test", "event", "status", "config", "alert")
-HISTORY_TOPICS = ("circle", "test", "event", "alert")
+LAST_TOPICS = ("circle", "test", "set", "event", "status", "config", "alert")
+HISTORY_TOPICS = ("circle", "test", "set", "event", "alert")
 CONTROL_NEXT_PLAN = "control/next_plan"  # a service names the next test's plan here (subscribed)
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
 RECOVERY_WAIT_S = 60.0  # an event found at start waits this long for a subscriber to put it to
-_RELIABLE = ("circle", "test", "event", "config", "alert")
+_RELIABLE = ("circle", "test", "set", "event", "config", "alert")
 _BAD_CHUNK = re.compile(r"[/*$?#\s]")
 
 

@@ -51,6 +51,8 @@ MACHINE_FLAGS: tuple[tuple[str, str, type, str], ...] = (
     ("--kv-y", "kv_y_per_s", float, "configured position-loop gain of the second axis (1/s)"),
     ("--controller", "controller", str, "generic, fanuc, siemens or heidenhain (names in the advice)"),
 )
+#: analysis.plan.STANDARDS, written out: the parser is built before anything slow is imported.
+STANDARD_CHOICES = ("iso230_4", "jis_b6190_4", "asme_b5_54")
 
 
 class UsageError(BallbarError, ValueError):
@@ -82,10 +84,16 @@ def build_parser() -> argparse.ArgumentParser:
                     help="per axis a dead band or over-set compensation through the loop (physical, default), "
                     "or the seed's step")
     an.add_argument("--patterns", help="comma-separated pattern names to fit (default: all that apply)")
+    an.add_argument("--standard", dest="standards", action="append", choices=STANDARD_CHOICES,
+                    help="also the circular-test figures of this standard (repeatable; ISO 230-4's always; default: "
+                    "the configuration's [analysis] standards)")
     an.add_argument("--test", type=int, help="which test: the N-th in a file (default 1), the N-th that "
                     "--list shows for a directory")
     an.add_argument("--test-id", help="a test id from the daemon's records (MCAP file or directory), or 'latest' "
                     "(the newest complete test: a directory's default)")
+    an.add_argument("--set", dest="set_name", metavar="NAME",
+                    help="the daemon's records: make the set NAME again ([sets.NAME] as recorded) from the latest "
+                    "recorded test of each of its plans, each analysed again from its samples")
     an.add_argument("--list", action="store_true", help="list the tests (number, id, start, status, file, "
                     "headline) instead of analysing one; with --json a JSON list")
     an.add_argument("--json", action="store_true", help="print one JSON object instead of the summary")
@@ -134,6 +142,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "the daemon's records the N-th that analyze --list shows, default its newest complete test)")
     for flag, dest, typ, help_ in REPORT_FLAGS:
         rp.add_argument(flag, dest=dest, type=typ, help=help_)
+    rp.add_argument("--set", dest="set_name", metavar="NAME",
+                    help="with a directory of the daemon's records: the report of the set NAME (its verdict first, "
+                    "then each plan's test), made again from the latest recorded test of each of its plans")
+    rp.add_argument("--standard", dest="standards", action="append", choices=STANDARD_CHOICES,
+                    help="the circular-test standards the report states (repeatable; default: the configuration's "
+                    "[analysis] standards, ISO 230-4 always)")
 
     run = sub.add_parser("run", help="run the daemon (the service's main job)",
                          description="Sample the ball-bar, fit each circle and test, log to MCAP, publish on "
@@ -252,6 +266,8 @@ def configs_from_args(
         analysis_d["servo_model"] = args.servo_model
     if getattr(args, "lost_motion", None) is not None:
         analysis_d["lost_motion"] = args.lost_motion
+    if getattr(args, "standards", None):
+        analysis_d["standards"] = tuple(dict.fromkeys(("iso230_4", *args.standards)))
     if getattr(args, "patterns", None):
         names = tuple(n.strip() for n in args.patterns.split(",") if n.strip())
         bad = [n for n in names if n not in BY_NAME]
@@ -283,6 +299,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         raise UsageError(f"--test-id picks a test from the daemon's MCAP records; {args.file} is not one")
     if args.list:
         return _list_tests(args, mcap)
+    if args.set_name is not None:
+        return _analyze_set(args, mcap)
     base: dict[str, Any] = {}
     if mcap and (os.path.isdir(args.file) or args.test_id is not None):
         result = _analyze_records(args, base)
@@ -300,15 +318,35 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         from ballbar.analysis.report import summary
+        from ballbar.analysis.standards import lines as standards_lines
 
         src = result.get("source", {})
         if src.get("test_id"):
             print(f"Test {src['test_id']} ({Path(src['file']).name})")
         print(summary(result))
+        for line in standards_lines(result):
+            print(line)
         for w in result.get("warnings", []):
             print(f"warning: {w}")
         if "verdict" in result:
             print(verdict_lines(result["verdict"]))
+    return 0
+
+
+def _analyze_set(args: argparse.Namespace, mcap: bool) -> int:
+    """``--set NAME``: the set made again from the daemon's records (:mod:`.setrecords`)."""
+    from ballbar.analysis.sets import summary_lines
+
+    from .setrecords import set_from_records
+
+    if not (mcap and os.path.isdir(args.file)):
+        raise UsageError(f"--set makes a set from a directory of the daemon's MCAP records; {args.file} is not one")
+    result = set_from_records(args.file, args.set_name)
+    if args.json:
+        json.dump(result, sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(summary_lines(result)))
     return 0
 
 
@@ -592,6 +630,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     if args.test is not None and args.test < 1:
         raise UsageError("--test counts from 1")
+    if args.set_name is not None:
+        return _report_set(args)
     if (args.file is None) == (args.test_id is None):
         raise UsageError("give a recording FILE or --test-id (one of the two)")
     resolve_plan_arg(args, ())  # a file: the report of a library's test takes the recorded library
@@ -624,14 +664,40 @@ def cmd_report(args: argparse.Namespace) -> int:
         from ballbar.tools.report import attach_verdict
 
         attach_verdict(data.result, asdict(load(args.config).limits))
-    if args.config:  # the configuration's [report] over the recorded one, the flags over both
-        data.meta.update({k: v for k, v in asdict(load(args.config).report).items() if v not in (None, "")})
-    data.meta.update({dest: getattr(args, dest) for _f, dest, _t, _h in REPORT_FLAGS if getattr(args, dest, None)
-                      is not None})
+    _report_meta(data.meta, args)
     from ballbar.tools.report_render import render  # matplotlib: only once there is something to draw
 
     out = Path(args.output or f"ballbar-report-{_safe_name(default_name)}.html")
     for path in render(data, out, png=not args.no_png):
+        print(path)
+    return 0
+
+
+def _report_meta(meta: dict[str, Any], args: argparse.Namespace) -> None:
+    """Who tested, with which bar, ...: the configuration's [report] over the recorded one, the flags over both."""
+    from .config import load
+
+    if args.config:
+        meta.update({k: v for k, v in asdict(load(args.config).report).items() if v not in (None, "")})
+    meta.update({dest: getattr(args, dest) for _f, dest, _t, _h in REPORT_FLAGS if getattr(args, dest, None)
+                 is not None})
+
+
+def _report_set(args: argparse.Namespace) -> int:
+    """``ballbar report DIR --set NAME``: the set's report (:mod:`ballbar.tools.report_set`)."""
+    from .config import load
+
+    records = args.file or args.records or (os.path.join(load(args.config).daemon.state_dir, "recordings")
+                                            if args.config else None)
+    if records is None or not os.path.isdir(records):
+        raise UsageError("--set makes the report of a set from a directory of the daemon's MCAP records: give it "
+                         "(DIR, --records DIR or --config FILE)")
+    from ballbar.tools.report_set import from_set_records, render_set
+
+    data = from_set_records(records, args.set_name)
+    _report_meta(data.meta, args)
+    out = Path(args.output or f"ballbar-set-report-{_safe_name(args.set_name)}.html")
+    for path in render_set(data, out, png=not args.no_png):
         print(path)
     return 0
 

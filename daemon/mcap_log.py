@@ -68,7 +68,7 @@ that could not be written over ``gap_s`` seconds, ``detail`` the error.
 instant on the wall clock).
 
 ``/ballbar/results`` (``ballbar.Result``): the analysis results, ``kind`` =
-``circle`` or ``test``, as ``ballbar analyze --json`` prints them plus
+``circle``, ``test`` or ``set`` (a test set, :mod:`.sets`), the tests as ``ballbar analyze --json`` prints them plus
 ``machine_id``, ``test_id``, ``t_host``, ``last_sample_t``, ``last_sample_t_host``, ``latency_ms``.
 
 ``/ballbar/status`` (``ballbar.Status``): the daemon's status messages
@@ -242,7 +242,7 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
     ),
     # The payloads' schemas are daemon/schemas.py's, the files shipped in ballbar/schema/.
     TOPIC_EVENTS: ("ballbar.Event", _schemas.schema("mcap-event"), "source, pipeline and logger events"),
-    TOPIC_RESULTS: ("ballbar.Result", _schemas.schema("result"), "analysis results (circle, test)"),
+    TOPIC_RESULTS: ("ballbar.Result", _schemas.schema("result"), "analysis results (circle, test, set)"),
     TOPIC_STATUS: ("ballbar.Status", _schemas.schema("status"), "daemon status"),
     TOPIC_CONFIG: (
         "ballbar.Config", _schemas.schema("config"), "effective configuration, at start and at the head of every file"
@@ -626,7 +626,8 @@ class McapLogger(Listener):
             now = time.monotonic()
             kind = str(msg.get("kind", ""))
             topic = {
-                "circle": TOPIC_RESULTS, "test": TOPIC_RESULTS, "status": TOPIC_STATUS, "config": TOPIC_CONFIG,
+                "circle": TOPIC_RESULTS, "test": TOPIC_RESULTS, "set": TOPIC_RESULTS, "status": TOPIC_STATUS,
+                "config": TOPIC_CONFIG,
             }.get(kind, TOPIC_OTHER)
             if kind == "event":
                 self._on_event_message(msg, now)

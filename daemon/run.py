@@ -67,6 +67,12 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
             out.append((monitor, 1000, "drop_newest"))
             alerts = monitor.alert_history
             loader = _chain(loader, alerts) if loader is not None else alerts
+        if cfg.to_dict().get("sets"):  # the sets' results, sent through the broadcast like the alerts
+            from .sets import SetListener
+
+            sets = SetListener.from_config(cfg, seed=recorded_results(cfg) if cfg.mcap.enabled else None)
+            if sets is not None:
+                out.append((sets, 1000, "drop_newest"))
         if cfg.zenoh.enabled:
             from .bus import ZenohBus
 

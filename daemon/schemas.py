@@ -23,6 +23,8 @@ name           payload                                              where
 ``config``     the effective configuration (secrets redacted)       ``ballbar/<m>/config``, MCAP
 ``samples``    decimated samples                                    ``ballbar/<m>/samples``
 ``history``    a ``history/<topic>`` reply                          ``ballbar/<m>/history/*``
+``set``        a test set combined into the machine's axes          ``ballbar/<m>/result/set``, MCAP
+               (``kind: "set"``, :mod:`ballbar.analysis.sets`)      ``/ballbar/results``
 =============  ===================================================  ==================================
 
 Every object whose shape is the daemon's own is closed (``additionalProperties:
@@ -47,7 +49,7 @@ from typing import Any
 from ballbar import SCHEMA_VERSION
 
 DRAFT = "https://json-schema.org/draft/2020-12/schema"
-NAMES = ("result", "analysis", "event", "mcap-event", "status", "config", "samples", "history", "alert")
+NAMES = ("result", "analysis", "event", "mcap-event", "status", "config", "samples", "history", "alert", "set")
 
 Schema = dict[str, Any]
 
@@ -429,6 +431,37 @@ _ISO = obj(
     },
 )
 
+def _standard(title: str, figures: dict[str, Schema]) -> Schema:
+    return obj(f"{title}'s circular-test figures (analysis/standards.py)", {
+        "standard": string("the standard and its edition"),
+        **figures,
+        "centre_removal": string("how the centre was removed, in words"),
+        "computes": string("what the figures are, in words"),
+        "differs_from_iso230_4": string("where they differ from ISO 230-4's (iso230_4), in words"),
+        "assumption": string("what was assumed of the standard's text (empty: nothing)"),
+    })
+
+
+_STANDARDS = obj(
+    "the other standards chosen ([analysis] standards), each under its id; ISO 230-4's are iso230_4",
+    {
+        "jis_b6190_4": _standard("JIS B 6190-4:2008 (ISO 230-4:2005)", {
+            "G_ccw_um": num("circular deviation G, CCW, um", True),
+            "G_cw_um": num("circular deviation G, CW, um", True),
+            "G_b_um": num("bidirectional circular deviation G(b), um", True),
+            "F_max_um": num("largest radial deviation F, um", True),
+            "F_min_um": num("smallest radial deviation F, um", True)}),
+        "asme_b5_54": _standard("ASME B5.54-2005", {
+            "circular_deviation_ccw_um": num("circular deviation about the minimum-zone centre, CCW, um", True),
+            "circular_deviation_cw_um": num("the same, CW, um", True),
+            "circular_deviation_b_um": num("both directions about one minimum-zone centre, um", True),
+            "H_um": num("circular hysteresis, um", True),
+            "F_max_um": num("largest radial deviation, um", True),
+            "F_min_um": num("smallest radial deviation, um", True)}),
+    },
+    required=[],
+)
+
 _NOISE = obj(
     "vibration and stick-slip",
     {
@@ -478,7 +511,7 @@ def _analysis_props(kind: str) -> dict[str, Schema]:
         "warnings": _WARNINGS,
     }
     if kind == "test":
-        props |= {"iso230_4": _ISO, "noise": _NOISE, "samples": _SAMPLES,
+        props |= {"iso230_4": _ISO, "standards": _STANDARDS, "noise": _NOISE, "samples": _SAMPLES,
                   "verdict": {"$ref": "#/$defs/verdict",
                               "description": "with [limits] on: pass, warning or fail against each limit"}}
     else:
@@ -526,10 +559,11 @@ def result_schema() -> Schema:
         "result",
         "ballbar.Result: an analysis result, a circle's (kind circle, provisional timing, after each data arc) or "
         "a test's (kind test): the `ballbar analyze --json` object plus the daemon's machine_id, test_id, t_wall, "
-        "t_host, last_sample_t, last_sample_t_host, latency_ms and time_axis.",
-        {"oneOf": [{"$ref": "#/$defs/circle"}, {"$ref": "#/$defs/test"}]},
-        {"circle": _daemon_result("circle"), "test": _daemon_result("test"),
-         "parameter": _PARAMETER, "parameters": _parameters(), **_monitor_defs()},
+        "t_host, last_sample_t, last_sample_t_host, latency_ms and time_axis; or a set's (kind set, the set "
+        "schema).",
+        {"oneOf": [{"$ref": "#/$defs/circle"}, {"$ref": "#/$defs/test"}, {"$ref": "#/$defs/set"}]},
+        {"circle": _daemon_result("circle"), "test": _daemon_result("test"), "set": _set_object(),
+         "parameter": _PARAMETER, "parameters": _parameters(), **_monitor_defs(), **_set_defs()},
     )
 
 
@@ -734,7 +768,8 @@ _ZENOH_STATS = obj(
     {
         "connected": boolean("the session is open (not whether anyone listens)"),
         "open_error": string("why it could not open (retrying in the background)", True),
-        "published": counts("puts by topic (result/circle, result/test, event, status, config, samples)"),
+        "published": counts("puts by topic (result/circle, result/test, result/set, event, status, config, samples, "
+                            "alert)"),
         "put_errors": integer("puts that failed"),
         "not_connected": integer("messages kept for last/history while the session was not open"),
         "slow_puts": integer("puts that took longer than 0.1 s (a subscriber not reading)"),
@@ -830,7 +865,11 @@ def status_schema() -> Schema:
     )
     outputs = obj(
         "each output's own counters",
-        {"mcap": _MCAP_STATS, "zenoh": _ZENOH_STATS, "rerun": _rerun_stats()},
+        {"mcap": _MCAP_STATS, "zenoh": _ZENOH_STATS, "rerun": _rerun_stats(),
+         "sets": obj("the test sets' (absent: no [sets])", {
+             "tests": integer("test results of a set's plan taken in"),
+             "sets": integer("set results sent"),
+             "errors": integer("sets not combined, or their state not written (the log says why)")})},
         required=[],
     )
     props = _envelope("status") | {
@@ -885,6 +924,9 @@ def config_schema() -> Schema:
         "max_lag_s": num("its search range, +- s"),
         "patterns": {"type": ["array", "null"], "items": {"type": "string"},
                      "description": "the patterns fitted (null: all)"},
+        "standards": {"type": "array", "items": {"type": "string", "enum": ["iso230_4", "jis_b6190_4", "asme_b5_54"]},
+                      "description": "the circular-test standards whose figures a test result carries (absent "
+                                     "before it existed)"},
     }
     assert set(analysis_opts) >= set(AnalysisOptions.__dataclass_fields__)  # kept in step with the dataclass
     config = obj(
@@ -914,7 +956,7 @@ def config_schema() -> Schema:
                                      "window_minutes": num("the time within which its tests must all have run, "
                                                            "min")})},
             "machine": _MACHINE,
-            "analysis": obj("[analysis]", analysis_opts),
+            "analysis": obj("[analysis]", analysis_opts, required=[k for k in analysis_opts if k != "standards"]),
             "mcap": obj("[mcap]", {
                 "enabled": boolean("log to MCAP"), "rotate_per_test": boolean("a new file at each feed-in"),
                 "rotate_mb": num("MB"), "rotate_minutes": num("min"), "quota_mb": num("MB"),
@@ -992,7 +1034,7 @@ def history_schema() -> Schema:
     props: dict[str, Schema] = {
         "schema_version": {"const": SCHEMA_VERSION, "description": "version of these payloads' shapes"},
         "kind": {"const": "history", "description": "a history reply"},
-        "topic": string("circle, test or event", enum=["circle", "test", "event"]),
+        "topic": string("circle, test, set, event or alert", enum=["circle", "test", "set", "event", "alert"]),
         "machine_id": string("the daemon's machine_id"),
         "count": integer("results in this reply"),
         "more": boolean("more after the last: ask again with since = its t_wall"),
@@ -1001,6 +1043,154 @@ def history_schema() -> Schema:
                                    "seeded from the recordings keep the schema_version they were logged with"},
     }
     return _document("history", "A reply of ballbar/<m>/history/<topic>.", obj("a history reply", props))
+
+
+# --------------------------------------------------------------------------- the set result (analysis/sets.py)
+
+
+def _figure_props(unit: str) -> dict[str, Schema]:
+    return {
+        "value": num(f"the figure, {unit} (null: none; reasons say why)", True),
+        "stderr": num(f"its standard uncertainty, {unit} (null: none)", True),
+        "unit": string("the unit"),
+        "trusted": boolean("false where no value, a check behind it failed, or a test behind it is invalid"),
+        "reasons": {"type": "array", "items": {"type": "string"},
+                    "description": "why it is not trusted, or observations left out (may be empty)"},
+    }
+
+
+_OBSERVATION = obj(
+    "one test's estimate of the quantity",
+    {
+        "plan": string("the test's plan"),
+        "plane": string("its plane", enum=["XY", "YZ", "ZX"]),
+        "test_id": string("the test's id", True),
+        "field": string("the test's parameter it is (in the plane's first/second axis naming)"),
+        "value": num("its value (null: not fitted)", True),
+        "stderr": num("its standard error (null: none)", True),
+        "used": boolean("entered the combination"),
+        "reason": string("why not used", True),
+    },
+)
+
+
+def _combined(desc: str) -> Schema:
+    return obj(desc, {
+        **_figure_props("unit"),
+        "observations": {"type": "array", "items": {"$ref": "#/$defs/observation"},
+                         "description": "each test's estimate"},
+        "check": string("the name of its consistency check (null: seen by one test)", True),
+    })
+
+
+def _loop_schema(what: str) -> Schema:
+    pair = _combined(f"the pair's {what} (e_a - e_b for the pair ab)")
+    pair["properties"]["adjusted"] = {"$ref": "#/$defs/figure",
+                                      "description": "the least-squares value once the loop's closure is enforced"}
+    pair["required"].append("adjusted")
+    return obj(f"{what}: per pair, the loop's closure, each axis against the three axes' mean", {
+        "unit": string("ppm or ms"),
+        "pairs": obj("per axis pair", {p: pair for p in ("XY", "YZ", "ZX")}),
+        "closure": string("the name of the closure check in checks"),
+        "axes": obj("each axis against the mean of the three", {a: {"$ref": "#/$defs/figure"} for a in "XYZ"}),
+    })
+
+
+SET_DESCRIPTION = (
+    "ballbar.Set: a test set combined into the machine's axes (kind set, ballbar/<m>/result/set, and the MCAP "
+    "results channel): analysis/sets.py, analysis/README.md \"Test sets\"."
+)
+
+
+def _set_defs() -> dict[str, Schema]:
+    return {"figure": obj("a set figure", _figure_props("unit")), "observation": _OBSERVATION}
+
+
+def _set_object() -> Schema:
+    check = obj("a check of the whole set", {
+        "name": string("its name"),
+        "kind": string("consistency (two tests see one quantity) or closure (a loop of three pairs)",
+                       enum=["consistency", "closure"]),
+        "quantity": string("what is checked"),
+        "status": string("passed, failed or not_checked", enum=["passed", "failed", "not_checked"]),
+        "value": num("the discrepancy: consistency, the difference (more than two: the largest from the mean); "
+                     "closure, the sum of the three pairs (null: not checked)", True),
+        "stderr": num("its standard error (null: not checked)", True),
+        "z": num("value / stderr (more than two tests: sqrt of chi-square per degree of freedom)", True),
+        "coverage_k": num("fails beyond this many standard errors ..."),
+        "min_discrepancy": num("... and above this, in unit"),
+        "unit": string("the unit"),
+        "message": string("the check in words"),
+    })
+    member = obj("one plan's test in the set", {
+        "plan": string("the plan"),
+        "plane": string("its plane"),
+        "test_id": string("the test's id", True),
+        "t_wall": string("when its result was published (ISO 8601 UTC)", True),
+        "radius_mm": num("its radius, mm", True),
+        "feed_mm_min": num("its programmed feed, mm/min", True),
+        "data_arc_deg": num("its data arc, deg", True),
+        "valid": boolean("its fit's checks held (fit.valid)"),
+        "invalid_reasons": {"type": "array", "items": {"type": "string"}, "description": "why not valid"},
+        "verdict": string("its own verdict against its plan's limits; not_evaluated without limits",
+                          enum=["pass", "warning", "fail", "not_evaluated"]),
+        "verdict_summary": string("its verdict in one line", True),
+        "G_b_um": num("its G(b), um", True),
+    })
+    extreme = obj("the largest circular deviation of the set's valid tests", {
+        **_figure_props("um"),
+        "plan": string("the plan whose test has it", True),
+        "test_id": string("that test", True),
+        "figure": string("G_b_um, or G_ccw_um / G_cw_um for a one-direction test", True),
+    })
+    sphere = obj("the geometric sphericity: the range of the radial deviation the squareness and relative scale "
+                 "errors make over the sphere", {
+                     **_figure_props("um"),
+                     "interval": {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 2,
+                                  "maxItems": 2, "description": "its 95 % interval, um (null: no value)"},
+                     "radius_mm": num("the sphere's radius: the set's largest, mm", True),
+                 })
+    verdict = obj("the set's verdict", {
+        "status": string("pass, warning or fail", enum=["pass", "warning", "fail"]),
+        "trusted": boolean("every check passed and every test is valid"),
+        "plans": {"type": "array", "description": "each plan's own verdict", "items": obj("a plan's verdict", {
+            "plan": string("the plan"), "status": string("its test's verdict"),
+            "summary": string("in one line", True)})},
+        "failed_checks": {"type": "array", "items": {"type": "string"}, "description": "names of failed checks"},
+        "reasons": {"type": "array", "items": {"type": "string"}, "description": "why not trusted"},
+        "summary": string("the verdict in one line"),
+        "rule": string("how the verdict is made, in words"),
+    })
+    props: dict[str, Schema] = {
+        **_envelope("set"),
+        "set_id": string("<set name>@<the newest member test's id>"),
+        "set": obj("the set's definition ([sets.<name>])", {
+            "name": string("its name"),
+            "plans": {"type": "array", "items": {"type": "string"}, "description": "its plans"},
+            "window_s": num("its tests must all lie within this, s"),
+        }),
+        "tests": {"type": "array", "items": member, "description": "the latest test of each plan, in the set's order"},
+        "span_s": num("from the oldest to the newest member test, s", True),
+        "lost_motion": obj("lost motion per axis, um", {a: _combined(f"the {a} axis' lost motion, um") for a in "XYZ"}),
+        "squareness": obj("squareness per pair, urad (+: +a and +b enclose less than 90 deg)",
+                          {p: _combined(f"the {p} squareness, urad") for p in ("XY", "YZ", "ZX")}),
+        "scale": _loop_schema("relative scale, ppm"),
+        "servo": _loop_schema("servo lag mismatch, ms"),
+        "volumetric": obj("volumetric figures", {
+            "largest_circular_deviation": extreme,
+            "geometric_sphericity": sphere,
+            "method": string("how both are computed, in words"),
+        }),
+        "checks": {"type": "array", "items": check, "description": "every consistency and closure check"},
+        "verdict": verdict,
+        "conventions": counts("the sign conventions, in words", "string"),
+        "method": string("how the figures are combined, in words"),
+    }
+    return obj("a set result as the daemon publishes it", props)
+
+
+def set_schema() -> Schema:
+    return _document("set", SET_DESCRIPTION, _set_object(), _set_defs())
 
 
 # --------------------------------------------------------------------------- documents
@@ -1024,7 +1214,7 @@ def _built(name: str) -> str:
     makers = {
         "result": result_schema, "analysis": analysis_schema, "event": event_schema,
         "mcap-event": lambda: event_schema(mcap=True), "status": status_schema, "config": config_schema,
-        "samples": samples_schema, "history": history_schema, "alert": alert_schema,
+        "samples": samples_schema, "history": history_schema, "alert": alert_schema, "set": set_schema,
     }
     if name not in makers:
         raise KeyError(f"no schema {name!r} (one of {', '.join(NAMES)})")

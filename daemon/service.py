@@ -316,6 +316,8 @@ class LogListener(Listener):
             verdict = msg.get("verdict")
             if kind == "test" and isinstance(verdict, dict) and verdict.get("limits"):
                 log.info("%s verdict: %s", msg.get("test_id"), verdict.get("summary"))
+        elif kind == "set":
+            log.info("%s set %s: %s", msg.get("machine_id"), msg.get("set_id"), msg.get("verdict", {}).get("summary"))
         elif kind == "event" and msg.get("event") in (
             "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
             "test_incomplete", "analysis_reset", "test_unrecognised", "plan_choice_refused",
@@ -381,9 +383,12 @@ class Daemon:
         # of their own through broadcast (its alerts).  They are handed each message last: an alert their
         # thread sends about a test then reaches every other queue after that test, never before it.
         self.annotators = [lst for lst, _c, _p in listeners if callable(getattr(lst, "annotate", None))]
-        outputs = [*(o for o in listeners if o[0] not in self.annotators), (LogListener(), 100, "drop_oldest"),
-                   *(o for o in listeners if o[0] in self.annotators)]
-        for lst in self.annotators:
+        # Outputs that send messages of their own (the monitor's alerts, the sets) get the broadcast, and come last
+        # for the same reason.
+        senders = [lst for lst, _c, _p in listeners if callable(getattr(lst, "bind", None))]
+        outputs = [*(o for o in listeners if o[0] not in senders), (LogListener(), 100, "drop_oldest"),
+                   *(o for o in listeners if o[0] in senders)]
+        for lst in senders:
             lst.bind(self.broadcast)  # type: ignore[attr-defined]
         self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]
         # Each test's fit in a child process, off the daemon's reading and circles (``daemon.analysis_worker``)
@@ -579,7 +584,8 @@ class Daemon:
             log.warning("the analysis did not finish within %.0f s of the source's end", limit_s)
 
     def shutdown(self, budget_s: float = 4.0) -> None:
-        """Stop within ``budget_s``: the source, then the analysis, then the outputs in parallel."""
+        """Stop within ``budget_s``: the source, the analysis, the outputs that send (alerts, sets), then the rest
+        in parallel."""
         self.notifier.stopping()
         t0 = time.monotonic()
         with contextlib.suppress(Exception):
@@ -587,11 +593,15 @@ class Daemon:
         self.analysis_queue.close(timeout=budget_s * 0.4)
         if self.worker is not None:
             self.worker.shutdown(wait=False)
-        left = max(0.5, budget_s - (time.monotonic() - t0))
-        threads = [threading.Thread(target=q.close, args=(left * 0.9,), daemon=True) for q in self.outputs]
-        for th in threads:
-            th.start()
-        for th in threads:
-            th.join(left)
+        # Outputs that send messages of their own first (the monitor's alerts, the sets): what they send as they
+        # drain (the set a run's last test completes) must find the other outputs still open.
+        senders = [q for q in self.outputs if callable(getattr(q.listener, "bind", None))]
+        for group, share in ((senders, 0.3), ([q for q in self.outputs if q not in senders], 1.0)):
+            left = max(0.5, (budget_s - (time.monotonic() - t0)) * share)
+            threads = [threading.Thread(target=q.close, args=(left * 0.9,), daemon=True) for q in group]
+            for th in threads:
+                th.start()
+            for th in threads:
+                th.join(left)
         log.info("stopped in %.2f s", time.monotonic() - t0)
         self.notifier.close()

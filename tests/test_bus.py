@@ -304,6 +304,7 @@ def test_topics_encoding_and_payloads() -> None:
         "config": 1,
         "samples": 0,
         "alert": 0,
+        "result/set": 0,
     }
 
 
@@ -376,7 +377,7 @@ def test_last_and_history_answer_from_the_daemons_records() -> None:
         ok, _ = get(c, "ballbar/m/history/*?limit=1")
         assert sorted(str(s.key_expr) for s in ok) == [
             "ballbar/m/history/alert", "ballbar/m/history/circle", "ballbar/m/history/event",
-            "ballbar/m/history/test"
+            "ballbar/m/history/set", "ballbar/m/history/test"
         ]
         for bad, says in [
             ("since=yesterday", "since"),

@@ -1,8 +1,9 @@
 """End to end, a set: ``ballbar run --simulate --config FILE`` with three plans of the same radius and feed (XY
 over 360 deg; ZX from -115 deg and YZ from -25 deg, 220 deg data arcs with 5 deg overshoots: the README's
 recipe) runs them in turn on the 3D demo machine; every test is recognised (its signature, checked against its
-timing), each plane's result recovers the machine's axis errors that the plane sees, and ``ballbar analyze`` of
-the recordings directory gives the same.
+timing), each plane's result recovers the machine's axis errors that the plane sees, the set's result combines
+them into the machine's X, Y and Z (published on ``result/set``, valid against its schema, recorded), and
+``ballbar analyze`` of the recordings directory gives the same, each test and the set.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import pytest
 from schemacheck import validate_all, validate_recordings
 from test_e2e import Subscriber, free_port
 
+from ballbar.analysis.sets import set_words
 from ballbar.daemon.cli import main as cli_main
 from ballbar.daemon.mcap_log import list_recordings, read_logs
 from ballbar.daemon.run import SIM_MACHINE_3D
@@ -128,3 +130,41 @@ def test_a_set_runs_is_recognised_and_recovers_each_axis(tmp_path: Path, capsys:
         for key, value in t["parameters"].items():
             a, b = value["value"], offline["parameters"][key]["value"]
             assert (a is None and b is None) or abs(a - b) <= 1e-6 * max(1.0, abs(a)), (t["plan"]["name"], key)
+    # The set: published once its three tests are in, valid against its schema (validate_all above), recorded.
+    sets = [m for m in payloads if m.get("kind") == "set"]
+    assert sets and all(m["set_id"] == f"machine@{tests[2]['test_id']}" for m in sets), output[-3000:]
+    live = sets[0]
+    recorded = [r for r in log.results if r.get("kind") == "set"]
+    assert [r["set_id"] for r in recorded] == [live["set_id"]]
+    assert [(m["plan"], m["plane"], m["test_id"]) for m in live["tests"]] == [
+        (t["plan"]["name"], t["plan"]["plane"], t["test_id"]) for t in tests]
+    assert all(c["status"] == "passed" for c in live["checks"]) and live["verdict"]["trusted"], live["checks"]
+    # ... the machine's axes within the end-to-end tolerances: each axis' lost motion from both planes that see
+    # it, each pair's squareness from its plane, each pair's servo lag mismatch (the position-loop gains)
+    for axis in "XYZ":
+        lm = live["lost_motion"][axis]
+        assert abs(lm["value"] - machine.get("backlash_{}_um", axis.lower())) < TOL["backlash_x_um"], (axis, lm)
+        assert sum(o["used"] for o in lm["observations"]) == 2, (axis, lm["observations"])
+    for pair in ("XY", "YZ", "ZX"):
+        sq, servo = live["squareness"][pair], live["servo"]["pairs"][pair]
+        assert abs(sq["value"] - getattr(machine, f"squareness_{pair.lower()}_urad")) < TOL["squareness_urad"], sq
+        assert abs(servo["value"] - machine.truth(pair)["servo_mismatch_ms"]) < TOL["servo_mismatch_ms"], servo
+    # ... and made again by ballbar analyze from the recordings directory: the same tests, the same figures
+    assert cli_main(["analyze", str(state / "recordings"), "--set", "machine", "--json"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["set_id"] == live["set_id"] and again["verdict"]["status"] == live["verdict"]["status"]
+    for key, names in (("lost_motion", "XYZ"), ("squareness", ("XY", "YZ", "ZX"))):
+        for n in names:
+            a, b = again[key][n], live[key][n]
+            assert abs(a["value"] - b["value"]) <= 1e-6 * max(1.0, abs(b["value"])), (key, n, a["value"], b["value"])
+    for pair in ("XY", "YZ", "ZX"):
+        a, b = again["servo"]["pairs"][pair]["value"], live["servo"]["pairs"][pair]["value"]
+        assert abs(a - b) <= 1e-6 * max(1.0, abs(b)), (pair, a, b)
+    # ... and its report, from the same records: the set's verdict, then each plan's test
+    out = tmp_path / "set.html"
+    made = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "report", str(state / "recordings"), "--set",
+                           "machine", "-o", str(out), "--no-png"], capture_output=True, text=True, timeout=120)
+    assert made.returncode == 0, made.stderr[-2000:]
+    html = out.read_text(encoding="utf-8")
+    assert f'data-status="{set_words(live)["status"]}"' in html and "no limits" in set_words(live)["headline"]
+    assert all(f'id="{t["plan"]["name"]}-polar-ccw"' in html for t in tests)

@@ -30,6 +30,7 @@ from pathlib import Path
 import livescene
 import numpy as np
 import pytest
+import setscene
 from browser import Chromium, find_chromium
 
 from ballbar.analysis.report import STATUS_WORDS, machine_ranking, pattern_label, share_text
@@ -177,6 +178,75 @@ def test_live_view_screenshots(served: RerunViewer, tmp_path: Path, request: pyt
         _keep(f"viewer-{status}-{size[0]}x{size[1]}.png", px)
 
 
+@pytest.fixture(scope="module")
+def set_scene() -> setscene.Scene:
+    return setscene.build()
+
+
+@pytest.fixture
+def served_set(set_scene: setscene.Scene) -> Iterator[RerunViewer]:
+    """The daemon's viewer with a library of three plans and their set, fed the set's scene."""
+    v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=_free_port(), server_memory_limit="64MiB"),
+                    plan=setscene.PLANS["xy"], plans=set_scene.config["plans"], sets=set_scene.config["sets"])
+    try:
+        assert v.seed(set_scene.earlier) == len(set_scene.earlier) - 1  # the tests, and the set
+        deadline = time.monotonic() + 20.0
+        while not v.connected:
+            assert time.monotonic() < deadline, f"the viewer's server did not come up: {v.stats()}"
+            v.on_idle()
+            time.sleep(0.05)
+        for kind, x in set_scene.items:
+            (v.on_batch if kind == "batch" else v.on_message)(x)
+        while v.stats()["history_pending"]:
+            v.on_idle()
+        v.on_idle()
+        assert v.stats()["errors"] == 0
+        yield v
+    finally:
+        v.stop()
+
+
+def check_set_screenshot(px: np.ndarray, set_status: str, test_status: str) -> None:
+    """The first screen with a set: the machine's verdict bar in the set's colour across the top of the left
+    column, above the last complete test's view with its own verdict bar in the test's colour."""
+    h, w, _ = px.shape
+    top = px[: int(0.16 * h), : int(0.6 * w)]
+    bar = _near(top, STATUS_RGB[set_status], 30.0)
+    ys, xs = np.nonzero(bar)
+    assert xs.size > 0.002 * w * h, f"no {set_status} bar for the machine ({xs.size} pixels)"
+    assert np.ptp(xs) > 0.35 * w, f"the machine's bar spans {np.ptp(xs)} px of {w}"
+    # under it and the tabs' strip (each plan's latest test a tab): the last test's bar, in its colour alone
+    below = int(ys.max()) + int(0.045 * h)
+    left = px[:, : int(0.36 * w)]
+    band = slice(below, below + int(0.08 * h))
+    tys, txs = np.nonzero(_near(left[band], STATUS_RGB[test_status], 30.0))
+    assert txs.size > 0.0004 * w * h, f"no {test_status} verdict bar over the last test ({txs.size} pixels)"
+    for other, rgb in STATUS_RGB.items():
+        if other not in (test_status, "none"):
+            assert _near(left[band], rgb, 25.0).sum() < 0.2 * txs.size, f"{other} colour in the last test's bar"
+    # its polar plot: the bar (3 R0 and its caps wide, at y = -1.9 R0) is the ruler; every curve inside 1.6 R0
+    x0, x1 = float(np.percentile(txs, 0.5)), float(np.percentile(txs, 99.5))
+    r0 = (x1 - x0) / 3.22
+    cx, cy = (x0 + x1) / 2, below + float(np.median(tys)) + 1.9 * r0
+    yy, xx = np.mgrid[0:h, 0 : left.shape[1]]
+    dist = np.hypot(xx - cx, yy - cy) / r0
+    curve = (_near(left, COLOURS["ccw"]) | _near(left, COLOURS["cw"])) & (dist < 2.2) & (yy > cy - 1.7 * r0)
+    assert curve.sum() > 10 * r0, f"the last test's curves are not drawn ({curve.sum()} pixels)"
+    reach = float(np.percentile(dist[curve], 99.9))
+    assert reach <= 1.6 + 6.0 / r0, f"curves reach {reach:.3f} R0, beyond the outermost ring (1.6 R0)"
+    assert cy + 1.7 * r0 < 0.8 * h and cx - 1.7 * r0 > 0, "the polar plot is cut by its view"
+
+
+def test_live_view_of_a_set(served_set: RerunViewer, set_scene: setscene.Scene, tmp_path: Path) -> None:
+    exe = _viewer_or_skip()
+    worst = max(setscene.STATUS.values(), key=("pass", "warning", "fail").index)
+    last = setscene.STATUS["yz"]  # the last complete test is the set's third, yz; xy runs again
+    for size in VIEWER_SIZES:
+        px = _viewer_screenshot(exe, served_set.address, size, tmp_path / f"{size[0]}.png")
+        _keep(f"viewer-set-{size[0]}x{size[1]}.png", px)
+        check_set_screenshot(px, worst, last)
+
+
 # --------------------------------------------------------------------------- the report
 
 
@@ -299,6 +369,8 @@ def test_the_committed_screenshots_are_there_and_small() -> None:
             _check_png(ARTEFACTS / f"viewer-{status}-{w}x{h}.png", (w, h))
         for width in REPORT_WIDTHS:
             _check_png(ARTEFACTS / f"report-{status}-{width}.png", (width, REPORT_HEIGHT))
+    for w, h in VIEWER_SIZES:
+        _check_png(ARTEFACTS / f"viewer-set-{w}x{h}.png", (w, h))
 
 
 def _check_png(path: Path, size: tuple[int, int]) -> None:

@@ -466,6 +466,29 @@ def iso(result: Mapping[str, Any]) -> str:
     )
 
 
+def standards(result: Mapping[str, Any]) -> str:
+    """The other standards' figures ([analysis] standards, ``--standard``), each with what it computes, where it
+    differs from ISO 230-4 and what was assumed of its text."""
+    from ballbar.analysis.standards import FIGURES
+
+    parts = []
+    for sid, body in (result.get("standards") or {}).items():
+        if not isinstance(body, Mapping):
+            continue
+        cols = FIGURES.get(str(sid), ())
+        head = "".join(f"<th>{e(n)} (µm)</th>" for _, n in cols)
+        cells = "".join(f'<td id="std-{e(sid)}-{e(k)}">{e(fmt(body.get(k), 2))}</td>' for k, _ in cols)
+        notes = [("What it computes", str(body.get("computes") or MISSING)),
+                 ("Where it differs from ISO 230-4", str(body.get("differs_from_iso230_4") or MISSING)),
+                 ("Centre removal", str(body.get("centre_removal") or MISSING))]
+        if body.get("assumption"):
+            notes.append(("Assumed", str(body["assumption"])))
+        parts.append(f'<h3 id="std-{e(sid)}">{e(body.get("standard") or sid)}</h3>'
+                     f'<div class="wide"><table class="iso"><thead><tr>{head}</tr></thead><tbody><tr>{cells}</tr>'
+                     f"</tbody></table></div>{kv(notes)}")
+    return "".join(parts) or '<p class="note">No other standard chosen.</p>'
+
+
 def advice(result: Mapping[str, Any]) -> str:
     axes = plane_axes(result.get("plan") or {})
     lines = advice_lines(result, axes)

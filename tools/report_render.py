@@ -104,19 +104,16 @@ def forecast_words(tests: Sequence[Mapping[str, Any]], axes: tuple[str, str]) ->
     return out
 
 
-def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]:
-    """Write the report of ``data`` to ``html_path`` (and its plots as PNGs beside it when ``png``).
-
-    Returns the paths written, the HTML first.  Every file is written through
-    a temporary file and a rename, the HTML last, so a report on disk is
-    always whole.
-    """
-    html_path = Path(html_path)
+def report_sections(data: ReportData, html_path: Path, png: bool, key: str = "",
+                  ) -> tuple[list[tuple[str, str, str]], list[tuple[Path, bytes]]]:
+    """A test's sections, ``(id, title, body)`` in reading order, and its plots as PNGs (when ``png``);
+    ``key``: names the plots' files apart (several tests in one document; their ids are the caller's to
+    prefix)."""
     result: Mapping[str, Any] = data.result or {}
     plan = result.get("plan") or {}
     axes = plane_axes(plan)
     curves = curves_of(data)
-    stem = html_path.stem
+    stem = html_path.stem + (f"-{key.rstrip('-')}" if key else "")
     pngs: list[tuple[Path, bytes]] = []
     svgs: dict[str, str] = {}
     g, gname, _gkey = g_of(result)
@@ -143,7 +140,47 @@ def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]
             if png:
                 pngs.append((html_path.with_name(f"{stem}-trend.png"), png_bytes(fig)))
         forecasts = forecast_words(tests, axes)
+    meta = data.meta or {}
+    out: list[tuple[str, str, str]] = [("verdict", "Verdict", H.verdict(result, curves))]
+    if curves:
+        dirs = " and ".join(
+            f'<span class="sw" style="background:{COLOURS[c.name]}"></span>{DIRECTION_NAMES[c.name]}' for c in curves)
+        out.append(("polar", "Polar plot", (
+            f'<figure class="polar">{svgs["polar"]}<figcaption class="caption">Radial deviation of {dirs}, '
+            f"magnified about the reference circle: <b>{H.e(um_text(div or 1.0))} µm per division</b>, every point "
+            "inside the outermost ring; dashed dark lines: the fitted model (legend under the plot). Set-up terms "
+            f"(pivot offset, bar length) removed. Angles counter-clockwise from +{H.e(axes[0])}.</figcaption>"
+            "</figure>")))
+    out.append(("conditions", "Test conditions", H.metadata(result, meta) + H.conditions(result)))
+    if curves:
+        out.append(("deviation", "Deviation against angle", (
+            f'<figure>{svgs["deviation"]}<figcaption class="caption">Measured deviation (solid) and fitted model '
+            "(dashed) per direction, set-up terms removed; below, the residual (measured − model). Curves drawn "
+            f"as a min/max envelope of at most {MEASURED_POINTS} points per direction: spikes are kept."
+            "</figcaption></figure>")))
+    out.append(("findings", "What the machine's error is made of", H.findings(result)))
+    out.append(("iso230", "ISO 230-4 circular test figures", H.iso(result)))
+    if result.get("standards"):
+        out.append(("standards", "Other standards' circular test figures", H.standards(result)))
+    out.append(("advice", "Advice", H.advice(result)))
+    out.append(("trend", "Trend over this machine's tests",
+                H.trend(data, qs, svgs.get("trend"), trend_caption(qs, coverage_k(result), axes), forecasts)))
+    out.append(("noise", "Noise", H.noise(result)))
+    out.append(("diagnostics", "Fit and timing diagnostics", H.diagnostics(result)))
+    return out, pngs
 
+
+def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]:
+    """Write the report of ``data`` to ``html_path`` (and its plots as PNGs beside it when ``png``).
+
+    Returns the paths written, the HTML first.  Every file is written through
+    a temporary file and a rename, the HTML last, so a report on disk is
+    always whole.
+    """
+    html_path = Path(html_path)
+    result: Mapping[str, Any] = data.result or {}
+    plan = result.get("plan") or {}
+    sections, pngs = report_sections(data, html_path, png)
     machine_id = result.get("machine_id") or (result.get("machine") or {}).get("machine_id")
     test_id = result.get("test_id")
     when = H.time_text(result.get("t_wall")) if result.get("t_wall") else None
@@ -167,30 +204,8 @@ def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]
 
     meta = data.meta or {}
     doc = H.Doc()
-    doc.section("verdict", "Verdict", H.verdict(result, curves))
-    if curves:
-        dirs = " and ".join(
-            f'<span class="sw" style="background:{COLOURS[c.name]}"></span>{DIRECTION_NAMES[c.name]}' for c in curves)
-        doc.section("polar", "Polar plot", (
-            f'<figure class="polar">{svgs["polar"]}<figcaption class="caption">Radial deviation of {dirs}, '
-            f"magnified about the reference circle: <b>{H.e(um_text(div or 1.0))} µm per division</b>, every point "
-            "inside the outermost ring; dashed dark lines: the fitted model (legend under the plot). Set-up terms "
-            f"(pivot offset, bar length) removed. Angles counter-clockwise from +{H.e(axes[0])}.</figcaption>"
-            "</figure>"))
-    doc.section("conditions", "Test conditions", H.metadata(result, meta) + H.conditions(result))
-    if curves:
-        doc.section("deviation", "Deviation against angle", (
-            f'<figure>{svgs["deviation"]}<figcaption class="caption">Measured deviation (solid) and fitted model '
-            "(dashed) per direction, set-up terms removed; below, the residual (measured − model). Curves drawn "
-            f"as a min/max envelope of at most {MEASURED_POINTS} points per direction: spikes are kept."
-            "</figcaption></figure>"))
-    doc.section("findings", "What the machine's error is made of", H.findings(result))
-    doc.section("iso230", "ISO 230-4 circular test figures", H.iso(result))
-    doc.section("advice", "Advice", H.advice(result))
-    doc.section("trend", "Trend over this machine's tests",
-                H.trend(data, qs, svgs.get("trend"), trend_caption(qs, coverage_k(result), axes), forecasts))
-    doc.section("noise", "Noise", H.noise(result))
-    doc.section("diagnostics", "Fit and timing diagnostics", H.diagnostics(result))
+    for sid, heading, body in sections:
+        doc.section(sid, heading, body)
     doc.section("signoff", "Sign-off", H.sign_off(meta))
 
     footer = (
@@ -198,14 +213,20 @@ def render(data: ReportData, html_path: Path, *, png: bool = True) -> list[Path]
         f"<span>ballbar {H.e(_version())} · result schema {H.e(result.get('schema_version', H.MISSING))}</span>"
         f"<span>Generated {H.e(H.generated_text())}</span></footer>"
     )
+    header = (f'<div><h1>Ball-bar test report</h1><div class="sub">{" · ".join(sub)}</div></div>'
+              '<div class="brand"><b>BALLBAR</b><br>Circular test, ISO 230-4<br>Suh &amp; Lee pattern fit</div>')
+    return write_page(html_path, title, header, "\n".join(doc.parts) + footer, pngs)
+
+
+def write_page(html_path: Path, title: str, header: str, body: str, pngs: list[tuple[Path, bytes]]) -> list[Path]:
+    """The report's document around ``header`` and ``body``, written with its PNGs (each through a temporary
+    file and a rename, the HTML last); the paths written, the HTML first."""
     page = (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
         f'<meta name="generator" content="ballbar {H.e(_version())}">'
         f"<title>{H.e(title)}</title><style>{H.CSS}</style></head>\n<body>"
-        f'<header class="top"><div><h1>Ball-bar test report</h1><div class="sub">{" · ".join(sub)}</div></div>'
-        f'<div class="brand"><b>BALLBAR</b><br>Circular test, ISO 230-4<br>Suh &amp; Lee pattern fit</div></header>\n'
-        + "\n".join(doc.parts) + footer + "</body></html>\n"
+        f'<header class="top">{header}</header>\n{body}</body></html>\n'
     )
     written = []
     for path, blob in pngs:

@@ -63,6 +63,7 @@ TOPIC_KEYS = {
     "result": ("result/*",),
     "circle": ("result/circle",),
     "test": ("result/test",),
+    "set": ("result/set",),
     "event": ("event",),
     "status": ("status",),
     "config": ("config",),
@@ -70,8 +71,8 @@ TOPIC_KEYS = {
     "alert": ("alert",),
     "all": ("**",),
 }
-HISTORY_FOR = {"result": ("circle", "test"), "circle": ("circle",), "test": ("test",), "event": ("event",),
-               "alert": ("alert",), "all": HISTORY_TOPICS}
+HISTORY_FOR = {"result": ("circle", "test", "set"), "circle": ("circle",), "test": ("test",), "set": ("set",),
+               "event": ("event",), "alert": ("alert",), "all": HISTORY_TOPICS}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -86,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--topic",
         action="append",
         choices=sorted(TOPIC_KEYS),
-        help="what to print (repeatable; default: result = circle and test results)",
+        help="what to print (repeatable; default: result = circle, test and set results)",
     )
     p.add_argument("--history", action="store_true", help="first the results the daemons still hold")
     p.add_argument("--since", help="with --history: only results after this time (ISO 8601 or Unix seconds)")
@@ -122,6 +123,8 @@ def text_line(obj: dict[str, Any]) -> str:
         level = "CLEARED" if obj.get("cleared") else str(obj.get("state", "")).upper()
         return f"{obj.get('t_wall')} ALERT {level:8} {obj.get('message', '')}"
     verdict = obj.get("verdict")
+    if kind == "set" and isinstance(verdict, dict):
+        return f"{obj.get('t_wall')} SET   {obj.get('set_id')}: {verdict.get('summary', '')}"
     if kind == "test" and isinstance(verdict, dict) and verdict.get("limits"):
         return f"{obj.get('t_wall')} TEST  {obj.get('test_id')}: {verdict.get('summary', '')}"
     return json.dumps(obj, separators=(",", ":"))

@@ -98,41 +98,107 @@ def _events_view() -> rrb.TextLogView:
     return rrb.TextLogView(name="Events", origin="events", columns=columns)
 
 
-def default_blueprint(ranges: Mapping[str, tuple[float, float]] | None = None) -> rrb.Blueprint:
-    """The layout (see the module docstring).  ``ranges``: the y range of trend views by origin
-    (:func:`trend_ranges`); the others autoscale."""
-    bound = 1.85 * R0
-    ranges = ranges or {}
+def _trend_grid(ranges: Mapping[str, tuple[float, float]], prefix: str = "trends", name: str = "Trends across tests",
+                axes: tuple[str, str] = ("X", "Y")) -> rrb.Grid:
+    """The trend views of the entities under ``prefix``; ``ranges`` by origin (``prefix``-relative)."""
     everything = [rrb.VisibleTimeRange(tl, start=rrb.TimeRangeBoundary.infinite(),
                                        end=rrb.TimeRangeBoundary.infinite()) for tl in ("time", "test")]
     # each view's own x range: linked to the time panel (the default), a plot showed the last 30 s of a day's tests
     whole = rrb.TimeAxis(link="Independent", view_range=rrb.TimeRange(
         start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()))
-    recent = rrb.TimeAxis(link="Independent", view_range=rrb.TimeRange(
-        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-300.0), end=rrb.TimeRangeBoundary.cursor_relative()))
-    trends = rrb.Grid(
+    return rrb.Grid(
         *(
             rrb.TimeSeriesView(
-                name=title, origin=f"trends/{origin}", time_ranges=everything, axis_x=whole,
+                name=title.replace("X, Y", ", ".join(axes)), origin=f"{prefix}/{origin}", time_ranges=everything,
+                axis_x=whole,
                 axis_y=rrb.ScalarAxis(range=ranges[origin], zoom_lock=False) if origin in ranges else None,
                 plot_legend=rrb.PlotLegend(visible=False),
             )
             for origin, title in TREND_VIEWS
         ),
         grid_columns=2,
-        name="Trends across tests",
+        name=name,
     )
-    polar = rrb.Spatial2DView(
-        name="Last complete test: CCW blue, CW orange, model pale",
-        origin="polar",
-        visual_bounds=rrb.VisualBounds2D(x_range=[-bound, bound], y_range=[-2.05 * R0, bound]),
+
+
+def _polar_view(name: str, origin: str) -> rrb.Spatial2DView:
+    bound = 1.85 * R0
+    return rrb.Spatial2DView(name=name, origin=origin,
+                             visual_bounds=rrb.VisualBounds2D(x_range=[-bound, bound], y_range=[-2.05 * R0, bound]))
+
+
+def default_blueprint(ranges: Mapping[str, tuple[float, float]] | None = None,
+                      plans: Mapping[str, tuple[str, str]] | None = None) -> rrb.Blueprint:
+    """The layout (see the module docstring).  ``ranges``: the y range of trend views by origin
+    (:func:`trend_ranges`; with ``plans``, ``<plan>/<origin>``); the others autoscale.  ``plans``: a library of
+    several plans (name: its plane's axes): :func:`plans_blueprint`."""
+    if plans:
+        return plans_blueprint(plans, ranges or {})
+    ranges = ranges or {}
+    trends = _trend_grid(ranges)
+    polar = _polar_view("Last complete test: CCW blue, CW orange, model pale", "polar")
+    live = _polar_view("Test in progress", "live")
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Horizontal(polar, live, column_shares=[3, 2]),
+                rrb.Tabs(_events_view(), _length_view(), active_tab=0),
+                row_shares=[3, 1],
+            ),
+            rrb.Vertical(
+                rrb.TextDocumentView(name="Verdict and findings", origin="findings"),
+                trends,
+                row_shares=[6, 5],
+            ),
+            column_shares=[3, 2],
+        ),
+        *_panels(),
     )
-    live = rrb.Spatial2DView(
-        name="Test in progress",
-        origin="live",
-        visual_bounds=rrb.VisualBounds2D(x_range=[-bound, bound], y_range=[-2.05 * R0, bound]),
+
+
+def plans_blueprint(plans: Mapping[str, tuple[str, str]], ranges: Mapping[str, tuple[float, float]]
+                    ) -> rrb.Blueprint:
+    """The layout for a library of plans and their sets: on top of the left column the machine's verdict (the
+    sets', a bar in its colour, ``set``); under it the last complete test and, a tab each, every plan's latest
+    test (``plans/<name>``), beside the test in progress; on the right the findings (the set's verdict in words
+    first) and, a tab per plan, each plan's trends (``plans/<name>/trends``) with its limits and forecast."""
+    tabs = rrb.Tabs(
+        _polar_view("Last test: CCW blue, CW orange", "polar"),
+        *(_polar_view(f"{p} ({''.join(axes)})", f"plans/{p}") for p, axes in plans.items()),
+        active_tab=0,
     )
-    length = rrb.TimeSeriesView(
+    trends = rrb.Tabs(
+        *(_trend_grid({k.split("/", 1)[1]: v for k, v in ranges.items() if k.split("/", 1)[0] == p},
+                      f"plans/{p}/trends", f"Trends of plan {p}", axes)
+          for p, axes in plans.items()),
+        active_tab=0,
+    )
+    machine = rrb.Spatial2DView(
+        name="Machine: the set's verdict", origin="set",
+        visual_bounds=rrb.VisualBounds2D(x_range=[-1.62 * R0, 1.62 * R0], y_range=[-2.08 * R0, -1.72 * R0]))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                machine,
+                rrb.Horizontal(tabs, _polar_view("Test in progress", "live"), column_shares=[3, 2]),
+                rrb.Tabs(_events_view(), _length_view(), active_tab=0),
+                row_shares=[1, 5, 2],
+            ),
+            rrb.Vertical(
+                rrb.TextDocumentView(name="Verdict and findings", origin="findings"),
+                trends,
+                row_shares=[6, 5],
+            ),
+            column_shares=[3, 2],
+        ),
+        *_panels(),
+    )
+
+
+def _length_view() -> rrb.TimeSeriesView:
+    recent = rrb.TimeAxis(link="Independent", view_range=rrb.TimeRange(
+        start=rrb.TimeRangeBoundary.cursor_relative(seconds=-300.0), end=rrb.TimeRangeBoundary.cursor_relative()))
+    return rrb.TimeSeriesView(
         name="Bar length L (mm)",
         origin="length",
         time_ranges=rrb.VisibleTimeRange(
@@ -143,24 +209,11 @@ def default_blueprint(ranges: Mapping[str, tuple[float, float]] | None = None) -
         axis_x=recent,
         plot_legend=rrb.PlotLegend(visible=False),
     )
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Horizontal(polar, live, column_shares=[3, 2]),
-                rrb.Tabs(_events_view(), length, active_tab=0),
-                row_shares=[3, 1],
-            ),
-            rrb.Vertical(
-                rrb.TextDocumentView(name="Verdict and findings", origin="findings"),
-                trends,
-                row_shares=[6, 5],
-            ),
-            column_shares=[3, 2],
-        ),
-        rrb.TimePanel(timeline="time", play_state="following", state="collapsed"),  # live: the newest test
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-    )
+
+
+def _panels() -> tuple[rrb.TimePanel, rrb.BlueprintPanel, rrb.SelectionPanel]:
+    return (rrb.TimePanel(timeline="time", play_state="following", state="collapsed"),  # live: the newest test
+            rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"))
 
 
 LAYOUT_NAMESPACE = uuid.UUID("5f0c3a7e-6b1d-4c2a-9e57-b0a11ba40001")  # the layout's view and container ids
@@ -224,4 +277,5 @@ def stable_ids(item: rrb.Container | rrb.View, place: str) -> set[str]:
             out |= stable_ids(sub, f"{place}/{i}")
     return out
 
-__all__ = ["TRENDS", "TREND_LINES", "TREND_VIEWS", "Blueprints", "default_blueprint", "trend_ranges"]
+__all__ = ["TRENDS", "TREND_LINES", "TREND_VIEWS", "Blueprints", "default_blueprint", "plans_blueprint",
+           "trend_ranges"]

@@ -26,6 +26,7 @@ from ballbar.analysis.report import (
     value_text,
     verdict_summary,
 )
+from ballbar.analysis.sets import AXES, PAIRS, set_words
 
 from .geometry import num
 
@@ -174,3 +175,37 @@ def verdict_markdown(verdict: Any, axes: tuple[str, str] = ("X", "Y")) -> list[s
 
 
 __all__ = ["clock_text", "findings_markdown", "headline", "verdict_markdown"]
+
+
+def set_headline(s: Mapping[str, Any]) -> tuple[str, str]:
+    """The set's status (``pass``, ``warning``, ``fail``, ``none``) and its line for the machine's verdict bar:
+    ``PASS · set machine: xy pass, zx pass, yz pass; 5 of 5 checks passed``."""
+    w = set_words(s)
+    return w["status"], f"{w['word']} · {w['headline']}"
+
+
+def _fig(f: Mapping[str, Any] | None, nd: int = 2) -> str:
+    if not isinstance(f, Mapping) or num(f.get("value")) is None:
+        return "–"
+    se = num(f.get("stderr"))
+    return f"{float(f['value']):.{nd}f}" + (f" ± {se:.2g}" if se is not None else "") + (
+        "" if f.get("trusted", True) else " (untrusted)")
+
+
+def set_markdown(s: Mapping[str, Any]) -> str:
+    """The set's verdict and its machine-wide figures in words: the head of the findings with a library of plans."""
+    w = set_words(s)
+    lines = [f"## Machine: {w['word']} · set {(s.get('set') or {}).get('name', '?')}", "", f"**{w['headline']}**"]
+    for why in w["problems"][:3]:
+        lines += ["", f"**Not trusted:** {why}"]
+    lm, sq = s.get("lost_motion") or {}, s.get("squareness") or {}
+    lines += ["", "| axis | lost motion µm | relative scale ppm | lag vs mean ms |", "|---|---:|---:|---:|"]
+    for a in AXES:
+        lines.append(f"| {a} | {_fig(lm.get(a))} | {_fig((s.get('scale') or {}).get('axes', {}).get(a), 1)} | "
+                     f"{_fig((s.get('servo') or {}).get('axes', {}).get(a), 3)} |")
+    lines += ["", "Squareness µrad: " + ", ".join(f"{p} {_fig(sq.get(p), 1)}" for p in PAIRS)]
+    vol = s.get("volumetric") or {}
+    lcd, sph = vol.get("largest_circular_deviation") or {}, vol.get("geometric_sphericity") or {}
+    lines += ["", f"Largest circular deviation {_fig(lcd)} µm ({lcd.get('plan') or '–'}); geometric sphericity "
+                  f"{_fig(sph)} µm", "", "---", ""]
+    return "\n".join(lines)

@@ -45,6 +45,14 @@ COLOURS: dict[str, tuple[int, int, int]] = {
 STATUS_RGB: dict[str, tuple[int, int, int]] = {
     "fail": (200, 40, 30), "warning": (215, 130, 20), "pass": (35, 140, 75), "none": (95, 100, 112),
 }
+_PLAN_KEYS = frozenset(TestPlan.__dataclass_fields__)
+
+
+def plan_from(d: Mapping[str, Any]) -> TestPlan:
+    """A result's or a configuration's plan: its plan keys (a result names its plan and its axes besides)."""
+    return TestPlan.from_dict({k: v for k, v in d.items() if k in _PLAN_KEYS})
+
+
 def num(v: Any) -> float | None:
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
         return None
@@ -240,6 +248,20 @@ def ring_radius(k: int) -> float:
     return R0 * (1.0 + DIVISION * k)
 
 
-__all__ = ["COLOURS", "DIRECTIONS", "POLAR_DIVISIONS", "R0", "STATUS_RGB", "ArcTiming", "circle",
-           "model_deviation_um", "nice_scale_um", "polar_points", "provisional_timing", "result_timing",
-           "ring_radius", "setup_deviation_um"]
+__all__ = [
+    "COLOURS",
+    "DIRECTIONS",
+    "POLAR_DIVISIONS",
+    "R0",
+    "STATUS_RGB",
+    "ArcTiming",
+    "circle",
+    "model_deviation_um",
+    "nice_scale_um",
+    "plan_from",
+    "polar_points",
+    "provisional_timing",
+    "result_timing",
+    "ring_radius",
+    "setup_deviation_um",
+]

@@ -60,10 +60,10 @@ from ballbar.protocol import INVALID
 
 from ..listeners import MERGE_S, TEST_END_EVENTS, Listener, Message
 from ..samples import EventKind, SampleBatch, SourceEvent
-from .blueprint import TRENDS, Blueprints
+from .blueprint import TRENDS, Blueprints, default_blueprint
 from .buffers import Ring, Samples, multiples, rate_hz
 from .findings import clock_text, findings_markdown
-from .geometry import DIRECTIONS, ArcTiming, num, param, provisional_timing, result_timing
+from .geometry import DIRECTIONS, ArcTiming, num, param, plan_from, provisional_timing, result_timing
 from .options import ViewerOptions, memory_bytes, proxy_address, viewer_options
 from .scene import (
     MSG_BYTES,
@@ -134,10 +134,21 @@ class RerunViewer(Scene, Listener):
         plan: TestPlan | None = None,
         machine: MachineConfig | None = None,
         recording_id: str | None = None,
+        plans: Mapping[str, Mapping[str, Any]] | None = None,
+        sets: Mapping[str, Mapping[str, Any]] | None = None,
     ) -> None:
         self.options = options or ViewerOptions()
         self.plan = plan
         self.machine = machine
+        # a library of several plans and their sets (the configuration's plans and sets tables)
+        self._library: dict[str, TestPlan] = {}
+        self._plans = {}
+        self._plan_records = {}
+        self._plan_trends = {}
+        self._sets: dict[str, list[str]] = {}
+        self._set_bar = ("none", "no set yet")
+        self._set_md = ""
+        self._set_library(plans or {}, sets or {})
         self.recording_id = recording_id or str(uuid.uuid4())
         self._recording_name = self.options.recording_name or f"ballbar {time.strftime('%Y-%m-%d %H:%M:%S')}"
         self._closed = False
@@ -235,9 +246,12 @@ class RerunViewer(Scene, Listener):
 
     @classmethod
     def from_config(cls, cfg: Any) -> RerunViewer:
-        """From the daemon's configuration (:func:`viewer_options`), with its ``plan`` and ``machine``; seeded with
-        the machine's earlier tests from the daemon's records (:meth:`seed`, the newest ``SEED_FILES`` files)."""
-        v = cls(viewer_options(cfg), plan=getattr(cfg, "plan", None), machine=getattr(cfg, "machine", None))
+        """From the daemon's configuration (:func:`viewer_options`), with its ``plan`` and ``machine`` (and its
+        ``plans`` and ``sets``, where it has a library of several); seeded with the machine's earlier tests from
+        the daemon's records (:meth:`seed`, the newest ``SEED_FILES`` files)."""
+        whole = cfg.to_dict() if callable(getattr(cfg, "to_dict", None)) else {}
+        v = cls(viewer_options(cfg), plan=getattr(cfg, "plan", None), machine=getattr(cfg, "machine", None),
+                plans=whole.get("plans"), sets=whole.get("sets"))
         mcap = getattr(cfg, "mcap", None)
         if mcap is not None and mcap.enabled and v.options.mode != "off":
             directory = os.path.join(cfg.daemon.state_dir, "recordings")
@@ -255,13 +269,47 @@ class RerunViewer(Scene, Listener):
                 log.exception("rerun viewer: could not read the earlier tests from %s", directory)
         return v
 
+    def _set_library(self, plans: Mapping[str, Mapping[str, Any]], sets: Mapping[str, Mapping[str, Any]]) -> None:
+        """The configuration's plans (several: the per-plan layout) and sets."""
+        from ballbar.analysis.plan import PLANE_AXES
+
+        if len(plans) < 2 and not sets:
+            return
+        for name, body in plans.items():
+            try:
+                self._library[name] = plan_from(body)
+            except (TypeError, ValueError) as err:
+                log.warning("rerun viewer: plan %s: %s", name, err)
+                continue
+            self._plans.setdefault(name, PLANE_AXES[self._library[name].plane])
+        self._sets = {n: [str(p) for p in (b.get("plans") or [])] for n, b in sets.items() if isinstance(b, Mapping)}
+        if self._sets and self._set_bar[1] == "no set yet":
+            name, members = next(iter(self._sets.items()))
+            self._set_bar = ("none", f"set {name}: waiting for its tests ({', '.join(members)})")
+
+    def _add_plan(self, name: str, res: Mapping[str, Any]) -> None:
+        """A test of a plan the layout does not show yet: its tab, from now on."""
+        from ballbar.analysis.plan import PLANE_AXES
+
+        plan = res.get("plan") or {}
+        axes = plan.get("axes")
+        self._plans[name] = (str(axes[0]), str(axes[1])) if isinstance(axes, list | tuple) and len(axes) == 2 \
+            else PLANE_AXES.get(str(plan.get("plane")), ("X", "Y"))
+        if self._sink_live:
+            self._log_static()
+            self._blueprints.send(default_blueprint(self._trend_ranges, self._plans))
+
     def seed(self, results: Iterable[Mapping[str, Any]]) -> int:
         """Earlier tests (the daemon's records, oldest first) under the configured plan's conditions: their trend
         points at their own wall-clock time and at test numbers up to 0 (this run's tests count from 1), and the
         newest as the last complete test (its verdict, findings and fitted model: its samples are not read).
+        With a library of plans, every plan's tests, each plan's trends apart, and the newest set.
         Returns how many were taken."""
         from ballbar.analysis.monitor import CONDITION_KEYS
 
+        results = list(results)
+        if self._plans:
+            return self._seed_plans(results)
         want = {k: getattr(self.plan, k, None) for k in CONDITION_KEYS} if self.plan is not None else None
         tests = [r for r in results if r.get("kind") == "test" and _epoch(r.get("t_wall")) is not None
                  and (want is None or {k: (r.get("plan") or {}).get(k) for k in CONDITION_KEYS} == want)]
@@ -274,20 +322,56 @@ class RerunViewer(Scene, Listener):
                 self._trends.extend(row)
                 recent.append(row)
         if tests:
-            last = tests[-1]
-            wall = float(_epoch(last.get("t_wall")) or 0.0)
-            self._findings_md = findings_markdown(last, wall) + self._forecast_markdown()
-            self._final = {}
-            self._curves.clear()
-            for d in DIRECTIONS:
-                if result_timing(last, d) is not None and "plan" in last:
-                    self._update_model(d, last)
-            if self.options.remove_setup and param(last, "centre_x_um") is not None:
-                self._setup_result = last
-            self._complete(last, wall, index=0)
-            self._curves.clear()
+            self._seed_complete(tests[-1])
         log.info("rerun viewer: %d earlier tests from the records", len(tests))
         return len(tests)
+
+    def _seed_plans(self, results: list[Mapping[str, Any]]) -> int:
+        """:meth:`seed` with a library of plans: each plan's trend and latest test; the newest test the last
+        complete one; the newest set the machine's verdict."""
+        tests = [r for r in results if r.get("kind") == "test" and _epoch(r.get("t_wall")) is not None
+                 and isinstance((r.get("plan") or {}).get("name"), str)]
+        by_plan: dict[str, list[Mapping[str, Any]]] = {}
+        for r in tests:
+            by_plan.setdefault(str(r["plan"]["name"]), []).append(r)
+        for name, rs in by_plan.items():
+            if name not in self._plans:
+                self._add_plan(name, rs[-1])
+            ring = self._plan_trends.setdefault(name, Ring(TRENDS_KEPT, TREND_WIDTH))
+            rs = rs[-TRENDS_KEPT:]
+            for i, r in enumerate(rs):
+                row = self._trend_row(r, i - len(rs) + 1, float(_epoch(r.get("t_wall")) or 0.0),
+                                      ring.rows()[-TREND_FIT_TESTS:])
+                if row is not None:
+                    ring.extend(row)
+        newest = tests[-1] if tests else None
+        for name, rs in by_plan.items():  # each plan's latest (the newest overall last: it is the last complete)
+            last = rs[-1]
+            if last is newest:
+                continue
+            self._seed_complete(last, self._plan_trends[name].rows())
+        if newest is not None:
+            self._seed_complete(newest, self._plan_trends[str(newest["plan"]["name"])].rows())
+        sets = [r for r in results if r.get("kind") == "set"]
+        if sets:
+            self._on_set(sets[-1])
+        log.info("rerun viewer: %d earlier tests of %d plans from the records", len(tests), len(by_plan))
+        return len(tests)
+
+    def _seed_complete(self, last: Mapping[str, Any], rows: FloatArray | None = None) -> None:
+        """The latest of the records' tests drawn as the last complete one (``rows``: its plan's trend; None:
+        the one trend)."""
+        wall = float(_epoch(last.get("t_wall")) or 0.0)
+        self._findings_md = findings_markdown(last, wall) + self._forecast_markdown(rows)
+        self._final = {}
+        self._curves.clear()
+        for d in DIRECTIONS:
+            if result_timing(last, d) is not None and "plan" in last:
+                self._update_model(d, last)
+        if self.options.remove_setup and param(last, "centre_x_um") is not None:
+            self._setup_result = last
+        self._complete(last, wall, index=0)
+        self._curves.clear()
 
     # ------------------------------------------------------------------ state
 
@@ -315,7 +399,7 @@ class RerunViewer(Scene, Listener):
             "pending_samples": self._n_pending,
             "history_tests": len(self._history),
             "history_length_points": len(self._length_history),
-            "trend_points": len(self._trends),
+            "trend_points": len(self._trends) + sum(len(r) for r in self._plan_trends.values()),
             "sent_mib": round(self._sent_bytes / 2**20, 3),
             "history_pending": len(self._history_steps),
             **self.counters,
@@ -540,11 +624,20 @@ class RerunViewer(Scene, Listener):
             self._text_event(f"alert: {msg.get('message', msg.get('state'))}",
                              "INFO" if msg.get("cleared") else "WARN")
             return
+        if kind == "set":  # a set's result: the machine's verdict, and a line in the events
+            self._on_set(msg)
+            self._text_event(f"set {msg.get('set_id')}: {(msg.get('verdict') or {}).get('summary', '')}",
+                             "INFO" if (msg.get("verdict") or {}).get("status") == "pass" else "WARN")
+            return
         if kind not in ("config", "circle", "test", "event"):
             return  # status: nothing to draw
         self._flush(time.monotonic())  # a boundary: the samples before it are drawn and sent first
         if kind == "config":
             cfg = msg.get("config")
+            if isinstance(cfg, Mapping) and isinstance(cfg.get("plans"), Mapping) and not self._plans:
+                self._set_library(cfg["plans"], cfg.get("sets") or {})
+                if self._plans and self._sink_live:
+                    self._send_scene()
             if isinstance(cfg, Mapping) and isinstance(cfg.get("plan"), Mapping):
                 self._set_plan(cfg["plan"], cfg.get("machine"))
         elif kind in ("circle", "test"):
@@ -609,6 +702,9 @@ class RerunViewer(Scene, Listener):
             text += f" at t={t_s:.3f} s on the {'host' if self._use_host else 'device'} clock"
         if msg.get("message"):
             text += f": {msg['message']}"
+        if ev == "feed_in" and isinstance(msg.get("plan"), str) and msg["plan"] in self._library:
+            self.plan = self._library[msg["plan"]]  # recognised at the feed-in: its timing draws the live circles
+            text += f" (plan {msg['plan']})"
         if ev == "feed_in" and isinstance(idx, int) and num(msg.get("t_s")) is not None:
             self._start_test(idx, float(msg["t_s"]))
         elif ev in TEST_END_EVENTS:
@@ -682,13 +778,19 @@ class RerunViewer(Scene, Listener):
         if self.options.remove_setup and param(res, "centre_x_um") is not None:
             self._setup_result = res
         wall = time.time()
-        first = not len(self._trends)
-        row = self._trend_row(res, idx, wall, self._trends.rows()[-TREND_FIT_TESTS:]) \
+        name = (res.get("plan") or {}).get("name") if self._plans else None
+        if isinstance(name, str) and test and name not in self._plans:
+            self._add_plan(name, res)
+        ring = self._plan_trends.setdefault(name, Ring(TRENDS_KEPT, TREND_WIDTH)) if isinstance(name, str) \
+            else self._trends
+        prefix = f"plans/{name}/trends" if isinstance(name, str) else "trends"
+        first = not len(ring)
+        row = self._trend_row(res, idx, wall, ring.rows()[-TREND_FIT_TESTS:]) \
             if test and isinstance(idx, int) else None
         if row is not None:
-            self._trends.extend(row)
+            ring.extend(row)
         if test:
-            self._findings_md = findings_markdown(res, wall) + self._forecast_markdown()
+            self._findings_md = findings_markdown(res, wall) + self._forecast_markdown(ring.rows())
             self._live_status = f"test {idx} complete: {str(res.get('verdict', {}).get('status', 'done')).upper()}" \
                 if isinstance(res.get("verdict"), Mapping) else f"test {idx} complete"
         else:
@@ -697,7 +799,7 @@ class RerunViewer(Scene, Listener):
             self._set_times(wall)
             self._log_status()
             if row is not None:
-                self._send_trends(row, pad=first)
+                self._send_trends(row, first, prefix)
                 self._rescale_trends()
         # cached even without a viewer: one that connects later gets this test.  A complete test goes to the last
         # complete test's view alone: the view of the test in progress is cleared for the next
@@ -710,11 +812,12 @@ class RerunViewer(Scene, Listener):
                     self._log(f"live/{name}", rr.Clear(recursive=True))
             self._end_test()
 
-    def _forecast_markdown(self) -> str:
-        """When each limited trend crosses its limit, in words (the monitor's forecast over the kept tests)."""
+    def _forecast_markdown(self, rows: FloatArray | None = None) -> str:
+        """When each limited trend crosses its limit, in words (the monitor's forecast over the kept tests of the
+        test's plan)."""
         from ballbar.analysis.report import forecast_sentence
 
-        rows = self._trends.rows()
+        rows = self._trends.rows() if rows is None else rows
         lines = []
         for j, (_p, field, _l, _c) in enumerate(TRENDS):
             lim = rows[-1, 2 + 2 * len(TRENDS) + 2 * j] if rows.shape[0] else math.nan

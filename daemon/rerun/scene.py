@@ -46,7 +46,7 @@ from ballbar.analysis.program import data_start_deg
 
 from .blueprint import TREND_LINES, TRENDS, Blueprints, default_blueprint, trend_ranges
 from .buffers import Ring, Samples
-from .findings import headline
+from .findings import headline, set_headline, set_markdown
 from .geometry import (
     COLOURS,
     DIRECTIONS,
@@ -136,6 +136,8 @@ class TestRecord:
     findings: str
     status: str  # pass, warning, fail, none
     headline: str
+    plan: str | None = None  # the plan's name, with a library of several
+    axes: tuple[str, str] | None = None  # its plane's axes, with a library of several
 
 
 class Scene:
@@ -180,6 +182,12 @@ class Scene:
     _rate_hz: float
     _keep_every: int
     _test_index: int
+    # a library of several plans (the per-plan layout; empty: one plan, the single view): name -> its axes
+    _plans: dict[str, tuple[str, str]]
+    _plan_records: dict[str, TestRecord]  # each plan's latest test, as its view draws it
+    _plan_trends: dict[str, Ring]  # each plan's trend rows
+    _set_bar: tuple[str, str]  # the machine's verdict bar: status and text
+    _set_md: str  # the set's verdict and figures in words, the head of the findings
 
     @property
     def address(self) -> str:
@@ -292,7 +300,7 @@ class Scene:
             c.pieces, c.stale = 0, False
         self._trend_ranges = self._ranges()
         self._blueprints.new_sink()
-        self._blueprints.send(default_blueprint(self._trend_ranges))
+        self._blueprints.send(default_blueprint(self._trend_ranges, self._plans or None))
         rec.send_recording_name(self._recording_name)
         self._log_static()
         self._send_history()
@@ -313,8 +321,12 @@ class Scene:
         if self._server is not None:
             self._clients_ended = self._server.clients_ended
         steps: list[Callable[[], None]] = [functools.partial(self._send_record, r) for r in self._history]
-        if len(self._trends):
+        steps += [functools.partial(self._send_record, r, f"plans/{p}") for p, r in self._plan_records.items()]
+        if len(self._trends) and not self._plans:
             steps.append(functools.partial(self._send_trends, self._trends.rows()))
+        for p, ring in self._plan_trends.items():
+            if len(ring):
+                steps.append(functools.partial(self._send_trends, ring.rows(), True, f"plans/{p}/trends"))
         hist = self._length_history.rows()
         if hist.shape[0]:
             hist = hist[hist[:, 0] >= hist[-1, 0] - self.options.history_length_s]
@@ -330,21 +342,44 @@ class Scene:
         while self._history_steps and self._sent_bytes - start < budget:
             self._history_steps.popleft()()
 
-    def _send_record(self, r: TestRecord) -> None:
-        """A finished test in the last-complete-test view, at its own time."""
+    def _send_record(self, r: TestRecord, view: str = "polar") -> None:
+        """A finished test in the last-complete-test view (or ``view``: its plan's), at its own time."""
         rec = self._rec
         assert rec is not None
         rec.set_time("test", sequence=r.index)
         rec.set_time("time", timestamp=r.wall - 0.001)  # what the last test drew goes just before
         for name in DIRECTIONS.values():
-            self._log(f"polar/{name}", rr.Clear(recursive=True))
+            self._log(f"{view}/{name}", rr.Clear(recursive=True))
         rec.set_time("time", timestamp=r.wall)
-        self._log_scale("polar", r.scale_um)
+        self._log_scale(view, r.scale_um)
+        if r.axes is not None:  # the last test's view shows every plan's tests in turn: their axes with them
+            self._log_axis_labels(view, r.axes)
         for name, (pts, colour, width, order) in r.curves.items():
-            self._log_strip(f"polar/{name}", pts, colour, width, order)
-        self._log_verdict(r.status, r.headline)
-        self._log("findings", rr.TextDocument(r.findings, media_type=rr.MediaType.MARKDOWN), len(r.findings))
+            self._log_strip(f"{view}/{name}", pts, colour, width, order)
+        self._log_verdict(r.status, r.headline, view)
+        if view == "polar":
+            self._log_findings(r.findings)
         self._set_times()
+
+    def _log_findings(self, md: str) -> None:
+        """The findings document: with a library of plans, the set's verdict first."""
+        text = (self._set_md + md) if self._plans else md
+        self._log("findings", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), len(text))
+
+    def _log_set(self) -> None:
+        """The machine's verdict: a bar in the set's colour, the verdict in words on it (at the current time)."""
+        status, text = self._set_bar
+        self._log_bar("set/verdict", STATUS_RGB.get(status, STATUS_RGB["none"]), text)
+
+    def _on_set(self, s: Mapping[str, Any]) -> None:
+        """A set result: the machine's verdict bar and the head of the findings."""
+        self._set_bar = set_headline(s)
+        self._set_md = set_markdown(s)
+        if self._plans and self._sink_live:
+            self._set_times()
+            self._log_set()
+            if self._last is not None:
+                self._log_findings(self._last.findings)
 
     def _send_present(self, emit: bool) -> None:
         """The references, the last test and the test in progress at the current time; ``emit``: the current
@@ -352,6 +387,8 @@ class Scene:
         self._set_times()
         self._log_scale("live")
         self._log_status()
+        if self._plans:
+            self._log_set()
         if self._last is not None and not any(r is self._last for r in self._history):
             self._send_record(self._last)
         if emit:
@@ -391,9 +428,10 @@ class Scene:
         series' names, colours and widths too (with the scene and the history; every SCENE_REFRESH_S only the
         references, which another client's static data can evict: a lost style costs a colour, not a circle)."""
         self._static_mono = time.monotonic()
-        ax1, ax2 = self.plan.axes if self.plan else ("X", "Y")
         e = 1.7 * R0
-        for view in ("polar", "live"):
+        views = [("polar", None), ("live", None), *((f"plans/{p}", axes) for p, axes in self._plans.items())]
+        for view, axes in views:
+            ax1, ax2 = axes or (self.plan.axes if self.plan else ("X", "Y"))
             self._log(
                 f"{view}/reference/nominal",
                 rr.LineStrips2D([circle(R0)], colors=[COLOURS["nominal"]], radii=rr.Radius.ui_points(0.75),
@@ -407,12 +445,7 @@ class Scene:
                                 radii=rr.Radius.ui_points(0.5), draw_order=0.4),
                 static=True,
             )
-            self._log(
-                f"{view}/reference/axis_labels",
-                rr.Points2D([[e, 0.0], [0.0, -e]], labels=[f"+{ax1}", f"+{ax2}"],  # +y is down in the view
-                            colors=[COLOURS["axes"]], radii=rr.Radius.ui_points(2.0), show_labels=True),
-                static=True,
-            )
+            self._log_axis_labels(view, (ax1, ax2))
             # the scale rings sit at fixed display radii (+-1..3 divisions, whatever the division is)
             rings = [circle(ring_radius(k), 361) for k in range(-POLAR_DIVISIONS, POLAR_DIVISIONS + 1) if k]
             self._log(
@@ -424,16 +457,27 @@ class Scene:
         if not styles:
             return
         self._log("length", rr.SeriesLines(names="L (mm)", colors=[(150, 150, 150)]), static=True)
-        for path, _field, label, colour in TRENDS:
-            self._log(f"trends/{path}", rr.SeriesLines(names=label, colors=[colour], widths=1.0), static=True)
-            self._log(f"trends/{path}", rr.SeriesPoints(names=label, colors=[colour], marker_sizes=4.0), static=True)
+        prefixes = [f"plans/{p}/trends" for p in self._plans] or ["trends"]
+        for prefix, (path, _field, label, colour) in ((x, t) for x in prefixes for t in TRENDS):
+            self._log(f"{prefix}/{path}", rr.SeriesLines(names=label, colors=[colour], widths=1.0), static=True)
+            self._log(f"{prefix}/{path}", rr.SeriesPoints(names=label, colors=[colour], marker_sizes=4.0),
+                      static=True)
             for name, names, colours, widths in TREND_LINES:
-                self._log(f"trends/{path}/{name}", rr.SeriesLines(names=[f"{label} {n}" for n in names],
-                                                                  colors=list(colours), widths=list(widths)),
+                self._log(f"{prefix}/{path}/{name}", rr.SeriesLines(names=[f"{label} {n}" for n in names],
+                                                                    colors=list(colours), widths=list(widths)),
                           static=True)
                 if name == "pad":
-                    self._log(f"trends/{path}/{name}", rr.SeriesPoints(colors=list(colours), marker_sizes=[0.0]),
+                    self._log(f"{prefix}/{path}/{name}", rr.SeriesPoints(colors=list(colours), marker_sizes=[0.0]),
                               static=True)
+
+    def _log_axis_labels(self, view: str, axes: tuple[str, str]) -> None:
+        e = 1.7 * R0
+        self._log(
+            f"{view}/reference/axis_labels",
+            rr.Points2D([[e, 0.0], [0.0, -e]], labels=[f"+{axes[0]}", f"+{axes[1]}"],  # +y is down in the view
+                        colors=[COLOURS["axes"]], radii=rr.Radius.ui_points(2.0), show_labels=True),
+            static=True,
+        )
 
     def _log_scale(self, view: str, scale_um: float | None = None) -> None:
         """The scale-dependent references of ``view`` (``polar`` or ``live``): the tolerance band and the
@@ -471,10 +515,10 @@ class Scene:
             200,
         )
 
-    def _log_verdict(self, status: str, text: str) -> None:
+    def _log_verdict(self, status: str, text: str, view: str = "polar") -> None:
         """The last complete test's verdict: a bar in its colour above the plot, and the verdict in words on it
         (a label's text takes its entity's colour: white on the bar)."""
-        self._log_bar("polar/verdict", STATUS_RGB.get(status, STATUS_RGB["none"]), text)
+        self._log_bar(f"{view}/verdict", STATUS_RGB.get(status, STATUS_RGB["none"]), text)
 
     def _log_status(self) -> None:
         """What the test in progress is doing, and since when (UTC): a viewer still replaying the server's buffer
@@ -510,15 +554,25 @@ class Scene:
         peaks = [float(np.abs(dr).max()) for _u, dr, *_ in curves.values() if dr.size]
         scale = self.options.scale_um or nice_scale_um(max(peaks, default=0.0))
         status, text = headline(res)
+        plan = (res.get("plan") or {}).get("name") if self._plans else None
+        if not isinstance(plan, str):
+            plan = None
+        axes = self._plans.get(plan) if plan is not None else None
+        if plan is not None:
+            text = text.replace(" · test ", f" · {plan} test ", 1)
         record = TestRecord(
             int(idx) if isinstance(idx, int) else self._test_index, wall, scale,
             {n: (polar_points(u, dr, scale).astype(np.float32), col, w, o) for n, (u, dr, col, w, o) in curves.items()},
-            self._findings_md, status, text)
+            self._findings_md, status, text, plan, axes)
         self._last = record
         if self.options.history_tests > 0:
             self._history.append(record)
+        if record.plan is not None:
+            self._plan_records[record.plan] = record
         if self._sink_live:
             self._send_record(record)
+            if record.plan is not None:
+                self._send_record(record, f"plans/{record.plan}")
 
     # ------------------------------------------------------------------ trends
 
@@ -566,9 +620,9 @@ class Scene:
         row.append(num((verdict or {}).get("coverage_k")) or 2.0)
         return np.array([row], dtype=float)
 
-    def _lines(self) -> dict[str, tuple[float, ...]]:
+    def _lines(self, rows: FloatArray | None = None) -> dict[str, tuple[float, ...]]:
         """The limit and warning lines of the newest trend row, by field, on the side of each trend's data."""
-        rows = self._trends.rows()
+        rows = self._trends.rows() if rows is None else rows
         if not rows.shape[0]:
             return {}
         out: dict[str, tuple[float, ...]] = {}
@@ -581,6 +635,14 @@ class Scene:
 
     def _ranges(self) -> dict[str, tuple[float, float]]:
         """The trend views' y ranges (:func:`trend_ranges`) for the kept rows, their limit lines and bars."""
+        if self._plans:  # each plan's views, keyed <plan>/<origin>
+            out: dict[str, tuple[float, float]] = {}
+            for p, ring in self._plan_trends.items():
+                rows = ring.rows()
+                if rows.shape[0]:
+                    got = trend_ranges(rows, self._lines(rows), float(rows[-1, -1]))
+                    out |= {f"{p}/{k}": v for k, v in got.items()}
+            return out
         rows = self._trends.rows()
         return trend_ranges(rows, self._lines(), float(rows[-1, -1])) if rows.shape[0] else {}
 
@@ -600,9 +662,9 @@ class Scene:
 
         if any(moved(k) for k in {*new, *old}):
             self._trend_ranges = new
-            self._blueprints.send(default_blueprint(new))
+            self._blueprints.send(default_blueprint(new, self._plans or None))
 
-    def _send_trends(self, rows: FloatArray, pad: bool = True) -> None:
+    def _send_trends(self, rows: FloatArray, pad: bool = True, prefix: str = "trends") -> None:
         """Trend rows (:meth:`_trend_row`): each value with its uncertainty band (``k u``), its limit and warning
         level, and the Theil-Sen trend as it stood at each test; ``pad``: the rows start the history (a transparent
         point goes before them, so that no point sits on the plot's edge)."""
@@ -626,7 +688,7 @@ class Scene:
             if pad:
                 t0, t1 = rows[m, 1][0], rows[m, 1][-1]
                 rec.send_columns(
-                    f"trends/{path}/pad",
+                    f"{prefix}/{path}/pad",
                     indexes=[rr.TimeColumn("test", sequence=[int(rows[m, 0][0]) - 1]),
                              rr.TimeColumn("time", timestamp=[t0 - max(0.05 * (t1 - t0), 60.0)])],
                     columns=rr.Scalars.columns(scalars=[float(np.mean(vals[m]))]),
@@ -637,7 +699,7 @@ class Scene:
                 if not ok.any():
                     continue
                 rec.send_columns(
-                    f"trends/{path}{suffix}",
+                    f"{prefix}/{path}{suffix}",
                     indexes=[rr.TimeColumn("test", sequence=rows[m, 0][ok].astype(np.int64)),
                              rr.TimeColumn("time", timestamp=rows[m, 1][ok])] if not ok.all() else idx,
                     columns=rr.Scalars.columns(scalars=ys[ok]),

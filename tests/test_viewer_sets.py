@@ -1,0 +1,87 @@
+"""The live view of a library of plans and their set: each plan's latest test and trends apart, the machine's
+verdict from the set, as a real rerun process receives them (tests/setscene.py's scene)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import setscene
+from test_viewer import RERUN, Receiver, free_port, last, read_rrd, texts
+
+from ballbar.daemon.rerun import RerunViewer, ViewerOptions, default_blueprint
+from ballbar.daemon.rerun.findings import set_headline, set_markdown
+
+pytestmark = [pytest.mark.usefixtures("no_leaks"),
+              pytest.mark.skipif(RERUN is None, reason="the rerun CLI binary is not installed")]
+
+
+@pytest.fixture(scope="module")
+def scene() -> setscene.Scene:
+    return setscene.build()
+
+
+def test_each_plan_and_the_set_reach_the_viewer(scene: setscene.Scene, tmp_path: Path) -> None:
+    port = free_port()
+    rx = Receiver(tmp_path, "rx", port)
+    try:
+        v = RerunViewer(ViewerOptions(mode="connect", url=f"rerun+http://127.0.0.1:{port}/proxy", retry_s=0.1),
+                        plan=setscene.PLANS["xy"], plans=scene.config["plans"], sets=scene.config["sets"])
+        assert v.seed(scene.earlier) == len(scene.earlier) - 1  # as the daemon does, before any viewer
+        deadline = time.monotonic() + 10.0
+        while not v.connected:
+            assert time.monotonic() < deadline, "the viewer did not connect"
+            v.on_idle()
+            time.sleep(0.02)
+        for kind, x in scene.items:
+            (v.on_batch if kind == "batch" else v.on_message)(x)
+        v.on_idle()
+        assert v.stats()["errors"] == 0
+        v.stop()
+        rx.finish()
+    finally:
+        rx.close()
+    saved = read_rrd(rx.rrd)
+    for p in setscene.PLANS:  # each plan's latest test in its own view, and its trends apart
+        for entity in (f"/plans/{p}/ccw/measured", f"/plans/{p}/cw/model", f"/plans/{p}/verdict",
+                       f"/plans/{p}/trends/backlash_um/x", f"/plans/{p}/trends/backlash_um/x/limits"):
+            assert saved.rows.get(entity, 0) > 0, (entity, sorted(e for e in saved.rows if "plans" in e))
+        bar = " ".join(texts(saved, f"/plans/{p}/verdict/text", "Points2D:labels"))
+        assert f"{p} test" in bar and setscene.STATUS[p].upper() in bar, bar
+    assert not any(e.startswith("/trends/") for e in saved.rows)  # no trend mixing the planes
+    # each plan's axes on its view; the last test's view takes the axes of the plan it shows
+    assert last(saved, "/plans/zx/reference/axis_labels", "Points2D:labels") == ["+Z", "+X"]
+    assert last(saved, "/polar/reference/axis_labels", "Points2D:labels") == ["+Y", "+Z"]  # yz, the last
+    # the machine's verdict: the set's bar and the head of the findings
+    assert "FAIL · set machine: xy pass, zx fail, yz warning" in " ".join(texts(saved, "/set/verdict/text",
+                                                                                "Points2D:labels"))
+    doc = last(saved, "/findings", "TextDocument:text")
+    doc = "".join(doc) if isinstance(doc, list) else str(doc)
+    assert doc.startswith("## Machine: FAIL · set machine") and "## WARNING · test 3" in doc
+    # the trends of a plan are that plan's tests alone: ten earlier ones and today's
+    xs = [x for x in saved.columns["/plans/zx/trends/backlash_um/x"]["Scalars:scalars"] if x is not None]
+    assert len(xs) == 11, xs
+
+
+def test_the_sets_words() -> None:
+    s: dict[str, Any] = setscene.set_message({r["plan"]["name"]: r for r in setscene.earlier(
+        {n: setscene.build().results[n] for n in setscene.PLANS})[-4:-1]})
+    status, text = set_headline(s)
+    assert status == "fail" and text.startswith("FAIL · set machine: xy pass, zx fail, yz warning; 5 of 5 checks")
+    md = set_markdown(s)
+    assert "| X |" in md and "Squareness µrad: XY" in md and "geometric sphericity" in md
+    # no plan with limits, every check passed: no limits set, grey, as a test's
+    for m in s["tests"]:
+        m["verdict"] = "not_evaluated"
+    assert set_headline(s)[0] == "none"
+    s["verdict"]["trusted"] = False
+    assert set_headline(s)[0] == "fail"
+
+
+def test_the_layout_of_a_library_builds() -> None:
+    bp = default_blueprint({"xy/backlash_um": (0.0, 5.0)}, {"xy": ("X", "Y"), "zx": ("Z", "X")})
+    assert bp is not None
+    assert np.isfinite(5.0)
