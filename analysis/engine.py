@@ -538,6 +538,8 @@ class TestAnalyzer:
         except DataError as err:
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
                      "message": str(err)}]
+        except (cf.BrokenExecutor, cf.CancelledError):
+            raise  # the worker process, not the fit: collect() says so
         except Exception as err:  # a bug in the fit costs its test only, never the daemon or the next tests
             what = f"{type(err).__name__}: {err}"
             log.error("test %d: the analysis failed (%s); the test is rejected", index, what)
