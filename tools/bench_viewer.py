@@ -335,6 +335,7 @@ def measure(
     if idle:
         stream = Stream(stream.rate_hz, stream.t, np.full(stream.t.size, stream.plan.radius_mm), [], stream.plan)
     listener: Listener
+    rerun_viewer: Any = None  # the viewer's module is loaded by path: its listener's own methods are untyped here
     server_pid: Callable[[], int | None] = lambda: None  # noqa: E731
     if viewer == "null":
         listener = NullListener()
@@ -348,7 +349,7 @@ def measure(
                 raise RuntimeError(f"the viewer's server did not come up: {v.stats()}")
             v.on_idle()
             time.sleep(0.05)
-        listener = v
+        listener = rerun_viewer = v
 
         def server_pid() -> int | None:
             srv = getattr(v, "_server", None)
@@ -401,13 +402,13 @@ def measure(
            if r["server_rss_mib"] is not None]
     out["server_rss_slope_mib_per_device_h"] = slope_per([x for x, _y in srv], [y for _x, y in srv])
     if viewer != "null":
-        out["stats"] = {k: v for k, v in listener.stats().items() if k != "server"}
-        out["server"] = listener.stats().get("server")
+        out["stats"] = {k: v for k, v in rerun_viewer.stats().items() if k != "server"}
+        out["server"] = rerun_viewer.stats().get("server")
         if late_viewer:
             deadline = time.monotonic() + 15.0  # the queue calls on_idle: a history being sent in slices finishes
-            while listener.stats().get("history_pending") and time.monotonic() < deadline:
+            while rerun_viewer.stats().get("history_pending") and time.monotonic() < deadline:
                 time.sleep(0.1)
-            out["late"] = late_view(listener.address, tmp or Path(tempfile.mkdtemp()), port + 1)
+            out["late"] = late_view(rerun_viewer.address, tmp or Path(tempfile.mkdtemp()), port + 1)
     t0 = time.monotonic()
     queue.close()  # and the listener's stop()
     out["stop_s"] = time.monotonic() - t0

@@ -70,7 +70,7 @@ def random_machine(
     return MachineModel(**kw), float(rng.choice(list(rates)))
 
 
-def analyse(machine: MachineModel, fs: float, seed: int = 0, **plan: float) -> tuple[dict[str, Any], dict[str, Any]]:
+def analyse(machine: MachineModel, fs: float, seed: int = 0, **plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """The one test of a simulated recording of ``machine`` at ``fs``, and the simulation's truth."""
     test_plan = TestPlan(sample_hz=fs, **plan)
     sim = simulate(test_plan, machine, fs, seed=seed)
