@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import linalg as sla
 
+from ballbar.protocol.messages.results import Parameter
+
 from . import stats
 from .patterns import Pattern
 
@@ -104,8 +106,8 @@ class ParameterResult:
     reason: str = ""  # why it was not fitted
     significance_reason: str = ""  # why it is not significant although its F-test passed the level
 
-    def to_dict(self) -> dict[str, object]:
-        d: dict[str, object] = {
+    def to_dict(self) -> Parameter:
+        d: Parameter = {
             "value": _num(self.value),
             "stderr": _num(self.stderr),
             "unit": self.unit,

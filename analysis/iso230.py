@@ -16,9 +16,12 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+
+from ballbar.protocol.messages.results import IsoConditions
 
 from .patterns import cos_sin
 
@@ -74,7 +77,7 @@ def _hysteresis(ccw: tuple[np.ndarray, np.ndarray], cw: tuple[np.ndarray, np.nda
     return float(np.max(np.abs(diff)))
 
 
-def conditions(plan_dict: dict[str, Any], measured_feed_mm_min: float, sample_hz: float) -> dict[str, Any]:
+def conditions(plan_dict: Mapping[str, Any], measured_feed_mm_min: float, sample_hz: float) -> IsoConditions:
     """The test conditions every ISO figure is reported with."""
     return {
         "plane": plan_dict["plane"],

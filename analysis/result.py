@@ -12,7 +12,8 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from ballbar import SCHEMA_VERSION  # the payloads' version, one for all (daemon/schemas.py)
+from ballbar import SCHEMA_VERSION  # the payloads' version, one for all (ballbar.protocol.messages)
+from ballbar.protocol.messages.results import BodyCommon
 
 from .advice import advise
 from .circle import Timing
@@ -28,7 +29,7 @@ SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full
 
 def result_body(
     plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, fit: FitResult, patterns: Sequence[Pattern]
-) -> dict[str, Any]:
+) -> BodyCommon:
     from .report import parameters_dict, ranking_list
 
     params = parameters_dict(fit, patterns, machine)

@@ -149,6 +149,7 @@ from numpy.typing import NDArray
 from ballbar import __version__
 from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID, messages
+from ballbar.protocol.messages.events import LogGap
 
 from .csvfile import open_recording
 from .listeners import MERGE_S, TEST_END_EVENTS, Listener, to_json
@@ -726,6 +727,11 @@ class McapLogger(Listener):
         if name in TEST_END_EVENTS:
             self._in_test = False
 
+    def _log_gap(self, now: float) -> LogGap:
+        """The ``log_gap`` event of the write outage going on: what it cost so far."""
+        return {"event": "log_gap", "t_host": now, "count": self._fail_lost, "gap_s": round(now - self._fail_since, 3),
+                "detail": self._fail_detail}
+
     def _first_sighting(self, name: str, t_host: float, source: str) -> bool:
         """False for an event already written: a source event comes both in its batch and as the
         pipeline's message (either first); it is written once, as it came first."""
@@ -844,9 +850,7 @@ class McapLogger(Listener):
         if self._timing is not None:  # a test's file alone says how its polled samples were stamped
             self._write(TOPIC_EVENTS, {**self._timing, "repeated": True}, self._wall_ns(now))
         if self._failing:
-            gap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
-                   "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
-            self._write(TOPIC_EVENTS, gap, self._wall_ns(now))
+            self._write(TOPIC_EVENTS, self._log_gap(now), self._wall_ns(now))
         if self._held and self._file is not None:
             held = len(self._held)
             self._file.holds_held = True
@@ -974,9 +978,7 @@ class McapLogger(Listener):
         self._held.clear()
         gap = []
         if self._failing:
-            gap = [(TOPIC_EVENTS, {"event": "log_gap", "t_host": now, "count": self._fail_lost,
-                                   "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail},
-                    self._wall_ns(now))]
+            gap = [(TOPIC_EVENTS, self._log_gap(now), self._wall_ns(now))]
         kept = write_spool(self.spool_path, self.run_id, [*held, *gap], self._spool_bytes())  # the newest first
         lost = len(held) - max(0, kept - len(gap))
         self._c["messages_lost"] += lost

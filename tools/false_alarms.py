@@ -77,7 +77,7 @@ def analyse(machine: MachineModel, fs: float, seed: int = 0, **plan: Any) -> tup
     tests = [r for r in analyze_recording(sim.t_s, sim.length_mm, test_plan) if r["kind"] == "test"]
     if len(tests) != 1:
         raise AssertionError(f"{len(tests)} tests found in one simulated test")
-    return tests[0], sim.truth
+    return dict(tests[0]), sim.truth
 
 
 def false_findings(result: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:

@@ -35,6 +35,9 @@ from .samples import McapSamples, Samples
 from .sets import SetResult
 from .status import Status
 
+#: What ``ballbar.analysis`` returns as a stream goes by (``TestAnalyzer.feed``): results and test events.
+AnalysisOutput = CircleBody | TestBody | EventBody
+
 #: Every message a listener of the daemon is handed (``ballbar.daemon.listeners.Listener.on_message``).
 Message = CircleResult | TestResult | SetResult | Event | Status | ConfigMessage | Alert | Samples
 
@@ -43,6 +46,7 @@ __all__ = [
     "NAMES",
     "Alert",
     "Analysis",
+    "AnalysisOutput",
     "Body",
     "CircleBody",
     "CircleResult",

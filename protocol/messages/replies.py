@@ -5,13 +5,15 @@ from typing import Annotated, Literal, TypedDict
 from .envelope import Version
 from .fields import doc
 
+HistoryTopic = Literal["circle", "test", "set", "event", "alert"]
+
 
 class HistoryReply(TypedDict):
     """A reply of ballbar/<m>/history/<topic>."""
 
     schema_version: Version
     kind: Annotated[Literal["history"], doc("a history reply")]
-    topic: Annotated[Literal["circle", "test", "set", "event", "alert"], doc("circle, test, set, event or alert")]
+    topic: Annotated[HistoryTopic, doc("circle, test, set, event or alert")]
     machine_id: Annotated[str, doc("the daemon's machine_id")]
     count: Annotated[int, doc("results in this reply")]
     more: Annotated[bool, doc("more after the last: ask again with since = its t_wall")]

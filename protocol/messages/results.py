@@ -9,7 +9,8 @@ envelope and :class:`~.envelope.LastSample`).  Every parameter of the pattern
 library is in :class:`Parameters`, fitted or not, with its unit.
 """
 
-from typing import Annotated, Literal, NotRequired, TypedDict
+from collections.abc import Mapping
+from typing import Annotated, Literal, NotRequired, TypedDict, cast
 
 from .envelope import LastSample, MachineId, TWall, Version
 from .fields import doc
@@ -444,6 +445,19 @@ Warnings = Annotated[list[str], doc("what makes the result less trustworthy: a s
                                     "overshoot too short to reach the feed (timing model), ...")]
 
 
+class BodyCommon(TypedDict):
+    """What a circle's and a test's body share, as ``ballbar.analysis.result.result_body`` makes it."""
+
+    schema_version: Version
+    plan: ResultPlan
+    recognition: NotRequired[Recognition]
+    machine: Machine
+    parameters: Parameters
+    ranking: Ranking
+    advice: AdviceList
+    fit: Fit
+
+
 class CircleBody(TypedDict):
     """A circle's result as the analysis makes it: one direction's fit, after its data arc, on provisional timing."""
 
@@ -522,3 +536,9 @@ class Analysis(TestBody):
 
 Result = CircleResult | TestResult
 Body = CircleBody | TestBody
+
+
+def parameter_map(parameters: Parameters) -> Mapping[str, Parameter]:
+    """``parameters`` looked up by a name made at run time (every value of :class:`Parameters` is a
+    :class:`Parameter`)."""
+    return cast(Mapping[str, Parameter], parameters)
