@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import copy
 import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any, get_args, is_typeddict
 
+import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
 from schemacheck import problems, validate
@@ -219,3 +221,119 @@ def test_events_are_checked_per_kind() -> None:
     assert problems({**ok, "message": "x"})  # a lost event has no message
     assert problems({**ok, "event": "no_such_event"})
     assert problems({**ok, "schema_version": SCHEMA_VERSION - 1})
+
+
+# --------------------------------------------------------------------------- payloads the old schemas refused
+
+
+def test_a_history_alert_reply_and_its_alerts_follow_their_schemas(analyses: dict[str, dict[str, Any]],
+                                                                     tmp_path: Path) -> None:
+    """history/alert is answered like the others; its reply is a history document (topic alert)."""
+    from ballbar.analysis.monitor import settings_from_dict
+    from ballbar.daemon.bus import ZenohBus, ZenohConfig
+    from ballbar.daemon.monitor import Monitor, MonitorStore
+
+    test = {**analyses["full"], "machine_id": "m", "test_id": "m-20260101T000000Z", "t_wall": "2026-01-01T00:00:00Z"}
+    settings = settings_from_dict({"enabled": True, "parameters": {"backlash_x_um": 1.0}})
+    alerts = Monitor(settings, "m", MonitorStore(tmp_path, "m")).on_test(test)
+    assert [(a["alert"], a["state"]) for a in alerts] == [("verdict", "fail")]  # 5 um of backlash against 1 um
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    bus = ZenohBus("m", ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        for a in alerts:
+            bus.on_message(a)
+        reply = json.loads(bus.history_payload("alert"))
+    finally:
+        bus.stop()
+    validate(reply, "history")
+    assert reply["topic"] == "alert" and reply["count"] == 1
+    validate(reply["results"][0], "alert")
+
+
+def test_a_polled_gauges_per_test_files_follow_their_channels_schemas(tmp_path: Path) -> None:
+    """The timing event the MCAP log repeats at the head of each file (``repeated``) is in the mcap-event schema."""
+    from schemacheck import validate_recordings
+
+    from ballbar.daemon.config import load
+    from ballbar.daemon.mcap_log import McapLogger, read_log
+    from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
+    from ballbar.daemon.secrets import redacted
+    from ballbar.protocol.messages import ConfigMessage, stamp
+    from ballbar.protocol.messages.events import FeedIn
+    from ballbar.protocol.messages.publish import source_event
+
+    lg = McapLogger(tmp_path, "m")
+    config: ConfigMessage = {**stamp("m"), "kind": "config", "config": redacted(load(env={}).to_dict())}
+    lg.on_message(config)
+    timing = SourceEvent(EventKind.TIMING, 100.0, "serial:/dev/ttyUSB0?protocol=mitutoyo", detail="polled",
+                         values={"t_uncertainty_s": 0.004, "t_jitter_s": 0.001, "achieved_hz": 50.0})
+    k = np.arange(200)
+    for i, t0 in enumerate((100.0, 102.0)):
+        t_host = t0 + k[:100] * 0.02
+        batch = SampleBatch.from_columns(t_host, np.full(100, np.nan), np.full(100, 100.0), k[:100] + 100 * i,
+                                         np.zeros(100), (timing,) if i == 0 else (), timing.source)
+        if i == 0:  # the daemon hands each source event over as its message, then in its batch: logged once
+            lg.on_message(source_event(stamp("m"), timing.to_dict()))
+        lg.on_batch(batch)
+        feed_in: FeedIn = {**stamp("m"), "kind": "event", "event": "feed_in", "test_index": i + 1,
+                           "t_s": float(t_host[50]), "test_id": f"m-{i}", "t_host": float(t_host[-1])}
+        lg.on_message(feed_in)  # each test: a new file, which repeats the timing event at its head
+    lg.stop()
+    seen = validate_recordings(tmp_path / "recordings")
+    events = [[e["event"] for e in read_log(p).events] for p in sorted((tmp_path / "recordings").glob("*.mcap"))]
+    assert len(events) == 2 and events[1][0] == "timing", events  # the second test's file opens with it
+    assert read_log(sorted((tmp_path / "recordings").glob("*.mcap"))[1]).events[0]["repeated"] is True
+    assert seen["/ballbar/events"] == sum(map(len, events)) and seen["/ballbar/config"] == 2
+
+
+# --------------------------------------------------------------------------- every producer, in process
+
+
+def test_every_message_the_daemon_makes_follows_its_schema(tmp_path: Path) -> None:
+    """The daemon's producers as `ballbar run` wires them (source events, the analysis' results and events, the
+    config, the status, the monitor's verdict and alerts, the MCAP log's records), on a simulated test: every
+    message handed to the outputs, and every record written, follows its schema."""
+    import threading
+
+    from schemacheck import validate_all, validate_recordings
+
+    from ballbar.daemon.listeners import Listener, Message
+    from ballbar.daemon.run import build_listeners
+    from ballbar.daemon.samples import SampleBatch
+    from ballbar.daemon.service import Daemon
+    from ballbar.daemon.sources import open_source
+    from ballbar.tools.simulator import MachineModel
+
+    class Recorder(Listener):
+        name = "recorder"
+
+        def __init__(self) -> None:
+            self.messages: list[Message] = []
+
+        def on_batch(self, batch: SampleBatch) -> None:
+            pass
+
+        def on_message(self, msg: Message) -> None:
+            self.messages.append(msg)
+
+        def stop(self) -> None:
+            pass
+
+    cfg = load(None, [f'daemon.state_dir="{tmp_path}"', "zenoh.enabled=false", 'rerun.mode="off"',
+                      "daemon.analysis_worker=false", "limits.enabled=true", "limits.parameters={backlash_x_um=1.0}"],
+               env={})
+    rec = Recorder()
+    src = open_source("sim:?speedup=max&rate=100&repeat=2", machine=MachineModel(backlash_x_um=5.0))
+    d = Daemon(cfg, src, [*build_listeners(cfg), (rec, 10_000, "drop_newest")])
+    # two tests: the first's alert (pass to fail) reaches every output before the run ends
+    assert d.run(threading.Event(), max_tests=2, duration_s=120.0) == 0
+    seen = validate_all([*rec.messages, d.status()])
+    for kind in ("config", "event:opened", "event:feed_in", "event:feed_out", "circle", "test", "alert", "status"):
+        assert seen[kind] > 0, (kind, seen)
+    tests = [m for m in rec.messages if m["kind"] == "test"]
+    assert [t["verdict"]["status"] for t in tests] == ["fail", "fail"]  # the monitor's: 5 um of backlash against 1 um
+    assert "monitor" in d.status()["outputs"]
+    records = validate_recordings(tmp_path / "recordings")
+    assert records["/ballbar/results"] >= 3 and records["/ballbar/config"] >= 1
