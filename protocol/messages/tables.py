@@ -24,6 +24,13 @@ as `null`; a field marked `?` may be absent. `schema_version` changes, and with
 it the schemas' `$id` (`urn:ballbar:schema:<version>:<name>`), when a payload
 changes in a way that can break a reader (a field removed, renamed, retyped or
 given another meaning); a new optional field does not change it.
+
+In the code, a producer annotates what it builds with the message's type and
+takes the envelope from `stamp()` (`msg: Status = {**stamp(machine_id), "kind":
+"status", ...}`; an analysis output goes out through `publish.published()`), so
+that mypy checks every field; a consumer narrows on `kind` (and `event`) and
+reads the typed fields. `tests/test_schemas.py` runs the daemon's producers and
+validates what they make against these schemas.
 """
 
 WHERE = {
