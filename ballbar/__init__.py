@@ -5,8 +5,13 @@ The distribution maps the repository's top-level folders to subpackages:
 ``daemon/`` -> ``ballbar.daemon``, ``tools/`` -> ``ballbar.tools``.
 """
 
+from __future__ import annotations  # SCHEMA_VERSION's annotation is mypy's alone: nothing imports typing at start
+
 import os as _os
-from typing import Final
+
+TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing (ballbar run's first milliseconds)
+if TYPE_CHECKING:
+    from typing import Final
 
 # The fits are small dense problems on a 2-core PC beside the machine: BLAS threads only
 # contend with the sampling thread. A default, set before numpy loads; the environment wins.
