@@ -16,11 +16,12 @@ compensation is its opposite, in um/m.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
-
-from ballbar.protocol.messages.results import Advice
+from typing import TYPE_CHECKING, Any
 
 from .plan import MachineConfig, TestPlan
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import Advice
 
 CONTROLLER_PARAMS: dict[str, dict[str, str]] = {
     "fanuc": {

@@ -38,13 +38,9 @@ import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Literal, cast
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
-
-from ballbar.protocol.messages import AnalysisOutput, CircleBody, TestBody
-from ballbar.protocol.messages.events import FeedInBody, FeedOutBody, TestRejectedBody
-from ballbar.protocol.messages.results import MachineAxis
 
 from .circle import CircleFit, make_timing
 from .detect import StepEvent, TestDetector
@@ -56,6 +52,11 @@ from .plans import PlanLibrary, RecentSamples, Recognition, SignatureReading, at
 from .result import result_body
 from .testfit import DEFAULT_SPIKE_WIDTH_DEG, analyze_test, feed_accel
 from .timeaxis import Break, TimeAxis
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import AnalysisOutput, CircleBody, TestBody
+    from ballbar.protocol.messages.events import FeedInBody, FeedOutBody, TestRejectedBody
+    from ballbar.protocol.messages.results import MachineAxis
 
 log = logging.getLogger(__name__)
 
@@ -551,7 +552,7 @@ class TestAnalyzer:
                      "message": f"the analysis failed on this test ({what}): please report it with the recording"}]
         result["test_index"] = index
         # assembled field by field (analysis/testfit.py): its shape is TestBody's, which the schema tests check
-        body = cast(TestBody, result)
+        body = cast("TestBody", result)
         self._name_plan(body, rec)
         if self.multi:
             self.hints = self.plan_hints.get(self.plan_name, TimingHints())
@@ -568,7 +569,7 @@ class TestAnalyzer:
     def _name_plan(self, res: CircleBody | TestBody, rec: Recognition | None) -> None:
         """The plan's name, its axes and how it was recognised, beside the plan's keys."""
         res["plan"]["name"] = self.plan_name
-        res["plan"]["axes"] = list(cast(tuple[MachineAxis, MachineAxis], self.library.get(self.plan_name).axes))
+        res["plan"]["axes"] = list(cast("tuple[MachineAxis, MachineAxis]", self.library.get(self.plan_name).axes))
         res["recognition"] = (rec or Recognition(self.plan_name, "only")).to_dict()
 
 

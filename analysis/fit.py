@@ -24,14 +24,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import linalg as sla
 
-from ballbar.protocol.messages.results import Parameter
-
 from . import stats
 from .patterns import Pattern
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import Parameter
 
 KAPPA_MAX = 400.0
 

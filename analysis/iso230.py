@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ballbar.protocol.messages.results import IsoConditions
-
 from .patterns import cos_sin
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import IsoConditions
 
 
 def _lsc_residual(u: np.ndarray, dr: np.ndarray, trig: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:

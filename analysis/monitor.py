@@ -87,13 +87,14 @@ import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
-from typing import Any, Literal, cast
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 
-from ballbar.protocol.messages.monitor import Conditions, Forecast, HistoryEntry, LimitEntry, Status, Verdict
-
 from .errors import PlanError
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.monitor import Conditions, Forecast, HistoryEntry, LimitEntry, Status, Verdict
 
 #: Test conditions that must match for results to share a trend (the report's selection too).
 CONDITION_KEYS = ("plane", "radius_mm", "feed_mm_min", "data_arc_deg", "directions")
@@ -333,7 +334,7 @@ def conditions(result: Mapping[str, Any]) -> Conditions:
     """The test conditions that select a trend: the plan's name (:data:`DEFAULT_PLAN` where a result has
     none, as before plans were a library) and :data:`CONDITION_KEYS` (the keys of Conditions)."""
     plan = result.get("plan", {})
-    return cast(Conditions, {"plan": plan.get("name") or DEFAULT_PLAN, **{k: plan.get(k) for k in CONDITION_KEYS}})
+    return cast("Conditions", {"plan": plan.get("name") or DEFAULT_PLAN, **{k: plan.get(k) for k in CONDITION_KEYS}})
 
 
 def plan_of(result: Mapping[str, Any]) -> str:

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Literal, cast
-
-from ballbar.protocol.messages.results import Machine, ResultPlan
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 from .errors import PlanError
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import Machine, ResultPlan
 
 Plane = Literal["XY", "YZ", "ZX"]
 Directions = Literal["both", "ccw", "cw"]
@@ -94,7 +95,7 @@ class TestPlan:
     def to_dict(self) -> ResultPlan:
         # the fields of Plan (the config and result schemas' tests keep the two the same); a result adds its
         # name and axes (ResultPlan)
-        return cast(ResultPlan, asdict(self))
+        return cast("ResultPlan", asdict(self))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> TestPlan:
@@ -131,7 +132,7 @@ class MachineConfig:
             )
 
     def to_dict(self) -> Machine:
-        return cast(Machine, asdict(self))
+        return cast("Machine", asdict(self))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MachineConfig:

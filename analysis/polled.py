@@ -27,11 +27,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from typing import Any, TypeVar, cast
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
-from ballbar.protocol.messages import CircleBody, TestBody
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import CircleBody, TestBody
 
-R = TypeVar("R", bound=CircleBody | TestBody)
+R = TypeVar("R", bound="CircleBody | TestBody")
 
 Z = 2.0  # standard errors from zero a timing-dependent parameter must stay to remain a finding
 

@@ -12,15 +12,16 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
-
-from ballbar.protocol.messages.results import Parameters, RankingEntry
 
 from .fit import FitResult, ParameterResult
 from .patterns import LIBRARY, Pattern
 from .plan import MachineConfig
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import Parameters, RankingEntry
 
 
 def _why_absent(pat: Pattern, machine: MachineConfig) -> str:
@@ -64,7 +65,7 @@ def parameters_dict(fit: FitResult, patterns: Sequence[Pattern], machine: Machin
         for r in results:
             out[r.field] = r.to_dict()
     # keyed by every field of the library: the keys of Parameters (tests/test_schemas.py keeps the two the same)
-    return cast(Parameters, out)
+    return cast("Parameters", out)
 
 
 def _report_fields(pat: Pattern) -> list[tuple[str, str]]:

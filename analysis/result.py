@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ballbar import SCHEMA_VERSION  # the payloads' version, one for all (ballbar.protocol.messages)
-from ballbar.protocol.messages.results import BodyCommon
 
 from .advice import advise
 from .circle import Timing
@@ -23,6 +22,9 @@ from .patterns import Pattern
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import data_start_deg
 from .search import Theta
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import BodyCommon
 
 SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full) standard errors
 

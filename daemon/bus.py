@@ -133,20 +133,23 @@ from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zenoh
 
 from ballbar import SCHEMA_VERSION
 from ballbar.analysis.errors import BallbarError
-from ballbar.protocol.messages import HistoryReply, QueryError, Samples, stamp, to_json
-from ballbar.protocol.messages.replies import HistoryTopic
-from ballbar.protocol.messages.status import ZenohStats
+from ballbar.protocol.messages import stamp, to_json
 
 from .listeners import Listener, Message
 from .samples import SampleBatch
 from .secrets import REDACTED, is_secret_key
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import HistoryReply, QueryError, Samples
+    from ballbar.protocol.messages.replies import HistoryTopic
+    from ballbar.protocol.messages.status import ZenohStats
 
 log = logging.getLogger(__name__)
 

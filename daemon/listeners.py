@@ -47,16 +47,17 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Any, Literal, TypedDict
+from typing import TYPE_CHECKING, Any, Literal, TypeAlias, TypedDict
 
-from ballbar.protocol import messages
 from ballbar.protocol.messages import to_json as to_json  # the outputs' one encoding, where they import it from
-from ballbar.protocol.messages.status import Queue
 
 from .samples import SampleBatch
 
-log = logging.getLogger(__name__)
+if TYPE_CHECKING:
+    from ballbar.protocol import messages
+    from ballbar.protocol.messages.status import Queue
 
+log = logging.getLogger(__name__)
 
 
 class Wake(TypedDict):
@@ -75,7 +76,7 @@ class PlanChoice(TypedDict):
 
 #: What a listener is handed besides samples: one of the daemon's messages (ballbar.protocol.messages), or one
 #: of the daemon's own (:class:`Wake`, :class:`PlanChoice`).
-Message = messages.Message | Wake | PlanChoice
+Message: TypeAlias = "messages.Message | Wake | PlanChoice"
 # How often the outputs that take batches merged get them (the MCAP log, the viewer, the analysis while no
 # result can be due): four times a second, not once per 20 ms batch.
 MERGE_S = 0.25

@@ -135,7 +135,7 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 import zstandard
@@ -148,8 +148,8 @@ from numpy.typing import NDArray
 
 from ballbar import __version__
 from ballbar.analysis.errors import BallbarError, DataError
-from ballbar.protocol import INVALID, messages
-from ballbar.protocol.messages.events import LogGap
+from ballbar.protocol import INVALID
+from ballbar.protocol.messages.channels import MCAP_CHANNELS, shipped_schema
 
 from .csvfile import open_recording
 from .listeners import MERGE_S, TEST_END_EVENTS, Listener, to_json
@@ -157,6 +157,9 @@ from .listeners import Message as ListenerMessage
 from .recordings import Recording
 from .samples import SampleBatch, SourceEvent, break_reason, break_seq
 from .spool import SPOOL_NAME, empty_spool, read_spool, reserve_spool, spool_size, write_spool
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.events import LogGap
 
 log = logging.getLogger(__name__)
 
@@ -194,11 +197,11 @@ class LogConfigError(BallbarError, ValueError):
 
 # ----------------------------------------------------------------------------- schemas
 
-# The channels' schemas: generated from the message types (ballbar.protocol.messages), the files shipped in
-# ballbar/schema/.
+# The channels' schemas: the files shipped in ballbar/schema/, generated from the message types
+# (ballbar.protocol.messages; tests/test_schemas.py keeps the two the same).
 SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
-    topic: (name, messages.schema(document), description)
-    for topic, (name, document, description) in messages.MCAP_CHANNELS.items()
+    topic: (name, shipped_schema(document), description)
+    for topic, (name, document, description) in MCAP_CHANNELS.items()
 }
 
 _RESULT_KINDS = frozenset({"circle", "test"})

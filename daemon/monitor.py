@@ -42,14 +42,17 @@ import threading
 from collections.abc import Callable, Iterable, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ballbar.analysis import monitor as mon
-from ballbar.protocol.messages import Alert, Forecast, HistoryEntry, TestResult, Verdict, stamp
-from ballbar.protocol.messages.status import MonitorStats
+from ballbar.protocol.messages import stamp
 
 from .listeners import Listener, Message, to_json
 from .output import write_atomic
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import Alert, Forecast, HistoryEntry, TestResult, Verdict
+    from ballbar.protocol.messages.status import MonitorStats
 
 log = logging.getLogger(__name__)
 

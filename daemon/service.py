@@ -41,19 +41,15 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from ballbar.analysis.engine import TestAnalyzer, TimingHints
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.polled import Timing, from_events, state_span
-from ballbar.protocol.messages import AnalysisOutput, CircleResult, ConfigMessage, Settings, Status, TestResult, stamp
-from ballbar.protocol.messages.envelope import LastSample
-from ballbar.protocol.messages.events import PlanChoiceRefusedBody, PlanChosenBody, SourceEvent, TestIncomplete
-from ballbar.protocol.messages.publish import Published, published, source_event
-from ballbar.protocol.messages.results import parameter_map
-from ballbar.protocol.messages.status import AnalysisStats, Outputs, Queue, SourceState, SourceStats
+from ballbar.protocol.messages import stamp
+from ballbar.protocol.messages.publish import parameter_map, published, source_event
 
 from .analysis_worker import AnalysisWorker, freeze_long_lived, release_freed_memory
 from .config import Config
@@ -63,6 +59,13 @@ from .samples import EventKind, SampleBatch, breaks_in
 from .secrets import redacted
 from .sources import Source
 from .systemd import Notifier
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import AnalysisOutput, CircleResult, ConfigMessage, Settings, Status, TestResult
+    from ballbar.protocol.messages.envelope import LastSample
+    from ballbar.protocol.messages.events import PlanChoiceRefusedBody, PlanChosenBody, SourceEvent, TestIncomplete
+    from ballbar.protocol.messages.publish import Published
+    from ballbar.protocol.messages.status import AnalysisStats, Outputs, Queue, SourceState, SourceStats
 
 log = logging.getLogger(__name__)
 
@@ -496,14 +499,14 @@ class Daemon:
             "speedup": self.speedup,
             "source_state": self.source_state,
             "source_reason": self.source_reason,
-            "source": cast(SourceStats, src),
+            "source": cast("SourceStats", src),
             "samples": self.samples,
             "sample_rate_hz": self.rate_hz / self.speedup,  # per second of device time
             "lost_samples": self.lost,
             "queues": queues,
             # each output's own stats() under its name: the source's and the outputs' counters are theirs to
             # state (their shapes: SourceStats, McapStats, ZenohStats, RerunStats, MonitorStats)
-            "outputs": cast(Outputs, outputs),
+            "outputs": cast("Outputs", outputs),
             "analysis": analysis,
         }
 
@@ -514,7 +517,7 @@ class Daemon:
             interval = min(interval, self.notifier.watchdog_s / 2)
         # Redacted here, once: this one message is what the bus, last/config and every MCAP file get.
         config: ConfigMessage = {**stamp(self.cfg.daemon.machine_id), "kind": "config",
-                                 "config": cast(Settings, redacted(self.cfg.to_dict()))}
+                                 "config": cast("Settings", redacted(self.cfg.to_dict()))}
         self.broadcast(config)
         for msg in self.startup_messages:  # stamped as they go out
             self.broadcast({**msg, **stamp(self.cfg.daemon.machine_id), "t_host": time.monotonic()})

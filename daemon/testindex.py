@@ -29,7 +29,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,11 +37,13 @@ from ballbar.analysis.errors import BallbarError, DataError, DetectionError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
-from ballbar.protocol.messages import Analysis
-from ballbar.protocol.messages.results import AnalysisSource
 
 from .mcap_log import McapLog, mcap_files, read_log, read_logs, recording
 from .recordings import Outcome, Recording, analyze, config_sections, outcomes, recorded_library, with_source
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import Analysis
+    from ballbar.protocol.messages.results import AnalysisSource
 
 log = logging.getLogger(__name__)
 

@@ -87,6 +87,22 @@ def test_one_table_names_each_field_with_its_unit() -> None:
     assert "| `count` | integer |  | how many |" in text  # the lost event's
 
 
+def test_the_daemon_runs_without_loading_the_types() -> None:
+    """The daemon makes and sends plain dicts: the types and the generator are for mypy and the tests (its MCAP
+    channels' schemas are the shipped files, checked above)."""
+    code = ("import sys, ballbar.daemon.run, ballbar.daemon.service, ballbar.daemon.mcap_log, ballbar.daemon.bus, "
+            "ballbar.daemon.monitor, ballbar.daemon.rerun.listener, ballbar.daemon.testindex; "
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('ballbar.protocol.messages'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    loaded = set(out.split())
+    light = {f"ballbar.protocol.messages{m}" for m in ("", ".channels", ".envelope", ".fields", ".publish")}
+    assert loaded == light, loaded - light
+    # ... and every name the package exports is there when asked for (loaded then)
+    from ballbar.protocol import messages
+
+    assert all(getattr(messages, name) is not None for name in messages.__all__)
+
+
 def test_schema_version_is_the_types_literal() -> None:
     assert get_args(SchemaVersion) == (SCHEMA_VERSION,)
 

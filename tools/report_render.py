@@ -23,10 +23,9 @@ import logging
 from collections.abc import Mapping, Sequence
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ballbar.daemon.output import write_atomic
-from ballbar.protocol.messages import LimitEntry, Verdict
 
 from . import report_html as H
 from .report import ReportData
@@ -50,6 +49,9 @@ from .report_plots import (
     um_text,
 )
 from .report_plots import png as png_bytes
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import LimitEntry, Verdict
 
 log = logging.getLogger(__name__)
 

@@ -57,8 +57,6 @@ from ballbar.analysis.engine import TimingHints
 from ballbar.analysis.plan import MachineConfig, TestPlan
 from ballbar.analysis.plans import plan_of_result
 from ballbar.protocol import INVALID
-from ballbar.protocol.messages import CircleResult, PipelineEvent, TestResult
-from ballbar.protocol.messages.results import Machine, Plan
 
 from ..listeners import MERGE_S, TEST_END_EVENTS, Listener, Message
 from ..samples import EventKind, SampleBatch, SourceEvent
@@ -82,6 +80,9 @@ from .server import Prober, ServerProcess
 
 if TYPE_CHECKING:
     import rerun as rr
+
+    from ballbar.protocol.messages import CircleResult, PipelineEvent, TestResult
+    from ballbar.protocol.messages.results import Machine, Plan
 else:  # imported at first use: the configuration check and READY=1 do not wait for it (half a second)
     from ..lazy import LazyModule
 
@@ -649,7 +650,7 @@ class RerunViewer(Scene, Listener):
         elif msg["kind"] == "event":
             self._flush(time.monotonic())
             if msg.get("origin") != "source":  # source events come with their batch
-                event = cast(PipelineEvent, msg)  # the analysis' or one found at start
+                event = cast("PipelineEvent", msg)  # the analysis' or one found at start
                 self._check_clock(event)
                 self._event(event)
         # status, samples: nothing to draw

@@ -16,6 +16,7 @@ from ballbar import SCHEMA_VERSION
 
 from . import events as ev
 from . import monitor, replies, results, samples, sets, status
+from .channels import MCAP_CHANNELS as MCAP_CHANNELS  # re-exported: the channels' documents
 from .config import ConfigMessage
 from .jsonschema import Builder, Schema, document
 
@@ -140,15 +141,3 @@ def schema(name: str) -> Schema:
     """The schema ``name`` (one of :data:`NAMES`) as a fresh dict."""
     out: Schema = json.loads(schema_text(name))
     return out
-
-
-#: The MCAP channels' schemas: topic -> (schema name in the file, schema document, channel description).
-MCAP_CHANNELS: dict[str, tuple[str, str, str]] = {
-    "/ballbar/samples": ("ballbar.Samples", "mcap-samples", "ball-bar samples, delta-encoded columns; see the "
-                         "ballbar.Samples schema"),
-    "/ballbar/events": ("ballbar.Event", "mcap-event", "source, pipeline and logger events"),
-    "/ballbar/results": ("ballbar.Result", "result", "analysis results (circle, test, set)"),
-    "/ballbar/status": ("ballbar.Status", "status", "daemon status"),
-    "/ballbar/config": ("ballbar.Config", "config", "effective configuration, at start and at the head of every file"),
-    "/ballbar/other": ("ballbar.Message", "mcap-other", "other pipeline messages"),
-}

@@ -9,8 +9,7 @@ envelope and :class:`~.envelope.LastSample`).  Every parameter of the pattern
 library is in :class:`Parameters`, fitted or not, with its unit.
 """
 
-from collections.abc import Mapping
-from typing import Annotated, Literal, NotRequired, TypedDict, cast
+from typing import Annotated, Literal, NotRequired, TypedDict
 
 from .envelope import LastSample, MachineId, TWall, Version
 from .fields import doc
@@ -537,8 +536,3 @@ class Analysis(TestBody):
 Result = CircleResult | TestResult
 Body = CircleBody | TestBody
 
-
-def parameter_map(parameters: Parameters) -> Mapping[str, Parameter]:
-    """``parameters`` looked up by a name made at run time (every value of :class:`Parameters` is a
-    :class:`Parameter`)."""
-    return cast(Mapping[str, Parameter], parameters)

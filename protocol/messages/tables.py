@@ -29,8 +29,9 @@ In the code, a producer annotates what it builds with the message's type and
 takes the envelope from `stamp()` (`msg: Status = {**stamp(machine_id), "kind":
 "status", ...}`; an analysis output goes out through `publish.published()`), so
 that mypy checks every field; a consumer narrows on `kind` (and `event`) and
-reads the typed fields. `tests/test_schemas.py` runs the daemon's producers and
-validates what they make against these schemas.
+reads the typed fields. The daemon imports the types under `TYPE_CHECKING`
+only: at run time it handles plain dicts. `tests/test_schemas.py` runs the
+daemon's producers and validates what they make against these schemas.
 """
 
 WHERE = {
