@@ -15,9 +15,13 @@ compensation is its opposite, in um/m.
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from .plan import MachineConfig, TestPlan
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import Advice
 
 CONTROLLER_PARAMS: dict[str, dict[str, str]] = {
     "fanuc": {
@@ -44,7 +48,7 @@ CONTROLLER_PARAMS: dict[str, dict[str, str]] = {
 }
 
 
-def _value(params: dict[str, Any], key: str) -> float | None:
+def _value(params: Mapping[str, Any], key: str) -> float | None:
     p = params.get(key)
     if not p or p.get("value") is None or not p.get("significant"):
         return None
@@ -55,13 +59,14 @@ def _name(machine: MachineConfig, what: str) -> str | None:
     return CONTROLLER_PARAMS.get(machine.controller, {}).get(what)
 
 
-def advise(params: dict[str, Any], plan: TestPlan, machine: MachineConfig) -> list[dict[str, Any]]:
-    """Suggested adjustments for the significant patterns, largest effect first."""
+def advise(params: Mapping[str, Any], plan: TestPlan, machine: MachineConfig) -> list[Advice]:
+    """Suggested adjustments for the significant patterns, largest effect first (``params``: a result's
+    :class:`~ballbar.protocol.messages.results.Parameters`, looked up by name)."""
     ax1, ax2 = plan.axes
-    out: list[dict[str, Any]] = []
+    out: list[Advice] = []
 
     def add(pattern: str, kind: str, text: str, value: float | None, unit: str, what: str | None = None) -> None:
-        item: dict[str, Any] = {"pattern": pattern, "kind": kind, "action": text, "value": value, "unit": unit}
+        item: Advice = {"pattern": pattern, "kind": kind, "action": text, "value": value, "unit": unit}
         cp = _name(machine, what) if what else None
         if cp:
             item["controller_parameter"] = cp

@@ -36,9 +36,9 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 
@@ -52,6 +52,11 @@ from .plans import PlanLibrary, RecentSamples, Recognition, SignatureReading, at
 from .result import result_body
 from .testfit import DEFAULT_SPIKE_WIDTH_DEG, analyze_test, feed_accel
 from .timeaxis import Break, TimeAxis
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import AnalysisOutput, CircleBody, TestBody
+    from ballbar.protocol.messages.events import FeedInBody, FeedOutBody, TestRejectedBody
+    from ballbar.protocol.messages.results import MachineAxis
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +76,7 @@ class TimingHints:
     spike_width_deg: float = DEFAULT_SPIKE_WIDTH_DEG
 
     @classmethod
-    def learnt(cls, timing: dict[str, Any], before: TimingHints | None = None) -> TimingHints | None:
+    def learnt(cls, timing: Mapping[str, Any], before: TimingHints | None = None) -> TimingHints | None:
         """The hints a test result's ``timing`` teaches, or None where they are implausible.
 
         Implausible: a feed ratio more than ``HINT_MAX_FEED_DEVIATION`` from 1, or
@@ -193,7 +198,7 @@ class TestAnalyzer:
         self._breaks: list[Break] = []
         self.last_t = float("nan")
 
-    def feed(self, t: np.ndarray, L: np.ndarray, borrow: bool = False) -> list[dict[str, Any]]:
+    def feed(self, t: np.ndarray, L: np.ndarray, borrow: bool = False) -> list[AnalysisOutput]:
         """Take the next samples (times in seconds, any origin; lengths in mm).
 
         Raises :class:`DataError` for a non-finite value and
@@ -210,7 +215,7 @@ class TestAnalyzer:
         if self._recent is not None and t.size > 1 and t[-1] - t[0] > RECENT_PIECE_S:
             # in pieces: the samples before each feed-in must still be at hand when it is found
             cuts = np.searchsorted(t, np.arange(t[0] + RECENT_PIECE_S, t[-1], RECENT_PIECE_S)).tolist()
-            out: list[dict[str, Any]] = []
+            out: list[AnalysisOutput] = []
             for a, b in zip([0, *cuts], [*cuts, t.size], strict=True):
                 if b > a:
                     out.extend(self.feed(t[a:b], L[a:b], borrow))
@@ -244,7 +249,7 @@ class TestAnalyzer:
         """
         self.axis.mark(reason)
 
-    def abort(self, reason: str) -> list[dict[str, Any]]:
+    def abort(self, reason: str) -> list[AnalysisOutput]:
         """The stream cannot go on as it is (the caller starts afresh): the result of the test in the
         background, if any; reject the test in progress, if any."""
         out = self.collect(wait=True)
@@ -254,7 +259,7 @@ class TestAnalyzer:
         return [*out, self._reject(self.last_t, None, f"{reason}, {self.last_t - fi.t_s:.1f} s after the feed-in at "
                              f"t={fi.t_s:.3f} s: the test in progress is abandoned")]
 
-    def finish(self) -> list[dict[str, Any]]:
+    def finish(self) -> list[AnalysisOutput]:
         """End of the stream: settle the last step; the last result; report a test left unfinished."""
         self.detector.finish()
         out = self._drain()
@@ -286,7 +291,7 @@ class TestAnalyzer:
         """A test's fit is running in the background."""
         return self._pending is not None
 
-    def collect(self, wait: bool = False, timeout: float | None = None) -> list[dict[str, Any]]:
+    def collect(self, wait: bool = False, timeout: float | None = None) -> list[AnalysisOutput]:
         """The result of the test analysed in the background, once its fit is done (``wait``: wait for it, up
         to ``timeout``); ``[]`` while it runs, or when there is none.  A fit that raised is raised here; a child
         process that died rejects its test."""
@@ -307,7 +312,7 @@ class TestAnalyzer:
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
                      "message": f"the process analysing the test {why}; ballbar analyze of its recording gives it"}]
 
-    def _drain(self) -> list[dict[str, Any]]:
+    def _drain(self) -> list[AnalysisOutput]:
         out = self.collect()
         while True:
             ev = self.detector.poll()
@@ -320,7 +325,7 @@ class TestAnalyzer:
             if ev.kind == "feed_in":
                 out.extend(self.collect(wait=True))  # its hints are the next test's
                 self._start(ev)
-                event = _event(ev, self.test_index)
+                event = _feed_in(ev, self.test_index)
                 if self.multi:  # the plan where the feed-in tells it (a signature, a choice), else null
                     event["plan"] = self._early.name if self._early is not None else None
                 out.append(event)
@@ -352,7 +357,7 @@ class TestAnalyzer:
         """The first break between the samples at ``t0`` and ``t1`` (a test's first and last step sample)."""
         return next((b for b in self._breaks if b.t_after > t0 and b.t_before < t1), None)
 
-    def _break_rejection(self, brk: Break) -> dict[str, Any]:
+    def _break_rejection(self, brk: Break) -> TestRejectedBody:
         assert self._fi is not None
         fi = self._fi
         where = ("during the feed-in" if brk.t_after <= fi.t_end_s
@@ -363,11 +368,11 @@ class TestAnalyzer:
             "cannot be trusted; run it again",
         )
 
-    def _reject(self, t_s: float, gap_s: float | None, message: str) -> dict[str, Any]:
+    def _reject(self, t_s: float, gap_s: float | None, message: str) -> TestRejectedBody:
         self._rejected = True
         self._circles = []
         log.info("test %d rejected: %s", self.test_index, message)
-        ev: dict[str, Any] = {"kind": "event", "event": "test_rejected", "test_index": self.test_index,
+        ev: TestRejectedBody = {"kind": "event", "event": "test_rejected", "test_index": self.test_index,
                               "t_s": t_s, "message": message}
         if gap_s is not None:
             ev["gap_s"] = gap_s
@@ -444,7 +449,7 @@ class TestAnalyzer:
         self._emitted = set()
         self._added = 0
 
-    def _advance(self, final: bool) -> list[dict[str, Any]]:
+    def _advance(self, final: bool) -> list[AnalysisOutput]:
         """Fold new samples into the running circles, ``FOLD_SAMPLES`` at a time or as a circle completes;
         emit the circles now complete."""
         tb, Lb = self.detector.samples()
@@ -457,7 +462,7 @@ class TestAnalyzer:
             for c in self._circles:
                 c.add(t_new, L_new)
             self._added = tb.size
-        out = []
+        out: list[AnalysisOutput] = []
         for c in self._circles:
             if c.d in self._emitted or (t_last < c.t_end and not final):
                 continue
@@ -474,14 +479,13 @@ class TestAnalyzer:
             out.append(self._circle_result(c, fit))
         return out
 
-    def _circle_result(self, c: CircleFit, fit: FitResult) -> dict[str, Any]:
-        res = result_body(self.plan, self.machine, self.options, fit, c.patterns)
-        self._name_plan(res, self._early)
-        res.update(
-            kind="circle",
-            direction="ccw" if c.d > 0 else "cw",
-            test_index=self.test_index,
-            timing={
+    def _circle_result(self, c: CircleFit, fit: FitResult) -> CircleBody:
+        res: CircleBody = {
+            **result_body(self.plan, self.machine, self.options, fit, c.patterns),
+            "kind": "circle",
+            "direction": "ccw" if c.d > 0 else "cw",
+            "test_index": self.test_index,
+            "timing": {
                 "provisional": True,
                 "feed_in_s": c.timing.t_ref,
                 "assumed_feed_mm_min": c.timing.feed_mm_s * 60.0,
@@ -490,11 +494,12 @@ class TestAnalyzer:
                 "data_end_s": c.t_end,
                 "spike_width_deg": math.degrees(c.w),
             },
-            residual_rms_um=math.sqrt(fit.sse / max(fit.n, 1)),
-        )
+            "residual_rms_um": math.sqrt(fit.sse / max(fit.n, 1)),
+        }
+        self._name_plan(res, self._early)
         return res
 
-    def _finish_test(self, fo: StepEvent) -> list[dict[str, Any]]:
+    def _finish_test(self, fo: StepEvent) -> list[AnalysisOutput]:
         assert self._fi is not None
         fi, self._fi = self._fi, None
         if self.only is not None and self.test_index != self.only:
@@ -506,7 +511,8 @@ class TestAnalyzer:
             if rec.name is None:
                 log.info("test %d not recognised: %s", self.test_index, rec.message)
                 return [{"kind": "event", "event": "test_unrecognised", "test_index": self.test_index,
-                         "t_s": fo.t_s, "reason": rec.reason, "candidates": list(rec.candidates),
+                         "t_s": fo.t_s, "reason": cast(Literal["no_match", "ambiguous"], rec.reason),
+                         "candidates": list(rec.candidates),
                          "signature": rec.signature, "message": rec.message}]
             log.debug("test %d recognised as %s by %s", self.test_index, rec.name, rec.method)
             if self._early is None or rec.name != self._early.name:
@@ -531,7 +537,7 @@ class TestAnalyzer:
         return []
 
     def _settle(self, index: int, fo: StepEvent, fit: Callable[[], dict[str, Any]], rec: Recognition | None = None,
-                ) -> list[dict[str, Any]]:
+                ) -> list[AnalysisOutput]:
         """A test's fit, done: its result, and the hints it teaches; or its rejection."""
         try:
             result = fit()
@@ -547,23 +553,25 @@ class TestAnalyzer:
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
                      "message": f"the analysis failed on this test ({what}): please report it with the recording"}]
         result["test_index"] = index
-        self._name_plan(result, rec)
+        # assembled field by field (analysis/testfit.py): its shape is TestBody's, which the schema tests check
+        body = cast("TestBody", result)
+        self._name_plan(body, rec)
         if self.multi:
             self.hints = self.plan_hints.get(self.plan_name, TimingHints())
-        hints = TimingHints.learnt(result["timing"], self.hints)
+        hints = TimingHints.learnt(body["timing"], self.hints)
         if hints is None:
             log.warning("test %d: a measured feed of %.1f mm/min (programmed %g) is no timing hint for the next "
-                        "test's provisional circles", index, result["timing"]["measured_feed_mm_min"],
+                        "test's provisional circles", index, body["timing"]["measured_feed_mm_min"],
                         self.plan.feed_mm_min)
         else:
             self.hints = hints
             self.plan_hints[self.plan_name] = hints
-        return [result]
+        return [body]
 
-    def _name_plan(self, res: dict[str, Any], rec: Recognition | None) -> None:
+    def _name_plan(self, res: CircleBody | TestBody, rec: Recognition | None) -> None:
         """The plan's name, its axes and how it was recognised, beside the plan's keys."""
         res["plan"]["name"] = self.plan_name
-        res["plan"]["axes"] = list(self.library.get(self.plan_name).axes)
+        res["plan"]["axes"] = list(cast("tuple[MachineAxis, MachineAxis]", self.library.get(self.plan_name).axes))
         res["recognition"] = (rec or Recognition(self.plan_name, "only")).to_dict()
 
 
@@ -574,10 +582,17 @@ def _moved(ev: StepEvent, offset_mm: float) -> StepEvent:
     return replace(ev, level_before_mm=ev.level_before_mm + offset_mm, level_after_mm=ev.level_after_mm + offset_mm)
 
 
-def _event(ev: StepEvent, test_index: int) -> dict[str, Any]:
+def _feed_in(ev: StepEvent, test_index: int) -> FeedInBody:
+    return {"kind": "event", "event": "feed_in", "test_index": test_index, "t_s": ev.t_s, "height_mm": ev.height_mm,
+            "method": ev.method}
+
+
+def _event(ev: StepEvent, test_index: int) -> FeedInBody | FeedOutBody:
+    if ev.kind == "feed_in":
+        return _feed_in(ev, test_index)
     return {
         "kind": "event",
-        "event": ev.kind,
+        "event": "feed_out",
         "test_index": test_index,
         "t_s": ev.t_s,
         "height_mm": ev.height_mm,
@@ -601,7 +616,7 @@ def analyze_recording(
     only: int | None = None,
     library: PlanLibrary | None = None,
     chosen: str | None = None,
-) -> list[dict[str, Any]]:
+) -> list[AnalysisOutput]:
     """Everything :class:`TestAnalyzer` reports on a whole recording, in order.
 
     ``library``: the plans its tests may run (see :class:`TestAnalyzer`);
@@ -622,7 +637,7 @@ def analyze_recording(
     if chosen is not None and an.multi:
         an.choose(chosen, every_test=True)
     plan = an.plan
-    out: list[dict[str, Any]] = []
+    out: list[AnalysisOutput] = []
     i = 0
     for j, reason in sorted(breaks, key=lambda b: b[0]):
         j = min(max(int(j), i), t.size)

@@ -24,12 +24,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import linalg as sla
 
 from . import stats
 from .patterns import Pattern
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import Parameter
 
 KAPPA_MAX = 400.0
 
@@ -104,8 +108,8 @@ class ParameterResult:
     reason: str = ""  # why it was not fitted
     significance_reason: str = ""  # why it is not significant although its F-test passed the level
 
-    def to_dict(self) -> dict[str, object]:
-        d: dict[str, object] = {
+    def to_dict(self) -> Parameter:
+        d: Parameter = {
             "value": _num(self.value),
             "stderr": _num(self.stderr),
             "unit": self.unit,

@@ -16,11 +16,15 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .patterns import cos_sin
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import IsoConditions
 
 
 def _lsc_residual(u: np.ndarray, dr: np.ndarray, trig: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
@@ -74,7 +78,7 @@ def _hysteresis(ccw: tuple[np.ndarray, np.ndarray], cw: tuple[np.ndarray, np.nda
     return float(np.max(np.abs(diff)))
 
 
-def conditions(plan_dict: dict[str, Any], measured_feed_mm_min: float, sample_hz: float) -> dict[str, Any]:
+def conditions(plan_dict: Mapping[str, Any], measured_feed_mm_min: float, sample_hz: float) -> IsoConditions:
     """The test conditions every ISO figure is reported with."""
     return {
         "plane": plan_dict["plane"],

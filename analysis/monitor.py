@@ -87,11 +87,14 @@ import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 
 from .errors import PlanError
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.monitor import Conditions, Forecast, HistoryEntry, LimitEntry, Status, Verdict
 
 #: Test conditions that must match for results to share a trend (the report's selection too).
 CONDITION_KEYS = ("plane", "radius_mm", "feed_mm_min", "data_arc_deg", "directions")
@@ -255,45 +258,51 @@ def quantity(result: Mapping[str, Any], lim: Limit, name: str) -> tuple[float | 
     return float(v), u, None
 
 
-def evaluate(result: Mapping[str, Any], settings: MonitorSettings) -> dict[str, Any]:
-    """The test's verdict against the limits (see the module docstring): a JSON-ready dict."""
+def evaluate(result: Mapping[str, Any], settings: MonitorSettings) -> Verdict:
+    """The test's verdict against the limits (see the module docstring)."""
     k = settings.coverage_k
-    entries = []
+    entries: list[LimitEntry] = []
     for lim, name in settings.quantities():
         v, u, why = quantity(result, lim, name)
-        e: dict[str, Any] = {"name": name, "limit_name": lim.name, "group": lim.group, "limit": lim.bound,
-                             "warn_fraction": lim.warn_fraction, "warning_level": lim.warning_level,
-                             "unit": _unit(result, lim, name)}
+        group = cast(Literal["parameters", "iso230_4"], lim.group)
         if v is None or u is None:
-            e.update(status="not_evaluated", value=None, stderr=None, uncertainty=None, margin=None,
-                     within_uncertainty=False, reason=why)
-            entries.append(e)
+            entries.append({
+                "name": name, "limit_name": lim.name, "group": group, "limit": lim.bound,
+                "warn_fraction": lim.warn_fraction, "warning_level": lim.warning_level,
+                "unit": _unit(result, lim, name), "status": "not_evaluated", "value": None, "stderr": None,
+                "uncertainty": None, "margin": None, "within_uncertainty": False, "reason": why,
+            })
             continue
         x, U = abs(v), k * u
         margin = lim.bound - x
         within = abs(margin) <= U
+        status: Status
         if margin < -U:
             status = "fail"
         elif within or x > lim.warning_level:
             status = "warning"
         else:
             status = "pass"
-        e.update(status=status, value=v, stderr=u, uncertainty=U, margin=margin,
-                 margin_pct=100.0 * margin / lim.bound, within_uncertainty=within)
+        e: LimitEntry = {
+            "name": name, "limit_name": lim.name, "group": group, "limit": lim.bound,
+            "warn_fraction": lim.warn_fraction, "warning_level": lim.warning_level, "unit": _unit(result, lim, name),
+            "status": status, "value": v, "stderr": u, "uncertainty": U, "margin": margin,
+            "margin_pct": 100.0 * margin / lim.bound, "within_uncertainty": within,
+        }
         if within:
             e["note"] = "within uncertainty of the limit"
         entries.append(e)
-    evaluated = [e["status"] for e in entries if e["status"] in _RANK]
-    status = max(evaluated, key=lambda s: _RANK[s]) if evaluated else "pass"
+    evaluated: list[Status] = [e["status"] for e in entries if e["status"] != "not_evaluated"]
+    worst: Status = max(evaluated, key=lambda s: _RANK[s]) if evaluated else "pass"
     return {
-        "status": status,
+        "status": worst,
         "coverage_k": k,
         "rule": (f"fail: |value| - {k:g} u > limit (exceeded beyond its uncertainty, k = {k:g}); warning: within "
                  f"{k:g} u of the limit, or |value| above the warning level; u: the standard uncertainty"),
         "uncertainty": f"parameters: the fit's standard error; {ISO_UNCERTAINTY}",
         "limits": entries,
         "not_evaluated": sum(e["status"] == "not_evaluated" for e in entries),
-        "summary": verdict_text(status, entries),
+        "summary": verdict_text(worst, entries),
     }
 
 
@@ -321,11 +330,11 @@ def verdict_text(status: str, entries: Sequence[Mapping[str, Any]]) -> str:
 # --------------------------------------------------------------------------- trend history
 
 
-def conditions(result: Mapping[str, Any]) -> dict[str, Any]:
+def conditions(result: Mapping[str, Any]) -> Conditions:
     """The test conditions that select a trend: the plan's name (:data:`DEFAULT_PLAN` where a result has
-    none, as before plans were a library) and :data:`CONDITION_KEYS`."""
+    none, as before plans were a library) and :data:`CONDITION_KEYS` (the keys of Conditions)."""
     plan = result.get("plan", {})
-    return {"plan": plan.get("name") or DEFAULT_PLAN, **{k: plan.get(k) for k in CONDITION_KEYS}}
+    return cast("Conditions", {"plan": plan.get("name") or DEFAULT_PLAN, **{k: plan.get(k) for k in CONDITION_KEYS}})
 
 
 def plan_of(result: Mapping[str, Any]) -> str:
@@ -355,9 +364,9 @@ def validity(result: Mapping[str, Any]) -> str | None:
     return None
 
 
-def history_entry(result: Mapping[str, Any], verdict: Mapping[str, Any] | None, t_wall: str) -> dict[str, Any]:
+def history_entry(result: Mapping[str, Any], verdict: Mapping[str, Any] | None, t_wall: str) -> HistoryEntry:
     """What the trend keeps of one test: identity, time, conditions, validity and each limited value."""
-    values = {}
+    values: dict[str, list[float | None]] = {}
     for e in (verdict or {}).get("limits", []):
         if e.get("value") is not None:
             values[e["name"]] = [e["value"], e["stderr"]]
@@ -502,14 +511,14 @@ def bootstrap_crossings(t: np.ndarray, y: np.ndarray, bound: float, direction: i
 
 
 def forecast(pts: Sequence[tuple[datetime, float, float, str]], lim: Limit, name: str, settings: MonitorSettings,
-             ) -> dict[str, Any]:
+             ) -> Forecast:
     """The trend of one limited quantity and where it crosses its limit: a JSON-ready dict.
 
     ``due``: whether the forecast alerts (module docstring); ``reason`` says why
     not.  Times: ``crossing`` (ISO UTC) with ``crossing_lo`` and ``crossing_hi``
     (null: never, within what the data say), and in days after the last test.
     """
-    out: dict[str, Any] = {"name": name, "limit_name": lim.name, "limit": lim.bound, "n": len(pts),
+    out: Forecast = {"name": name, "limit_name": lim.name, "limit": lim.bound, "n": len(pts),
                            "min_tests": settings.min_tests, "horizon_days": settings.horizon_days,
                            "confidence": settings.confidence, "method": (
                                "Theil-Sen slope with Sen's interval; crossing interval from a bootstrap of the tests"),
@@ -522,8 +531,9 @@ def forecast(pts: Sequence[tuple[datetime, float, float, str]], lim: Limit, name
     y = np.array([p[1] for p in pts])
     tr = theil_sen(t, y, settings.confidence)
     last = float(t[-1])
-    out.update(slope_per_day=tr.slope, slope_lo=tr.slope_lo, slope_hi=tr.slope_hi, significant=tr.significant,
-               value_now=tr.at(last), first=time_text(t0), last=time_text(pts[-1][0]))
+    out.update({"slope_per_day": tr.slope, "slope_lo": tr.slope_lo, "slope_hi": tr.slope_hi,
+                "significant": tr.significant, "value_now": tr.at(last), "first": time_text(t0),
+                "last": time_text(pts[-1][0])})
     direction = 1 if tr.slope > 0 else -1
     tc = crossing_days(tr, lim.bound) if tr.slope != 0 else math.inf
     boot = bootstrap_crossings(t, y, lim.bound, direction)
@@ -534,10 +544,10 @@ def forecast(pts: Sequence[tuple[datetime, float, float, str]], lim: Limit, name
     def when(d: float) -> str | None:
         return time_text(t0 + timedelta(days=d)) if math.isfinite(d) and abs(d) < 36500.0 else None
 
-    out.update(bound=direction * lim.bound, crossing=when(tc), crossing_lo=when(lo), crossing_hi=when(hi),
-               days_to_crossing=(tc - last) if math.isfinite(tc) else None,
-               days_to_crossing_lo=(lo - last) if math.isfinite(lo) else None,
-               days_to_crossing_hi=(hi - last) if math.isfinite(hi) else None)
+    out.update({"bound": direction * lim.bound, "crossing": when(tc), "crossing_lo": when(lo),
+                "crossing_hi": when(hi), "days_to_crossing": (tc - last) if math.isfinite(tc) else None,
+                "days_to_crossing_lo": (lo - last) if math.isfinite(lo) else None,
+                "days_to_crossing_hi": (hi - last) if math.isfinite(hi) else None})
     if len(pts) < settings.min_tests:
         out["reason"] = f"{len(pts)} valid tests under these conditions, fewer than min_tests = {settings.min_tests}"
     elif not tr.significant:

@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 from .errors import PlanError
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import Machine, ResultPlan
 
 Plane = Literal["XY", "YZ", "ZX"]
 Directions = Literal["both", "ccw", "cw"]
@@ -89,8 +92,10 @@ class TestPlan:
         """Directions in the order the program runs them: +1 CCW, -1 CW."""
         return {"both": (1, -1), "ccw": (1,), "cw": (-1,)}[self.directions]
 
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+    def to_dict(self) -> ResultPlan:
+        # the fields of Plan (the config and result schemas' tests keep the two the same); a result adds its
+        # name and axes (ResultPlan)
+        return cast("ResultPlan", asdict(self))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> TestPlan:
@@ -126,8 +131,8 @@ class MachineConfig:
                 f"controller must be generic, fanuc, siemens or heidenhain, not {self.controller!r}"
             )
 
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+    def to_dict(self) -> Machine:
+        return cast("Machine", asdict(self))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MachineConfig:

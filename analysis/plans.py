@@ -53,13 +53,16 @@ import re
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import numpy as np
 
 from .errors import PlanError
 from .plan import PLANE_AXES, TestPlan
 from .program import Move, arc_start_deg, feed_from_span, schedule
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import results
 
 # --------------------------------------------------------------------------- the signature
 #
@@ -367,8 +370,9 @@ class Recognition:
     reason: str = ""
     message: str = ""
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"method": self.method, "signature": self.signature, "feed_ratio": self.feed_ratio,
+    def to_dict(self) -> results.Recognition:
+        """As a result states it (a recognised test's: ``method`` is set)."""
+        return {"method": cast("Method", self.method), "signature": self.signature, "feed_ratio": self.feed_ratio,
                 "candidates": list(self.candidates), "message": self.message}
 
 

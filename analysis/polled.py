@@ -27,7 +27,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar, cast
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import CircleBody, TestBody
+
+R = TypeVar("R", bound="CircleBody | TestBody")
 
 Z = 2.0  # standard errors from zero a timing-dependent parameter must stay to remain a finding
 
@@ -66,9 +71,9 @@ def for_span(timings: Iterable[Timing], t0: float | None, t1: float | None) -> t
     return max(e[1] for e in chosen), max(e[2] for e in chosen)
 
 
-def state_span(result: dict[str, Any], timings: Iterable[Timing]) -> dict[str, Any]:
+def state_span(result: R, timings: Iterable[Timing]) -> R:
     """:func:`state_timing` with the figures :func:`for_span` gives for the result's feed-in to feed-out."""
-    timing = result.get("timing")
+    timing = cast(Mapping[str, Any], result).get("timing")
     if not isinstance(timing, dict):
         return result
     t0, t1 = timing.get("feed_in_s"), timing.get("feed_out_s")
@@ -76,12 +81,17 @@ def state_span(result: dict[str, Any], timings: Iterable[Timing]) -> dict[str, A
     return result if got is None else state_timing(result, *got)
 
 
-def state_timing(result: dict[str, Any], t_uncertainty_s: float, t_jitter_s: float) -> dict[str, Any]:
-    """``result`` (a circle's or test's, changed in place and returned) with polled stamps' cost counted."""
+def state_timing(body: R, t_uncertainty_s: float, t_jitter_s: float) -> R:
+    """``body`` (a circle's or test's result, changed in place and returned) with polled stamps' cost counted."""
+    _state_timing(cast(dict[str, Any], body), t_uncertainty_s, t_jitter_s)
+    return body
+
+
+def _state_timing(result: dict[str, Any], t_uncertainty_s: float, t_jitter_s: float) -> None:
     timing = result.get("timing")
     params = result.get("parameters")
     if not isinstance(timing, dict) or not isinstance(params, dict):
-        return result
+        return
     timing["time_source"] = "host clock, polled: each reading stamped at the middle of its request/answer window"
     timing["t_uncertainty_ms"] = 1e3 * t_uncertainty_s
     timing["t_jitter_ms"] = 1e3 * t_jitter_s
@@ -125,7 +135,6 @@ def state_timing(result: dict[str, Any], t_uncertainty_s: float, t_jitter_s: flo
             "; polled stamps: the arc start's lag widened by their uncertainty, the servo mismatch and the spikes' "
             "width by their jitter"
         )
-    return result
 
 
 def _radius(result: Mapping[str, Any]) -> float | None:

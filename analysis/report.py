@@ -12,13 +12,16 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from .fit import FitResult, ParameterResult
 from .patterns import LIBRARY, Pattern
 from .plan import MachineConfig
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import Parameters, RankingEntry
 
 
 def _why_absent(pat: Pattern, machine: MachineConfig) -> str:
@@ -31,7 +34,7 @@ def _why_absent(pat: Pattern, machine: MachineConfig) -> str:
     return "not in the selected patterns"
 
 
-def parameters_dict(fit: FitResult, patterns: Sequence[Pattern], machine: MachineConfig) -> dict[str, Any]:
+def parameters_dict(fit: FitResult, patterns: Sequence[Pattern], machine: MachineConfig) -> Parameters:
     fitted = {p.name: i for i, p in enumerate(fit.patterns)}
     slices = fit.column_slices()
     out: dict[str, Any] = {}
@@ -61,7 +64,8 @@ def parameters_dict(fit: FitResult, patterns: Sequence[Pattern], machine: Machin
                 r.significance_reason = term.reason if term else ""
         for r in results:
             out[r.field] = r.to_dict()
-    return out
+    # keyed by every field of the library: the keys of Parameters (tests/test_schemas.py keeps the two the same)
+    return cast("Parameters", out)
 
 
 def _report_fields(pat: Pattern) -> list[tuple[str, str]]:
@@ -90,20 +94,15 @@ def _cyclic(
     ]
 
 
-def ranking_list(fit: FitResult) -> list[dict[str, Any]]:
-    terms = sorted(fit.terms.values(), key=lambda t: -t.ssr)
-    return [
-        {
-            "pattern": t.pattern,
-            "share_pct": t.share_pct,
-            "F": t.F if math.isfinite(t.F) else None,
-            "p_value": t.p_value,
-            "significant": t.significant,
-            "effect_um": t.effect_um,
-            **({"significance_reason": t.reason} if t.reason else {}),
-        }
-        for t in terms
-    ]
+def ranking_list(fit: FitResult) -> list[RankingEntry]:
+    out: list[RankingEntry] = []
+    for t in sorted(fit.terms.values(), key=lambda t: -t.ssr):
+        entry: RankingEntry = {"pattern": t.pattern, "share_pct": t.share_pct, "F": t.F if math.isfinite(t.F) else None,
+                               "p_value": t.p_value, "significant": t.significant, "effect_um": t.effect_um}
+        if t.reason:
+            entry["significance_reason"] = t.reason
+        out.append(entry)
+    return out
 
 
 def _fmt(v: Any, nd: int = 3) -> str:
@@ -114,7 +113,7 @@ def _fmt(v: Any, nd: int = 3) -> str:
     return str(v)
 
 
-def summary(result: dict[str, Any]) -> str:
+def summary(result: Mapping[str, Any]) -> str:
     """A readable multi-line summary of a test result."""
     plan = result["plan"]
     tm = result.get("timing", {})
@@ -176,7 +175,7 @@ def summary(result: dict[str, Any]) -> str:
 SETUP_PATTERNS = ("centre", "radius")  # set-up terms, not machine findings
 
 
-def headline(result: dict[str, Any], findings: int = 3) -> dict[str, Any]:
+def headline(result: Mapping[str, Any], findings: int = 3) -> dict[str, Any]:
     """A test result's headline: ``G_b_um``, ``measured_feed_mm_min`` and its strongest significant findings.
 
     ``findings``: up to that many ``{"parameter", "value", "unit"}`` of the

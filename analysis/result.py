@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from ballbar import SCHEMA_VERSION  # the payloads' version, one for all (daemon/schemas.py)
+from ballbar import SCHEMA_VERSION  # the payloads' version, one for all (ballbar.protocol.messages)
 
 from .advice import advise
 from .circle import Timing
@@ -23,12 +23,15 @@ from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import data_start_deg
 from .search import Theta
 
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.results import BodyCommon
+
 SPIKE_Z = 2.0  # a significant spike's height is at least this many of its (full) standard errors
 
 
 def result_body(
     plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, fit: FitResult, patterns: Sequence[Pattern]
-) -> dict[str, Any]:
+) -> BodyCommon:
     from .report import parameters_dict, ranking_list
 
     params = parameters_dict(fit, patterns, machine)

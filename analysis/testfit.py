@@ -829,7 +829,7 @@ class TestFit:
                       min_effect_um=options.min_effect_um, vif_limit=options.vif_limit, effect_scale=colmax,
                       exclude=self.exclude, family_dof={"reversal_spike": 1},
                       family_lr={"reversal_spike": lr} if math.isfinite(lr) else None, timing_cov=timing_cov)
-        res = result_body(self.plan, self.machine, options, final, self.patterns)
+        res: dict[str, Any] = dict(result_body(self.plan, self.machine, options, final, self.patterns))
         if timing_cov is not None:
             res["fit"]["uncertainty_method"] += (
                 "; every parameter's also holds the spread of the nonlinear parameters the same samples fixed (the "

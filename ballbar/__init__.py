@@ -5,7 +5,13 @@ The distribution maps the repository's top-level folders to subpackages:
 ``daemon/`` -> ``ballbar.daemon``, ``tools/`` -> ``ballbar.tools``.
 """
 
+from __future__ import annotations  # SCHEMA_VERSION's annotation is mypy's alone: nothing imports typing at start
+
 import os as _os
+
+TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing (ballbar run's first milliseconds)
+if TYPE_CHECKING:
+    from typing import Final
 
 # The fits are small dense problems on a 2-core PC beside the machine: BLAS threads only
 # contend with the sampling thread. A default, set before numpy loads; the environment wins.
@@ -13,7 +19,8 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
 
 __version__ = "0.1.0"
-#: The version of every payload's shape (``schema_version``; the JSON Schemas in ``ballbar/schema/``).
+#: The version of every payload's shape (``schema_version``; the JSON Schemas in ``ballbar/schema/``, generated
+#: from ``ballbar.protocol.messages``, whose ``SchemaVersion`` is ``Literal`` of it).
 #: 2: the status' duplicate top-level ``zenoh`` block went (``outputs.zenoh`` stays), its rates and device
 #: clock figures are in device terms with ``speedup``; the schemas were written.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION: Final = 2

@@ -7,9 +7,10 @@ publishes every message it is given under ``ballbar/<machine>/...``.
 Key space
 ---------
 ``<machine>`` is ``daemon.machine_id`` (one key chunk: no ``/ * $ ? #``).
-Every payload is one JSON object, encoding ``application/json``, with
-``schema_version`` (1), ``kind``, ``machine_id`` and ``t_wall`` (ISO 8601 UTC,
-when the daemon produced it); non-finite numbers are sent as ``null``.
+Every payload is one JSON object, encoding ``application/json``, as its
+producer made it (:mod:`ballbar.protocol.messages`: the types, the envelope
+``schema_version``, ``kind``, ``machine_id`` and ``t_wall``, the schemas, the
+payload tables); non-finite numbers are sent as ``null``.
 
 ================================  ==========  ====================================================
 key                               how         what
@@ -132,17 +133,23 @@ from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zenoh
 
 from ballbar import SCHEMA_VERSION
 from ballbar.analysis.errors import BallbarError
+from ballbar.protocol.messages import stamp, to_json
 
-from .listeners import Listener, Message, to_json
+from .listeners import Listener, Message
 from .samples import SampleBatch
 from .secrets import REDACTED, is_secret_key
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import HistoryReply, QueryError, Samples
+    from ballbar.protocol.messages.replies import HistoryTopic
+    from ballbar.protocol.messages.status import ZenohStats
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +169,7 @@ TOPICS: dict[str, str] = {
     "set": "result/set",
 }
 LAST_TOPICS = ("circle", "test", "set", "event", "status", "config", "alert")
-HISTORY_TOPICS = ("circle", "test", "set", "event", "alert")
+HISTORY_TOPICS: tuple[HistoryTopic, ...] = ("circle", "test", "set", "event", "alert")
 CONTROL_NEXT_PLAN = "control/next_plan"  # a service names the next test's plan here (subscribed)
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
@@ -350,11 +357,7 @@ def check_machine(machine: str) -> str:
     return machine
 
 
-# --------------------------------------------------------------------------- JSON and time
-
-
-def utc_now() -> str:
-    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+# --------------------------------------------------------------------------- time
 
 
 def parse_time_us(value: str | float | int) -> int:
@@ -375,11 +378,6 @@ def parse_time_us(value: str | float | int) -> int:
     if t.tzinfo is None:
         t = t.replace(tzinfo=dt.UTC)
     return (t - dt.datetime(1970, 1, 1, tzinfo=dt.UTC)) // dt.timedelta(microseconds=1)
-
-
-def dumps(msg: Any) -> bytes:
-    """Compact, strict JSON: NaN and infinities become ``null``, numpy values plain numbers."""
-    return to_json(msg)
 
 
 def _params(query: zenoh.Query) -> dict[str, str]:
@@ -427,7 +425,7 @@ class ZenohBus(Listener):
         *,
         samples_hz: float = 0.0,
         history_size: int = 500,
-        history_loader: Callable[[], Iterable[Message]] | None = None,
+        history_loader: Callable[[], Iterable[Mapping[str, Any]]] | None = None,
         close_timeout_s: float = 2.0,
         slow_put_s: float = 0.1,
     ) -> None:
@@ -472,7 +470,8 @@ class ZenohBus(Listener):
             self._opener.start()
 
     @classmethod
-    def from_config(cls, cfg: Any, history_loader: Callable[[], Iterable[Message]] | None = None) -> ZenohBus:
+    def from_config(cls, cfg: Any, history_loader: Callable[[], Iterable[Mapping[str, Any]]] | None = None
+                    ) -> ZenohBus:
         """From the daemon's configuration: ``cfg.daemon.machine_id`` and the ``[zenoh]`` section.
 
         Empty ``listen``, ``connect`` and ``config_file`` mean "not set" (the
@@ -578,21 +577,16 @@ class ZenohBus(Listener):
                 self._warned_kinds.add(kind)
                 log.warning("zenoh: no topic for messages of kind %r; not published", kind)
             return
-        body = dict(msg)
-        body.setdefault("schema_version", SCHEMA_VERSION)
-        body.setdefault("machine_id", self.machine)
-        if not isinstance(body.get("t_wall"), str):
-            body["t_wall"] = utc_now()
-        if kind == "status" and isinstance(body.get("outputs"), dict):
-            body["outputs"] = {**body["outputs"], "zenoh": self.stats()}  # this bus' counters as of this put
-        payload = dumps(body)
+        if msg["kind"] == "status" and isinstance(msg.get("outputs"), dict):  # this bus' counters as of this put
+            msg = {**msg, "outputs": {**msg["outputs"], "zenoh": self.stats()}}
+        payload = to_json(msg)
         with self._lock:
             self._last[kind] = payload
             if kind in self._history:
-                self._history[kind].append((_record_time(body), payload))
+                self._history[kind].append((_record_time(msg), payload))
         if self._deferred:
             self._put_deferred()
-        if kind == "event" and body.get("origin") == "recovery" and not self.has_subscribers("event"):
+        if msg["kind"] == "event" and msg.get("origin") == "recovery" and not self.has_subscribers("event"):
             # Found at start (a test a crash cut): the subscribers that were connected before the restart are
             # reconnecting now (a client retries every few seconds); put it once one is back.
             self._deferred.append((time.monotonic() + RECOVERY_WAIT_S, payload))
@@ -619,20 +613,18 @@ class ZenohBus(Listener):
         self._last_slot = max(self._last_slot, int(slot.max()))
         if keep.size == 0:
             return
-        body = {
-            "schema_version": SCHEMA_VERSION,
+        body: Samples = {
+            **stamp(self.machine),
             "kind": "samples",
-            "machine_id": self.machine,
-            "t_wall": utc_now(),
             "source": batch.source,
             "samples_hz": self.samples_hz,
-            "t_host": batch.t_host[keep],
-            "t_device": batch.t_device[keep],
-            "length_mm": batch.length_mm[keep],
-            "seq": batch.seq[keep],
-            "status": batch.status[keep],
+            "t_host": batch.t_host[keep].tolist(),
+            "t_device": batch.t_device[keep].tolist(),
+            "length_mm": batch.length_mm[keep].tolist(),
+            "seq": batch.seq[keep].tolist(),
+            "status": batch.status[keep].tolist(),
         }
-        self._put("samples", dumps(body))
+        self._put("samples", to_json(body))
 
     def _put(self, kind: str, payload: bytes) -> None:
         pub = self._publishers.get(kind)
@@ -673,10 +665,10 @@ class ZenohBus(Listener):
         if self._control is not None:
             self._control(name)
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> ZenohStats:
         """Counters for the status: connection, peers, what went out, what could not."""
         c = self._counters
-        out: dict[str, Any] = {
+        out: ZenohStats = {
             "connected": self._session is not None,
             "open_error": self._open_error,
             "published": dict(c.published),
@@ -726,10 +718,8 @@ class ZenohBus(Listener):
                 since_us, limit = self._history_params(_params(query))
             except ValueError as err:
                 self._counters.query_errors += 1
-                query.reply_err(
-                    dumps({"schema_version": SCHEMA_VERSION, "kind": "error", "error": str(err)}),
-                    encoding=zenoh.Encoding.APPLICATION_JSON,
-                )
+                reply: QueryError = {"schema_version": SCHEMA_VERSION, "kind": "error", "error": str(err)}
+                query.reply_err(to_json(reply), encoding=zenoh.Encoding.APPLICATION_JSON)
                 return
             for kind in HISTORY_TOPICS:
                 key = f"{self.prefix}/history/{kind}"
@@ -762,7 +752,7 @@ class ZenohBus(Listener):
             raise ValueError(f"history: limit: {limit} is not between 1 and {HISTORY_LIMIT_MAX}")
         return since_us, limit
 
-    def history_payload(self, kind: str, since_us: int | None = None, limit: int = HISTORY_LIMIT) -> bytes:
+    def history_payload(self, kind: HistoryTopic, since_us: int | None = None, limit: int = HISTORY_LIMIT) -> bytes:
         """The ``history/<kind>`` reply: results after ``since_us``, oldest first (see the module doc)."""
         with self._lock:
             records = list(self._history[kind])
@@ -771,19 +761,12 @@ class ZenohBus(Listener):
         else:
             after = [r for r in records if r[0] > since_us]
             chosen, more = after[:limit], len(after) > limit
-        head = dumps(
-            {
-                "schema_version": SCHEMA_VERSION,
-                "kind": "history",
-                "topic": kind,
-                "machine_id": self.machine,
-                "count": len(chosen),
-                "more": more,
-            }
-        )
-        return head[:-1] + b',"results":[' + b",".join(p for _, p in chosen) + b"]}"
+        reply: HistoryReply = {"schema_version": SCHEMA_VERSION, "kind": "history", "topic": kind,
+                               "machine_id": self.machine, "count": len(chosen), "more": more, "results": []}
+        empty = to_json(reply)  # ...,"results":[]}: the payloads go in as they were sent
+        return empty[:-2] + b",".join(p for _, p in chosen) + b"]}"
 
-    def _load_history(self, loader: Callable[[], Iterable[Message]]) -> None:
+    def _load_history(self, loader: Callable[[], Iterable[Mapping[str, Any]]]) -> None:
         t0 = time.monotonic()
         n = 0
         try:
@@ -791,10 +774,10 @@ class ZenohBus(Listener):
                 kind = msg.get("kind")
                 if kind not in self._history:
                     continue
-                body = dict(msg)
+                body = dict(msg)  # as recorded, with the version it was recorded with (older records lack it)
                 body.setdefault("schema_version", SCHEMA_VERSION)
                 body.setdefault("machine_id", self.machine)
-                payload = dumps(body)
+                payload = to_json(body)
                 self._history[kind].append((_record_time(body), payload))
                 n += 1
         except Exception as err:  # a damaged recording must not keep the bus from starting
@@ -879,7 +862,6 @@ __all__ = [
     "ZenohConfig",
     "check_endpoints",
     "check_machine",
-    "dumps",
     "parse_time_us",
     "zenoh_config",
     "zenoh_message",

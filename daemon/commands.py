@@ -16,7 +16,7 @@ import os
 import sys
 import threading
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +26,7 @@ from ballbar.analysis.errors import BallbarError, PlanError
 if TYPE_CHECKING:
     from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
     from ballbar.analysis.plans import PlanLibrary
+    from ballbar.protocol.messages import Analysis, Verdict
 
 # numpy, scipy, the analysis, MCAP and the bus come in with the command that needs them (``ballbar analyze`` of
 # a CSV imports no MCAP, Zenoh or Rerun; ``ballbar run`` has its SIGTERM handler from :mod:`.cli` already).
@@ -302,6 +303,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     if args.set_name is not None:
         return _analyze_set(args, mcap)
     base: dict[str, Any] = {}
+    result: Analysis
     if mcap and (os.path.isdir(args.file) or args.test_id is not None):
         result = _analyze_records(args, base)
     else:
@@ -369,7 +371,7 @@ def limits_table(args: argparse.Namespace, base: dict[str, Any], plan: str | Non
     return table if table and table.get("enabled") else None
 
 
-def verdict_of(result: dict[str, Any], table: dict[str, Any]) -> dict[str, Any]:
+def verdict_of(result: Mapping[str, Any], table: dict[str, Any]) -> Verdict:
     """The verdict of a result against a ``[limits]`` table, as the daemon gives it live."""
     from ballbar.analysis import monitor
 
@@ -384,7 +386,7 @@ def verdict_of(result: dict[str, Any], table: dict[str, Any]) -> dict[str, Any]:
     return verdict
 
 
-def verdict_lines(verdict: dict[str, Any]) -> str:
+def verdict_lines(verdict: Mapping[str, Any]) -> str:
     lines = [f"Verdict: {verdict['summary']}", f"  (k = {verdict['coverage_k']:g}; {verdict['rule']})"]
     for e in verdict["limits"]:
         if e["status"] == "not_evaluated":
@@ -396,7 +398,7 @@ def verdict_lines(verdict: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _analyze_records(args: argparse.Namespace, base: dict[str, Any]) -> dict[str, Any]:
+def _analyze_records(args: argparse.Namespace, base: dict[str, Any]) -> Analysis:
     """A test from the daemon's records: a directory's newest complete one, or the one asked for.
 
     ``base`` receives the recorded configuration used (its ``limits`` give the verdict)."""
@@ -475,8 +477,8 @@ def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
         what = headline_text(r["headline"]) if r["headline"] else r["message"]
         if mcap:
             files = r["files"][0] + (f" +{len(r['files']) - 1}" if len(r["files"]) > 1 else "")
-            plan = f"  {r['plan']}" if r.get("plan") else ""
-            print(f"{r['number']:>3}  {r['test_id']}  {r['start'] or '-'}  {files}{plan}  {r['status']}  {what}")
+            of = f"  {r['plan']}" if r.get("plan") else ""
+            print(f"{r['number']:>3}  {r['test_id']}  {r['start'] or '-'}  {files}{of}  {r['status']}  {what}")
         else:
             print(f"{r['number']:>3}  feed-in at t={r['feed_in_s']:.3f} s  {r['status']}  {what}")
     return 0

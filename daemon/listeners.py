@@ -41,71 +41,48 @@ Messages are JSON-ready dicts with a ``kind``:
 from __future__ import annotations
 
 import abc
-import json
 import logging
 import math
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TypeAlias, TypedDict
 
-import numpy as np
+from ballbar.protocol.messages import to_json as to_json  # the outputs' one encoding, where they import it from
 
 from .samples import SampleBatch
 
+if TYPE_CHECKING:
+    from ballbar.protocol import messages
+    from ballbar.protocol.messages.status import Queue
+
 log = logging.getLogger(__name__)
 
-Message = dict[str, Any]
+
+class Wake(TypedDict):
+    """A message the daemon posts to one of its own queues to wake its listener; never published."""
+
+    kind: Literal["analysis_done"]
+
+
+class PlanChoice(TypedDict):
+    """A choice of the next test's plan (the bus' control/next_plan), posted to the analysis' queue; never
+    published (the analysis answers with a plan_chosen or plan_choice_refused event)."""
+
+    kind: Literal["plan_choice"]
+    plan: object  # as it came: the analysis checks that it names a plan of the library (None: withdrawn)
+
+
+#: What a listener is handed besides samples: one of the daemon's messages (ballbar.protocol.messages), or one
+#: of the daemon's own (:class:`Wake`, :class:`PlanChoice`).
+Message: TypeAlias = "messages.Message | Wake | PlanChoice"
 # How often the outputs that take batches merged get them (the MCAP log, the viewer, the analysis while no
 # result can be due): four times a second, not once per 20 ms batch.
 MERGE_S = 0.25
 # Events that end a test without a result (test_aborted: an older name, still read back from recordings).
 TEST_END_EVENTS = frozenset({"test_rejected", "test_incomplete", "test_aborted", "test_unrecognised"})
 DropPolicy = Literal["drop_oldest", "drop_newest"]
-
-
-def _plain(obj: Any) -> Any:
-    """What ``json`` cannot take as it is: numpy values, arrays, paths, sets."""
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Mapping):
-        return dict(obj)
-    if isinstance(obj, set | frozenset | tuple):
-        return list(obj)
-    if isinstance(obj, Path):
-        return str(obj)
-    return str(obj)
-
-
-def _finite(obj: Any) -> Any:
-    if isinstance(obj, float | np.floating):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, Mapping):
-        return {str(k): _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple | set | frozenset):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj
-
-
-def to_json(msg: Any) -> bytes:
-    """A message as compact, strict JSON (UTF-8): NaN and infinities become ``null``.
-
-    One encoding for every output (MCAP records, bus payloads).
-    """
-    try:
-        text = json.dumps(msg, separators=(",", ":"), allow_nan=False, default=_plain)
-    except ValueError:
-        text = json.dumps(_finite(msg), separators=(",", ":"), allow_nan=False, default=_plain)
-    return text.encode("utf-8")
 
 
 class Listener(abc.ABC):
@@ -143,10 +120,11 @@ class QueueStats:
     delivered: int = 0
     dropped: int = 0
     errors: int = 0
-    policy: str = "drop_oldest"
+    policy: DropPolicy = "drop_oldest"
 
-    def to_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
+    def to_dict(self) -> Queue:
+        return {"depth": self.depth, "capacity": self.capacity, "delivered": self.delivered,
+                "dropped": self.dropped, "errors": self.errors, "policy": self.policy}
 
 
 class ListenerQueue:

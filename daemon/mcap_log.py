@@ -135,7 +135,7 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 import zstandard
@@ -149,14 +149,17 @@ from numpy.typing import NDArray
 from ballbar import __version__
 from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID
+from ballbar.protocol.messages.channels import MCAP_CHANNELS, shipped_schema
 
-from . import schemas as _schemas
 from .csvfile import open_recording
 from .listeners import MERGE_S, TEST_END_EVENTS, Listener, to_json
 from .listeners import Message as ListenerMessage
 from .recordings import Recording
 from .samples import SampleBatch, SourceEvent, break_reason, break_seq
 from .spool import SPOOL_NAME, empty_spool, read_spool, reserve_spool, spool_size, write_spool
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.events import LogGap
 
 log = logging.getLogger(__name__)
 
@@ -194,70 +197,11 @@ class LogConfigError(BallbarError, ValueError):
 
 # ----------------------------------------------------------------------------- schemas
 
-_TIME = {
-    "type": "object",
-    "title": "time",
-    "description": "nanoseconds as {sec, nsec}; nsec in 0..999999999",
-    "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}},
-    "required": ["sec", "nsec"],
-}
-_INTS = {"type": "array", "items": {"type": "integer"}}
-
+# The channels' schemas: the files shipped in ballbar/schema/, generated from the message types
+# (ballbar.protocol.messages; tests/test_schemas.py keeps the two the same).
 SCHEMAS: dict[str, tuple[str, dict[str, Any], str]] = {
-    TOPIC_SAMPLES: (
-        "ballbar.Samples",
-        {
-            "title": "ballbar.Samples",
-            "description": (
-                "Ball-bar samples, columns delta-encoded: value[0] = X_first, value[i] = value[i-1] + "
-                "X_delta[i-1]. Lengths in picometres, times in nanoseconds (t_host: wall clock, UTC; "
-                "t_device: the device's sample clock, null when it has none)."
-            ),
-            "type": "object",
-            "properties": {
-                "source": {"type": "string", "description": "the source's URL"},
-                "count": {"type": "integer", "minimum": 1, "description": "number of samples n"},
-                "preroll": {
-                    "type": "boolean",
-                    "description": "repeated at the head of a per-test file; the previous file ended with them",
-                },
-                "seq_first": {"type": "integer", "description": "sample number of the first sample"},
-                "seq_delta": {**_INTS, "description": "n-1 steps of the sample number (>1: samples lost)"},
-                "t_host_first": {**_TIME, "description": "host wall-clock time of the first sample"},
-                "t_host_delta_ns": {**_INTS, "description": "n-1 steps of the host time, ns"},
-                "t_device_first": {"oneOf": [_TIME, {"type": "null"}], "description": "device clock"},
-                "t_device_delta_ns": {"oneOf": [_INTS, {"type": "null"}], "description": "n-1 steps, ns"},
-                "length_first_pm": {"type": "integer", "description": "absolute bar length, picometres"},
-                "length_delta_pm": {**_INTS, "description": "n-1 steps of the length, picometres"},
-                "length_missing": {**_INTS, "description": "indices of samples without a length (NaN)"},
-                "status": {**_INTS, "description": "n status bytes: 1 over range, 2 sensor fault, 128 simulated"},
-            },
-            "additionalProperties": False,
-            "required": [
-                "source", "count", "seq_first", "seq_delta", "t_host_first", "t_host_delta_ns",
-                "t_device_first", "t_device_delta_ns", "length_first_pm", "length_delta_pm", "status",
-            ],
-        },
-        "ball-bar samples, delta-encoded columns; see the ballbar.Samples schema",
-    ),
-    # The payloads' schemas are daemon/schemas.py's, the files shipped in ballbar/schema/.
-    TOPIC_EVENTS: ("ballbar.Event", _schemas.schema("mcap-event"), "source, pipeline and logger events"),
-    TOPIC_RESULTS: ("ballbar.Result", _schemas.schema("result"), "analysis results (circle, test, set)"),
-    TOPIC_STATUS: ("ballbar.Status", _schemas.schema("status"), "daemon status"),
-    TOPIC_CONFIG: (
-        "ballbar.Config", _schemas.schema("config"), "effective configuration, at start and at the head of every file"
-    ),
-    TOPIC_OTHER: (
-        "ballbar.Message",
-        {
-            "title": "ballbar.Message",
-            "description": "A pipeline message of another kind, as it came.",
-            "type": "object",
-            "properties": {"kind": {"type": "string"}},
-            "additionalProperties": True,
-        },
-        "other pipeline messages",
-    ),
+    topic: (name, shipped_schema(document), description)
+    for topic, (name, document, description) in MCAP_CHANNELS.items()
 }
 
 _RESULT_KINDS = frozenset({"circle", "test"})
@@ -786,6 +730,11 @@ class McapLogger(Listener):
         if name in TEST_END_EVENTS:
             self._in_test = False
 
+    def _log_gap(self, now: float) -> LogGap:
+        """The ``log_gap`` event of the write outage going on: what it cost so far."""
+        return {"event": "log_gap", "t_host": now, "count": self._fail_lost, "gap_s": round(now - self._fail_since, 3),
+                "detail": self._fail_detail}
+
     def _first_sighting(self, name: str, t_host: float, source: str) -> bool:
         """False for an event already written: a source event comes both in its batch and as the
         pipeline's message (either first); it is written once, as it came first."""
@@ -904,9 +853,7 @@ class McapLogger(Listener):
         if self._timing is not None:  # a test's file alone says how its polled samples were stamped
             self._write(TOPIC_EVENTS, {**self._timing, "repeated": True}, self._wall_ns(now))
         if self._failing:
-            gap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
-                   "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
-            self._write(TOPIC_EVENTS, gap, self._wall_ns(now))
+            self._write(TOPIC_EVENTS, self._log_gap(now), self._wall_ns(now))
         if self._held and self._file is not None:
             held = len(self._held)
             self._file.holds_held = True
@@ -1034,9 +981,7 @@ class McapLogger(Listener):
         self._held.clear()
         gap = []
         if self._failing:
-            gap = [(TOPIC_EVENTS, {"event": "log_gap", "t_host": now, "count": self._fail_lost,
-                                   "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail},
-                    self._wall_ns(now))]
+            gap = [(TOPIC_EVENTS, self._log_gap(now), self._wall_ns(now))]
         kept = write_spool(self.spool_path, self.run_id, [*held, *gap], self._spool_bytes())  # the newest first
         lost = len(held) - max(0, kept - len(gap))
         self._c["messages_lost"] += lost

@@ -42,13 +42,17 @@ import threading
 from collections.abc import Callable, Iterable, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from ballbar import SCHEMA_VERSION
 from ballbar.analysis import monitor as mon
+from ballbar.protocol.messages import stamp
 
 from .listeners import Listener, Message, to_json
 from .output import write_atomic
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import Alert, Forecast, HistoryEntry, TestResult, Verdict
+    from ballbar.protocol.messages.status import MonitorStats
 
 log = logging.getLogger(__name__)
 
@@ -93,15 +97,17 @@ class MonitorStore:
         return self.history_path.exists()
 
     def history(self) -> list[dict[str, Any]]:
+        """The trend history's lines (:class:`~ballbar.protocol.messages.HistoryEntry` as written, any version)."""
         return self._read_lines(self.history_path, HISTORY_KEEP)
 
-    def append_history(self, entry: dict[str, Any]) -> None:
+    def append_history(self, entry: HistoryEntry) -> None:
         self._append(self.history_path, entry)
 
     def alerts(self) -> list[dict[str, Any]]:
+        """The alerts sent (:data:`~ballbar.protocol.messages.Alert` as sent, any version)."""
         return self._read_lines(self.alerts_path, ALERTS_KEEP)
 
-    def append_alert(self, alert: dict[str, Any]) -> None:
+    def append_alert(self, alert: Alert) -> None:
         self._append(self.alerts_path, alert)
 
     def state(self) -> dict[str, Any] | None:
@@ -133,7 +139,7 @@ class Monitor:
         self.plan_settings = dict(plan_settings or {})
         self.machine = machine
         self.store = store
-        self.history: list[dict[str, Any]] = store.history() if store is not None else []
+        self.history: list[Mapping[str, Any]] = list(store.history()) if store is not None else []
         self.trackers: dict[str, mon.AlertTracker] = {}
         saved = store.state() if store is not None else None
         if saved is not None:
@@ -145,7 +151,7 @@ class Monitor:
                     self.tracker_of(name).state = state
         self.alert_count = int(saved.get("alerts", 0)) if saved else 0
 
-    def settings_of(self, result: Message) -> mon.MonitorSettings:
+    def settings_of(self, result: Mapping[str, Any]) -> mon.MonitorSettings:
         """The limits the result's plan is held to."""
         return self.plan_settings.get(mon.plan_of(result), self.settings)
 
@@ -166,7 +172,7 @@ class Monitor:
             out["trackers"] = others
         return out | {"alerts": self.alert_count}
 
-    def seed(self, results: Iterable[Message]) -> int:
+    def seed(self, results: Iterable[Mapping[str, Any]]) -> int:
         """Earlier test results (oldest first) into an empty history; no alerts.  Returns how many."""
         n = 0
         for r in results:
@@ -179,14 +185,14 @@ class Monitor:
             n += 1
         return n
 
-    def verdict(self, result: Message) -> dict[str, Any]:
+    def verdict(self, result: Mapping[str, Any]) -> Verdict:
         v = mon.evaluate(result, self.settings_of(result))
         why = mon.validity(result)
         if why is not None:
             v["trend_excluded"] = why
         return v
 
-    def forecasts(self, result: Message) -> list[dict[str, Any]]:
+    def forecasts(self, result: Mapping[str, Any]) -> list[Forecast]:
         cond = mon.conditions(result)
         settings = self.settings_of(result)
         out = []
@@ -195,9 +201,9 @@ class Monitor:
             out.append(mon.forecast(pts, lim, name, settings))
         return out
 
-    def on_test(self, result: Message) -> list[dict[str, Any]]:
+    def on_test(self, result: Mapping[str, Any]) -> list[Alert]:
         """A test result (with its verdict, or one is computed): history, forecasts, and the alerts to send."""
-        verdict = result.get("verdict") or self.verdict(result)
+        verdict: Verdict = result.get("verdict") or self.verdict(result)
         t_wall = str(result.get("t_wall") or mon.time_text(datetime.now(UTC)))
         entry = mon.history_entry(result, verdict, t_wall)
         self.history.append(entry)
@@ -208,24 +214,21 @@ class Monitor:
         forecasts = self.forecasts(result) if entry["invalid"] is None else []
         changes = self.tracker_of(mon.plan_of(result)).update(verdict, forecasts)
         by_name = {f["name"]: f for f in forecasts}
-        alerts = []
+        alerts: list[Alert] = []
         for ch in changes:
             self.alert_count += 1
-            a: dict[str, Any] = {
-                "kind": "alert",
-                "schema_version": SCHEMA_VERSION,
-                "machine_id": self.machine,
-                "t_wall": datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z"),
-                "alert_id": f"{self.machine}-alert-{self.alert_count}",
-                **ch,
-                "test_id": result.get("test_id"),
-                "t_test": t_wall,
-                "conditions": entry["conditions"],
-            }
+            alert_id = f"{self.machine}-alert-{self.alert_count}"
+            a: Alert
             if ch["alert"] == "verdict":
-                a["verdict"] = verdict
+                a = {**stamp(self.machine), "kind": "alert", "alert_id": alert_id, "alert": "verdict",
+                     "state": ch["state"], "previous": ch["previous"], "cleared": ch["cleared"],
+                     "test_id": result.get("test_id"), "t_test": t_wall, "conditions": entry["conditions"],
+                     "verdict": verdict, "message": ""}
             else:
-                a["forecast"] = by_name[ch["limit"]]
+                a = {**stamp(self.machine), "kind": "alert", "alert_id": alert_id, "alert": "forecast",
+                     "state": ch["state"], "previous": ch["previous"], "cleared": ch["cleared"], "limit": ch["limit"],
+                     "test_id": result.get("test_id"), "t_test": t_wall, "conditions": entry["conditions"],
+                     "forecast": by_name[ch["limit"]], "message": ""}
             a["message"] = mon.alert_text(a)
             alerts.append(a)
             if self.store is not None:
@@ -257,7 +260,8 @@ class MonitorListener(Listener):
         self._lock = threading.Lock()
 
     @classmethod
-    def from_config(cls, cfg: Any, seed: Callable[[], Iterable[Message]] | None = None) -> MonitorListener:
+    def from_config(cls, cfg: Any, seed: Callable[[], Iterable[Mapping[str, Any]]] | None = None
+                    ) -> MonitorListener:
         from .config import monitor_settings
 
         settings = monitor_settings(cfg)
@@ -284,23 +288,22 @@ class MonitorListener(Listener):
     def bind(self, emit: Callable[[Message], None]) -> None:
         self.emit = emit
 
-    def annotate(self, msg: Message) -> Message:
-        """The test result with its ``verdict`` (other messages as they are)."""
-        if msg.get("kind") != "test" or "verdict" in msg or not self.monitor.settings_of(msg).enabled:
+    def annotate(self, msg: TestResult) -> TestResult:
+        """The test result with its ``verdict`` (none where its plan's limits are off)."""
+        if "verdict" in msg or not self.monitor.settings_of(msg).enabled:
             return msg
-        out = dict(msg)
         try:
-            out["verdict"] = self.monitor.verdict(msg)
+            return {**msg, "verdict": self.monitor.verdict(msg)}
         except Exception:  # runs on the analysis thread: a bug here must not cost the result itself
             self.counters["errors"] += 1
-            log.exception("monitor: no verdict for test %s", msg.get("test_id"))
-        return out
+            log.exception("monitor: no verdict for test %s", msg["test_id"])
+        return msg
 
     def alert_history(self) -> list[dict[str, Any]]:
         return self.monitor.store.alerts() if self.monitor.store is not None else []
 
     def on_message(self, msg: Message) -> None:
-        if msg.get("kind") != "test":
+        if msg["kind"] != "test":
             return
         with self._lock:
             self.counters["tests"] += 1
@@ -316,8 +319,9 @@ class MonitorListener(Listener):
             if self.emit is not None:
                 self.emit(a)
 
-    def stats(self) -> dict[str, Any]:
-        return dict(self.counters, history=len(self.monitor.history))
+    def stats(self) -> MonitorStats:
+        return {"tests": self.counters["tests"], "alerts": self.counters["alerts"], "errors": self.counters["errors"],
+                "history": len(self.monitor.history)}
 
     def stop(self) -> None:
         pass

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 
@@ -21,6 +22,8 @@ from .csvfile import read_csv
 if TYPE_CHECKING:
     from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
     from ballbar.analysis.plans import PlanLibrary
+    from ballbar.protocol.messages import Analysis, AnalysisOutput, TestBody
+    from ballbar.protocol.messages.results import AnalysisSource
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +150,17 @@ OUTCOME_EVENTS = {"test_rejected": "rejected", "test_incomplete": "incomplete", 
                   "test_unrecognised": "unrecognised"}
 
 
-def outcomes(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+class Outcome(TypedDict):
+    """What became of one test an analysis found (:func:`outcomes`)."""
+
+    number: int
+    feed_in_s: float | None
+    status: str
+    message: str
+    result: TestBody | None
+
+
+def outcomes(results: Sequence[AnalysisOutput]) -> list[Outcome]:
     """One entry per test an analysis found, in order.
 
     Each: ``number`` (from 1), ``feed_in_s``, ``status`` (``complete``,
@@ -156,28 +169,28 @@ def outcomes(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for), ``message`` (why not complete) and ``result`` (the test result, or
     None).
     """
-    tests: dict[int, dict[str, Any]] = {}
+    tests: dict[int, Outcome] = {}
     for r in results:
         i = r.get("test_index")
         if not isinstance(i, int):
             continue
-        if r.get("event") == "feed_in":
-            tests[i] = {"number": len(tests) + 1, "feed_in_s": r.get("t_s"), "status": "incomplete",
-                        "message": "", "result": None}
+        if r["kind"] == "event" and r["event"] == "feed_in":
+            tests[i] = {"number": len(tests) + 1, "feed_in_s": r["t_s"], "status": "incomplete", "message": "",
+                        "result": None}
             continue
         entry = tests.get(i)
         if entry is None:
             continue
-        if r.get("kind") == "test":
-            entry.update(status="complete", result=r)
-        elif r.get("event") in OUTCOME_EVENTS and entry["status"] == "incomplete":
-            entry.update(status=OUTCOME_EVENTS[r["event"]], message=str(r.get("message", "")))
+        if r["kind"] == "test":
+            entry["status"], entry["result"] = "complete", r
+        elif r["kind"] == "event" and r["event"] in OUTCOME_EVENTS and entry["status"] == "incomplete":
+            entry["status"], entry["message"] = OUTCOME_EVENTS[r["event"]], str(r.get("message", ""))
     return list(tests.values())
 
 
 def pick_test(
-    results: list[dict[str, Any]], test: int, name: str, plan: TestPlan
-) -> dict[str, Any]:
+    results: Sequence[AnalysisOutput], test: int, name: str, plan: TestPlan
+) -> Analysis:
     """The ``test``-th (from 1) test of an analysed recording, with ``source`` and warnings.
 
     A test that was rejected or left incomplete is a :class:`DataError` with
@@ -195,15 +208,16 @@ def pick_test(
     return with_source(entry["result"], {"file": os.path.abspath(name), "tests_found": len(found)}, plan)
 
 
-def with_source(result: dict[str, Any], source: dict[str, Any], plan: TestPlan) -> dict[str, Any]:
-    """``result`` with ``source`` set, and a warning where its sample rate is not the plan's."""
-    result["source"] = source
-    if abs(result["samples"]["sample_hz"] / plan.sample_hz - 1.0) > 0.2:
-        result.setdefault("warnings", []).append(
-            f"the recording samples at {result['samples']['sample_hz']:.3f} Hz, the plan says "
-            f"{plan.sample_hz:g} Hz; the timestamps were used"
+def with_source(result: TestBody, source: AnalysisSource, plan: TestPlan) -> Analysis:
+    """``result`` with ``source`` (``ballbar analyze --json``), and a warning where its sample rate is not the
+    plan's."""
+    out: Analysis = {**result, "source": source}
+    rate = out["samples"]["sample_hz"]
+    if rate is not None and abs(rate / plan.sample_hz - 1.0) > 0.2:
+        out.setdefault("warnings", []).append(
+            f"the recording samples at {rate:.3f} Hz, the plan says {plan.sample_hz:g} Hz; the timestamps were used"
         )
-    return result
+    return out
 
 
 def analyze_file(
@@ -215,7 +229,7 @@ def analyze_file(
     curves: bool = False,
     library: PlanLibrary | None = None,
     chosen: str | None = None,
-) -> dict[str, Any]:
+) -> Analysis:
     """Read a recording (:func:`load_recording`), analyse it and return its ``test``-th test result (the
     other tests are found, not fitted).  ``library``, ``chosen``: see :func:`analyze`."""
     rec = load_recording(path)
@@ -245,7 +259,7 @@ def analyze(
     only: int | None = None,
     library: PlanLibrary | None = None,
     chosen: str | None = None,
-) -> list[dict[str, Any]]:
+) -> list[AnalysisOutput]:
     """:func:`~ballbar.analysis.engine.analyze_recording` of a recording, its tests' results and events (no
     provisional circles: what the daemon published of them live is in the recording); its errors name the
     recording.  ``only``: fit that test alone (from 1), the others reported ``test_skipped``: its result is
@@ -265,12 +279,12 @@ def analyze(
         raise
     if left_out:
         for r in out:
-            if r.get("kind") == "test":
+            if r["kind"] == "test":
                 r.setdefault("warnings", []).append(left_out)
     if rec.timing and rec.axis == "host":
         from ballbar.analysis.polled import state_span
 
         for r in out:
-            if r.get("kind") in ("circle", "test"):
+            if r["kind"] == "circle" or r["kind"] == "test":
                 state_span(r, rec.timing)
     return out

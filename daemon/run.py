@@ -25,6 +25,7 @@ from .service import Daemon
 from .sources import Source, open_source, split_url
 
 if TYPE_CHECKING:
+    from ballbar.protocol.messages.events import TestIncomplete
     from ballbar.tools.simdevice import DeviceProcess
 
 log = logging.getLogger(__name__)
@@ -370,14 +371,16 @@ def _overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
     return ov
 
 
-def _recover(cfg: Config) -> list[dict[str, Any]]:
+def _recover(cfg: Config) -> list[TestIncomplete]:
     """Files a killed daemon left without a footer, rewritten once; a ``test_incomplete`` event for each
-    test the crash cut, to publish at start."""
+    test the crash cut, to publish at start (stamped again as it goes out)."""
     if not cfg.mcap.enabled:
         return []
+    from ballbar.protocol.messages import stamp
+
     from .mcap_log import recover_crashed
 
-    out = []
+    out: list[TestIncomplete] = []
     for r in recover_crashed(os.path.join(cfg.daemon.state_dir, "recordings")):
         if r.cut_test is None or r.outcome:  # (a test whose result was recorded though its file was cut: complete)
             continue
@@ -386,8 +389,8 @@ def _recover(cfg: Config) -> list[dict[str, Any]]:
         else:
             why = "the daemon stopped (killed) during this test"
         out.append({
-            "kind": "event", "event": "test_incomplete", "origin": "recovery",
-            "test_id": r.cut_test.get("test_id"), "file": r.path.name,
+            **stamp(cfg.daemon.machine_id), "kind": "event", "event": "test_incomplete", "origin": "recovery",
+            "test_id": r.cut_test.get("test_id"), "t_host": time.monotonic(), "file": r.path.name,
             "message": f"{why}; its samples up to then are in {r.path.name}",
         })
     return out

@@ -40,35 +40,38 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
-from ballbar import SCHEMA_VERSION
 from ballbar.analysis.engine import TestAnalyzer, TimingHints
 from ballbar.analysis.errors import BallbarError
 from ballbar.analysis.polled import Timing, from_events, state_span
+from ballbar.protocol.messages import stamp
+from ballbar.protocol.messages.publish import parameter_map, published, source_event
 
 from .analysis_worker import AnalysisWorker, freeze_long_lived, release_freed_memory
 from .config import Config
-from .listeners import MERGE_S, TEST_END_EVENTS, Listener, ListenerQueue, Message
+from .listeners import MERGE_S, TEST_END_EVENTS, Listener, ListenerQueue, Message, PlanChoice, Wake
 from .mcap_log import scaled_ints
 from .samples import EventKind, SampleBatch, breaks_in
 from .secrets import redacted
 from .sources import Source
 from .systemd import Notifier
 
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import AnalysisOutput, CircleResult, ConfigMessage, Settings, Status, TestResult
+    from ballbar.protocol.messages.envelope import LastSample
+    from ballbar.protocol.messages.events import PlanChoiceRefusedBody, PlanChosenBody, SourceEvent, TestIncomplete
+    from ballbar.protocol.messages.publish import Published
+    from ballbar.protocol.messages.status import AnalysisStats, Outputs, Queue, SourceState, SourceStats
+
 log = logging.getLogger(__name__)
 
 FINISH_ANALYSIS_S = 120.0  # after a finite source's end, at most this for the analysis to catch up
 STOP_RESULT_S = 1.0  # at a stop, at most this for a test's fit still running in the worker
-WAKE = "analysis_done"  # the message the worker's callback posts to the analysis queue
-PLAN_CHOICE = "plan_choice"  # the message the bus posts to the analysis queue: {"kind", "plan": name or None}
-
-
-def utc_now() -> str:
-    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+WAKE: Wake = {"kind": "analysis_done"}  # what the worker's callback posts to the analysis queue
 
 
 class AnalysisListener(Listener):
@@ -156,13 +159,13 @@ class AnalysisListener(Listener):
         return 0.0 if due - self.last_t <= 3.0 * MERGE_S * self._clock_rate else MERGE_S
 
     def on_message(self, msg: Message) -> None:
-        if msg.get("kind") == WAKE:
+        if msg["kind"] == "analysis_done":
             self.settle()
-        elif msg.get("kind") == PLAN_CHOICE:
+        elif msg["kind"] == "plan_choice":
             with self._lock:
-                self._emit_all([self._choose(msg.get("plan"))])
+                self._emit_all([self._choose(msg["plan"])])
 
-    def _choose(self, name: Any) -> Message:
+    def _choose(self, name: object) -> PlanChosenBody | PlanChoiceRefusedBody:
         """An explicit choice of the next test's plan (from the bus): taken, or refused with the reason."""
         library = self.cfg.library
         if name is not None and (not isinstance(name, str) or name not in library.names):
@@ -206,7 +209,7 @@ class AnalysisListener(Listener):
                 self._clock_rate = max(rate, 0.5 * self._clock_rate)  # rises at once, falls by half a batch at most
             self.last_t, self.last_t_host = float(t[-1]), float(th[-1])
         t0 = time.perf_counter()
-        out: list[Message] = []
+        out: list[AnalysisOutput] = []
         i = 0
         for j, reason in cuts:
             self._feed(t[i:j], L[i:j], out)
@@ -215,16 +218,16 @@ class AnalysisListener(Listener):
         self._feed(t[i:], L[i:], out)
         self._emit_all(out, t0)
 
-    def _emit_all(self, out: list[Message], t0: float | None = None) -> None:
+    def _emit_all(self, out: list[AnalysisOutput], t0: float | None = None) -> None:
         """Wrap and emit what the analyzer returned for a batch started at ``t0`` (perf time; None: a result
         from the worker)."""
         now = time.perf_counter()
         for msg in out:
-            if msg.get("event") == "feed_out":
+            if msg["kind"] == "event" and msg["event"] == "feed_out":
                 self._test_end = (self.last_t, self.last_t_host, now if t0 is None else t0)
-            if msg["kind"] in ("circle", "test") and self._timings and not self.use_device_time:
+            if msg["kind"] != "event" and self._timings and not self.use_device_time:
                 state_span(msg, self._timings)
-            if msg["kind"] in ("circle", "test"):
+            if msg["kind"] != "event":
                 began = self._test_end[2] if msg["kind"] == "test" and self._test_end else (t0 or now)
                 self.fit_latency_ms = 1000.0 * (now - began)
                 self.results += 1
@@ -233,7 +236,7 @@ class AnalysisListener(Listener):
         if self.executor is None and any(m["kind"] == "test" or m.get("event") in TEST_END_EVENTS for m in out):
             release_freed_memory()  # the worker gives back its own
 
-    def _feed(self, t: np.ndarray, L: np.ndarray, out: list[Message]) -> None:
+    def _feed(self, t: np.ndarray, L: np.ndarray, out: list[AnalysisOutput]) -> None:
         """Feed a piece; on an error, reject the test in progress and start afresh from the offending sample."""
         try:
             out.extend(self.analyzer.feed(t, L))
@@ -254,28 +257,23 @@ class AnalysisListener(Listener):
         if start < t.size:
             self._feed(t[start:], L[start:], out)
 
-    def _wrap(self, msg: Message) -> Message:
-        if msg.get("event") == "feed_in":
-            stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-            base = f"{self.cfg.daemon.machine_id}-{stamp}"
+    def _wrap(self, msg: AnalysisOutput) -> Published:
+        if msg["kind"] == "event" and msg["event"] == "feed_in":
+            second = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+            base = f"{self.cfg.daemon.machine_id}-{second}"
             # Tests replayed faster than real time can start within one second: keep the ids unique.
             self._same_second = self._same_second + 1 if base == self._id_base else 1
             self._id_base = base
             self.test_id = base if self._same_second == 1 else f"{base}-{self._same_second}"
-        msg = dict(msg)
-        msg.setdefault("schema_version", SCHEMA_VERSION)
-        msg["machine_id"] = self.cfg.daemon.machine_id
-        msg["test_id"] = self.test_id
-        msg["t_wall"] = utc_now()
-        msg["t_host"] = now = time.monotonic()
+        now = time.monotonic()
         last_t, last_t_host = self.last_t, self.last_t_host
         if msg["kind"] == "test" and self._test_end is not None:  # the batch that ended the test
             last_t, last_t_host, _ = self._test_end
-        msg["last_sample_t"] = last_t
-        msg["last_sample_t_host"] = last_t_host
-        msg["latency_ms"] = 1000.0 * (now - last_t_host)
-        msg["time_axis"] = "device" if self.use_device_time else "host"
-        return msg
+        last: LastSample = {
+            "test_id": self.test_id, "t_host": now, "last_sample_t": last_t, "last_sample_t_host": last_t_host,
+            "latency_ms": 1000.0 * (now - last_t_host), "time_axis": "device" if self.use_device_time else "host",
+        }
+        return published(msg, stamp(self.cfg.daemon.machine_id), last)
 
     def stop(self) -> None:
         with self._lock, contextlib.suppress(BallbarError):
@@ -286,7 +284,7 @@ class AnalysisListener(Listener):
                                 "(ballbar analyze of its recording gives it)", self.analyzer.test_index)
                     return
             for msg in self.analyzer.finish():
-                if msg.get("event") in TEST_END_EVENTS:
+                if msg["kind"] == "event" and msg["event"] in TEST_END_EVENTS:
                     self.emit(self._wrap(msg))
 
 
@@ -298,37 +296,38 @@ class LogListener(Listener):
     idle_s = None
 
     def on_message(self, msg: Message) -> None:
-        kind = msg.get("kind")
-        if kind in ("circle", "test"):
-            setup = ("centre", "radius")
-            ranked = [r for r in msg.get("ranking", []) if r["significant"] and r["pattern"] not in setup]
-            top = ", ".join(_finding(msg, r["pattern"]) for r in ranked[:5]) or "nothing significant"
-            what = f"{msg.get('direction', '').upper()} circle" if kind == "circle" else "test"
-            name = (msg.get("plan") or {}).get("name")
-            if name and name != "default":  # a library of plans: which
-                what += f" of plan {name}"
-            extra = ""
-            if kind == "test":
-                iso = msg.get("iso230_4", {})
-                feed = msg["timing"]["measured_feed_mm_min"]
-                extra = f"; G(b) {iso.get('G_b_um') or float('nan'):.2f} um, feed {feed:.1f} mm/min"
-            log.info("%s %s: %s%s", msg.get("test_id"), what, top, extra)
-            verdict = msg.get("verdict")
-            if kind == "test" and isinstance(verdict, dict) and verdict.get("limits"):
-                log.info("%s verdict: %s", msg.get("test_id"), verdict.get("summary"))
-        elif kind == "set":
-            log.info("%s set %s: %s", msg.get("machine_id"), msg.get("set_id"), msg.get("verdict", {}).get("summary"))
-        elif kind == "event" and msg.get("event") in (
+        if msg["kind"] == "circle" or msg["kind"] == "test":
+            self._result(msg)
+        elif msg["kind"] == "set":
+            log.info("%s set %s: %s", msg["machine_id"], msg["set_id"], msg["verdict"]["summary"])
+        elif msg["kind"] == "event" and msg["event"] in (
             "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
             "test_incomplete", "analysis_reset", "test_unrecognised", "plan_choice_refused",
         ):
             log.warning("%s", event_sentence(msg))
 
+    @staticmethod
+    def _result(msg: CircleResult | TestResult) -> None:
+        setup = ("centre", "radius")
+        ranked = [r for r in msg["ranking"] if r["significant"] and r["pattern"] not in setup]
+        top = ", ".join(_finding(msg, r["pattern"]) for r in ranked[:5]) or "nothing significant"
+        name = msg["plan"].get("name")
+        of = f" of plan {name}" if name and name != "default" else ""  # a library of plans: which
+        if msg["kind"] == "circle":
+            log.info("%s %s circle%s: %s", msg["test_id"], msg["direction"].upper(), of, top)
+            return
+        feed = msg["timing"]["measured_feed_mm_min"]
+        log.info("%s test%s: %s; G(b) %.2f um, feed %.1f mm/min", msg["test_id"], of, top,
+                 msg["iso230_4"]["G_b_um"] or math.nan, math.nan if feed is None else feed)
+        verdict = msg.get("verdict")
+        if verdict is not None and verdict["limits"]:
+            log.info("%s verdict: %s", msg["test_id"], verdict["summary"])
+
     def stop(self) -> None:
         pass
 
 
-def event_sentence(msg: Message) -> str:
+def event_sentence(msg: Mapping[str, Any]) -> str:
     """An event as one sentence for the log (the payload itself is on the bus and in the recordings)."""
     name = str(msg.get("event"))
     detail = msg.get("detail") or ""
@@ -352,14 +351,21 @@ def event_sentence(msg: Message) -> str:
     return texts.get(name, f"event {name}: {detail or msg.get('message') or ''}".rstrip(": "))
 
 
-def _finding(msg: Message, pattern: str) -> str:
-    params = msg.get("parameters", {})
+def _finding(msg: CircleResult | TestResult, pattern: str) -> str:
+    params = parameter_map(msg["parameters"])
     keys = [k for k in params if k.startswith(pattern + "_") and params[k]["value"] is not None]
     if not keys:
         return pattern
     k = keys[0]
     p = params[k]
     return f"{k} {p['value']:.3g} {'' if k.endswith(p['unit']) else p['unit']}".strip()
+
+
+# What a source's event makes of its state (events not named leave it as it is).
+_SOURCE_STATES: dict[str, SourceState] = {
+    "unplugged": "unplugged", "replugged": "connected", "opened": "connected", "stall": "stalled",
+    "resumed": "connected", "end": "ended",
+}
 
 
 class Daemon:
@@ -395,7 +401,7 @@ class Daemon:
         self.worker = AnalysisWorker() if cfg.daemon.analysis_worker else None
         self.analysis = AnalysisListener(cfg, self.broadcast, self.worker)
         self.analysis_queue = ListenerQueue(self.analysis, cfg.queues.analysis, "drop_newest")
-        self.analysis.wake = functools.partial(self.analysis_queue.put_message, {"kind": WAKE})
+        self.analysis.wake = functools.partial(self.analysis_queue.put_message, WAKE)
         # An explicit choice of the next plan that an output receives (the bus's control key) reaches the
         # analysis through its queue, in order with the batches.
         for lst, _c, _p in listeners:
@@ -408,27 +414,29 @@ class Daemon:
         self.started = time.monotonic()
         self.samples = 0
         self.lost = 0
-        self.source_state = "starting"
+        self.source_state: SourceState = "starting"
         self.source_reason: str | None = None  # why the source is waiting or unplugged
-        self.last_event: dict[str, Any] | None = None
+        self.last_event: SourceEvent | None = None
         self._rate_mark = (self.started, 0)
         self.rate_hz = 0.0
         self.results_seen = 0
         self.tests_seen = 0
-        self.startup_messages: list[Message] = []  # events found at start (a test a crash cut), sent after config
+        # events found at start (a test a crash cut), sent after the config
+        self.startup_messages: list[TestIncomplete] = []
         self._count_lock = threading.Lock()
 
     def choose_plan(self, name: str | None) -> None:
         """Analyse the next test as plan ``name`` (None: withdraw the choice); taken on the analysis thread,
         which says so in a ``plan_chosen`` (or ``plan_choice_refused``) event."""
-        self.analysis_queue.put_message({"kind": PLAN_CHOICE, "plan": name})
+        choice: PlanChoice = {"kind": "plan_choice", "plan": name}
+        self.analysis_queue.put_message(choice)
 
     def broadcast(self, msg: Message) -> None:
         """Hand a message to every output (never blocks: each queue has its policy)."""
-        if msg.get("kind") == "test":
+        if msg["kind"] == "test":
             for lst in self.annotators:
                 msg = lst.annotate(msg)  # type: ignore[attr-defined]
-        if msg.get("kind") in ("circle", "test"):
+        if msg["kind"] == "circle" or msg["kind"] == "test":
             with self._count_lock:
                 self.results_seen += 1
                 self.tests_seen += msg["kind"] == "test"
@@ -448,22 +456,18 @@ class Daemon:
             if kind == "unplugged" and self.source_state in ("starting", "waiting"):
                 self.source_state = "waiting"  # never opened: a service waits for its adapter to appear
             else:
-                self.source_state = {
-                    "unplugged": "unplugged", "replugged": "connected", "opened": "connected", "stall": "stalled",
-                    "resumed": "connected", "end": "ended",
-                }.get(kind, self.source_state)
-            msg = {"kind": "event", "event": kind, "origin": "source", "schema_version": SCHEMA_VERSION,
-                   "machine_id": self.cfg.daemon.machine_id, "t_wall": utc_now(), **d}
+                self.source_state = _SOURCE_STATES.get(kind, self.source_state)
+            msg = source_event(stamp(self.cfg.daemon.machine_id), ev.to_dict())
             self.last_event = msg
             self.broadcast(msg)
 
-    def status(self) -> Message:
+    def status(self) -> Status:
         now = time.monotonic()
         t_mark, n_mark = self._rate_mark
         if now - t_mark > 0:
             self.rate_hz = (self.samples - n_mark) / (now - t_mark)
         self._rate_mark = (now, self.samples)
-        queues = {q.listener.name: q.stats.to_dict() for q in [self.analysis_queue, *self.outputs]}
+        queues: dict[str, Queue] = {q.listener.name: q.stats.to_dict() for q in [self.analysis_queue, *self.outputs]}
         outputs: dict[str, Any] = {}
         for q in self.outputs:
             stats = getattr(q.listener, "stats", None)
@@ -477,34 +481,34 @@ class Daemon:
         if self.speedup != 1.0 and isinstance(src.get("clock_ratio"), float):
             src["clock_ratio"] *= self.speedup  # host s per device s, as if the device ran at its own speed
             src["drift_ppm"] = (src["clock_ratio"] - 1.0) * 1e6
-        out: Message = {
+        analysis: AnalysisStats = {
+            "results": self.analysis.results,
+            "tests": self.analysis.tests,
+            "fit_latency_ms": self.analysis.fit_latency_ms,
+            "invalid_samples": self.analysis.invalid,
+            "errors": self.analysis.errors,
+            "test_id": self.analysis.test_id,
+        }
+        if self.worker is not None:
+            analysis["worker"] = {"pid": self.worker.pid, "started": self.worker.started,
+                                  "busy": self.analysis.pending}
+        return {
+            **stamp(self.cfg.daemon.machine_id),
             "kind": "status",
-            "schema_version": SCHEMA_VERSION,
-            "machine_id": self.cfg.daemon.machine_id,
-            "t_wall": utc_now(),
             "uptime_s": now - self.started,
             "speedup": self.speedup,
             "source_state": self.source_state,
             "source_reason": self.source_reason,
-            "source": src,
+            "source": cast("SourceStats", src),
             "samples": self.samples,
             "sample_rate_hz": self.rate_hz / self.speedup,  # per second of device time
             "lost_samples": self.lost,
             "queues": queues,
-            "outputs": outputs,
-            "analysis": {
-                "results": self.analysis.results,
-                "tests": self.analysis.tests,
-                "fit_latency_ms": self.analysis.fit_latency_ms,
-                "invalid_samples": self.analysis.invalid,
-                "errors": self.analysis.errors,
-                "test_id": self.analysis.test_id,
-            },
+            # each output's own stats() under its name: the source's and the outputs' counters are theirs to
+            # state (their shapes: SourceStats, McapStats, ZenohStats, RerunStats, MonitorStats)
+            "outputs": cast("Outputs", outputs),
+            "analysis": analysis,
         }
-        if self.worker is not None:
-            out["analysis"]["worker"] = {"pid": self.worker.pid, "started": self.worker.started,
-                                         "busy": self.analysis.pending}
-        return out
 
     def run(self, stop: threading.Event, max_tests: int | None = None, duration_s: float | None = None) -> int:
         """Read, fan out, report, until ``stop`` (or the limits) say so; then shut down cleanly."""
@@ -512,11 +516,11 @@ class Daemon:
         if self.notifier.watchdog_s:
             interval = min(interval, self.notifier.watchdog_s / 2)
         # Redacted here, once: this one message is what the bus, last/config and every MCAP file get.
-        self.broadcast({"kind": "config", "schema_version": SCHEMA_VERSION, "t_wall": utc_now(),
-                        "machine_id": self.cfg.daemon.machine_id, "config": redacted(self.cfg.to_dict())})
-        for msg in self.startup_messages:
-            self.broadcast({"schema_version": SCHEMA_VERSION, "machine_id": self.cfg.daemon.machine_id,
-                            "t_wall": utc_now(), "t_host": time.monotonic(), **msg})
+        config: ConfigMessage = {**stamp(self.cfg.daemon.machine_id), "kind": "config",
+                                 "config": cast("Settings", redacted(self.cfg.to_dict()))}
+        self.broadcast(config)
+        for msg in self.startup_messages:  # stamped as they go out
+            self.broadcast({**msg, **stamp(self.cfg.daemon.machine_id), "t_host": time.monotonic()})
         # READY=1 once the source is set up, whether or not its port is there yet: a service waits for its
         # adapter (the status says "waiting" and why, and a warning repeats every minute).
         self.notifier.ready(f"reading {self.source.url}")

@@ -111,8 +111,8 @@ def recorded_set(path: str | os.PathLike[str], name: str, options: AnalysisOptio
         # the plan the daemon took it for: recognised again as the daemon did, or (chosen by a service, or
         # recorded before plans were recognised) as that plan
         method = (recorded.get("recognition") or {}).get("method")
-        result = analyze_recorded(index, test, plan, machine, opts, curves=curves,
-                                  chosen=plan_name if method in (None, "chosen") else None)
+        result: dict[str, Any] = dict(analyze_recorded(index, test, plan, machine, opts, curves=curves,
+                                                       chosen=plan_name if method in (None, "chosen") else None))
         again = (result.get("plan") or {}).get("name")
         if again not in (None, plan_name):
             raise DataError(f"{path}: set {name}: test {test.test_id} was plan {plan_name} live, plan {again} "

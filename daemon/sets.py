@@ -24,27 +24,25 @@ in the daemon's MCAP records, if a loader is given.
 
 from __future__ import annotations
 
-import datetime as dt
 import json
 import logging
 import os
 import threading
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
-from ballbar import SCHEMA_VERSION
 from ballbar.analysis import sets as aset
 from ballbar.analysis.errors import PlanError
+from ballbar.protocol.messages import stamp
 
 from .listeners import Listener, Message, to_json
 from .output import write_atomic
 
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.sets import SetResult
+
 log = logging.getLogger(__name__)
-
-
-def utc_now() -> str:
-    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 class SetListener(Listener):
@@ -56,13 +54,13 @@ class SetListener(Listener):
 
     def __init__(self, definitions: Sequence[aset.SetDefinition], machine: str,
                  state_dir: str | os.PathLike[str] | None, options: aset.SetOptions | None = None,
-                 seed: Callable[[], Iterable[Message]] | None = None) -> None:
+                 seed: Callable[[], Iterable[Mapping[str, Any]]] | None = None) -> None:
         self.definitions = list(definitions)
         self.machine = machine
         self.options = options or aset.SetOptions()
         self.plans = {p for d in self.definitions for p in d.plans}
         self.emit: Callable[[Message], None] | None = None
-        self.latest: dict[str, Message] = {}
+        self.latest: dict[str, Mapping[str, Any]] = {}  # each plan's latest test result (live, or from records)
         self.sent: dict[str, list[str | None]] = {}
         self.counters = {"tests": 0, "sets": 0, "errors": 0}
         self._lock = threading.Lock()
@@ -79,7 +77,8 @@ class SetListener(Listener):
                     log.info("sets: %d earlier test results of the sets' plans from the records", n)
 
     @classmethod
-    def from_config(cls, cfg: Any, seed: Callable[[], Iterable[Message]] | None = None) -> SetListener | None:
+    def from_config(cls, cfg: Any, seed: Callable[[], Iterable[Mapping[str, Any]]] | None = None
+                    ) -> SetListener | None:
         """From the daemon's configuration (its recorded form's ``sets``); None when it has no set."""
         table = cfg.to_dict().get("sets") or {}
         if not table:
@@ -112,7 +111,7 @@ class SetListener(Listener):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         write_atomic(str(self.path), to_json({"latest": self.latest, "sent": self.sent}))
 
-    def seed(self, messages: Iterable[Message]) -> int:
+    def seed(self, messages: Iterable[Mapping[str, Any]]) -> int:
         """Earlier test results and sets (oldest first, as the records hold them): the latest test of each
         plan, and the tests of each set already sent.  Sends nothing."""
         n = 0
@@ -134,7 +133,7 @@ class SetListener(Listener):
     # ------------------------------------------------------------------ listener
 
     def on_message(self, msg: Message) -> None:
-        if msg.get("kind") != "test":
+        if msg["kind"] != "test":
             return
         name = aset.plan_name(msg)
         if name not in self.plans:
@@ -165,7 +164,7 @@ class SetListener(Listener):
             if self.emit is not None:
                 self.emit(s)
 
-    def _make(self, d: aset.SetDefinition) -> Message | None:
+    def _make(self, d: aset.SetDefinition) -> SetResult | None:
         sel = aset.select(d, self.latest.values())
         if not sel.complete:
             log.debug("sets: %s not complete: %s", d.name, sel.why_not)
@@ -175,7 +174,8 @@ class SetListener(Listener):
             return None
         body = aset.combine(d, sel.tests, self.options)
         self.sent[d.name] = key
-        return {"schema_version": SCHEMA_VERSION, "machine_id": self.machine, "t_wall": utc_now(), **body}
+        # the body is analysis/sets.py's, of SetResult's shape (the schema tests validate it)
+        return cast("SetResult", {**stamp(self.machine), **body})
 
     def stats(self) -> dict[str, Any]:
         return dict(self.counters)

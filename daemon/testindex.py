@@ -29,7 +29,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,7 +39,11 @@ from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
 
 from .mcap_log import McapLog, mcap_files, read_log, read_logs, recording
-from .recordings import Recording, analyze, config_sections, outcomes, recorded_library, with_source
+from .recordings import Outcome, Recording, analyze, config_sections, outcomes, recorded_library, with_source
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import Analysis
+    from ballbar.protocol.messages.results import AnalysisSource
 
 log = logging.getLogger(__name__)
 
@@ -250,7 +254,7 @@ def analyze_recorded(
     curves: bool = False,
     library: PlanLibrary | None = None,
     chosen: str | None = None,
-) -> dict[str, Any]:
+) -> Analysis:
     """Analyse one recorded test from the files that hold it (see the module docstring).
 
     ``library``: the plans its test may run (None: those its daemon run recorded, if any, else ``plan``
@@ -283,9 +287,10 @@ def analyze_recorded(
             continue
         if entry["result"] is None:
             raise DataError(f"{name}: test {test.test_id}: {entry['message'] or entry['status']}")
-        source = {"file": os.path.abspath(paths[own]), "files": [os.path.abspath(p) for p in paths[own:]],
-                  "test_id": test.test_id, "machine_id": test.machine_id, "time_axis": rec.axis,
-                  "tests_recorded": len(index.tests)}
+        source: AnalysisSource = {"file": os.path.abspath(paths[own]),
+                                  "files": [os.path.abspath(p) for p in paths[own:]],
+                                  "test_id": test.test_id, "machine_id": test.machine_id, "time_axis": rec.axis,
+                                  "tests_recorded": len(index.tests)}
         return with_source(entry["result"], source, plan)
     first = index.files[test.files[0]].path
     why = f" ({problem})" if problem is not None else ""
@@ -293,18 +298,19 @@ def analyze_recorded(
 
 
 def _match(
-    found: list[dict[str, Any]], test: RecordedTest, rec: Recording, lg: McapLog, own: int
-) -> dict[str, Any] | None:
+    found: list[Outcome], test: RecordedTest, rec: Recording, lg: McapLog, own: int
+) -> Outcome | None:
     """The analysed test that is the recorded one: the same feed-in on the same clock, else by the file's start.
 
     A test's file begins with a preroll of samples from before its feed-in was
     recognised (which may hold earlier tests); the test is the last one whose
     feed-in lies before the file's own samples begin.
     """
-    timed = [e for e in found if e["feed_in_s"] is not None]
+    timed = [(e, e["feed_in_s"]) for e in found if e["feed_in_s"] is not None]
     if test.feed_in_s is not None and test.time_axis in (None, rec.axis) and timed:
-        best = min(timed, key=lambda e: abs(e["feed_in_s"] - test.feed_in_s))
-        if abs(best["feed_in_s"] - test.feed_in_s) < MATCH_FEED_IN_S:
+        at = test.feed_in_s
+        best, best_s = min(timed, key=lambda ef: abs(ef[1] - at))
+        if abs(best_s - at) < MATCH_FEED_IN_S:
             return best
         if test.time_axis is not None:
             return None
@@ -314,7 +320,7 @@ def _match(
         return None
     k = start + int(mine[0])
     clock = lg.samples.t_device if rec.axis == "device" else lg.samples.t_host
-    before = [e for e in timed if e["feed_in_s"] <= clock[k]]
+    before = [e for e, s in timed if s <= clock[k]]
     return before[-1] if before else None
 
 

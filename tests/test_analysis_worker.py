@@ -93,7 +93,7 @@ def test_the_listener_sends_the_workers_result_when_woken_with_the_test_end_s_la
     while len(wakes) < 2 and time.monotonic() < deadline:  # one wake per test fitted
         time.sleep(0.01)
     assert len(wakes) == 2, "the worker's result never woke the listener"
-    an.on_message({"kind": WAKE})
+    an.on_message(WAKE)
     assert not an.pending
     tests = [m for m in got if m["kind"] == "test"]
     tests_inline = [m for m in got_inline if m["kind"] == "test"]

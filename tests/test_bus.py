@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
+from schemacheck import validate
 
 from ballbar import SCHEMA_VERSION
 from ballbar.daemon.bus import (
@@ -33,10 +34,10 @@ from ballbar.daemon.bus import (
     BusConfigError,
     ZenohBus,
     ZenohConfig,
-    dumps,
     parse_time_us,
 )
 from ballbar.daemon.samples import SampleBatch
+from ballbar.protocol.messages import stamp, to_json
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 
@@ -65,6 +66,7 @@ def circle(i: int, direction: str = "ccw", pad: int = 0) -> dict[str, Any]:
     return {
         "kind": "circle",
         "schema_version": SCHEMA_VERSION,
+        "machine_id": "m",
         "direction": direction,
         "test_index": 1,
         "test_id": f"m-{i}",
@@ -80,6 +82,7 @@ def result_msg(i: int) -> dict[str, Any]:
     return {
         "kind": "test",
         "schema_version": SCHEMA_VERSION,
+        "machine_id": "m",
         "test_index": 1,
         "test_id": f"m-{i}",
         "t_wall": iso(10 * i + 5),
@@ -235,7 +238,7 @@ def test_a_machine_id_must_be_one_key_chunk(machine: str) -> None:
 
 
 def test_json_is_strict_and_time_parses_both_ways() -> None:
-    text = dumps({"a": math.nan, "b": [np.float64(1.5), np.int64(2), math.inf], "c": (1, 2)})
+    text = to_json({"a": math.nan, "b": [np.float64(1.5), np.int64(2), math.inf], "c": (1, 2)})
     assert json.loads(text) == {"a": None, "b": [1.5, 2, None], "c": [1, 2]}
     assert parse_time_us("2025-03-01T08:00:00.250Z") == parse_time_us(BASE.timestamp() + 0.25)
     assert parse_time_us("2025-03-01T08:00:00.250") == parse_time_us("1740816000.25")
@@ -271,9 +274,11 @@ def test_topics_encoding_and_payloads() -> None:
         wait_until(lambda: bus.has_subscribers("status"), what="the subscriber")
         bus.on_message(circle(1))
         bus.on_message(result_msg(1))
-        bus.on_message({"kind": "event", "event": "unplugged", "origin": "source", "detail": "EIO"})
-        bus.on_message({"kind": "status", "sample_rate_hz": 1000.0, "queues": {"zenoh": {"depth": 0}}, "outputs": {}})
-        bus.on_message({"kind": "config", "config": {"daemon": {"machine_id": "m"}}})
+        # as the daemon makes them: the envelope from stamp(); the bus sends each as it was handed
+        bus.on_message({**stamp("m"), "kind": "event", "event": "unplugged", "origin": "source", "detail": "EIO"})
+        bus.on_message({**stamp("m"), "kind": "status", "sample_rate_hz": 1000.0, "queues": {"zenoh": {"depth": 0}},
+                        "outputs": {}})
+        bus.on_message({**stamp("m"), "kind": "config", "config": {"daemon": {"machine_id": "m"}}})
         bus.on_message({"kind": "mystery"})
         wait_until(lambda: len(received) >= 5, what="five samples")
         time.sleep(0.1)
@@ -328,6 +333,8 @@ def test_decimated_samples_when_asked_for() -> None:
     assert 49 <= t_out.size <= 51
     assert np.allclose(np.diff(t_out), 0.02, atol=1e-3)
     assert received[0]["kind"] == "samples" and received[0]["t_device"][0] is None
+    for m in received:
+        validate(m, "samples")
 
 
 def test_no_samples_topic_by_default() -> None:
@@ -387,6 +394,7 @@ def test_last_and_history_answer_from_the_daemons_records() -> None:
         ]:
             ok, err = get(c, f"ballbar/m/history/test?{bad}")
             assert not ok and len(err) == 1 and says in json.loads(err[0])["error"], err
+            validate(json.loads(err[0]), "error")
 
 
 def test_a_late_joiner_catches_up_through_the_history() -> None:
@@ -621,7 +629,7 @@ def test_the_defaults_find_each_other() -> None:
             pytest.skip(f"port 7447 was taken meanwhile: {bus.stats()['open_error']}")
         with subscriber("--machine", machine, "--count", "1", "--timeout", "20") as p:
             wait_until(lambda: bus.has_subscribers("test"), what="the subscriber")
-            bus.on_message(result_msg(1))
+            bus.on_message({**result_msg(1), "machine_id": machine})
             out, err = p.communicate(timeout=20)
         assert p.returncode == 0, err
         assert [g["machine_id"] for g in lines(out)] == [machine]

@@ -25,7 +25,7 @@ from ballbar.daemon.monitor import Monitor, MonitorStore
 from ballbar.tools import alert_survey
 from ballbar.tools.simulator import MachineModel, simulate
 
-SCHEMA = schemas.schema("alert")  # the shipped one: daemon/schemas/alert.json with schema_version pinned
+SCHEMA = schemas.schema("alert")  # the shipped one, generated from ballbar.protocol.messages.monitor
 try:
     import jsonschema
 except ImportError:  # pragma: no cover - the test extras install it

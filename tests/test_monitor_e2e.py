@@ -16,10 +16,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from schemacheck import validate_recordings
 from test_e2e import Daemon, Subscriber, free_port
 from test_monitor import validate
 
 from ballbar.daemon.cli import main as cli_main
+from ballbar.daemon.mcap_log import read_logs
 from ballbar.tools.simdevice import DeviceProcess
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
@@ -100,3 +102,9 @@ def test_alerts_of_a_wearing_machine(tmp_path: Path, capsys: pytest.CaptureFixtu
     live_e, off_e = tests[2]["verdict"]["limits"][0], offline["verdict"]["limits"][0]
     assert off_e["value"] == pytest.approx(live_e["value"], rel=1e-6)
     assert off_e["status"] == live_e["status"]
+    # every record of the run follows its channel's schema: the status with the monitor's counters among them
+    seen = validate_recordings(records)
+    assert seen["/ballbar/status"] > 0 and seen["/ballbar/results"] >= 6
+    monitor = [r["outputs"]["monitor"] for r in read_logs(sorted(records.glob("*.mcap"))).status
+               if "monitor" in r["outputs"]]
+    assert monitor and max(m["tests"] for m in monitor) >= 1  # its counters are per run (the restart's start at 0)

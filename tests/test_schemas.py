@@ -1,4 +1,5 @@
-"""The payloads' JSON Schemas: shipped, valid draft 2020-12, closed, and matched by real payloads.
+"""The payloads' JSON Schemas: generated from the message types, shipped, valid draft 2020-12, closed, and matched
+by real payloads; the payload tables generated likewise.
 
 The daemon's own payloads are checked where they are made: the end-to-end tests
 (``test_e2e.py``, ``test_plant.py``) validate every message a subscriber receives
@@ -12,18 +13,36 @@ from __future__ import annotations
 
 import copy
 import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args, is_typeddict
 
+import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
 from schemacheck import problems, validate
 
 from ballbar import SCHEMA_VERSION
-from ballbar.daemon.mcap_log import SCHEMAS, TOPIC_CONFIG, TOPIC_EVENTS, TOPIC_RESULTS, TOPIC_STATUS
-from ballbar.daemon.schemas import NAMES, PARAMETERS, schema, schema_text, shipped_dir
+from ballbar.analysis.patterns import LIBRARY
+from ballbar.analysis.report import _report_fields
+from ballbar.daemon.config import load
+from ballbar.daemon.mcap_log import (
+    SCHEMAS,
+    TOPIC_CONFIG,
+    TOPIC_EVENTS,
+    TOPIC_OTHER,
+    TOPIC_RESULTS,
+    TOPIC_SAMPLES,
+    TOPIC_STATUS,
+)
+from ballbar.daemon.schemas import NAMES, PARAMETERS, main, schema, schema_text, shipped_dir
+from ballbar.protocol.messages import SchemaVersion, tables
+from ballbar.protocol.messages.config import Settings
+from ballbar.protocol.messages.fields import fields_of
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def test_shipped_files_are_the_schemas() -> None:
@@ -41,9 +60,74 @@ def test_shipped_files_are_the_schemas() -> None:
 
 
 def test_mcap_channels_register_the_same_schemas() -> None:
-    for topic, name in ((TOPIC_RESULTS, "result"), (TOPIC_EVENTS, "mcap-event"), (TOPIC_STATUS, "status"),
-                        (TOPIC_CONFIG, "config")):
+    names = {TOPIC_RESULTS: ("ballbar.Result", "result"), TOPIC_EVENTS: ("ballbar.Event", "mcap-event"),
+             TOPIC_STATUS: ("ballbar.Status", "status"), TOPIC_CONFIG: ("ballbar.Config", "config"),
+             TOPIC_SAMPLES: ("ballbar.Samples", "mcap-samples"), TOPIC_OTHER: ("ballbar.Message", "mcap-other")}
+    assert set(SCHEMAS) == set(names)
+    for topic, (mcap_name, name) in names.items():
+        assert SCHEMAS[topic][0] == mcap_name, topic
         assert SCHEMAS[topic][1] == schema(name), topic
+
+
+def test_the_payload_tables_are_generated(tmp_path: Path) -> None:
+    doc = REPO / "protocol" / "messages" / "README.md"
+    assert doc.read_text(encoding="utf-8") == tables.markdown(), (
+        "protocol/messages/README.md is stale: python -m ballbar.daemon.schemas --doc protocol/messages/README.md"
+    )
+    # the command writes both, as the messages say
+    assert main(["--write", str(tmp_path / "s"), "--doc", str(tmp_path / "README.md")]) == 0
+    assert (tmp_path / "README.md").read_text(encoding="utf-8") == tables.markdown()
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == sorted(f"{n}.schema.json" for n in NAMES)
+
+
+def test_one_table_names_each_field_with_its_unit() -> None:
+    text = tables.markdown()
+    assert "| `backlash_x_um` | [Parameter](#parameter) | um | lost motion of the first axis" in text
+    assert "| `latency_ms` | number or null | ms |" in text
+    assert "| `count` | integer |  | how many |" in text  # the lost event's
+
+
+def test_the_daemon_runs_without_loading_the_types() -> None:
+    """The daemon makes and sends plain dicts: the types and the generator are for mypy and the tests (its MCAP
+    channels' schemas are the shipped files, checked above)."""
+    code = ("import sys, ballbar.daemon.run, ballbar.daemon.service, ballbar.daemon.mcap_log, ballbar.daemon.bus, "
+            "ballbar.daemon.monitor, ballbar.daemon.rerun.listener, ballbar.daemon.testindex; "
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('ballbar.protocol.messages'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    loaded = set(out.split())
+    light = {f"ballbar.protocol.messages{m}" for m in ("", ".channels", ".envelope", ".fields", ".publish")}
+    assert loaded == light, loaded - light
+    # ... and every name the package exports is there when asked for (loaded then)
+    from ballbar.protocol import messages
+
+    assert all(getattr(messages, name) is not None for name in messages.__all__)
+
+
+def test_schema_version_is_the_types_literal() -> None:
+    assert get_args(SchemaVersion) == (SCHEMA_VERSION,)
+
+
+def test_parameters_are_the_pattern_librarys_fields_with_their_units() -> None:
+    fields = dict(f for pat in LIBRARY for f in _report_fields(pat))
+    assert {k: u for k, (u, _text) in PARAMETERS.items()} == fields
+
+
+def _keys(td: Any, given: Any) -> dict[str, Any]:
+    """The keys of ``td``, nested: the required ones and those of the others that ``given`` has."""
+    out: dict[str, Any] = {}
+    for name, (tp, _d, required) in fields_of(td).items():
+        if required or (isinstance(given, dict) and name in given):
+            out[name] = _keys(tp, given.get(name) if isinstance(given, dict) else None) if is_typeddict(tp) else None
+    return out
+
+
+def _shape(d: dict[str, Any], like: dict[str, Any]) -> dict[str, Any]:
+    return {k: _shape(v, like.get(k) or {}) if isinstance(like.get(k), dict) else None for k, v in d.items()}
+
+
+def test_the_config_message_has_every_section_and_key_of_the_configuration() -> None:
+    sent = load(env={}).to_dict()  # the shipped defaults: what the daemon sends (redacted) as ballbar/<m>/config
+    assert _shape(sent, _keys(Settings, sent)) == _keys(Settings, sent)
 
 
 def _closed(node: Any, path: str, out: list[str]) -> None:
@@ -62,7 +146,7 @@ def _closed(node: Any, path: str, out: list[str]) -> None:
             _closed(v, f"{path}/{i}", out)
 
 
-@pytest.mark.parametrize("name", [n for n in NAMES if n != "history"])
+@pytest.mark.parametrize("name", [n for n in NAMES if n not in ("history", "mcap-other")])
 def test_objects_are_closed_and_described(name: str) -> None:
     bad: list[str] = []
     doc = schema(name)
@@ -153,3 +237,119 @@ def test_events_are_checked_per_kind() -> None:
     assert problems({**ok, "message": "x"})  # a lost event has no message
     assert problems({**ok, "event": "no_such_event"})
     assert problems({**ok, "schema_version": SCHEMA_VERSION - 1})
+
+
+# --------------------------------------------------------------------------- payloads the old schemas refused
+
+
+def test_a_history_alert_reply_and_its_alerts_follow_their_schemas(analyses: dict[str, dict[str, Any]],
+                                                                     tmp_path: Path) -> None:
+    """history/alert is answered like the others; its reply is a history document (topic alert)."""
+    from ballbar.analysis.monitor import settings_from_dict
+    from ballbar.daemon.bus import ZenohBus, ZenohConfig
+    from ballbar.daemon.monitor import Monitor, MonitorStore
+
+    test = {**analyses["full"], "machine_id": "m", "test_id": "m-20260101T000000Z", "t_wall": "2026-01-01T00:00:00Z"}
+    settings = settings_from_dict({"enabled": True, "parameters": {"backlash_x_um": 1.0}})
+    alerts = Monitor(settings, "m", MonitorStore(tmp_path, "m")).on_test(test)
+    assert [(a["alert"], a["state"]) for a in alerts] == [("verdict", "fail")]  # 5 um of backlash against 1 um
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    bus = ZenohBus("m", ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        for a in alerts:
+            bus.on_message(a)
+        reply = json.loads(bus.history_payload("alert"))
+    finally:
+        bus.stop()
+    validate(reply, "history")
+    assert reply["topic"] == "alert" and reply["count"] == 1
+    validate(reply["results"][0], "alert")
+
+
+def test_a_polled_gauges_per_test_files_follow_their_channels_schemas(tmp_path: Path) -> None:
+    """The timing event the MCAP log repeats at the head of each file (``repeated``) is in the mcap-event schema."""
+    from schemacheck import validate_recordings
+
+    from ballbar.daemon.config import load
+    from ballbar.daemon.mcap_log import McapLogger, read_log
+    from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
+    from ballbar.daemon.secrets import redacted
+    from ballbar.protocol.messages import ConfigMessage, stamp
+    from ballbar.protocol.messages.events import FeedIn
+    from ballbar.protocol.messages.publish import source_event
+
+    lg = McapLogger(tmp_path, "m")
+    config: ConfigMessage = {**stamp("m"), "kind": "config", "config": redacted(load(env={}).to_dict())}
+    lg.on_message(config)
+    timing = SourceEvent(EventKind.TIMING, 100.0, "serial:/dev/ttyUSB0?protocol=mitutoyo", detail="polled",
+                         values={"t_uncertainty_s": 0.004, "t_jitter_s": 0.001, "achieved_hz": 50.0})
+    k = np.arange(200)
+    for i, t0 in enumerate((100.0, 102.0)):
+        t_host = t0 + k[:100] * 0.02
+        batch = SampleBatch.from_columns(t_host, np.full(100, np.nan), np.full(100, 100.0), k[:100] + 100 * i,
+                                         np.zeros(100), (timing,) if i == 0 else (), timing.source)
+        if i == 0:  # the daemon hands each source event over as its message, then in its batch: logged once
+            lg.on_message(source_event(stamp("m"), timing.to_dict()))
+        lg.on_batch(batch)
+        feed_in: FeedIn = {**stamp("m"), "kind": "event", "event": "feed_in", "test_index": i + 1,
+                           "t_s": float(t_host[50]), "test_id": f"m-{i}", "t_host": float(t_host[-1])}
+        lg.on_message(feed_in)  # each test: a new file, which repeats the timing event at its head
+    lg.stop()
+    seen = validate_recordings(tmp_path / "recordings")
+    events = [[e["event"] for e in read_log(p).events] for p in sorted((tmp_path / "recordings").glob("*.mcap"))]
+    assert len(events) == 2 and events[1][0] == "timing", events  # the second test's file opens with it
+    assert read_log(sorted((tmp_path / "recordings").glob("*.mcap"))[1]).events[0]["repeated"] is True
+    assert seen["/ballbar/events"] == sum(map(len, events)) and seen["/ballbar/config"] == 2
+
+
+# --------------------------------------------------------------------------- every producer, in process
+
+
+def test_every_message_the_daemon_makes_follows_its_schema(tmp_path: Path) -> None:
+    """The daemon's producers as `ballbar run` wires them (source events, the analysis' results and events, the
+    config, the status, the monitor's verdict and alerts, the MCAP log's records), on a simulated test: every
+    message handed to the outputs, and every record written, follows its schema."""
+    import threading
+
+    from schemacheck import validate_all, validate_recordings
+
+    from ballbar.daemon.listeners import Listener, Message
+    from ballbar.daemon.run import build_listeners
+    from ballbar.daemon.samples import SampleBatch
+    from ballbar.daemon.service import Daemon
+    from ballbar.daemon.sources import open_source
+    from ballbar.tools.simulator import MachineModel
+
+    class Recorder(Listener):
+        name = "recorder"
+
+        def __init__(self) -> None:
+            self.messages: list[Message] = []
+
+        def on_batch(self, batch: SampleBatch) -> None:
+            pass
+
+        def on_message(self, msg: Message) -> None:
+            self.messages.append(msg)
+
+        def stop(self) -> None:
+            pass
+
+    cfg = load(None, [f'daemon.state_dir="{tmp_path}"', "zenoh.enabled=false", 'rerun.mode="off"',
+                      "daemon.analysis_worker=false", "limits.enabled=true", "limits.parameters={backlash_x_um=1.0}"],
+               env={})
+    rec = Recorder()
+    src = open_source("sim:?speedup=max&rate=100&repeat=2", machine=MachineModel(backlash_x_um=5.0))
+    d = Daemon(cfg, src, [*build_listeners(cfg), (rec, 10_000, "drop_newest")])
+    # two tests: the first's alert (pass to fail) reaches every output before the run ends
+    assert d.run(threading.Event(), max_tests=2, duration_s=120.0) == 0
+    seen = validate_all([*rec.messages, d.status()])
+    for kind in ("config", "event:opened", "event:feed_in", "event:feed_out", "circle", "test", "alert", "status"):
+        assert seen[kind] > 0, (kind, seen)
+    tests = [m for m in rec.messages if m["kind"] == "test"]
+    assert [t["verdict"]["status"] for t in tests] == ["fail", "fail"]  # the monitor's: 5 um of backlash against 1 um
+    assert "monitor" in d.status()["outputs"]
+    records = validate_recordings(tmp_path / "recordings")
+    assert records["/ballbar/results"] >= 3 and records["/ballbar/config"] >= 1

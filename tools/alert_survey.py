@@ -32,7 +32,7 @@ import json
 import logging
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime, timedelta
@@ -69,7 +69,7 @@ def run(sc: Scenario) -> dict[str, Any]:
     monitor = Monitor(settings, "survey")
     rng = np.random.default_rng([sc.seed, 7])
     alerts: list[dict[str, Any]] = []
-    last_forecast: dict[str, Any] | None = None
+    last_forecast: Mapping[str, Any] | None = None
     times = []
     for i in range(sc.tests):
         when = START + timedelta(days=i, minutes=float(rng.uniform(0, 60)))
@@ -78,7 +78,7 @@ def run(sc: Scenario) -> dict[str, Any]:
         b += float(rng.normal(0.0, sc.scatter_um)) if sc.scatter_um > 0 else 0.0
         machine = replace(BASE, backlash_x_um=b, noise_um=sc.noise_um)
         sim = simulate(PLAN, machine, PLAN.sample_hz, seed=sc.seed * 1000 + i)
-        result = next(r for r in analyze_recording(sim.t_s, sim.length_mm, PLAN) if r.get("kind") == "test")
+        result = dict(next(r for r in analyze_recording(sim.t_s, sim.length_mm, PLAN) if r["kind"] == "test"))
         result.update(machine_id="survey", test_id=f"survey-{sc.seed}-{i}", t_wall=mon.time_text(when))
         result["verdict"] = monitor.verdict(result)
         for a in monitor.on_test(result):

@@ -61,7 +61,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -76,6 +76,8 @@ BATCH_WALL_S = 0.02  # a source's batch: 20 ms of wall time
 # absolute times in results and events, shifted with each replay (the rest of ``timing`` are durations)
 _TIMING_TIMES = ("feed_in_s", "feed_out_s", "data_start_s", "data_end_s")
 
+Replayed = dict[str, Any]  # one of the analysis' messages, as JSON: replayed with its times moved on
+
 
 # --------------------------------------------------------------------------- the stream
 
@@ -87,7 +89,7 @@ class Stream:
     rate_hz: float
     t: np.ndarray  # device time of each sample (s)
     L: np.ndarray  # bar length (mm)
-    messages: list[tuple[int, Message]]  # (samples fed before it, message)
+    messages: list[tuple[int, Replayed]]  # (samples fed before it, message)
     plan: TestPlan
 
     @property
@@ -115,10 +117,10 @@ def make_stream(rate_hz: float, seed: int = 1, machine: MachineModel = MACHINE) 
     res = next(iter_tests(plan, machine, rate_hz, seed=seed, repeat=1))
     an = TestAnalyzer(plan, MachineConfig())
     chunk = max(1, round(rate_hz * 0.02))
-    messages: list[tuple[int, Message]] = []
+    messages: list[tuple[int, Replayed]] = []
     for i in range(0, res.t_s.size, chunk):
         for msg in an.feed(res.t_s[i : i + chunk], res.length_mm[i : i + chunk]):
-            messages.append((min(i + chunk, res.t_s.size), msg))
+            messages.append((min(i + chunk, res.t_s.size), dict(msg)))
     kinds = [m["kind"] for _i, m in messages]
     if kinds.count("test") != 1:
         raise RuntimeError(f"the simulated test was not analysed whole: {kinds}")
@@ -137,7 +139,7 @@ def cached_stream(rate_hz: float, cache: Path | None) -> Stream:
     return s
 
 
-def shifted(msg: Message, k: int, period_s: float, tests: int = 1) -> Message:
+def shifted(msg: Replayed, k: int, period_s: float, tests: int = 1) -> Replayed:
     """Message ``msg`` of replay ``k`` of a stream of ``tests`` tests: its test number and absolute times moved on."""
     out = copy.deepcopy(msg)
     dt = k * period_s
@@ -208,7 +210,7 @@ def replay(
             msg.update(machine_id="bench", test_id=f"bench-{msg.get('test_index')}", t_host=now,
                        last_sample_t=float(t_dev[-1]), last_sample_t_host=due,
                        latency_ms=1000.0 * (now - due), time_axis="device")
-            put_message(msg)
+            put_message(cast(Message, msg))  # the analysis' output wrapped as the service wraps it
         pos += j - i
         if on_second is not None and time.monotonic() >= next_tick:
             next_tick += 1.0
@@ -335,6 +337,7 @@ def measure(
     if idle:
         stream = Stream(stream.rate_hz, stream.t, np.full(stream.t.size, stream.plan.radius_mm), [], stream.plan)
     listener: Listener
+    rerun_viewer: Any = None  # the viewer's module is loaded by path: its listener's own methods are untyped here
     server_pid: Callable[[], int | None] = lambda: None  # noqa: E731
     if viewer == "null":
         listener = NullListener()
@@ -348,7 +351,7 @@ def measure(
                 raise RuntimeError(f"the viewer's server did not come up: {v.stats()}")
             v.on_idle()
             time.sleep(0.05)
-        listener = v
+        listener = rerun_viewer = v
 
         def server_pid() -> int | None:
             srv = getattr(v, "_server", None)
@@ -401,13 +404,13 @@ def measure(
            if r["server_rss_mib"] is not None]
     out["server_rss_slope_mib_per_device_h"] = slope_per([x for x, _y in srv], [y for _x, y in srv])
     if viewer != "null":
-        out["stats"] = {k: v for k, v in listener.stats().items() if k != "server"}
-        out["server"] = listener.stats().get("server")
+        out["stats"] = {k: v for k, v in rerun_viewer.stats().items() if k != "server"}
+        out["server"] = rerun_viewer.stats().get("server")
         if late_viewer:
             deadline = time.monotonic() + 15.0  # the queue calls on_idle: a history being sent in slices finishes
-            while listener.stats().get("history_pending") and time.monotonic() < deadline:
+            while rerun_viewer.stats().get("history_pending") and time.monotonic() < deadline:
                 time.sleep(0.1)
-            out["late"] = late_view(listener.address, tmp or Path(tempfile.mkdtemp()), port + 1)
+            out["late"] = late_view(rerun_viewer.address, tmp or Path(tempfile.mkdtemp()), port + 1)
     t0 = time.monotonic()
     queue.close()  # and the listener's stop()
     out["stop_s"] = time.monotonic() - t0

@@ -70,14 +70,14 @@ def random_machine(
     return MachineModel(**kw), float(rng.choice(list(rates)))
 
 
-def analyse(machine: MachineModel, fs: float, seed: int = 0, **plan: float) -> tuple[dict[str, Any], dict[str, Any]]:
+def analyse(machine: MachineModel, fs: float, seed: int = 0, **plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """The one test of a simulated recording of ``machine`` at ``fs``, and the simulation's truth."""
     test_plan = TestPlan(sample_hz=fs, **plan)
     sim = simulate(test_plan, machine, fs, seed=seed)
     tests = [r for r in analyze_recording(sim.t_s, sim.length_mm, test_plan) if r["kind"] == "test"]
     if len(tests) != 1:
         raise AssertionError(f"{len(tests)} tests found in one simulated test")
-    return tests[0], sim.truth
+    return dict(tests[0]), sim.truth
 
 
 def false_findings(result: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:

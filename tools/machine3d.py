@@ -30,10 +30,10 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from typing import Any, cast
 
 from ballbar.analysis.errors import PlanError
-from ballbar.analysis.plan import PLANE_AXES, TestPlan
+from ballbar.analysis.plan import PLANE_AXES, Plane, TestPlan
 from ballbar.analysis.plans import NamedPlan, PlanLibrary, signature_moves
 from ballbar.analysis.program import Move, moves
 
@@ -120,7 +120,7 @@ class Machine3D:
     def truth(self, plane: str) -> dict[str, float]:
         """What a test in ``plane`` should report (:func:`~ballbar.tools.simulator.truth_of` of its projection,
         radius and plan aside): the fields each plane's result carries."""
-        return truth_of(TestPlan(plane=plane), self.project(plane))
+        return truth_of(TestPlan(plane=cast(Plane, plane)), self.project(plane))
 
     def with_(self, **changes: Any) -> Machine3D:
         axes = dict(self.axes)

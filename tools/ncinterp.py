@@ -932,10 +932,10 @@ def _structure(test: list[_Seg], want: list[Move]) -> list[str]:
         if a.move.kind == "arc" and b.move.kind == "arc" and a.move.name == b.move.name:
             out.append(f"the {a.move.name} arc stops ({a.stop_reason}); the plan runs it as one move")
     for k in range(1, len(test) - 1):
-        a, m, b = test[k - 1].move, test[k].move, test[k + 1].move
-        if m.kind == "dwell" and a.kind == "arc" and b.kind == "arc" and a.name == b.name:
+        before, m, after = test[k - 1].move, test[k].move, test[k + 1].move
+        if m.kind == "dwell" and before.kind == "arc" and after.kind == "arc" and before.name == after.name:
             what = "program stop" if m.name == "stop" else "dwell"
-            out.append(f"a {what} at line {test[k].blocks[0].line} splits the {a.name} arc")
+            out.append(f"a {what} at line {test[k].blocks[0].line} splits the {before.name} arc")
     if any(s.move.name == "rapid" for s in test):
         out.append("a rapid inside the test")
     return out

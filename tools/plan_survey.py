@@ -31,12 +31,12 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from ballbar.analysis.engine import analyze_recording
-from ballbar.analysis.plan import TestPlan
+from ballbar.analysis.plan import Plane, TestPlan
 from ballbar.analysis.plans import NamedPlan, PlanLibrary
 from ballbar.tools.false_alarms import wilson
 from ballbar.tools.machine3d import Machine3D, program_of
@@ -47,7 +47,8 @@ VERTICAL = {"ZX": -115.0, "YZ": -25.0}  # start angles of the symmetric 220 deg 
 
 
 def _vertical(plane: str, feed: float) -> TestPlan:
-    return TestPlan(plane=plane, feed_mm_min=feed, start_deg=VERTICAL[plane], overshoot_deg=5.0, data_arc_deg=220.0)
+    return TestPlan(plane=cast(Plane, plane), feed_mm_min=feed, start_deg=VERTICAL[plane], overshoot_deg=5.0,
+                    data_arc_deg=220.0)
 
 
 LIBRARY = PlanLibrary.from_plans({
@@ -109,9 +110,9 @@ def recognise(p: NamedPlan, machine: Machine3D, fs: float, seed: int, signed: bo
     tests = [r for r in out if r["kind"] == "test"]
     if tests:
         return "plan", str(tests[0]["plan"]["name"]), str(tests[0]["recognition"]["method"])
-    unrec = [r for r in out if r.get("event") == "test_unrecognised"]
-    if unrec:
-        return "unrecognised", str(unrec[0]["reason"]), ",".join(unrec[0]["candidates"])
+    for r in out:  # the first unrecognised test
+        if r["kind"] == "event" and r["event"] == "test_unrecognised":
+            return "unrecognised", r["reason"], ",".join(r["candidates"])
     why = [str(r.get("message", r.get("event"))) for r in out
            if r.get("kind") == "event" and r.get("event") != "feed_in"]
     return "other", None, "; ".join(why)[:200]

@@ -172,7 +172,8 @@ def from_recording(
     in the recording itself and, with ``records``, in that directory of the
     daemon's records.
     """
-    result = analyze_file(path, plan, machine, options, test, curves=True, library=library)
+    result: dict[str, Any] = dict(analyze_file(path, plan, machine, options, test, curves=True,  # the report's
+                                               library=library))
     curves = result.pop("curves")
     candidates = _read_results(_mcap_files(path))
     recorded = [r for r in candidates if r.get("kind") == "test" and _same_test(result, r)]
@@ -278,7 +279,7 @@ def from_recorded_test(
     """
     from ballbar.daemon.testindex import analyze_recorded
 
-    result = analyze_recorded(index, test, plan, machine, options, curves=True, library=library)
+    result: dict[str, Any] = dict(analyze_recorded(index, test, plan, machine, options, curves=True, library=library))
     curves = result.pop("curves")
     published = test.result or {}
     _adopt_identity(result, published)

@@ -23,7 +23,7 @@ import logging
 from collections.abc import Mapping, Sequence
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ballbar.daemon.output import write_atomic
 
@@ -50,6 +50,9 @@ from .report_plots import (
 )
 from .report_plots import png as png_bytes
 
+if TYPE_CHECKING:
+    from ballbar.protocol.messages import LimitEntry, Verdict
+
 log = logging.getLogger(__name__)
 
 __all__ = ["envelope_indices", "forecast_words", "polar_scale_um", "render"]
@@ -70,17 +73,16 @@ def forecast_words(tests: Sequence[Mapping[str, Any]], axes: tuple[str, str]) ->
     from ballbar.analysis import monitor
     from ballbar.analysis.report import quantity_label, unit_text
 
-    v = tests[-1].get("verdict")
-    if not isinstance(v, Mapping) or not v.get("limits"):
+    # the newest test is the report's own result: its verdict is attach_verdict's (typed), the others are records
+    v: Verdict | None = tests[-1].get("verdict")
+    if not v or not v["limits"]:
         return []
-    groups: dict[str, list[Mapping[str, Any]]] = {}
+    groups: dict[str, list[LimitEntry]] = {}
     for en in v["limits"]:
-        if isinstance(en, Mapping) and en.get("limit") is not None:
-            groups.setdefault(str(en.get("limit_name") or en.get("name")), []).append(en)
-    limits = tuple(monitor.Limit(name, float(es[0]["limit"]), float(es[0].get("warn_fraction") or 0.8),
-                                 tuple(str(x["name"]) for x in es), str(es[0].get("group") or "parameters"))
-                   for name, es in groups.items())
-    settings = monitor.MonitorSettings(limits=limits, coverage_k=float(v.get("coverage_k") or 2.0),
+        groups.setdefault(en["limit_name"], []).append(en)
+    limits = tuple(monitor.Limit(name, es[0]["limit"], es[0]["warn_fraction"], tuple(x["name"] for x in es),
+                                 es[0]["group"]) for name, es in groups.items())
+    settings = monitor.MonitorSettings(limits=limits, coverage_k=v["coverage_k"],
                                        trend_tests=min(max(len(tests), 3), FORECAST_TESTS))
     history = [monitor.history_entry(r, monitor.evaluate(r, settings), str(r.get("t_wall")))
                for r in tests if r.get("t_wall")]
@@ -90,12 +92,12 @@ def forecast_words(tests: Sequence[Mapping[str, Any]], axes: tuple[str, str]) ->
         pts = monitor.points(history, name, cond, settings)
         f = monitor.forecast(pts, lim, name, settings)
         label = quantity_label(name, axes)
-        unit = unit_text(next((en.get("unit") for en in v["limits"] if en.get("name") == name), ""))
-        if f.get("crossing"):
+        unit = unit_text(next((en["unit"] for en in v["limits"] if en["name"] == name), ""))
+        if crossing := f.get("crossing"):
             lo, hi = f.get("crossing_lo"), f.get("crossing_hi")
-            span = f" ({100 * settings.confidence:g} %: {str(lo or 'never')[:10]} .. {str(hi or 'never')[:10]})"
+            span = f" ({100 * settings.confidence:g} %: {(lo or 'never')[:10]} .. {(hi or 'never')[:10]})"
             slope = f.get("slope_per_day") or 0.0
-            when = str(f["crossing"])[:10]
+            when = crossing[:10]
             flat = "" if f.get("significant") else "; the slope is within its uncertainty"
             out.append(f"{label}: trend {slope:+.3g} {unit}/day, reaches its limit {lim.bound:g} {unit} about "
                        f"{when}{span}{flat}")

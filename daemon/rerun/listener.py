@@ -48,7 +48,7 @@ import time
 import uuid
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -80,6 +80,9 @@ from .server import Prober, ServerProcess
 
 if TYPE_CHECKING:
     import rerun as rr
+
+    from ballbar.protocol.messages import CircleResult, PipelineEvent, TestResult
+    from ballbar.protocol.messages.results import Machine, Plan
 else:  # imported at first use: the configuration check and READY=1 do not wait for it (half a second)
     from ..lazy import LazyModule
 
@@ -618,41 +621,44 @@ class RerunViewer(Scene, Listener):
     # ------------------------------------------------------------------ messages
 
     def _on_message(self, msg: Message) -> None:
+        """A message of the daemon (live, typed: ``ballbar.protocol.messages``); records read back from files, of
+        any version, go through :meth:`seed` instead."""
         self.counters["messages"] += 1
-        kind = msg.get("kind")
-        if kind == "alert":  # the monitor's alerts: one line in the events
-            self._text_event(f"alert: {msg.get('message', msg.get('state'))}",
-                             "INFO" if msg.get("cleared") else "WARN")
+        if msg["kind"] == "alert":  # the monitor's alerts: one line in the events
+            self._text_event(f"alert: {msg['message'] or msg['state']}", "INFO" if msg["cleared"] else "WARN")
             return
-        if kind == "set":  # a set's result: the machine's verdict, and a line in the events
+        if msg["kind"] == "set":  # a set's result: the machine's verdict, and a line in the events
             self._on_set(msg)
-            self._text_event(f"set {msg.get('set_id')}: {(msg.get('verdict') or {}).get('summary', '')}",
-                             "INFO" if (msg.get("verdict") or {}).get("status") == "pass" else "WARN")
+            verdict = msg["verdict"]
+            self._text_event(f"set {msg['set_id']}: {verdict['summary']}",
+                             "INFO" if verdict["status"] == "pass" else "WARN")
             return
-        if kind not in ("config", "circle", "test", "event"):
-            return  # status: nothing to draw
-        self._flush(time.monotonic())  # a boundary: the samples before it are drawn and sent first
-        if kind == "config":
-            cfg = msg.get("config")
-            if isinstance(cfg, Mapping) and isinstance(cfg.get("plans"), Mapping) and not self._plans:
-                self._set_library(cfg["plans"], cfg.get("sets") or {})
+        if msg["kind"] == "config":
+            self._flush(time.monotonic())  # a boundary: the samples before it are drawn and sent first
+            cfg = msg["config"]
+            plans = cfg.get("plans")
+            if plans is not None and not self._plans:
+                self._set_library(plans, cfg.get("sets") or {})
                 if self._plans and self._sink_live:
                     self._send_scene()
-            if isinstance(cfg, Mapping) and isinstance(cfg.get("plan"), Mapping):
-                self._set_plan(cfg["plan"], cfg.get("machine"))
-        elif kind in ("circle", "test"):
-            if isinstance(msg.get("plan"), Mapping):
-                self._set_plan(msg["plan"], msg.get("machine"))
+            self._set_plan(cfg["plan"], cfg["machine"])
+        elif msg["kind"] == "circle" or msg["kind"] == "test":
+            self._flush(time.monotonic())
+            self._set_plan(msg["plan"], msg["machine"])
             self._check_clock(msg)
             self._result(msg)
-        elif kind == "event" and msg.get("origin") != "source":  # source events come with their batch
-            self._check_clock(msg)
-            self._event(msg)
+        elif msg["kind"] == "event":
+            self._flush(time.monotonic())
+            if msg.get("origin") != "source":  # source events come with their batch
+                event = cast("PipelineEvent", msg)  # the analysis' or one found at start
+                self._check_clock(event)
+                self._event(event)
+        # status, samples: nothing to draw
 
-    def _set_plan(self, plan: Mapping[str, Any], machine: Any) -> None:
+    def _set_plan(self, plan: Plan, machine: Machine) -> None:
         try:
             new = plan_of_result(plan)
-            mach = MachineConfig.from_dict(dict(machine)) if isinstance(machine, Mapping) else self.machine
+            mach = MachineConfig.from_dict(dict(machine))
         except (TypeError, ValueError) as err:
             log.warning("rerun viewer: ignoring a plan it cannot read: %s", err)
             return
@@ -663,7 +669,7 @@ class RerunViewer(Scene, Listener):
             self._set_times()
             self._log_scale("live")
 
-    def _check_clock(self, msg: Message) -> None:
+    def _check_clock(self, msg: CircleResult | TestResult | PipelineEvent) -> None:
         """Follow the clock the analysis runs on: the message's ``time_axis``, else its times.
 
         Without ``time_axis``, an engine time (``last_sample_t``, an event's
@@ -673,7 +679,7 @@ class RerunViewer(Scene, Listener):
             return
         axis = msg.get("time_axis")
         use_host = self._use_host
-        if axis in ("device", "host"):
+        if axis is not None:
             use_host = axis == "host"
         elif (t := num(msg.get("last_sample_t")) or num(msg.get("t_s"))) is not None:
 
@@ -690,8 +696,8 @@ class RerunViewer(Scene, Listener):
         log.info("rerun viewer: the analysis runs on the %s clock", "host" if self._use_host else "device")
         self._redraw_all()
 
-    def _event(self, msg: Message) -> None:
-        ev = str(msg.get("event", ""))
+    def _event(self, msg: PipelineEvent) -> None:
+        ev = msg["event"]
         idx = msg.get("test_index")
         t_s = num(msg.get("t_s"))
         wall = self._wall_of(t_s) if t_s is not None else None
@@ -701,12 +707,14 @@ class RerunViewer(Scene, Listener):
         elif t_s is not None:  # its samples are gone: the analysis clock's time, and which clock
             text += f" at t={t_s:.3f} s on the {'host' if self._use_host else 'device'} clock"
         if msg.get("message"):
-            text += f": {msg['message']}"
-        if ev == "feed_in" and isinstance(msg.get("plan"), str) and msg["plan"] in self._library:
-            self.plan = self._library[msg["plan"]]  # recognised at the feed-in: its timing draws the live circles
-            text += f" (plan {msg['plan']})"
-        if ev == "feed_in" and isinstance(idx, int) and num(msg.get("t_s")) is not None:
-            self._start_test(idx, float(msg["t_s"]))
+            text += f": {msg.get('message')}"
+        if msg["event"] == "feed_in":
+            plan = msg.get("plan")
+            if isinstance(plan, str) and plan in self._library:
+                self.plan = self._library[plan]  # recognised at the feed-in: its timing draws the live circles
+                text += f" (plan {plan})"
+            if t_s is not None:
+                self._start_test(msg["test_index"], t_s)
         elif ev in TEST_END_EVENTS:
             self._end_test()
         self._text_event(text, "WARN" if ev in WARN_EVENTS else "INFO", wall)
@@ -759,42 +767,39 @@ class RerunViewer(Scene, Listener):
                 self._set_times()
                 self._log_status()
 
-    def _result(self, res: Message) -> None:
-        idx = res.get("test_index")
-        if isinstance(idx, int) and idx != self._test_index:
-            self._test_index = idx
-        test = res.get("kind") == "test"
-        if test:
+    def _result(self, res: CircleResult | TestResult) -> None:
+        idx = res["test_index"]
+        self._test_index = idx
+        test = res["kind"] == "test"
+        if res["kind"] == "test":
             # the analyzer's own rule: an implausible feed teaches the next test's provisional timing nothing
-            hints = TimingHints.learnt(res.get("timing") or {}, TimingHints(*self._hints))
+            hints = TimingHints.learnt(res["timing"], TimingHints(*self._hints))
             if hints is not None:
                 self._hints = (hints.feed_ratio, hints.overhead_s, hints.spike_width_deg)
             for d in DIRECTIONS:
                 if result_timing(res, d) is not None:
                     self._final[d] = res
         else:
-            d = 1 if res.get("direction") == "ccw" else -1
-            self._final[d] = res
+            self._final[1 if res["direction"] == "ccw" else -1] = res
         if self.options.remove_setup and param(res, "centre_x_um") is not None:
             self._setup_result = res
         wall = time.time()
-        name = (res.get("plan") or {}).get("name") if self._plans else None
+        name = res["plan"].get("name") if self._plans else None
         if isinstance(name, str) and test and name not in self._plans:
             self._add_plan(name, res)
         ring = self._plan_trends.setdefault(name, Ring(TRENDS_KEPT, TREND_WIDTH)) if isinstance(name, str) \
             else self._trends
         prefix = f"plans/{name}/trends" if isinstance(name, str) else "trends"
         first = not len(ring)
-        row = self._trend_row(res, idx, wall, ring.rows()[-TREND_FIT_TESTS:]) \
-            if test and isinstance(idx, int) else None
+        row = self._trend_row(res, idx, wall, ring.rows()[-TREND_FIT_TESTS:]) if test else None
         if row is not None:
             ring.extend(row)
-        if test:
+        if res["kind"] == "test":
             self._findings_md = findings_markdown(res, wall) + self._forecast_markdown(ring.rows())
-            self._live_status = f"test {idx} complete: {str(res.get('verdict', {}).get('status', 'done')).upper()}" \
-                if isinstance(res.get("verdict"), Mapping) else f"test {idx} complete"
+            verdict = res.get("verdict")
+            self._live_status = f"test {idx} complete" + (f": {verdict['status'].upper()}" if verdict else "")
         else:
-            self._live_status = f"test {idx}: {str(res.get('direction', '')).upper()} circle fitted"
+            self._live_status = f"test {idx}: {res['direction'].upper()} circle fitted"
         if self._sink_live:
             self._set_times(wall)
             self._log_status()

@@ -1,0 +1,1 @@
+../../ballbar/__init__.py
