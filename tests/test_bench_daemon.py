@@ -1,6 +1,6 @@
 """The daemon bench: its /proc parsing and statistics on this process, and one short run.
 
-The figures themselves need the long runs (``python -m ballbar.tools.bench_daemon``, README
+The figures themselves need the long runs (``python -m ballbar.tools.bench.bench_daemon``, README
 "Benchmarks"); the short run only checks that every figure is there and sane.
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from ballbar.tools import bench_daemon as bd
+from ballbar.tools.bench import bench_daemon as bd
 
 
 def _burn(seconds: float) -> None:
@@ -84,7 +84,7 @@ def test_quick_run_at_1khz(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     t0 = time.monotonic()
     proc = subprocess.run(
-        [sys.executable, "-m", "ballbar.tools.bench_daemon", "--quick", "--rates", "1000", "--warmup-s", "3",
+        [sys.executable, "-m", "ballbar.tools.bench.bench_daemon", "--quick", "--rates", "1000", "--warmup-s", "3",
          "--window-s", "12", "--workdir", str(tmp_path / "work"), "--json", str(out)],
         capture_output=True, text=True, timeout=180,
     )

@@ -12,7 +12,7 @@ import pytest
 
 from ballbar.analysis import TestPlan
 from ballbar.analysis.engine import analyze_recording
-from ballbar.tools.false_alarms import false_findings
+from ballbar.tools.bench.false_alarms import false_findings
 from ballbar.tools.simulator import MachineModel, simulate
 
 

@@ -1,7 +1,7 @@
 """Nothing a file can hold takes ``ballbar analyze`` down: bounded memory on any shape, one-line errors.
 
 The memory cases run ``ballbar analyze`` as a real process on sparse files (a 2 GB file takes no disk) and
-take its peak resident set (``VmHWM``) as ``tools/bench_csv.py`` does; each child's address space is capped
+take its peak resident set (``VmHWM``) as ``tools/bench/bench_csv.py`` does; each child's address space is capped
 (``RLIMIT_AS``) so that a regression fails the test instead of the machine.  The property-based tests cut,
 truncate and mutate a real daemon recording and a real CSV at random and hold the readers and the command to
 their contract: a :class:`DataError` (or a result), one line, exit code 1.
@@ -32,7 +32,7 @@ from ballbar.daemon.cli import main
 from ballbar.daemon.csvfile import MAX_LINE_BYTES, read_csv
 from ballbar.daemon.mcap_log import MAX_RECORD_BYTES, list_recordings, read_log
 from ballbar.daemon.recordings import load_recording
-from ballbar.tools.bench_csv import peak_run
+from ballbar.tools.bench.bench_csv import peak_run
 from ballbar.tools.simulator import MachineModel, simulate, write_csv
 
 MB = 1 << 20

@@ -187,7 +187,7 @@ def test_analyze_memory_is_bounded(tmp_path: Path) -> None:
 
 
 def test_bench_csv_runs(capsys: pytest.CaptureFixture[str]) -> None:
-    from ballbar.tools import bench_csv
+    from ballbar.tools.bench import bench_csv
 
     assert bench_csv.main(["--rows", "3000", "--sample-hz", "100", "--modes", "read"]) == 0
     out = capsys.readouterr().out

@@ -43,7 +43,7 @@ from ballbar.daemon.mcap_log import (
 from ballbar.daemon.recordings import read_recording
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.protocol import Status
-from ballbar.tools.bench_mcap import feed_paced, serial_batches
+from ballbar.tools.bench.bench_mcap import feed_paced, serial_batches
 from ballbar.tools.simulator import MachineModel, simulate, write_csv
 
 pytestmark = pytest.mark.usefixtures("no_leaks")

@@ -1,7 +1,7 @@
 """The monitor: limits and verdicts, Theil-Sen trends, forecasts, alert states, the store, the schema.
 
 The forecast and false-alert tests run the physical simulator and the daemon's
-engine on every test (``ballbar.tools.alert_survey``), with one test a day.
+engine on every test (``ballbar.tools.bench.alert_survey``), with one test a day.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from ballbar.daemon import schemas
 from ballbar.daemon.config import ConfigError, load, monitor_settings
 from ballbar.daemon.listeners import Listener
 from ballbar.daemon.monitor import Monitor, MonitorStore
-from ballbar.tools import alert_survey
+from ballbar.tools.bench import alert_survey
 from ballbar.tools.simulator import MachineModel, simulate
 
 SCHEMA = schemas.schema("alert")  # the shipped one, generated from ballbar.protocol.messages.monitor
@@ -326,7 +326,7 @@ def test_a_wearing_machine_is_forecast_within_the_interval() -> None:
 @pytest.mark.parametrize("seed", [101, 102, 103])
 def test_a_stable_machine_sends_no_alert(seed: int) -> None:
     """20 daily tests of a machine that does not change (sensor noise 0.3 um, backlash scatter 0.2 um):
-    no alert at all.  The survey over 200 seeds: ``python -m ballbar.tools.alert_survey --seeds 200``."""
+    no alert at all.  The survey over 200 seeds: ``python -m ballbar.tools.bench.alert_survey --seeds 200``."""
     out = alert_survey.run(alert_survey.Scenario(seed=seed))
     assert out["alerts"] == [], out["alerts"]
     assert not out["forecast"]["due"]

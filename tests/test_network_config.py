@@ -15,7 +15,7 @@ import zenoh
 
 from ballbar.daemon.bus import ZENOH_SCHEMES, BusConfigError, ZenohConfig, check_endpoints
 from ballbar.daemon.config import ConfigError, check_listen
-from ballbar.tools.bench_diskfull import DaemonLog, stop_daemon
+from ballbar.tools.bench.bench_diskfull import DaemonLog, stop_daemon
 
 
 def free_port() -> int:

@@ -1,6 +1,6 @@
 """A plant: several ``ballbar run --simulate`` daemons as Zenoh clients of one router.
 
-The scenario is ``tools/bench_plant.py``'s (its timings are the benchmark's; here only
+The scenario is ``tools/bench/bench_plant.py``'s (its timings are the benchmark's; here only
 what must hold): a subscriber started before the daemons gets every machine's test
 results; a late one gets them from ``history``; a daemon killed with ``kill -9`` drops
 out of the liveliness; the router closed and opened again is survived by the daemons and
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from schemacheck import validate_all
 
-from ballbar.tools.bench_plant import run
+from ballbar.tools.bench.bench_plant import run
 
 DAEMONS = 3  # each is a daemon and its simulated device: 6 processes on a 2-core machine
 

@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pytest
 
-from ballbar.tools.false_alarms import analyse, false_findings, random_machine
+from ballbar.tools.bench.false_alarms import analyse, false_findings, random_machine
 from ballbar.tools.simulator import MachineModel
 
 RATES = [15.625, 250.0, 1000.0]

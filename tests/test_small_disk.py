@@ -3,7 +3,7 @@
 The real daemon (``ballbar run`` on the ``sim:`` source at x20) writes its state to an 8 MiB tmpfs that the test
 mounts (root only: elsewhere it skips and says why) and fills to the last byte, twice: once freed while the
 daemon runs, once held full until it stops.  How long resuming takes is measured by
-``python -m ballbar.tools.bench_diskfull`` (tools/RESULTS.md); here it must happen at all.
+``python -m ballbar.tools.bench.bench_diskfull`` (tools/RESULTS.md); here it must happen at all.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 
 from ballbar.daemon.mcap_log import list_recordings, read_log, read_spool
-from ballbar.tools.bench_diskfull import spell, start_daemon, stop_daemon
-from ballbar.tools.soak import Disk
+from ballbar.tools.bench.bench_diskfull import spell, start_daemon, stop_daemon
+from ballbar.tools.bench.soak import Disk
 
 TEST_LINE = re.compile(r"ballbar\.daemon\.service: (?P<id>\S+) test: ")
 

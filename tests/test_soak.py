@@ -1,6 +1,6 @@
 """The soak tool, short: every fault once, and every sample still accounted for.
 
-The figures' trends need the long run (``python -m ballbar.tools.soak --minutes 30``, README "Soak");
+The figures' trends need the long run (``python -m ballbar.tools.bench.soak --minutes 30``, README "Soak");
 this only checks that the tool works and that the accounting adds up across each kind of fault.
 """
 
@@ -15,7 +15,8 @@ from pathlib import Path
 def test_a_short_soak_accounts_for_every_sample(tmp_path: Path) -> None:
     report = tmp_path / "soak.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "ballbar.tools.soak", "--minutes", "0.6", "--fault-every-s", "7", "--unplug-s", "1",
+        [sys.executable, "-m", "ballbar.tools.bench.soak", "--minutes", "0.6", "--fault-every-s", "7",
+         "--unplug-s", "1",
          "--freeze-s", "3", "--disk-full-s", "2", "--disk-mb", "96", "--sample-s", "1", "--samples-hz", "50",
          "--workdir", str(tmp_path / "work"), "--json", str(report)],
         capture_output=True, text=True, timeout=300,
@@ -35,7 +36,7 @@ def test_a_short_soak_accounts_for_every_sample(tmp_path: Path) -> None:
 
 
 def test_the_verdict_passes_a_merging_queue_and_flags_growth() -> None:
-    from ballbar.tools.soak import QUEUE_DEPTH_MAX, verdict
+    from ballbar.tools.bench.soak import QUEUE_DEPTH_MAX, verdict
 
     def fig(first: float, median: float, last: float, trend: float) -> dict[str, float | None]:
         return {"first_quiet": first, "median": median, "last_quiet": last, "trend_per_min": trend}
@@ -56,7 +57,7 @@ def test_the_verdict_passes_a_merging_queue_and_flags_growth() -> None:
 def test_the_trend_is_not_moved_by_one_sample_in_a_backlog() -> None:
     import numpy as np
 
-    from ballbar.tools.soak import theil_sen
+    from ballbar.tools.bench.soak import theil_sen
 
     t = np.arange(20.0)
     flat = np.full(20, 1.0)

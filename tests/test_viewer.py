@@ -849,7 +849,7 @@ def test_stop_without_any_viewer_is_quick(script: Script) -> None:
 
 def replayed(script: Script, times: int) -> Iterator[tuple[str, Any]]:
     """The script's two tests ``times`` over, back to back on one clock (times, numbers, test indices moved on)."""
-    from ballbar.tools.bench_viewer import shifted
+    from ballbar.tools.bench.bench_viewer import shifted
 
     n = script.t.size
     period = n / PLAN.sample_hz

@@ -1,7 +1,7 @@
 """Acquisition benchmark: decoder throughput, and the rates a pty sustains with zero loss.
 
-    python -m ballbar.tools.bench_acquisition            # about two minutes
-    python -m ballbar.tools.bench_acquisition --quick    # about twenty seconds
+    python -m ballbar.tools.bench.bench_acquisition            # about two minutes
+    python -m ballbar.tools.bench.bench_acquisition --quick    # about twenty seconds
 
 1. Decoders: samples per second for each protocol, the vectorised decoders of
    :mod:`ballbar.protocol` against a naive per-byte Python decoder of the same
@@ -274,7 +274,8 @@ def _m(x: float) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_acquisition", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.bench_acquisition",
+                                description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="smaller inputs, shorter runs, one repeat on the pty")
     p.add_argument("--samples", type=int, help="decoder input size (default 1 000 000; quick 200 000)")
     p.add_argument("--repeats", type=int, help="decoder repeats (default 5) and pty repeats (default 3)")

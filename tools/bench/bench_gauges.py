@@ -1,6 +1,6 @@
 """Benchmark of the polled path: achieved rate and request/answer window of each gauge profile through a pty.
 
-    python -m ballbar.tools.bench_gauges [--seconds 10] [--bauds 9600,115200] [--rate HZ] [--json out.json]
+    python -m ballbar.tools.bench.bench_gauges [--seconds 10] [--bauds 9600,115200] [--rate HZ] [--json out.json]
 
 For each profile and baud, the simulated gauge (``ballbar.tools.simdevice``) emulates its line at that baud
 on a pty and the daemon's ``SerialSource`` polls it as fast as the line allows (``--rate``: default the
@@ -42,7 +42,7 @@ def run(profile: str, baud: int, seconds: float, rate: float | None) -> dict[str
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_gauges",
+    ap = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.bench_gauges",
                                  description="achieved rate and request/answer window of the gauge profiles")
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--bauds", default="9600,115200")

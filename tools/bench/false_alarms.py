@@ -22,7 +22,7 @@ Wilson 95 % interval); the share with any false finding, in all and per
 sample rate; each false finding with its p-value; and, for the patterns the
 machines do have, how many of their fitted values lie within three stated
 standard errors of the truth. Run:
-``python -m ballbar.tools.false_alarms --machines 200 --seed 1000 --jobs 2``.
+``python -m ballbar.tools.bench.false_alarms --machines 200 --seed 1000 --jobs 2``.
 """
 
 from __future__ import annotations
@@ -145,7 +145,7 @@ def survey(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.false_alarms", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.false_alarms", description=__doc__.splitlines()[0])
     p.add_argument("--machines", type=int, default=100)
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--jobs", type=int, default=1, help="processes (one per core)")

@@ -29,11 +29,11 @@ starts; at speedup 1 a test of the default plan takes 160 s including the 5 s ga
 
 Run::
 
-    python -m ballbar.tools.bench_daemon                        # 15.625 Hz, 1 kHz, 10 kHz at x1, ~10 min
-    python -m ballbar.tools.bench_daemon --rates 1000 --speedup 20 --tests 5   # latency at x20
-    python -m ballbar.tools.bench_daemon --quick --rates 1000   # x5, a 20 s window: a smoke test
-    python -m ballbar.tools.bench_daemon --outputs mcap         # only the MCAP log (diagnosis)
-    python -m ballbar.tools.bench_daemon --soak-min 60 --speedup 20 --json soak.json
+    python -m ballbar.tools.bench.bench_daemon                        # 15.625 Hz, 1 kHz, 10 kHz at x1, ~10 min
+    python -m ballbar.tools.bench.bench_daemon --rates 1000 --speedup 20 --tests 5   # latency at x20
+    python -m ballbar.tools.bench.bench_daemon --quick --rates 1000   # x5, a 20 s window: a smoke test
+    python -m ballbar.tools.bench.bench_daemon --outputs mcap         # only the MCAP log (diagnosis)
+    python -m ballbar.tools.bench.bench_daemon --soak-min 60 --speedup 20 --json soak.json
 
 Soak (``--soak-min``): one rate (default 1 kHz) at x20 (unless ``--speedup``) for that many
 minutes; after ``--soak-warmup-min`` (default 35: at x20 a test takes 8 s, so by then the
@@ -638,7 +638,7 @@ class Measurement:
         args = ["run", "--config", str(conf), "--source", self.dev.url]
         for s in self.sets:
             args += ["--set", s]
-        head = ([sys.executable, "-m", "ballbar.tools.bench_daemon", "_daemon"] if p.thread_names
+        head = ([sys.executable, "-m", "ballbar.tools.bench.bench_daemon", "_daemon"] if p.thread_names
                 else [sys.executable, "-m", "ballbar.daemon.cli"])
         self.daemon_log_path = self.dir / "daemon.log"
         daemon_log = open(self.daemon_log_path, "wb")  # noqa: SIM115 - closed by the stack
@@ -649,7 +649,7 @@ class Measurement:
         notify.wait_ready(self.daemon, 120.0)
         helpers_log = open(self.dir / "helpers.log", "wb")  # noqa: SIM115 - closed by the stack
         self.stack.callback(helpers_log.close)
-        me = [sys.executable, "-m", "ballbar.tools.bench_daemon"]
+        me = [sys.executable, "-m", "ballbar.tools.bench.bench_daemon"]
         self.sub: Child | None = None
         if "zenoh" in p.outputs:
             self.sub = Child("subscriber", [*me, "_subscriber", self.endpoint, MACHINE], helpers_log, self._on_bus)
@@ -1054,7 +1054,7 @@ def _outputs(text: str) -> tuple[str, ...]:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m ballbar.tools.bench_daemon",
+        prog="python -m ballbar.tools.bench.bench_daemon",
         description="The daemon's CPU, context switches, memory and result latency per rate, against a bare "
                     "serial reader measured in the same window (see the module docstring).",
     )

@@ -41,7 +41,7 @@ Exit code 0 when everything adds up and memory, descriptors, threads and queues 
 
 Run (root, for the disk-full spell)::
 
-    python -m ballbar.tools.soak --minutes 30 --json soak.json
+    python -m ballbar.tools.bench.soak --minutes 30 --json soak.json
 """
 
 from __future__ import annotations
@@ -765,7 +765,7 @@ def report(r: dict[str, Any]) -> Iterator[str]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.soak", description=__doc__.split("\n", 1)[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.soak", description=__doc__.split("\n", 1)[0])
     p.add_argument("--minutes", type=float, default=30.0, help="length of the run")
     p.add_argument("--speedup", type=float, default=5.0, help="device time per wall time (device at 1000 Hz)")
     p.add_argument("--fault-every-s", type=float, default=60.0)

@@ -16,9 +16,9 @@ gives medians.  ``--shape`` takes a hostile file instead (a 200 MB line of NUL b
 address space is capped (``--cap-gb``), so that code that cannot read it in bounded
 memory fails with a MemoryError at the cap instead of taking the machine.
 
-Run: ``python -m ballbar.tools.bench_csv --rows 10000000 [--python ../old/.venv/bin/python]``
+Run: ``python -m ballbar.tools.bench.bench_csv --rows 10000000 [--python ../old/.venv/bin/python]``
 (10 M rows at 1 kHz: 282 MB of CSV, 65 tests; about a minute to write, five to analyse.)
-``python -m ballbar.tools.bench_csv --shape nul-line --modes analyze --python ../old/.venv/bin/python``
+``python -m ballbar.tools.bench.bench_csv --shape nul-line --modes analyze --python ../old/.venv/bin/python``
 """
 
 from __future__ import annotations
@@ -139,7 +139,7 @@ def make_shape(path: Path, shape: str) -> None:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m ballbar.tools.bench_csv",
+        prog="python -m ballbar.tools.bench.bench_csv",
         description="Peak memory and wall time of reading a long CSV recording and of ballbar analyze on it.",
     )
     p.add_argument("--rows", type=int, default=2_000_000, help="samples to write (default 2 M)")

@@ -16,7 +16,7 @@ noise, checks; no provisional circles):
 ``--baseline PYTHON``: the same measurements with another interpreter (another
 checkout's venv, e.g. the code before a change), interleaved with ours so that
 both see the same machine; ratios are ours over the baseline's.  Run:
-``python -m ballbar.tools.bench_fit --repeats 7 --baseline ../base/.venv/bin/python``.
+``python -m ballbar.tools.bench.bench_fit --repeats 7 --baseline ../base/.venv/bin/python``.
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def bench(fs: float, repeats: int, pythons: dict[str, str], work: Path) -> dict[
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_fit", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.bench_fit", description=__doc__.splitlines()[0])
     p.add_argument("--rates", default="15.625,1000,10000", help="sample rates (Hz), comma-separated")
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--baseline", metavar="PYTHON", help="another interpreter (checkout) to measure beside this one")

@@ -1,7 +1,7 @@
 """Start-up time of ``ballbar run --simulate`` with every output on: exec to READY=1.
 
-    python -m ballbar.tools.bench_startup --runs 7
-    python -m ballbar.tools.bench_startup --runs 7 --baseline-python /path/to/other/checkout/.venv/bin/python
+    python -m ballbar.tools.bench.bench_startup --runs 7
+    python -m ballbar.tools.bench.bench_startup --runs 7 --baseline-python /path/to/other/checkout/.venv/bin/python
 
 Each run starts the daemon as systemd would see it (``$NOTIFY_SOCKET`` a datagram
 socket of this process), with the default configuration's outputs (MCAP, Zenoh as a
@@ -177,7 +177,7 @@ def handler_main(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_startup", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.bench_startup", description=__doc__.split("\n")[0])
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--baseline-python", help="also time this interpreter's ballbar (another checkout)")
     p.add_argument("--port-base", type=int, default=7640, help="Zenoh listens here, Rerun serves on the next")

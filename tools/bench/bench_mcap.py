@@ -12,7 +12,7 @@ pace.  Reported per rate, medians of ``--repeats`` runs:
 - write: samples per second of CPU the logger needs (``on_batch`` and flushes)
 - read: samples per second of :func:`~ballbar.daemon.mcap_log.read_mcap`
 
-Run: ``OPENBLAS_NUM_THREADS=1 python -m ballbar.tools.bench_mcap [--rates 15.625,1000,10000]``
+Run: ``OPENBLAS_NUM_THREADS=1 python -m ballbar.tools.bench.bench_mcap [--rates 15.625,1000,10000]``
 """
 
 from __future__ import annotations

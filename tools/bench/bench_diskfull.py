@@ -1,6 +1,6 @@
 """Disk full on a small state file system: the time from space returning to the daemon writing again.
 
-For each of ``--sizes`` (MiB) a tmpfs of that size is mounted (root only; :class:`~ballbar.tools.soak.Disk`) and
+For each of ``--sizes`` (MiB) a tmpfs of that size is mounted (root only; :class:`~ballbar.tools.bench.soak.Disk`) and
 ``ballbar run`` started on the ``sim:`` source sped up, its state directory on it (MCAP on, Zenoh and Rerun
 off).  Once the daemon writes its first file, ``--spells`` times: the file system is filled to the last byte,
 the daemon's "cannot write" error awaited, the disk held full ``--full-s`` more (and up to half a second, at
@@ -12,7 +12,7 @@ older checkout, for a before/after.
 
 Run (root)::
 
-    python -m ballbar.tools.bench_diskfull --sizes 8,256 --spells 5 [--python ../old/.venv/bin/python]
+    python -m ballbar.tools.bench.bench_diskfull --sizes 8,256 --spells 5 [--python ../old/.venv/bin/python]
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
 
-from ballbar.tools.soak import Disk
+from ballbar.tools.bench.soak import Disk
 
 
 class DaemonLog:
@@ -138,7 +138,7 @@ def measure(size_mb: int, spells: int, full_s: float, workdir: Path, python: str
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_diskfull", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.bench_diskfull", description=__doc__.split("\n")[0])
     p.add_argument("--sizes", default="8,256", help="tmpfs sizes, MiB, comma-separated")
     p.add_argument("--spells", type=int, default=5, help="full-disk spells per size")
     p.add_argument("--full-s", type=float, default=3.0, help="how long the disk stays full after the error")

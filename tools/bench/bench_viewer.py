@@ -1,8 +1,8 @@
 """Viewer benchmark: the Rerun streamer's memory and CPU over hours of device time.
 
-    python -m ballbar.tools.bench_viewer                  # 1 kHz and 10 kHz; this viewer against main's
-    python -m ballbar.tools.bench_viewer --quick          # a few minutes, smaller figures
-    python -m ballbar.tools.bench_viewer --baseline none  # this viewer only
+    python -m ballbar.tools.bench.bench_viewer                  # 1 kHz and 10 kHz; this viewer against main's
+    python -m ballbar.tools.bench.bench_viewer --quick          # a few minutes, smaller figures
+    python -m ballbar.tools.bench.bench_viewer --baseline none  # this viewer only
 
 A :class:`~ballbar.daemon.rerun.RerunViewer` in ``serve`` mode (its own
 ``rerun --serve-grpc`` child, as in the daemon) is fed as the daemon feeds it,
@@ -529,7 +529,7 @@ def _child(args: argparse.Namespace) -> int:
 
 def run_child(viewer: str, rate: float, device_s: float, speedup: float, port: int, memory_limit: str,
               cache: Path, late_viewer: bool = False, idle: bool = False) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "ballbar.tools.bench_viewer", "--child", "--viewer", viewer, "--rate", str(rate),
+    cmd = [sys.executable, "-m", "ballbar.tools.bench.bench_viewer", "--child", "--viewer", viewer, "--rate", str(rate),
            "--device-s", str(device_s), "--speedup", str(speedup), "--port", str(port),
            "--memory-limit", memory_limit, "--cache", str(cache)] + (["--late-viewer"] if late_viewer else []) + (
            ["--idle"] if idle else [])
@@ -597,7 +597,7 @@ def _limit_mib(text: str) -> float | None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_viewer", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.bench_viewer", description=__doc__.split("\n")[0])
     p.add_argument("--rates", default="1000,10000", help="sample rates, Hz (default 1000,10000)")
     p.add_argument("--hours", type=float, default=1.0, help="device hours per memory run (default 1)")
     p.add_argument("--speedup", type=float, default=20.0, help="memory runs: device time / wall time (default 20)")

@@ -19,7 +19,7 @@ to an hour of jitter).  Two scenarios, each over ``--seeds`` machines:
 
 ::
 
-    python -m ballbar.tools.alert_survey --seeds 200 --jobs 2 --json survey.json
+    python -m ballbar.tools.bench.alert_survey --seeds 200 --jobs 2 --json survey.json
 
 The plan is short (3000 mm/min, 20 deg overshoots, 250 Hz) so that a test
 takes a fraction of a second to simulate and analyse.
@@ -136,7 +136,7 @@ def summarize(stable: Sequence[dict[str, Any]], wear: Sequence[dict[str, Any]]) 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.alert_survey", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.alert_survey", description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", type=int, default=200, help="machines per scenario")
     p.add_argument("--tests", type=int, default=20, help="tests per machine, one a day")
     p.add_argument("--scenario", choices=("both", "stable", "wear"), default="both")

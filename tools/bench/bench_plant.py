@@ -2,8 +2,8 @@
 
 ::
 
-    python -m ballbar.tools.bench_plant                       # 10 daemons, ~90 s
-    python -m ballbar.tools.bench_plant --daemons 4 --json plant.json
+    python -m ballbar.tools.bench.bench_plant                       # 10 daemons, ~90 s
+    python -m ballbar.tools.bench.bench_plant --daemons 4 --json plant.json
 
 Starts a Zenoh router (a session in router mode, standing in for ``zenohd``) on
 loopback, a subscriber of every machine's results and events (``ballbar-subscribe
@@ -305,7 +305,7 @@ def _quantiles(xs: list[float]) -> dict[str, float | None]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_plant", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.bench_plant", description=__doc__.split("\n\n")[0])
     ap.add_argument("--daemons", type=int, default=10)
     ap.add_argument("--speedup", type=float, default=20.0, help="each simulated device's speed-up")
     ap.add_argument("--rate", type=float, default=100.0, help="each device's sample rate, Hz")

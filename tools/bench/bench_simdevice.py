@@ -1,7 +1,7 @@
 """What the simulated device costs: its CPU time per wall second, streaming to a reader.
 
-    python -m ballbar.tools.bench_simdevice                         # 15.625 Hz, 1 kHz, 10 kHz; 30 s each
-    python -m ballbar.tools.bench_simdevice --baseline main --repeats 3
+    python -m ballbar.tools.bench.bench_simdevice                         # 15.625 Hz, 1 kHz, 10 kHz; 30 s each
+    python -m ballbar.tools.bench.bench_simdevice --baseline main --repeats 3
 
 :mod:`ballbar.tools.simdevice` runs in a child process (``--repeat 0``, the default test
 plan, speed-up 1 unless ``--speedup``); this process reads its pty raw, as fast as bytes
@@ -203,7 +203,8 @@ def _fmt_row(name: str, rate: float, runs: list[dict[str, Any]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench_simdevice", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.bench_simdevice",
+                                description=__doc__.split("\n")[0])
     p.add_argument("--rates", default="15.625,1000,10000", help="device sample rates, Hz, comma-separated")
     p.add_argument("--speedup", type=float, default=1.0)
     p.add_argument("--protocol", choices=["binary", "ascii"], default="binary")
