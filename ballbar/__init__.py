@@ -7,16 +7,9 @@ The distribution maps the repository's top-level folders to subpackages:
 
 from __future__ import annotations  # SCHEMA_VERSION's annotation is mypy's alone: nothing imports typing at start
 
-import os as _os
-
 TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing (ballbar run's first milliseconds)
 if TYPE_CHECKING:
     from typing import Final
-
-# The fits are small dense problems on a 2-core PC beside the machine: BLAS threads only
-# contend with the sampling thread. A default, set before numpy loads; the environment wins.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    _os.environ.setdefault(_var, "1")
 
 __version__ = "0.1.0"
 #: The version of every payload's shape (``schema_version``; the JSON Schemas in ``ballbar/schema/``, generated

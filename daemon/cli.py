@@ -23,8 +23,16 @@ if TYPE_CHECKING:
     from types import FrameType
 
 
+#: BLAS thread pools, one thread each: the fits are small dense problems on a two-core PC beside the machine,
+#: where more threads only contend with the sampling thread.  Set by the entry point before numpy loads (the
+#: analysis worker, a child, inherits them); the environment wins; importing the library sets nothing.
+BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
+    for var in BLAS_THREADS:
+        os.environ.setdefault(var, "1")
     stop = threading.Event()
     if _subcommand(args) == "run":
         _install_stop_handlers(stop)  # first: a SIGTERM from now on is a clean stop, exit 0

@@ -222,6 +222,23 @@ def test_the_entry_point_imports_nothing_before_the_handler() -> None:
     assert new <= {"ballbar", "ballbar.daemon", "ballbar.daemon.cli", "signal", "threading", "_weakrefset"}, new
 
 
+def test_blas_threads_are_the_entry_points_choice_not_the_librarys() -> None:
+    """Importing the library changes no process-wide setting; the ``ballbar`` command sets one BLAS thread (a
+    default the environment overrides) before numpy loads, and its children inherit it."""
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    code = ("import os, sys; import ballbar, ballbar.analysis.engine; "
+            "print(os.environ.get('OPENBLAS_NUM_THREADS')); "
+            "from ballbar.daemon import cli\n"
+            "try:\n    cli.main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "print(os.environ.get('OPENBLAS_NUM_THREADS'), os.environ.get('OMP_NUM_THREADS'), file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert out.stdout.splitlines()[0] == "None", out.stdout
+    assert out.stderr.split() == ["1", "1"], out.stderr
+    env["OPENBLAS_NUM_THREADS"] = "2"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert out.stderr.split() == ["2", "1"], out.stderr
+
+
 # ----------------------------------------------------------------------------- one daemon per state dir
 
 
