@@ -233,7 +233,7 @@ def test_fanuc_header_lines() -> None:
 
 
 def _readme_recipes() -> list[tuple[str, TestPlan]]:
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    readme = (Path(__file__).resolve().parents[1] / "tools" / "README.md").read_text()
     out = []
     for m in re.finditer(r"ballbar gcode --dialect (\w+) (--plane \w+ [^\n]*)", readme):
         flags = dict(re.findall(r"--([\w-]+) (\S+)", m.group(2)))
@@ -244,7 +244,7 @@ def _readme_recipes() -> list[tuple[str, TestPlan]]:
 
 
 def test_readme_vertical_recipe_is_symmetric_and_warned_exactly() -> None:
-    """The README's 220 deg recipes: the path the interpreter runs is symmetric about the vertical and goes
+    """tools/README.md's 220 deg recipes: the path the interpreter runs is symmetric about the vertical and goes
     exactly as deep (mm, and degrees below the pivot's level, and where) as the header warns."""
     recipes = _readme_recipes()
     assert {p.plane for _d, p in recipes} == {"YZ", "ZX"}
@@ -285,8 +285,8 @@ def test_readme_vertical_recipe_is_symmetric_and_warned_exactly() -> None:
         assert float(m.group(2)) == pytest.approx(low_arc, abs=1e-3)
         at = sorted(float(a) for a in m.group(3).split(" AND "))
         assert len(at) == 2 and at[1] - at[0] == pytest.approx(plan.arc_deg)
-        # and the README states those figures
-        readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+        # and tools/README.md states those figures
+        readme = (Path(__file__).resolve().parents[1] / "tools" / "README.md").read_text()
         assert f"goes {-low:.3f} mm below the pivot" in " ".join(readme.split())
         assert f"{below_deg:.2f} deg below" in readme
 
