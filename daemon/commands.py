@@ -402,7 +402,7 @@ def _analyze_records(args: argparse.Namespace, base: dict[str, Any]) -> Analysis
     """A test from the daemon's records: a directory's newest complete one, or the one asked for.
 
     ``base`` receives the recorded configuration used (its ``limits`` give the verdict)."""
-    from .mcap_log import read_logs, recording
+    from .mcap import read_logs, recording
     from .recordings import analyze, config_sections, pick_test
     from .testindex import analyze_recorded, index_recordings
 

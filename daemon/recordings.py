@@ -1,4 +1,4 @@
-"""Reading recordings for the analysis: CSV (:mod:`.csvfile`) and the daemon's MCAP logs (:mod:`.mcap_log`).
+"""Reading recordings for the analysis: CSV (:mod:`.csvfile`) and the daemon's MCAP logs (:mod:`.mcap`).
 
 Every problem is raised as :class:`~ballbar.analysis.errors.DataError` with a
 one-line message that names the file (and, in a CSV, the line).
@@ -95,7 +95,7 @@ def is_mcap(path: str | os.PathLike[str]) -> bool:
 def load_recording(path: str | os.PathLike[str]) -> Recording:
     """A recording for the analysis, by its file type.
 
-    ``.mcap``: the daemon's log (:func:`ballbar.daemon.mcap_log.recording`: the
+    ``.mcap``: the daemon's log (:func:`ballbar.daemon.mcap.recording`: the
     device clock where the samples have one, else the host's; samples flagged
     over range or sensor fault left out; a killed writer's file up to its last
     whole chunk; the breaks its events report).  A directory holding ``.mcap``
@@ -103,7 +103,7 @@ def load_recording(path: str | os.PathLike[str]) -> Recording:
     """
     name = os.fspath(path)
     if is_mcap(name):
-        from .mcap_log import mcap_files, read_log, read_logs, recording  # here: CSV needs no MCAP machinery
+        from .mcap import mcap_files, read_log, read_logs, recording  # here: CSV needs no MCAP machinery
 
         if os.path.isdir(name):
             return recording(read_logs(mcap_files(name), skip_bad=True, status=False), name)
@@ -125,7 +125,7 @@ def recorded_config(path: str) -> dict[str, Any]:
     """
     if not (path.lower().endswith(".mcap") or os.path.isdir(path)):
         return {}
-    from .mcap_log import mcap_files, read_log  # here: reading CSV needs no MCAP machinery
+    from .mcap import mcap_files, read_log  # here: reading CSV needs no MCAP machinery
 
     files = mcap_files(path) if os.path.isdir(path) else [Path(path)]
     for f in reversed(files):

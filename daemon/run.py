@@ -55,7 +55,7 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
     try:
         loader: Callable[[], list[dict[str, Any]]] | None = None
         if cfg.mcap.enabled:
-            from .mcap_log import McapLogger
+            from .mcap import McapLogger
 
             logger = McapLogger.from_config(cfg)
             out.append((logger, cfg.queues.mcap, "drop_newest"))
@@ -214,7 +214,7 @@ def recorded_results(cfg: Config, newest_files: int = 200) -> Callable[[], list[
     """Results the daemon logged before this start (its MCAP records), for the bus's history."""
 
     def load() -> list[dict[str, Any]]:
-        from .mcap_log import list_recordings, read_results
+        from .mcap import list_recordings, read_results
 
         directory = os.path.join(cfg.daemon.state_dir, "recordings")
         if not os.path.isdir(directory):
@@ -378,7 +378,7 @@ def _recover(cfg: Config) -> list[TestIncomplete]:
         return []
     from ballbar.protocol.messages import stamp
 
-    from .mcap_log import recover_crashed
+    from .mcap import recover_crashed
 
     out: list[TestIncomplete] = []
     for r in recover_crashed(os.path.join(cfg.daemon.state_dir, "recordings")):

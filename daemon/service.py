@@ -54,7 +54,7 @@ from ballbar.protocol.messages.publish import parameter_map, published, source_e
 from .analysis_worker import AnalysisWorker, freeze_long_lived, release_freed_memory
 from .config import Config
 from .listeners import MERGE_S, TEST_END_EVENTS, Listener, ListenerQueue, Message, PlanChoice, Wake
-from .mcap_log import scaled_ints
+from .mcap import scaled_ints
 from .samples import EventKind, SampleBatch, breaks_in
 from .secrets import redacted
 from .sources import Source

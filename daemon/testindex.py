@@ -6,7 +6,7 @@ daemon runs.  Decoding every sample to find one test is slow (15 files of a
 clock starts afresh, so no single time axis spans them.  Instead:
 
 - :func:`index_recordings` reads each file's events, results and configuration
-  without its samples (:func:`~.mcap_log.read_log` with ``samples=False``) and
+  without its samples (:func:`~.mcap.read_log` with ``samples=False``) and
   lists the tests (:class:`RecordedTest`) by the ``test_id`` their ``feed_in``
   event, results and ``test_rejected``/``test_incomplete`` events carry: when
   each began, which files hold it, whether it completed, was rejected (and
@@ -38,7 +38,7 @@ from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
 
-from .mcap_log import McapLog, mcap_files, read_log, read_logs, recording
+from .mcap import McapLog, mcap_files, read_log, read_logs, recording
 from .recordings import Outcome, Recording, analyze, config_sections, outcomes, recorded_library, with_source
 
 if TYPE_CHECKING:

@@ -21,7 +21,7 @@ from schemacheck import validate_all, validate_recordings
 from test_viewer import RERUN, Receiver, last, read_rrd
 
 from ballbar.daemon.cli import main as cli_main
-from ballbar.daemon.mcap_log import list_recordings, read_logs
+from ballbar.daemon.mcap import list_recordings, read_logs
 from ballbar.tools.simdevice import DeviceProcess
 
 pytestmark = pytest.mark.usefixtures("no_leaks")

@@ -109,7 +109,7 @@ def test_every_started_output_is_stopped_when_a_later_one_fails(
     from ballbar.daemon import config as cfgmod
     from ballbar.daemon import run as runmod
     from ballbar.daemon.bus import ZenohBus
-    from ballbar.daemon.mcap_log import McapLogger
+    from ballbar.daemon.mcap import McapLogger
     from ballbar.daemon.rerun import RerunViewer
 
     cfg = cfgmod.load(None, ["rerun.mode=\"off\"", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]'],

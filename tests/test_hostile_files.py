@@ -30,7 +30,7 @@ from ballbar.analysis.plan import TestPlan
 from ballbar.daemon import csvfile
 from ballbar.daemon.cli import main
 from ballbar.daemon.csvfile import MAX_LINE_BYTES, read_csv
-from ballbar.daemon.mcap_log import MAX_RECORD_BYTES, list_recordings, read_log
+from ballbar.daemon.mcap import MAX_RECORD_BYTES, list_recordings, read_log
 from ballbar.daemon.recordings import load_recording
 from ballbar.tools.bench.bench_csv import peak_run
 from ballbar.tools.simulator import MachineModel, simulate, write_csv

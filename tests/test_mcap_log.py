@@ -24,10 +24,10 @@ from mcap.writer import Writer
 
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import TestPlan
-from ballbar.daemon import mcap_log
+from ballbar.daemon import mcap as mcap_log
 from ballbar.daemon.cli import main as cli_main
 from ballbar.daemon.listeners import to_json
-from ballbar.daemon.mcap_log import (
+from ballbar.daemon.mcap import (
     SCHEMAS,
     TOPIC_OTHER,
     TOPIC_SAMPLES,
@@ -40,8 +40,10 @@ from ballbar.daemon.mcap_log import (
     read_results,
     scaled_ints,
 )
+from ballbar.daemon.mcap import writer as mcap_writer
 from ballbar.daemon.recordings import read_recording
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
+from ballbar.daemon.spool import read_spool
 from ballbar.protocol import Status
 from ballbar.tools.bench.bench_mcap import feed_paced, serial_batches
 from ballbar.tools.simulator import MachineModel, simulate, write_csv
@@ -207,7 +209,7 @@ CHILD = r"""
 import os, sys, time
 import numpy as np
 from ballbar.analysis.plan import TestPlan
-from ballbar.daemon.mcap_log import McapLogger
+from ballbar.daemon.mcap import McapLogger
 from ballbar.daemon.samples import SampleBatch
 from ballbar.tools.simulator import MachineModel, simulate
 
@@ -649,7 +651,7 @@ def test_a_write_cut_short_after_a_whole_chunk_counts_its_samples_as_written(
 ) -> None:
     """The samples of a chunk that reached the disk whole before the write failed are in the file: not lost too
     (the 30-minute soak found 1376 samples counted both ways)."""
-    monkeypatch.setattr(mcap_log, "_open_output", lambda p: io.BufferedWriter(_ChunkThenFullRaw(p, "xb")))
+    monkeypatch.setattr(mcap_writer, "_open_output", lambda p: io.BufferedWriter(_ChunkThenFullRaw(p, "xb")))
     monkeypatch.setattr(_ChunkThenFullRaw, "armed", False)
     monkeypatch.setattr(_ChunkThenFullRaw, "full", False)
     lg = McapLogger(state, "m", retry_min_s=60.0)
@@ -688,8 +690,8 @@ def test_what_an_outage_held_survives_a_stop_whose_last_file_cannot_be_finished(
 ) -> None:
     """At stop, the held results go into a last file whose footer no longer fits: that file is kept (its chunk
     holds them), and the spool says the run ended in an outage, so the next start names the cut file so."""
-    monkeypatch.setattr(mcap_log, "_open_output", lambda p: io.BufferedWriter(_BudgetRaw(p, "xb")))
-    monkeypatch.setattr(mcap_log, "_disk_space", lambda _p: (0, 64 << 30))  # no headroom: no resume before stop
+    monkeypatch.setattr(mcap_writer, "_open_output", lambda p: io.BufferedWriter(_BudgetRaw(p, "xb")))
+    monkeypatch.setattr(mcap_writer, "_disk_space", lambda _p: (0, 64 << 30))  # no headroom: no resume before stop
     monkeypatch.setattr(_BudgetRaw, "full", False)
     monkeypatch.setattr(_BudgetRaw, "budget", None)
     lg = McapLogger(state, "m", retry_min_s=60.0)
@@ -705,7 +707,7 @@ def test_what_an_outage_held_survives_a_stop_whose_last_file_cannot_be_finished(
     lg.stop()
     kept = [p for p in files(state) if any(r.get("test_id") == "m-held" for r in read_log(p, samples=False).results)]
     assert kept, [p.name for p in files(state)]
-    spool = mcap_log.read_spool(state)
+    spool = read_spool(state)
     assert spool.run_id == lg.run_id and [p["event"] for _t, p, _l in spool.entries] == ["log_gap"]
     (r,) = [r for r in mcap_log.recover_crashed(state / "recordings") if r.path == kept[0]]
     assert r.outage and "No space left" in r.outage
@@ -714,9 +716,9 @@ def test_what_an_outage_held_survives_a_stop_whose_last_file_cannot_be_finished(
 def test_full_disk_drops_the_file_counts_losses_and_resumes(
     state: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    monkeypatch.setattr(mcap_log, "_open_output", lambda p: io.BufferedWriter(_FullDiskRaw(p, "xb")))
+    monkeypatch.setattr(mcap_writer, "_open_output", lambda p: io.BufferedWriter(_FullDiskRaw(p, "xb")))
     monkeypatch.setattr(_Disk, "full", False)
-    caplog.set_level(logging.INFO, logger="ballbar.daemon.mcap_log")
+    caplog.set_level(logging.INFO, logger="ballbar.daemon.mcap")
     lg = McapLogger(state, "m", retry_min_s=0.1, retry_max_s=0.2)
     k = 0
     total = 0
@@ -840,10 +842,10 @@ def test_full_disk_resumes_within_2_s_of_space_with_headroom_and_keeps_the_resul
     """Default backoff (up to 60 s): a full disk is retried on a free-space probe instead, only with headroom,
     and the results and events of the outage are written when it ends."""
     free = {"bytes": 1 << 30}
-    monkeypatch.setattr(mcap_log, "_open_output", lambda p: io.BufferedWriter(_FullDiskRaw(p, "xb")))
-    monkeypatch.setattr(mcap_log, "_disk_space", lambda _p: (free["bytes"], 64 << 30))
+    monkeypatch.setattr(mcap_writer, "_open_output", lambda p: io.BufferedWriter(_FullDiskRaw(p, "xb")))
+    monkeypatch.setattr(mcap_writer, "_disk_space", lambda _p: (free["bytes"], 64 << 30))
     monkeypatch.setattr(_Disk, "full", False)
-    caplog.set_level(logging.INFO, logger="ballbar.daemon.mcap_log")
+    caplog.set_level(logging.INFO, logger="ballbar.daemon.mcap")
     lg = McapLogger(state, "m")  # retry_min_s 1, retry_max_s 60
     try:
         lg.on_message({"kind": "config", "config": {"x": 1}})

@@ -21,7 +21,7 @@ from test_e2e import Daemon, Subscriber, free_port
 from test_monitor import validate
 
 from ballbar.daemon.cli import main as cli_main
-from ballbar.daemon.mcap_log import read_logs
+from ballbar.daemon.mcap import read_logs
 from ballbar.tools.simdevice import DeviceProcess
 
 pytestmark = pytest.mark.usefixtures("no_leaks")

@@ -21,7 +21,7 @@ import pytest
 
 from ballbar.daemon import testindex
 from ballbar.daemon.cli import main
-from ballbar.daemon.mcap_log import McapLogger, list_recordings, read_log, recording
+from ballbar.daemon.mcap import McapLogger, list_recordings, read_log, recording
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.tools.report import from_records
 

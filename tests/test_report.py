@@ -19,7 +19,7 @@ import pytest
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.daemon.cli import main
-from ballbar.daemon.mcap_log import list_recordings, read_log
+from ballbar.daemon.mcap import list_recordings, read_log
 from ballbar.tools.report import from_recording, from_records, published_difference, select_history
 
 MACHINE = "mill<7>"

@@ -28,7 +28,7 @@ from ballbar import SCHEMA_VERSION
 from ballbar.analysis.patterns import LIBRARY
 from ballbar.analysis.report import _report_fields
 from ballbar.daemon.config import load
-from ballbar.daemon.mcap_log import (
+from ballbar.daemon.mcap import (
     SCHEMAS,
     TOPIC_CONFIG,
     TOPIC_EVENTS,
@@ -90,7 +90,7 @@ def test_one_table_names_each_field_with_its_unit() -> None:
 def test_the_daemon_runs_without_loading_the_types() -> None:
     """The daemon makes and sends plain dicts: the types and the generator are for mypy and the tests (its MCAP
     channels' schemas are the shipped files, checked above)."""
-    code = ("import sys, ballbar.daemon.run, ballbar.daemon.service, ballbar.daemon.mcap_log, ballbar.daemon.bus, "
+    code = ("import sys, ballbar.daemon.run, ballbar.daemon.service, ballbar.daemon.mcap, ballbar.daemon.bus, "
             "ballbar.daemon.monitor, ballbar.daemon.rerun.listener, ballbar.daemon.testindex; "
             "print(' '.join(sorted(m for m in sys.modules if m.startswith('ballbar.protocol.messages'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
@@ -273,7 +273,7 @@ def test_a_polled_gauges_per_test_files_follow_their_channels_schemas(tmp_path: 
     from schemacheck import validate_recordings
 
     from ballbar.daemon.config import load
-    from ballbar.daemon.mcap_log import McapLogger, read_log
+    from ballbar.daemon.mcap import McapLogger, read_log
     from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
     from ballbar.daemon.secrets import redacted
     from ballbar.protocol.messages import ConfigMessage, stamp

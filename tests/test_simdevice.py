@@ -23,7 +23,7 @@ from ballbar.analysis.plan import TestPlan
 from ballbar.daemon import config as cfgmod
 from ballbar.daemon.cli import main as cli_main
 from ballbar.daemon.listeners import Listener
-from ballbar.daemon.mcap_log import McapLogger, list_recordings
+from ballbar.daemon.mcap import McapLogger, list_recordings
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.daemon.service import AnalysisListener
 from ballbar.daemon.sources import Source, open_source

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from ballbar.daemon.mcap_log import list_recordings, read_log, read_spool
+from ballbar.daemon.mcap import list_recordings, read_log
+from ballbar.daemon.spool import read_spool
 from ballbar.tools.bench.bench_diskfull import spell, start_daemon, stop_daemon
 from ballbar.tools.bench.soak import Disk
 
@@ -112,7 +113,7 @@ def test_a_full_8_mib_disk_resumes_and_what_the_outage_held_survives_the_stop(sm
 
 
 def test_the_headroom_scales_with_the_file_system() -> None:
-    from ballbar.daemon.mcap_log import FILE_NEEDS_BYTES, McapLogger
+    from ballbar.daemon.mcap import FILE_NEEDS_BYTES, McapLogger
 
     lg = McapLogger(os.devnull + "-not-a-dir", "m")
     try:

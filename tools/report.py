@@ -22,7 +22,7 @@ import numpy as np
 from ballbar.analysis.errors import DataError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 from ballbar.analysis.plans import PlanLibrary
-from ballbar.daemon.mcap_log import mcap_files, read_results
+from ballbar.daemon.mcap import mcap_files, read_results
 from ballbar.daemon.recordings import analyze_file
 from ballbar.daemon.testindex import RecordedTest, TestIndex
 
@@ -128,8 +128,8 @@ class _OpenFileNote(logging.Filter):
 
 
 def _read_results(files: list[Path]) -> list[dict[str, Any]]:
-    """:func:`~ballbar.daemon.mcap_log.read_results`, a file a live daemon is writing noted as such."""
-    reader_log = logging.getLogger("ballbar.daemon.mcap_log")
+    """:func:`~ballbar.daemon.mcap.read_results`, a file a live daemon is writing noted as such."""
+    reader_log = logging.getLogger("ballbar.daemon.mcap")
     note = _OpenFileNote()
     reader_log.addFilter(note)
     try:
@@ -216,7 +216,7 @@ def attach_verdict(result: dict[str, Any], limits: dict[str, Any] | None) -> Non
 
 
 def _records_files(records: str) -> list[Path]:
-    from ballbar.daemon.mcap_log import list_recordings
+    from ballbar.daemon.mcap import list_recordings
 
     if not os.path.isdir(records):
         raise DataError(f"{records}: no such directory of daemon records")

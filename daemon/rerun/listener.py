@@ -260,7 +260,7 @@ class RerunViewer(Scene, Listener):
             directory = os.path.join(cfg.daemon.state_dir, "recordings")
             try:
                 if os.path.isdir(directory):
-                    from ..mcap_log import list_recordings, read_results
+                    from ..mcap import list_recordings, read_results
 
                     machine_id = cfg.daemon.machine_id
                     # the file this daemon is writing (modified in the last seconds) holds nothing earlier, and its

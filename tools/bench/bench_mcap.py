@@ -1,7 +1,7 @@
 """Benchmark of the MCAP log: bytes per sample and write/read throughput by sample rate.
 
 A simulated test (``ballbar.tools.simulator``, LVDT noise ``--noise-um``) is fed to
-:class:`~ballbar.daemon.mcap_log.McapLogger` as a serial source delivers it:
+:class:`~ballbar.daemon.mcap.McapLogger` as a serial source delivers it:
 batches of 20 ms, the device clock, a host clock mapped by the lower-envelope
 :class:`~ballbar.daemon.timebase.ClockMap` from read times with USB-like latency.
 The samples are fed as fast as possible, with a chunk closed after every
@@ -10,7 +10,7 @@ pace.  Reported per rate, medians of ``--repeats`` runs:
 
 - bytes/sample: the finished file's size over the samples in it
 - write: samples per second of CPU the logger needs (``on_batch`` and flushes)
-- read: samples per second of :func:`~ballbar.daemon.mcap_log.read_mcap`
+- read: samples per second of :func:`~ballbar.daemon.mcap.read_mcap`
 
 Run: ``OPENBLAS_NUM_THREADS=1 python -m ballbar.tools.bench.bench_mcap [--rates 15.625,1000,10000]``
 """
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ballbar.analysis.plan import TestPlan
-from ballbar.daemon.mcap_log import McapLogger, list_recordings, read_mcap
+from ballbar.daemon.mcap import McapLogger, list_recordings, read_mcap
 from ballbar.daemon.samples import SampleBatch
 from ballbar.daemon.timebase import ClockMap
 from ballbar.tools.simulator import MachineModel, simulate

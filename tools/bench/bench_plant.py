@@ -209,10 +209,10 @@ def machines_with(sub: Subscriber, kind: str, since: float = 0.0) -> set[str]:
 
 
 def logged_results(state: Path) -> list[dict[str, Any]]:
-    from ballbar.daemon.mcap_log import list_recordings, read_results
+    from ballbar.daemon.mcap import list_recordings, read_results
 
     rec = state / "recordings"
-    logging.getLogger("ballbar.daemon.mcap_log").setLevel(logging.ERROR)  # the open files end early: expected
+    logging.getLogger("ballbar.daemon.mcap").setLevel(logging.ERROR)  # the open files end early: expected
     return read_results(list_recordings(rec)) if rec.is_dir() else []
 
 

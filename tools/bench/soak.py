@@ -629,7 +629,7 @@ class Soak:
         }
 
     def _read_recordings(self) -> dict[str, Any]:
-        from ballbar.daemon.mcap_log import list_recordings, read_log
+        from ballbar.daemon.mcap import list_recordings, read_log
 
         paths = list_recordings(self.disk.path / "recordings")
         samples = preroll = gaps = gap_events = 0
