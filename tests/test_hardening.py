@@ -390,8 +390,9 @@ def test_the_wait_is_reported_again_at_a_slow_cadence(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     from ballbar.daemon import sources
+    from ballbar.daemon.sources import serial
 
-    monkeypatch.setattr(sources, "WAIT_WARNING_S", 0.5)
+    monkeypatch.setattr(serial, "WAIT_WARNING_S", 0.5)
     src = sources.open_source(f"serial:{tmp_path / 'nope'}?rate=1000&retry_max_s=0.05", cal_mm=100.0)
     try:
         t0 = time.monotonic()

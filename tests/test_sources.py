@@ -338,7 +338,7 @@ def test_bytes_read_but_not_decoded_yet_are_kept_when_the_port_goes_away(
     those reads delivers what was read before it, whole (the decoder's partial frame kept for it), then the
     event. A pty whose master closes hangs up (the next wait sees it); a USB adapter pulled mid-read fails
     the read itself with EIO, which no pty does on demand: that read fails here at the os.read it makes."""
-    import ballbar.daemon.sources as sources_mod
+    import ballbar.daemon.sources.serial as sources_mod
     from ballbar.daemon.sources import RELAXED_BATCH_S
 
     fail = threading.Event()
