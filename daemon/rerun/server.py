@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .. import procfs
 from .options import ViewerConfigError, host_for_url
 
 log = logging.getLogger(__name__)
@@ -118,13 +119,9 @@ def rerun_binary() -> str | None:
 
 def _rss_bytes(pid: int) -> int | None:
     try:
-        with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError):
+        return procfs.rss_bytes(pid)
+    except (OSError, KeyError, ValueError):
         return None
-    return None
 
 
 class ServerProcess:

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from ballbar.analysis.plan import TestPlan
+from ballbar.daemon import procfs
 from ballbar.tools.simulator import MachineModel, iter_tests, write_csv
 
 # Each run records its own peak (VmHWM) as it exits: the rusage of a child counts the parent's pages it
@@ -103,8 +104,7 @@ def peak_run(python: str, mode: str, args: Sequence[str], cap_bytes: int | None 
 
 def _hwm_kb(pid: int) -> int:
     try:
-        with open(f"/proc/{pid}/status") as fh:
-            return next((int(ln.split()[1]) for ln in fh if ln.startswith("VmHWM:")), 0)
+        return procfs.kib(procfs.status(pid).get("VmHWM", "0"))
     except (OSError, ValueError):
         return 0
 

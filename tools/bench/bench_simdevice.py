@@ -43,27 +43,18 @@ from typing import Any
 
 import numpy as np
 
+from ballbar.daemon import procfs
 from ballbar.protocol import binary as binary_proto
-
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
 def proc_cpu_s(pid: int) -> float:
     """utime + stime of a process, seconds."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+    return procfs.cpu_seconds(pid)
 
 
 def proc_wakes(pid: int) -> int:
     """Voluntary context switches of a process (all its threads): how often it went to sleep."""
-    n = 0
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/status") as f:
-            for line in f:
-                if line.startswith("voluntary_ctxt_switches"):
-                    n += int(line.split()[1])
-    return n
+    return sum(int(procfs.status(pid, tid)["voluntary_ctxt_switches"]) for tid in procfs.threads(pid))
 
 
 def baseline_script(rev: str, directory: str) -> list[str]:

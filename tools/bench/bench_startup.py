@@ -40,12 +40,12 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+from ballbar.daemon import procfs
+
 
 def proc_cpu_s(pid: int) -> float:
     """utime + stime of a process (all its threads, not its children), seconds."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return procfs.cpu_seconds(pid)
 
 
 MARKS = {
@@ -120,9 +120,8 @@ def run_once(
 
 def _catches_sigterm(pid: int) -> bool:
     try:
-        with open(f"/proc/{pid}/status") as fh:
-            caught = next(int(line.split()[1], 16) for line in fh if line.startswith("SigCgt:"))
-    except (OSError, StopIteration):
+        caught = int(procfs.status(pid)["SigCgt"], 16)
+    except (OSError, KeyError, ValueError):
         return False
     return bool(caught & (1 << (signal.SIGTERM - 1)))
 

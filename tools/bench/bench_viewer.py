@@ -67,6 +67,7 @@ import numpy as np
 
 from ballbar.analysis.engine import TestAnalyzer
 from ballbar.analysis.plan import MachineConfig, TestPlan
+from ballbar.daemon import procfs
 from ballbar.daemon.listeners import Listener, ListenerQueue, Message, to_json
 from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.tools.simulator import MachineModel, iter_tests
@@ -284,20 +285,14 @@ def load_viewer_module(path: Path | None) -> ModuleType:
 
 def _rss_mib(pid: int) -> float | None:
     try:
-        with open(f"/proc/{pid}/status", encoding="ascii") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError):
+        return procfs.rss_bytes(pid) / 2**20
+    except (OSError, KeyError, ValueError):
         return None
-    return None
 
 
 def _cpu_s(pid: int) -> float | None:
     try:
-        with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
-            fields = fh.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        return procfs.cpu_seconds(pid)
     except (OSError, ValueError, IndexError):
         return None
 

@@ -69,6 +69,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from ballbar.daemon import procfs
 from ballbar.daemon.analysis_worker import WORKER, child_role
 from ballbar.protocol.binary import FRAME_SIZE
 
@@ -284,28 +285,16 @@ class Subscriber:
 
 def proc_figures(pid: int) -> dict[str, float]:
     """Resident memory (MiB), descriptors, threads and CPU seconds of one process (``/proc``)."""
-    out: dict[str, float] = {}
-    with open(f"/proc/{pid}/status", encoding="ascii") as fh:
-        for line in fh:
-            key, _, value = line.partition(":")
-            if key == "VmRSS":
-                out["rss_mb"] = int(value.split()[0]) / 1024
-            elif key == "Threads":
-                out["threads"] = int(value)
-    out["fds"] = len(os.listdir(f"/proc/{pid}/fd"))
-    with open(f"/proc/{pid}/stat", encoding="ascii") as fh:
-        fields = fh.read().rsplit(")", 1)[1].split()
-    out["cpu_s"] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return out
+    st = procfs.status(pid)
+    return {"rss_mb": procfs.kib(st["VmRSS"]) / 1024, "threads": int(st["Threads"]), "fds": len(procfs.fds(pid)),
+            "cpu_s": procfs.cpu_seconds(pid)}
 
 
 def children(pid: int) -> list[int]:
-    kids: list[int] = []
-    with contextlib.suppress(OSError):
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{tid}/children", encoding="ascii") as fh:
-                kids += [int(p) for p in fh.read().split()]
-    return kids
+    try:
+        return procfs.children(pid)
+    except OSError:
+        return []
 
 
 # ----------------------------------------------------------------------------- figures
