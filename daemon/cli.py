@@ -34,14 +34,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     for var in BLAS_THREADS:
         os.environ.setdefault(var, "1")
     stop = threading.Event()
-    if _subcommand(args) == "run":
+    if subcommand(args) == "run":
         _install_stop_handlers(stop)  # first: a SIGTERM from now on is a clean stop, exit 0
     from .commands import run_command
 
     return run_command(args, stop)
 
 
-def _subcommand(args: Sequence[str]) -> str | None:
+def subcommand(args: Sequence[str]) -> str | None:
     """The first argument that is not an option (``ballbar -v run``): the subcommand, if any."""
     return next((a for a in args if not a.startswith("-")), None)
 

@@ -24,8 +24,8 @@ from test_e2e import Subscriber, free_port
 from ballbar.analysis.sets import set_words
 from ballbar.daemon.cli import main as cli_main
 from ballbar.daemon.mcap_log import list_recordings, read_logs
-from ballbar.daemon.run import SIM_MACHINE_3D
 from ballbar.tools.machine3d import Machine3D
+from ballbar.tools.simulate import SIM_MACHINE_3D
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

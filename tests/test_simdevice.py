@@ -549,7 +549,7 @@ def test_the_demo_device_streams_on_between_tests() -> None:
     """The demo machine of ``ballbar run --simulate`` (its plan and machine, 5 s between tests) keeps sending
     across the change of test: the daemon's serial source sees no stall and loses nothing.  Before, the device
     simulated each next test (about a second) with nothing sent meanwhile: a stall and a resume every test."""
-    from ballbar.daemon.run import simdevice_args
+    from ballbar.tools.simulate import simdevice_args
 
     cfg = cfgmod.load(env={})
     dev = DeviceProcess(*simdevice_args(cfg, 20.0), "--wait")
@@ -578,7 +578,7 @@ def test_the_demo_device_streams_on_between_tests() -> None:
 def test_the_daemons_source_opens_the_simulated_device_once_it_is_up() -> None:
     """``ballbar run --simulate`` does not wait for the device: its source reads nothing, with no event,
     until the device's pty is there, then the serial source on it takes over."""
-    from ballbar.daemon.run import simulated_device
+    from ballbar.tools.simulate import simulated_device
 
     cfg = cfgmod.load(None, [*(f"plan.{k}" for k in ("radius_mm=50", "feed_mm_min=3000", "overshoot_deg=10",
                                                        "dwell_s=0.2", "sample_hz=1000"))], env={})
@@ -594,7 +594,7 @@ def test_the_daemons_source_opens_the_simulated_device_once_it_is_up() -> None:
 
 def test_a_simulated_device_that_fails_to_start_is_a_source_error() -> None:
     from ballbar.daemon.errors import SourceError
-    from ballbar.daemon.run import SimulatedDeviceSource
+    from ballbar.tools.simulate import SimulatedDeviceSource
 
     with DeviceProcess("--rate=20000", wait=False) as dev:
         src = SimulatedDeviceSource(dev, "serial:/nonexistent?protocol=binary&rate=1000&cal_mm=50", 1000.0)

@@ -100,7 +100,8 @@ class _PacedSource(Source):
 
 
 class SimSource(_PacedSource):
-    """The physical simulator, in process, paced on the host clock."""
+    """The physical simulator, in process, paced on the host clock: the operator tools' simulator, found as the
+    ``tests`` plug-in of :data:`ballbar.daemon.plugins.SIMULATED` (the daemon does not import the tools)."""
 
     scheme = "sim"
 
@@ -119,29 +120,22 @@ class SimSource(_PacedSource):
         gap_s: float = 0.0,
         batch_s: float = DEFAULT_BATCH_S,
     ) -> None:
-        # Imported here: the simulator is a tool, and only this source needs it.
         from ballbar.analysis.plan import TestPlan
-        from ballbar.tools.simulator import MachineModel, SimResult, iter_tests
 
+        from .. import plugins
+
+        tests: plugins.SimulatedTests = plugins.load(plugins.SIMULATED, "tests")
         several = library is not None and len(library) > 1
         plan = plan if plan is not None else library.first.plan if several else TestPlan()
         rate = float(rate_hz if rate_hz is not None else plan.sample_hz)
         super().__init__(url, rate, speedup, batch_s, int(Status.SIMULATED))
         times = None if repeat == 0 else repeat
-        results: Iterator[SimResult]
-        if several:
-            from ballbar.tools.machine3d import Machine3D, set_tests
-
-            names = list(run_plans) if run_plans else list(library.names)
-            m3 = machine if isinstance(machine, Machine3D) else Machine3D()
-            results = (res for _n, res in set_tests(library, names, m3, rate, seed, times, gap_s))
-        else:
-            results = iter_tests(plan, machine if machine is not None else MachineModel(), rate, seed, times, gap_s)
 
         def chunks() -> Iterator[Chunk]:
-            for res in results:
-                seq = np.rint(res.t_s * rate).astype(np.int64)
-                yield res.t_s, res.length_mm, seq
+            for t_s, length_mm in tests(plan, machine, rate, seed, times, gap_s, library=library if several else None,
+                                        run_plans=run_plans):
+                seq = np.rint(t_s * rate).astype(np.int64)
+                yield t_s, length_mm, seq
 
         self._begin(chunks(), f"simulator, {rate:g} Hz, speedup {speedup:g}, seed {seed}")
 

@@ -533,7 +533,7 @@ def free_port() -> int:
 def schedule_period_s(cfg: Any) -> float:
     """Device seconds from one test's first sample to the next's (the simulated device's schedule)."""
     try:
-        from ballbar.daemon.run import SIM_MACHINE, simdevice_args
+        from ballbar.tools.simulate import SIM_MACHINE, simdevice_args
         from ballbar.tools.simulator import MachineModel, iter_tests, parse_set
 
         argv = simdevice_args(cfg, 1.0)
@@ -619,8 +619,8 @@ class Measurement:
         return conf, cfg
 
     def _device(self, cfg: Any, name: str) -> Any:
-        from ballbar.daemon.run import simdevice_args
         from ballbar.tools.simdevice import DeviceProcess
+        from ballbar.tools.simulate import simdevice_args
 
         dev = DeviceProcess(*simdevice_args(cfg, self.p.speedup), "--wait", "--seed", "0", timeout=60.0)
         self.stack.callback(dev.close)

@@ -439,8 +439,8 @@ class Soak:
 
     def _start(self) -> None:
         from ballbar.daemon.config import load
-        from ballbar.daemon.run import simdevice_args
         from ballbar.tools.simdevice import DeviceProcess
+        from ballbar.tools.simulate import simdevice_args
 
         a = self.args
         self.disk = Disk(self.workdir / "state", a.disk_mb)
