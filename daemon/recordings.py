@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypedDict
 
@@ -18,6 +18,7 @@ import numpy as np
 from ballbar.analysis.errors import BallbarError, DataError
 
 from .csvfile import read_csv
+from .samples import Recording
 
 if TYPE_CHECKING:
     from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
@@ -33,25 +34,6 @@ TRAVEL_MM = 25.0
 MAX_BAR_MM = 1.0e4  # nor is a bar 10 m long, or one of no length: the typical length is taken among (0, this)
 
 
-@dataclass
-class Recording:
-    """What the analysis takes from a recording.
-
-    ``t``, ``L``: the samples' times (s) and lengths (mm); ``breaks``:
-    ``(index, reason)``, a discontinuity the times may not show just before
-    sample ``index`` (:func:`ballbar.analysis.engine.analyze_recording`);
-    ``axis``: which clock ``t`` is (``"device"``, ``"host"``, or ``"t_s"`` for
-    a CSV); ``name``: the file or directory, for messages; ``timing``: a
-    polled source's ``timing`` events, ``(t_host, uncertainty, jitter)``
-    (:mod:`ballbar.analysis.polled`), stated on each result.
-    """
-
-    t: np.ndarray
-    L: np.ndarray
-    breaks: list[tuple[int, str]] = field(default_factory=list)
-    axis: str = "t_s"
-    name: str = ""
-    timing: list[tuple[float, float, float]] = field(default_factory=list)
 
 
 def screen(rec: Recording) -> tuple[Recording, str]:

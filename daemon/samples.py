@@ -309,5 +309,27 @@ class SourceStats:
         return out
 
 
-__all__ = ["SAMPLE_DTYPE", "EventKind", "SampleBatch", "SourceEvent", "SourceStats", "break_reason", "break_seq",
-           "breaks_in"]
+
+@dataclass
+class Recording:
+    """What the analysis takes from a recording.
+
+    ``t``, ``L``: the samples' times (s) and lengths (mm); ``breaks``:
+    ``(index, reason)``, a discontinuity the times may not show just before
+    sample ``index`` (:func:`ballbar.analysis.engine.analyze_recording`);
+    ``axis``: which clock ``t`` is (``"device"``, ``"host"``, or ``"t_s"`` for
+    a CSV); ``name``: the file or directory, for messages; ``timing``: a
+    polled source's ``timing`` events, ``(t_host, uncertainty, jitter)``
+    (:mod:`ballbar.analysis.polled`), stated on each result.
+    """
+
+    t: np.ndarray
+    L: np.ndarray
+    breaks: list[tuple[int, str]] = field(default_factory=list)
+    axis: str = "t_s"
+    name: str = ""
+    timing: list[tuple[float, float, float]] = field(default_factory=list)
+
+
+__all__ = ["SAMPLE_DTYPE", "EventKind", "Recording", "SampleBatch", "SourceEvent", "SourceStats", "break_reason",
+           "break_seq", "breaks_in"]

@@ -39,7 +39,8 @@ from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
 
 from .mcap import McapLog, mcap_files, read_log, read_logs, recording
-from .recordings import Outcome, Recording, analyze, config_sections, outcomes, recorded_library, with_source
+from .recordings import Outcome, analyze, config_sections, outcomes, recorded_library, with_source
+from .samples import Recording
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages import Analysis

@@ -22,8 +22,7 @@ from ballbar.analysis.errors import BallbarError, DataError
 from ballbar.protocol import INVALID
 
 from ..csvfile import open_recording
-from ..recordings import Recording
-from ..samples import SampleBatch, break_reason, break_seq
+from ..samples import Recording, SampleBatch, break_reason, break_seq
 from .format import (
     _MAGIC,
     MAX_RECORD_BYTES,
