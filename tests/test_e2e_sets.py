@@ -23,7 +23,7 @@ from test_e2e import Subscriber, free_port
 
 from ballbar.analysis.sets import set_words
 from ballbar.daemon.cli import main as cli_main
-from ballbar.daemon.mcap_log import list_recordings, read_logs
+from ballbar.daemon.mcap import list_recordings, read_logs
 from ballbar.tools.machine3d import Machine3D
 from ballbar.tools.simulate import SIM_MACHINE_3D
 

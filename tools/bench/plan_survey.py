@@ -18,7 +18,7 @@ no plan.
 Counted per variant: right (the plan and its plane), wrong (another plan: the
 goal is none), no match (``test_unrecognised``, by reason), and any other
 outcome (a rejection).  Run:
-``python -m ballbar.tools.plan_survey --tests 240 --seed 27 --jobs 2``.
+``python -m ballbar.tools.bench.plan_survey --tests 240 --seed 27 --jobs 2``.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import numpy as np
 from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.plan import Plane, TestPlan
 from ballbar.analysis.plans import NamedPlan, PlanLibrary
-from ballbar.tools.false_alarms import wilson
+from ballbar.tools.bench.false_alarms import wilson
 from ballbar.tools.machine3d import Machine3D, program_of
 from ballbar.tools.simulator import MachineModel, simulate
 
@@ -172,7 +172,7 @@ def _split(runs: list[tuple[str, str, bool]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ballbar.tools.plan_survey", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m ballbar.tools.bench.plan_survey", description=__doc__.splitlines()[0])
     ap.add_argument("--tests", type=int, default=200)
     ap.add_argument("--seed", type=int, default=27)
     ap.add_argument("--jobs", type=int, default=1, help="processes (one per core)")
