@@ -142,7 +142,7 @@ def write_records(scene: Scene, state_dir: Path) -> Path:
     """The scene as the daemon records it, through the real MCAP logger: its configuration (each plan with its
     own limits, those the scene's verdicts come from), each plan's earlier tests (results only: their samples
     are older than the records keep), then the set's three tests and the set; the recordings directory."""
-    from ballbar.daemon.mcap_log import McapLogger
+    from ballbar.daemon.mcap import McapLogger
 
     cfg = config()
     for name, body in cfg["plans"].items():

@@ -28,7 +28,7 @@ from test_screens import CSS_RGB, _check_png, _keep, _pixels
 
 from ballbar.analysis.sets import STATUS_WORDS
 from ballbar.daemon.cli import main
-from ballbar.daemon.mcap_log import list_recordings, read_log
+from ballbar.daemon.mcap import list_recordings, read_log
 
 WIDTHS = (1400, 800)
 HEIGHT = 900

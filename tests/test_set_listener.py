@@ -14,7 +14,7 @@ from test_bus import client, get, running_bus, wait_until, zenoh_runtime  # noqa
 from test_sets import PLANS, run_plan
 
 from ballbar.analysis import sets as aset
-from ballbar.daemon.mcap_log import McapLogger, list_recordings, read_results
+from ballbar.daemon.mcap import McapLogger, list_recordings, read_results
 from ballbar.daemon.sets import SetListener
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
