@@ -46,8 +46,9 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal, TypeAlias, TypedDict
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeAlias, TypedDict, runtime_checkable
 
 from ballbar.protocol.messages import to_json as to_json  # the outputs' one encoding, where they import it from
 
@@ -125,6 +126,29 @@ class QueueStats:
     def to_dict(self) -> Queue:
         return {"depth": self.depth, "capacity": self.capacity, "delivered": self.delivered,
                 "dropped": self.dropped, "errors": self.errors, "policy": self.policy}
+
+
+@runtime_checkable
+class Annotator(Protocol):
+    """An output that adds to each test result before it fans out (the monitor's verdict)."""
+
+    def annotate(self, msg: Message) -> Message: ...
+
+
+@runtime_checkable
+class Sender(Protocol):
+    """An output that sends messages of its own (the monitor's alerts, a test set's result) through ``emit``, the
+    daemon's broadcast, which it is given before it starts."""
+
+    def bind(self, emit: Callable[[Message], None]) -> None: ...
+
+
+@runtime_checkable
+class PlanControl(Protocol):
+    """An output through which a service chooses the next test's plan (the bus's control key): it calls
+    ``choose`` with a plan's name, or None to withdraw the choice."""
+
+    def bind_control(self, choose: Callable[[str | None], None]) -> None: ...
 
 
 class ListenerQueue:

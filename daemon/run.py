@@ -12,12 +12,12 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .analysis_worker import freeze_long_lived
 from .config import Config, ConfigError, check_addresses, load
 from .errors import SourceConfigError
-from .listeners import MERGE_S, Listener, Message
+from .listeners import MERGE_S, DropPolicy, Listener, Message
 from .lock import StateLock
 from .samples import SampleBatch
 from .service import Daemon
@@ -31,13 +31,13 @@ log = logging.getLogger(__name__)
 SIM_STATE_DIR = "ballbar-state"
 
 
-def build_listeners(cfg: Config) -> list[tuple[Listener, int, str]]:
+def build_listeners(cfg: Config) -> list[tuple[Listener, int, DropPolicy]]:
     """The outputs the configuration turns on, each with its queue bound and drop policy.
 
     If one fails to start, those already started are stopped before the error
     goes on: a Zenoh session left open would keep the process alive.
     """
-    out: list[tuple[Listener, int, str]] = []
+    out: list[tuple[Listener, int, DropPolicy]] = []
     try:
         loader: Callable[[], list[dict[str, Any]]] | None = None
         if cfg.mcap.enabled:

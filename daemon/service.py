@@ -53,7 +53,19 @@ from ballbar.protocol.messages.publish import parameter_map, published, source_e
 
 from .analysis_worker import AnalysisWorker, freeze_long_lived, release_freed_memory
 from .config import Config
-from .listeners import MERGE_S, TEST_END_EVENTS, Listener, ListenerQueue, Message, PlanChoice, Wake
+from .listeners import (
+    MERGE_S,
+    TEST_END_EVENTS,
+    Annotator,
+    DropPolicy,
+    Listener,
+    ListenerQueue,
+    Message,
+    PlanChoice,
+    PlanControl,
+    Sender,
+    Wake,
+)
 from .mcap import scaled_ints
 from .samples import EventKind, SampleBatch, breaks_in
 from .secrets import redacted
@@ -375,7 +387,7 @@ class Daemon:
         self,
         cfg: Config,
         source: Source,
-        listeners: Sequence[tuple[Listener, int, str]],
+        listeners: Sequence[tuple[Listener, int, DropPolicy]],
         notifier: Notifier | None = None,
         speedup: float = 1.0,
     ) -> None:
@@ -388,15 +400,15 @@ class Daemon:
         # Outputs that add to a test result before it fans out (the monitor's verdict), and may send messages
         # of their own through broadcast (its alerts).  They are handed each message last: an alert their
         # thread sends about a test then reaches every other queue after that test, never before it.
-        self.annotators = [lst for lst, _c, _p in listeners if callable(getattr(lst, "annotate", None))]
+        self.annotators = [lst for lst, _c, _p in listeners if isinstance(lst, Annotator)]
         # Outputs that send messages of their own (the monitor's alerts, the sets) get the broadcast, and come last
         # for the same reason.
-        senders = [lst for lst, _c, _p in listeners if callable(getattr(lst, "bind", None))]
+        senders = [lst for lst, _c, _p in listeners if isinstance(lst, Sender)]
         outputs = [*(o for o in listeners if o[0] not in senders), (LogListener(), 100, "drop_oldest"),
                    *(o for o in listeners if o[0] in senders)]
         for lst in senders:
-            lst.bind(self.broadcast)  # type: ignore[attr-defined]
-        self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]  # type: ignore[arg-type]
+            lst.bind(self.broadcast)
+        self.outputs = [ListenerQueue(lst, cap, pol) for lst, cap, pol in outputs]
         # Each test's fit in a child process, off the daemon's reading and circles (``daemon.analysis_worker``)
         self.worker = AnalysisWorker() if cfg.daemon.analysis_worker else None
         self.analysis = AnalysisListener(cfg, self.broadcast, self.worker)
@@ -404,9 +416,9 @@ class Daemon:
         self.analysis.wake = functools.partial(self.analysis_queue.put_message, WAKE)
         # An explicit choice of the next plan that an output receives (the bus's control key) reaches the
         # analysis through its queue, in order with the batches.
-        for lst, _c, _p in listeners:
-            if callable(getattr(lst, "bind_control", None)):
-                lst.bind_control(self.choose_plan)  # type: ignore[attr-defined]
+        for out, _c, _p in listeners:
+            if isinstance(out, PlanControl):
+                out.bind_control(self.choose_plan)
         # Batches go only where they are wanted (the log and, without samples_hz, the bus take none).  The
         # analysis last: its thread wakes at once, and the reader is then about to sleep, not to contend for
         # the GIL with it (the merging queues before it only append).
@@ -435,7 +447,7 @@ class Daemon:
         """Hand a message to every output (never blocks: each queue has its policy)."""
         if msg["kind"] == "test":
             for lst in self.annotators:
-                msg = lst.annotate(msg)  # type: ignore[attr-defined]
+                msg = lst.annotate(msg)
         if msg["kind"] == "circle" or msg["kind"] == "test":
             with self._count_lock:
                 self.results_seen += 1
@@ -599,7 +611,7 @@ class Daemon:
             self.worker.shutdown(wait=False)
         # Outputs that send messages of their own first (the monitor's alerts, the sets): what they send as they
         # drain (the set a run's last test completes) must find the other outputs still open.
-        senders = [q for q in self.outputs if callable(getattr(q.listener, "bind", None))]
+        senders = [q for q in self.outputs if isinstance(q.listener, Sender)]
         for group, share in ((senders, 0.3), ([q for q in self.outputs if q not in senders], 1.0)):
             left = max(0.5, (budget_s - (time.monotonic() - t0)) * share)
             threads = [threading.Thread(target=q.close, args=(left * 0.9,), daemon=True) for q in group]

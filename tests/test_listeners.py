@@ -249,3 +249,24 @@ def test_the_built_outputs_take_batches_as_their_listeners_say_and_the_reader_fo
         assert src.read_s == DEFAULT_BATCH_S
     finally:
         d.shutdown(1.0)
+
+
+def test_each_outputs_optional_capabilities_are_its_protocols() -> None:
+    """The daemon finds what an output can do beyond taking messages by its type (typed Protocols), not by probing
+    attribute names: the monitor annotates test results and sends alerts, the sets send set results, the bus
+    takes a service's plan choice, and the plain outputs do none of it."""
+    from ballbar.daemon.bus import ZenohBus
+    from ballbar.daemon.listeners import Annotator, PlanControl, Sender
+    from ballbar.daemon.mcap import McapLogger
+    from ballbar.daemon.monitor import MonitorListener
+    from ballbar.daemon.service import LogListener
+    from ballbar.daemon.sets import SetListener
+
+    def caps(cls: type) -> set[str]:
+        return {name for name, proto in (("annotate", Annotator), ("send", Sender), ("control", PlanControl))
+                if issubclass(cls, proto)}
+
+    assert caps(MonitorListener) == {"annotate", "send"}
+    assert caps(SetListener) == {"send"}
+    assert caps(ZenohBus) == {"control"}
+    assert caps(McapLogger) == caps(LogListener) == set()
