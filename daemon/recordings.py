@@ -100,11 +100,12 @@ def read_recording(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray
     return rec.t, rec.L
 
 
-def recorded_config(path: str) -> dict[str, Any]:
+def recorded_config(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The plan, machine and analysis a daemon recording was made with (empty for CSV).
 
     A directory: the newest file's configuration that has one.
     """
+    path = os.fspath(path)
     if not (path.lower().endswith(".mcap") or os.path.isdir(path)):
         return {}
     from .mcap import mcap_files, read_log  # here: reading CSV needs no MCAP machinery
