@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 def _gcode_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dialect", required=True, choices=("fanuc", "siemens", "heidenhain", "linuxcnc"),
-                    help="controller dialect (fanuc also suits compatible controls)")
+                   help="controller dialect (fanuc also suits compatible controls)")
     p.add_argument("-o", "--output", help="write the program to this file (default: standard output)")
     p.add_argument("--config", help="the daemon's TOML configuration, whose [plan] to use")
     p.add_argument("--plan", dest="plan_arg", metavar="NAME|FILE",
@@ -55,7 +55,7 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", nargs="?", help="recording: CSV or the daemon's MCAP (file or directory)")
     p.add_argument("--test-id", help="a test id from the daemon's records, or 'latest'")
     p.add_argument("--records", help="directory of the daemon's MCAP records (default: <state_dir>/recordings "
-                    "of the daemon's configuration); with FILE it supplies the trend")
+                   "of the daemon's configuration); with FILE it supplies the trend")
     p.add_argument("--config", help="the daemon's TOML configuration (for its state_dir)")
     p.add_argument("-o", "--output", help="HTML file to write (default: ballbar-report-<test>.html)")
     p.add_argument("--no-png", action="store_true", help="do not write the plots as PNG files beside the HTML")
@@ -65,7 +65,7 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
         for flag, dest, typ, help_ in flags:
             p.add_argument(flag, dest=dest, type=typ, help=help_)
     p.add_argument("--test", type=int, help="with FILE: which test of the recording (1 = first; for a directory of "
-                    "the daemon's records the N-th that analyze --list shows, default its newest complete test)")
+                   "the daemon's records the N-th that analyze --list shows, default its newest complete test)")
     for flag, dest, typ, help_ in REPORT_FLAGS:
         p.add_argument(flag, dest=dest, type=typ, help=help_)
     p.add_argument("--set", dest="set_name", metavar="NAME",
