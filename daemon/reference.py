@@ -43,20 +43,24 @@ def config_table(text: str | None = None) -> str:
             continue  # the file's header
         k = _KEY.match(line)
         if k and (k["off"] is None or " " not in k["value"].split("#")[0].strip().strip('"')):
-            value = k["value"].replace("|", "\\|")
-            default = f"(unset; e.g. `{value}`)" if k["off"] else f"`{value}`"
+            default = f"(unset; e.g. `{k['value']}`)" if k["off"] else f"`{k['value']}`"
             what = re.sub(r"\s{2,}", " ", k["comment"] or "; ".join(above))
-            last, above = [f"`{k['key']}`", default, what.replace("|", "\\|")], []
-            out.append("| " + " | ".join(last) + " |")
+            last, above = [f"`{k['key']}`", default, what], []
+            out.append(_row(last))
         elif line.startswith("#") and last is not None and raw.startswith(" "):
-            last[2] = (last[2] + " " + line.lstrip("# ").replace("|", "\\|")).strip()
-            out[-1] = "| " + " | ".join(last) + " |"
+            last[2] = (last[2] + " " + line.lstrip("# ")).strip()
+            out[-1] = _row(last)
         elif line.startswith("#"):
             last = None
             above.append(line.lstrip("# "))
         else:
             last, above = None, []
     return "\n".join(out).strip() + "\n"
+
+
+def _row(cells: list[str]) -> str:
+    """A table row, each cell's ``|`` escaped."""
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
 
 
 def cli_reference() -> str:
