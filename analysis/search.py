@@ -285,6 +285,7 @@ class Objective:
         self.samples = sum(b.samples for b in self.bins.values())
         self.aperture_scale = 1.0  # each bin's interval is integrated over this share of itself
         self.colmax = np.zeros(ctx.p)  # the last design's columns' largest absolute values (unweighted)
+        self._last: tuple[tuple[object, ...], np.ndarray, np.ndarray, np.ndarray] | None = None  # see rows()
 
     def angles(self, theta: Theta) -> dict[int, np.ndarray]:
         """Each bin's angle (rad) at ``theta``: no design, only the timing."""
@@ -293,7 +294,12 @@ class Objective:
 
     def rows(self, theta: Theta, du: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The weighted design (bins x all columns) and the weighted corrected deviation at ``theta``; ``du``:
-        every angle moved by this much (rad), for the model's slope in the angle."""
+        every angle moved by this much (rad), for the model's slope in the angle.  The last design is kept
+        (read-only): the final fit asks for the one at its timing three times over."""
+        key = (theta.vector().tobytes(), theta.tau is None, du, self.aperture_scale)
+        if self._last is not None and self._last[0] == key:
+            self.colmax = self._last[3]
+            return self._last[1], self._last[2]
         self.designs += 1
         ctx = self.ctx
         timing = ctx.timing(theta)
@@ -317,7 +323,10 @@ class Objective:
         # each column's largest absolute value over the bins (two reductions, no copy of the design)
         self.colmax = np.maximum(A.max(axis=0), -A.min(axis=0)) if A.size else np.zeros(A.shape[1])
         A *= self.weights[:, None]
-        return A, np.concatenate(ys) * self.weights
+        y = np.concatenate(ys) * self.weights
+        A.flags.writeable = y.flags.writeable = False
+        self._last = (key, A, y, self.colmax)
+        return A, y
 
     def evaluate(self, theta: Theta) -> Evaluation:
         self.misfits += 1
