@@ -59,6 +59,7 @@ DECREMENT = 0.01  # a search stops where its Newton decrement (in chi-square uni
 NEAR_DECREMENT = 1.0  # ... or after a full step from where it was below this
 NOISE_FLOOR_UM = 0.01  # a misfit below this (um rms) is the model's fine detail, not signal: no gauge resolves it
 MIN_PEAK = 1e-6  # ... and one whose values are all below this (a spike decayed long before the window)
+SAME_STEP = 0.1  # a damped step within this share of one that failed is not tried (it would fail as well)
 ZONE_DEG = (0.6, 1.8)  # the sharp features' zone about each 45 deg point: before, after it in the direction of travel
 
 
@@ -632,6 +633,7 @@ def minimise(
         if fresh and dec < DECREMENT:
             break  # within a small share of a standard error of the minimum: nothing left to gain
         trial = None
+        failed: np.ndarray | None = None  # the last step that did not lower the objective
         for _ in range(4):
             if obj.designs - spent >= max_evals:
                 break
@@ -641,6 +643,9 @@ def minimise(
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
+            if failed is not None and np.linalg.norm(delta - failed) < SAME_STEP * np.linalg.norm(failed):
+                lam *= 8.0  # damped this little, the step is the one that failed: not worth a design
+                continue
             v1 = clip(v0 + _embed(delta, active, v0.size))
             if np.allclose(v1, v0, rtol=0.0, atol=1e-15):
                 break
@@ -649,6 +654,7 @@ def minimise(
                 trial = t
                 lam = max(lam / 5.0, 1e-7)
                 break
+            failed = delta
             lam *= 8.0
             if not fresh:  # a carried Jacobian led astray: make it anew here before damping further
                 break
