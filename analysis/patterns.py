@@ -133,6 +133,8 @@ class Geometry:
 # A mask's columns: an (n, q) array, or q arrays of n (each written into its column as made)
 Columns = np.ndarray | tuple[np.ndarray, ...]
 ColumnFn = Callable[[Geometry, float], Columns]
+# a reversal spike's rows where it acts, and the angle travelled past its onset there (None: not one circle's rows)
+SupportFn = Callable[[Geometry, float], tuple[np.ndarray, np.ndarray] | None]
 
 
 @dataclass(frozen=True)
@@ -153,6 +155,7 @@ class Pattern:
     kind: str = "machine"
     needs: str = ""  # "pitch_x", "pitch_y": left out when the machine config lacks it
     reversal: tuple[str, float, int] | None = None
+    support: SupportFn | None = None  # a spike's: where its column is not 0 (:func:`design` batches them)
 
     @property
     def q(self) -> int:
@@ -497,35 +500,50 @@ def spike_travel(u: np.ndarray, d: np.ndarray, at_rad: float) -> np.ndarray:
     return wrap(d * (u - at_rad), 2.0 * math.pi)
 
 
-def _spike(at_deg: float, direction: int) -> ColumnFn:
+def _spike_support(at_deg: float, direction: int) -> SupportFn:
+    """Where a reversal spike at ``at_deg`` in ``direction`` acts on one circle's rows (the geometry's
+    ``direction``), and the angle travelled past its onset there: its phase within ``[start - h, start +
+    reach]``."""
     at = math.radians(at_deg)
-
     axis = 0 if at_deg in (0.0, 180.0) else 1
 
+    def support(g: Geometry, w: float) -> tuple[np.ndarray, np.ndarray] | None:
+        if g.direction != direction:
+            return None
+        # friction acts where the table reverses: the onset moves it off the reversal point.  spike_travel(u, d,
+        # onset) = (phase - start) mod 2 pi, from the geometry's travel past 0 (shared by the circle's spikes)
+        start = (direction * (at + direction * g.onset_rad[axis])) % (2.0 * math.pi)
+        h = _half(g)
+        h_max = float(np.max(h)) if np.ndim(h) else float(h)
+        lo, hi = start - h_max, start + SPIKE_REACH * w + h_max
+        ph = g.phase
+        inside = (ph >= lo) & (ph <= hi)
+        if lo < 0.0:
+            inside |= ph >= lo + 2.0 * math.pi
+        if hi >= 2.0 * math.pi:
+            inside |= ph <= hi - 2.0 * math.pi
+        idx = np.flatnonzero(inside)
+        du = ph[idx] - start
+        du[du < 0.0] += 2.0 * math.pi
+        return idx, du
+
+    return support
+
+
+def _spike(at_deg: float, direction: int) -> ColumnFn:
+    at = math.radians(at_deg)
+    axis = 0 if at_deg in (0.0, 180.0) else 1
+    support = _spike_support(at_deg, direction)
+
     def fn(g: Geometry, w: float) -> np.ndarray:
-        # friction acts where the table reverses: the onset moves it off the reversal point
-        onset = at + direction * g.onset_rad[axis]
-        if g.direction == direction:  # one circle's samples: no selection to copy
-            # spike_travel(u, d, onset) = (phase - start) mod 2 pi, from the geometry's travel past 0 (shared by
-            # the circle's spikes), made only where the spike acts: phase within [start - h, start + reach]
-            start = (direction * onset) % (2.0 * math.pi)
-            h = _half(g)
-            h_max = float(np.max(h)) if np.ndim(h) else float(h)
-            lo, hi = start - h_max, start + SPIKE_REACH * w + h_max
-            ph = g.phase
-            inside = (ph >= lo) & (ph <= hi)
-            if lo < 0.0:
-                inside |= ph >= lo + 2.0 * math.pi
-            if hi >= 2.0 * math.pi:
-                inside |= ph <= hi - 2.0 * math.pi
-            idx = np.flatnonzero(inside)
-            out = np.zeros(len(g))
+        out = np.zeros(len(g))
+        got = support(g, w)
+        if got is not None:  # one circle's samples: no selection to copy
+            idx, du = got
             if idx.size:
-                du = ph[idx] - start
-                du[du < 0.0] += 2.0 * math.pi
                 out[idx] = _decay(du, w, _half(g, idx), g.travel[idx] if g.travel is not None else None)
             return out
-        out = np.zeros(len(g))
+        onset = at + direction * g.onset_rad[axis]
         if g.direction == 0:
             mine = g.d == direction
             if mine.any():
@@ -541,7 +559,8 @@ def _spikes() -> list[Pattern]:
     for axis, end, at in (("x", "pos", 0.0), ("y", "pos", 90.0), ("x", "neg", 180.0), ("y", "neg", 270.0)):
         for dname, d in (("ccw", 1), ("cw", -1)):
             name = f"reversal_spike_{axis}_{end}_{dname}"
-            out.append(Pattern(name, (f"{name}_um",), ("um",), _spike(at, d), "reversal", reversal=(axis, at, d)))
+            out.append(Pattern(name, (f"{name}_um",), ("um",), _spike(at, d), "reversal", reversal=(axis, at, d),
+                               support=_spike_support(at, d)))
     return out
 
 
@@ -615,12 +634,22 @@ def select(
 def design(
     patterns: Sequence[Pattern], g: Geometry, spike_width_rad: float, out: np.ndarray | None = None
 ) -> np.ndarray:
-    """The ``(n, p)`` design matrix of ``patterns`` at ``g`` (into ``out`` where given)."""
+    """The ``(n, p)`` design matrix of ``patterns`` at ``g`` (into ``out`` where given).
+
+    The reversal spikes of one circle's rows are made together: each acts on a few rows, where the exponentials
+    of all of them are one call of :func:`_decay` (a spike's own call cost more than its rows)."""
     n = len(g)
     cols = sum(p.q for p in patterns)
     A = np.empty((n, cols)) if out is None else out
     j = 0
+    spikes: list[tuple[int, np.ndarray, np.ndarray]] = []
     for p in patterns:
+        got = p.support(g, spike_width_rad) if p.support is not None else None
+        if got is not None:
+            A[:, j] = 0.0
+            spikes.append((j, *got))
+            j += 1
+            continue
         made = p.fn(g, spike_width_rad)
         if isinstance(made, tuple):
             for k, col in enumerate(made):
@@ -630,4 +659,13 @@ def design(
         else:
             A[:, j : j + p.q] = made.reshape(n, p.q)
         j += p.q
+    if spikes:
+        idx = np.concatenate([i for _, i, _ in spikes])
+        if idx.size:
+            du = np.concatenate([u for _, _, u in spikes])
+            vals = _decay(du, spike_width_rad, _half(g, idx), g.travel[idx] if g.travel is not None else None)
+            at = 0
+            for k, i, _ in spikes:
+                A[i, k] = vals[at : at + i.size]
+                at += i.size
     return A
