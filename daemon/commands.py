@@ -16,7 +16,6 @@ import math
 import os
 import sys
 import threading
-import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -163,6 +162,8 @@ def build_parser(commands: Sequence[Command] | None = None) -> argparse.Argument
 
 
 def load_config_file(path: str) -> dict[str, Any]:
+    import tomllib  # here: a command without a file to read needs none of it
+
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")

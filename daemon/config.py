@@ -31,7 +31,6 @@ import math
 import os
 import re
 import socket
-import tomllib
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -361,6 +360,8 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
         raw = Path(path).read_bytes()
         line = raw[: err.start].count(b"\n") + 1
         raise ConfigError(f"{os.fspath(path)}:{line}: not valid TOML: byte {err.start} is not UTF-8") from None
+    import tomllib  # here: reading a recording needs none of it
+
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
@@ -369,6 +370,8 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 def parse_value(text: str) -> Any:
     """A TOML value (``3``, ``true``, ``"x"``, ``[1, 2]``), or the text itself."""
+    import tomllib
+
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:

@@ -12,8 +12,25 @@ Both decoders take any chunking of the byte stream, skip garbage, resynchronise,
 count what they dropped and why, and never raise for bad bytes.
 """
 
+from typing import TYPE_CHECKING, Any
+
 from ._common import INVALID, Readings, Status
-from .ascii import AsciiDecoder, AsciiFormat
-from .binary import BinaryDecoder
+
+if TYPE_CHECKING:
+    from .ascii import AsciiDecoder, AsciiFormat
+    from .binary import BinaryDecoder
+
+
+def __getattr__(name: str) -> Any:
+    """The decoders, imported when first asked for: a reader of recordings needs the status bits alone."""
+    if name in ("AsciiDecoder", "AsciiFormat"):
+        from . import ascii
+
+        return getattr(ascii, name)
+    if name == "BinaryDecoder":
+        from .binary import BinaryDecoder
+
+        return BinaryDecoder
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["INVALID", "AsciiDecoder", "AsciiFormat", "BinaryDecoder", "Readings", "Status"]
