@@ -203,11 +203,11 @@ class TestFit:
 
     def __init__(
         self, plan: TestPlan, machine: MachineConfig, options: AnalysisOptions, t: np.ndarray, L: np.ndarray,
-        fi: StepEvent, fo: StepEvent, lag: Lag,
+        fi: StepEvent, fo: StepEvent, lag: Lag, sample_hz: float | None = None,
     ) -> None:
         self.plan, self.machine, self.options = plan, machine, options
         self.t, self.L, self.fi, self.fo, self.lag = t, L, fi, fo, lag
-        self.sample_hz = _rate(t)
+        self.sample_hz = _rate(t) if sample_hz is None else sample_hz  # (the median step: 10 ms at 10 kHz)
         self.period_s = 1.0 / self.sample_hz if self.sample_hz > 0 else 0.0
         self.span = fo.t_s - fi.t_s
         self.patterns = select(options.patterns, plan.direction_list, machine.pitch_x_mm, machine.pitch_y_mm)
@@ -1003,8 +1003,9 @@ def analyze_test(
     ``measured_um - model_um`` is the fit's residual).
     """
     check_plan(plan, fi, fo)
-    lag = loop_lag(plan, machine, options, fi, fo, _rate(t))
-    return TestFit(plan, machine, options, t, L, fi, fo, lag).run().report(curves)
+    hz = _rate(t)
+    lag = loop_lag(plan, machine, options, fi, fo, hz)
+    return TestFit(plan, machine, options, t, L, fi, fo, lag, hz).run().report(curves)
 
 
 __all__ = ["TestFit", "analyze_test", "check_plan", "feed_accel", "spike_width_bounds"]
