@@ -207,12 +207,14 @@ def library_from_args(
     ``--plan NAME`` chose.  A plan of one's own (``--plan FILE``, plan flags) is a library of that plan alone."""
     from ballbar.analysis.plans import PlanLibrary
 
-    from .config import ConfigError, library_of
-
     if own_plan(args):
         if getattr(args, "plan_name", None):
             raise UsageError(f"--plan {args.plan_name} names a plan of the library: plan flags cannot change it")
         return PlanLibrary.single(plan), None
+    if not sections.get("plans"):  # no library: this plan alone (without loading the configuration's machinery)
+        return PlanLibrary.single(plan), None
+    from .config import ConfigError, library_of
+
     try:
         library = library_of(sections)
     except ConfigError as err:
@@ -350,10 +352,10 @@ def _analyze_set(args: argparse.Namespace, mcap: bool) -> int:
 def limits_table(args: argparse.Namespace, base: dict[str, Any], plan: str | None = None) -> dict[str, Any] | None:
     """The ``[limits]`` that give an offline verdict: ``--config``'s, else ``--plan``'s, else the recorded ones
     (of plan ``plan``, where it has its own); None when none of them turns limits on."""
-    from .config import load
-
     table: dict[str, Any] | None = None
     if getattr(args, "config", None):
+        from .config import load
+
         table = asdict(load(args.config, env={}).limits_of(plan or ""))
     elif getattr(args, "plan_file", None) and "limits" in load_config_file(args.plan_file):
         table = dict(load_config_file(args.plan_file)["limits"])
@@ -499,7 +501,7 @@ def run_command(argv: Sequence[str], stop: threading.Event) -> int:
         format=log_format(),
         stream=sys.stderr,
     )
-    from .config import ConfigError
+    from .errors import ConfigError
     from .lock import StateLockError
 
     def run(a: argparse.Namespace) -> int:

@@ -38,9 +38,10 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ballbar.analysis.errors import BallbarError, PlanError
+from ballbar.analysis.errors import PlanError
 from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
 
+from .errors import ConfigError
 from .secrets import REDACTED, is_secret_key
 
 if TYPE_CHECKING:  # the plans' module (numpy) comes in with a library: a single [plan] needs none of it
@@ -49,10 +50,6 @@ if TYPE_CHECKING:  # the plans' module (numpy) comes in with a library: a single
 DEFAULT_FILE = Path(__file__).with_name("default.toml")
 SYSTEM_FILE = Path("/etc/ballbar/ballbar.toml")
 ENV_PREFIX = "BALLBAR__"
-
-
-class ConfigError(BallbarError, ValueError):
-    """A configuration mistake: names the section and key."""
 
 
 @dataclass

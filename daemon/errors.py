@@ -1,4 +1,4 @@
-"""Acquisition errors, in the project's one exception tree.
+"""The daemon's errors, in the project's one exception tree: the configuration's and acquisition's.
 
 Each class also inherits the builtin it resembles: code that only knows
 ``OSError`` or ``ValueError`` still catches it.  Messages are one line and name
@@ -11,6 +11,10 @@ talks to a port directly.
 from __future__ import annotations
 
 from ballbar.analysis.errors import BallbarError
+
+
+class ConfigError(BallbarError, ValueError):
+    """A configuration mistake: names the section and key."""
 
 
 class SourceError(BallbarError, OSError):
@@ -29,4 +33,4 @@ class SourceClosed(SourceError):
     """The source was used after :meth:`close`."""
 
 
-__all__ = ["SourceClosed", "SourceConfigError", "SourceError", "SourceUnplugged"]
+__all__ = ["ConfigError", "SourceClosed", "SourceConfigError", "SourceError", "SourceUnplugged"]
