@@ -719,7 +719,7 @@ class TestFit:
         if curves:
             res["curves"] = {}
             for d, (u, y, r) in per_dir.items():
-                tt = self._arc_times(d, windows)
+                tt = self.t[self._arc_samples(d, windows)]
                 res["curves"]["ccw" if d > 0 else "cw"] = {
                     "t_s": tt, "u_deg": np.degrees(u), "measured_um": y, "model_um": y - r,
                 }
@@ -861,15 +861,17 @@ class TestFit:
         n_eff = samples / self.final_kappa
         return max(0.5 * n_eff * math.log(max(bare, 1e-12) / max(full, 1e-12)), 0.0)
 
-    def _arc_times(self, d: int, windows: dict[int, tuple[float, float]]) -> np.ndarray:
+    def _arc_samples(self, d: int, windows: dict[int, tuple[float, float]]) -> np.ndarray:
+        """The indices of direction ``d``'s data-arc samples (those just after a table reversal left out where
+        :attr:`skip_rad` says)."""
         a, b = windows[d]
-        i, j = np.searchsorted(self.t, a, side="left"), np.searchsorted(self.t, b, side="right")
-        t = self.t[i:j]
+        i, j = int(np.searchsorted(self.t, a, side="left")), int(np.searchsorted(self.t, b, side="right"))
+        idx = np.arange(i, j)
         if self.skip_rad > 0:
             timing = self.full_ctx.timing(self.state.theta)
-            t = t[~_after_onsets(self._sample_geometry(d, t, timing, self.state.theta.tau, self.state.lost),
-                                 self.skip_rad)]
-        return t
+            g = self._sample_geometry(d, self.t[i:j], timing, self.state.theta.tau, self.state.lost)
+            idx = idx[~_after_onsets(g, self.skip_rad)]
+        return idx
 
     def _residuals(
         self, timing: Timing, windows: dict[int, tuple[float, float]], theta: Theta, x: np.ndarray,
@@ -891,8 +893,8 @@ class TestFit:
         out = {}
         i0 = 0
         for d in self.plan.direction_list:
-            t = self._arc_times(d, windows)
-            idx = np.searchsorted(self.t, t)
+            idx = self._arc_samples(d, windows)
+            t = self.t[idx]
             y = (self.L[idx] - self.plan.radius_mm) * 1000.0
             u = np.radians(timing.sched.angle_deg(self.plan, d, t - timing.t_ref))
             model = np.empty(t.size)

@@ -64,9 +64,10 @@ def level_change(u: np.ndarray, r: np.ndarray, d: int, sample_deg: float, sigma:
     if r.size < 4 * w:
         return math.nan, 0.0
     c = np.concatenate([[0.0], np.cumsum(r)])
-    k = np.arange(w, r.size - w + 1)
-    diff = (c[k + w] - c[k]) / w - (c[k] - c[k - w]) / w
-    deg = np.degrees(u[k])
+    n = r.size
+    mid = c[w : n - w + 1]  # the sums before each candidate k = w .. n - w (slices: no copies)
+    diff = (c[2 * w : n + 1] - mid) / w - (mid - c[: n - 2 * w + 1]) / w
+    deg = np.degrees(u[w : n - w + 1])
     past = np.mod(deg, 45.0)
     # both windows clear of every 45 deg point (reversals, changeovers), by FEATURE_DEG
     ok = np.minimum(past, 45.0 - past) > FEATURE_DEG + w * sample_deg
