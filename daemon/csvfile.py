@@ -345,6 +345,8 @@ def _plain_block(block: bytes, ncols: int, use: tuple[int, int]) -> np.ndarray |
             if got is None:
                 break
             same, values = got
+            if values.shape[0] == ends.size:
+                return values  # every line of the block has this one shape (a recorder's block)
             out[lines[same]] = values
             done[lines[same]] = True
             lines = lines[~same]
@@ -375,7 +377,8 @@ _MIN_RUN = 16  # lines of one length and shape parsed as a 2-D array of bytes
 
 
 def _fixed_fields(rows: np.ndarray, ncols: int, use: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
-    """The used fields of the lines (rows of bytes, newline included) that have the first line's shape.
+    """The used fields of the lines (rows of bytes, newline included, of a block of :data:`_PLAIN_BYTES`) that
+    have the first line's shape.
 
     Shape: which columns hold digits, and the bytes of the others (commas, the
     dot, signs, the line's end).  Returns which rows have it and their
@@ -389,7 +392,12 @@ def _fixed_fields(rows: np.ndarray, ncols: int, use: tuple[int, int]) -> tuple[n
     commas = np.flatnonzero(first[:stop] == _COMMA)
     if commas.size != ncols - 1:
         return None
-    same = np.all(np.minimum(rows, ord("0")) == np.minimum(first, ord("0")), axis=1)  # digits as "0"
+    # the same shape: the first line's other bytes, and digits where it has digits (the block holds nothing but
+    # digits and ",.-+\r\n", all below "0": a digit is a byte from "0" on)
+    digit = first >= ord("0")
+    other = np.flatnonzero(~digit)
+    same = np.all(rows[:, other] == first[other], axis=1)
+    same &= np.all(rows[:, np.flatnonzero(digit)] >= ord("0"), axis=1)
     picked = rows if same.all() else rows[same]
     starts, stops = [0, *(commas + 1).tolist()], [*commas.tolist(), stop]
     out = np.empty((picked.shape[0], 2))
