@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 BAND = 0.25  # of the feed-in distance: how close to R or R + f counts as "on" or "out"
 PRE_KEEP_S = 5.0  # samples kept before a feed-in while waiting for one
 SETTLE_S = (0.4, 0.8)  # window after a step's band entry that gives the new level (within the dwell)
+CENTROID_INNER = 5  # samples inside a step from which its centroid is summed whatever their spacing
+CENTROID_INNER_EVEN = 3  # ... and from which it is summed where they are evenly spaced (no sample lost)
+EVEN_GAP = 1.5  # a step's samples are evenly spaced where no interval exceeds this many times their median
 
 
 @dataclass(frozen=True)
@@ -289,7 +292,7 @@ class TestDetector:
     ) -> StepEvent:
         height = after - before
         inner = b - a - 1
-        if inner >= 5:
+        if _centroid_resolves(t[a : b + 1], inner):
             dL = np.diff(L[a : b + 1])
             tm = 0.5 * (t[a:b] + t[a + 1 : b + 1])
             total = float(dL.sum())
@@ -401,6 +404,28 @@ class TestDetector:
     def samples(self) -> tuple[np.ndarray, np.ndarray]:
         """The samples held: from the current (or just ended) test's feed-in on."""
         return self.buf.view()
+
+
+def _centroid_resolves(t: np.ndarray, inner: int) -> bool:
+    """Whether the step's samples ``t`` (from the last on the old level to the first on the new, ``inner``
+    between them) time it by their centroid rather than by a ramp of the programmed feed.
+
+    The centroid summed over the samples is the trapezoid rule for ``t_b - integral of the step's progress``:
+    its error is the aliasing of the step's velocity profile at the sample rate, which is small once the
+    step spreads over several sample intervals (the loop's lag and the acceleration's jerk limit smooth it)
+    and has no mean over the samples' phase, so the feed-in's and the feed-out's do not add up to a bias of
+    the span.  The ramp instead takes the step as a straight line at the programmed feed: exact for a step
+    too sharp to hold more than two samples (a ramp of 90 ms at 64 ms between samples), but on a step the
+    loop's lag has bent it errs by milliseconds that depend on which fractions of the step the samples hit
+    (at 15.625 Hz up to 10 ms: a span 10 to 50 ppm off).  A lost sample inside a short step leaves an
+    interval the trapezoid cannot follow: there the ramp's samples are used (each gives the centre alone).
+    """
+    if inner >= CENTROID_INNER:
+        return True
+    if inner < CENTROID_INNER_EVEN:
+        return False
+    gaps = np.diff(t)
+    return bool(gaps.max() <= EVEN_GAP * float(np.median(gaps)))
 
 
 FIND_FIRST = 4096  # samples looked at first for the next level crossing; twice as many each time after

@@ -8,9 +8,13 @@ recover what the machine has within its stated uncertainty and report nothing si
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 
 from ballbar.analysis import TestPlan
+from ballbar.analysis.detect import TestDetector
 from ballbar.analysis.engine import analyze_recording
 from ballbar.tools.bench.false_alarms import false_findings
 from ballbar.tools.simulator import MachineModel, simulate
@@ -101,6 +105,43 @@ def test_large_pivot_offsets_with_unequal_gains(fs: float, gains: tuple[float, f
     for field in ("centre_x_um", "centre_y_um"):
         assert within(res, truth, field, floor=0.05), (field, res["parameters"][field])
     assert within(res, truth, "servo_mismatch_ms", floor=0.005)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_two_to_one_gains_at_the_lowest_rate_show_no_lateral_play(seed: int) -> None:
+    """Gains of 46 and 21.5 1/s (a servo pattern of some 200 um), the pivot off centre, backlash, a jerk limit, at
+    15.625 Hz: the feed-in and feed-out hold three or four samples each.  Timed as ramps of the programmed feed,
+    the loop's lag bent them by milliseconds, differently at each, the span and the feed came out 20 ppm off, and
+    the servo pattern, shifted between the arcs, read as lateral play (p down to 1e-7).  Their centroids keep
+    the span."""
+    plan = TestPlan(sample_hz=15.625)
+    machine = MachineModel(kv_x_per_s=46.0, kv_y_per_s=21.5, centre_x_um=-3.0, centre_y_um=6.5, backlash_x_um=5.8,
+                           backlash_y_um=-5.9, jerk_mm_s3=20000.0, noise_um=0.1)
+    res, truth = analyse(plan, machine, 15.625, seed=seed)
+    assert not false_findings(res, truth), false_findings(res, truth)
+    assert within(res, truth, "servo_mismatch_ms", floor=0.005)
+
+
+@pytest.mark.parametrize(("kv", "jerk"), [
+    ((46.0, 21.5), 20000.0), ((30.0, 30.0), math.inf), ((22.0, 45.0), 50000.0), ((40.0, 33.0), 20000.0)])
+def test_the_lowest_rate_times_the_feed_in_to_feed_out_span_to_milliseconds(
+        kv: tuple[float, float], jerk: float) -> None:
+    """At 15.625 Hz a 1.5 mm feed-in at 1000 mm/min lasts 90 ms, and the loop's lag and the jerk limit spread it
+    over three to six samples.  Each step's centroid is the commanded move's middle plus the lag along it (X's
+    here, at 0 deg), so the span between them is the program's, whatever the samples' phase: over eight phases
+    within 2 ms rms and 3 ms at worst (the ramps of the programmed feed erred by up to 13 ms, 5 to 7 ms rms)."""
+    plan = TestPlan(sample_hz=15.625)
+    errors = []
+    for phase_s in np.arange(8) * 0.008:
+        machine = MachineModel(kv_x_per_s=kv[0], kv_y_per_s=kv[1], jerk_mm_s3=jerk, lead_s=1.0 + phase_s,
+                               noise_um=0.1)
+        sim = simulate(plan, machine, 15.625)
+        detector = TestDetector(plan)
+        detector.finish()
+        fi, fo = detector.feed_all(sim.t_s, sim.length_mm)[:2]
+        errors.append((fo.t_s - sim.events["feed_out_centroid"]) - (fi.t_s - sim.events["feed_in_centroid"]))
+    err = np.abs(errors)
+    assert float(np.sqrt(np.mean(err**2))) < 2e-3 and err.max() < 3e-3, err
 
 
 @pytest.mark.parametrize(("changes", "why"), [
