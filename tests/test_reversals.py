@@ -120,10 +120,7 @@ def test_the_combination(fs: float) -> None:
     if fs >= 250:
         assert not spikes_match(res, truth, 0.05 if fs >= 1000 else 0.10)
     else:
-        # not sized: their width runs onto the samples' resolution, or a width just above it leaves each spike
-        # less than two samples' worth of signal (which of the two depends on where the samples fall)
-        assert all(p[k]["value"] is None and ("below the resolution" in p[k]["reason"] or "too few to size it" in
-                                              p[k]["reason"]) for k in SPIKES), [p[k]["reason"] for k in SPIKES]
+        assert all(p[k]["value"] is None and "below the resolution" in p[k]["reason"] for k in SPIKES)
 
 
 def test_a_large_gain_mismatch_is_servo_mismatch_only() -> None:
