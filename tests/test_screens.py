@@ -24,8 +24,9 @@ import shutil
 import socket
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import livescene
 import numpy as np
@@ -104,6 +105,21 @@ def _viewer_or_skip() -> str:
     return exe
 
 
+def _feed(v: RerunViewer, items: Sequence[tuple[str, Any]]) -> None:
+    """Once the viewer's server is up, hand it a scene's batches and messages, and let it send all it holds."""
+    deadline = time.monotonic() + 20.0
+    while not v.connected:
+        assert time.monotonic() < deadline, f"the viewer's server did not come up: {v.stats()}"
+        v.on_idle()
+        time.sleep(0.05)
+    for kind, x in items:
+        (v.on_batch if kind == "batch" else v.on_message)(x)
+    while v.stats()["history_pending"]:
+        v.on_idle()
+    v.on_idle()
+    assert v.stats()["errors"] == 0
+
+
 @pytest.fixture
 def served(scene: livescene.Scene, request: pytest.FixtureRequest) -> Iterator[RerunViewer]:
     """The daemon's viewer in serve mode, fed the scene with the verdicts of ``request.param``."""
@@ -112,17 +128,7 @@ def served(scene: livescene.Scene, request: pytest.FixtureRequest) -> Iterator[R
                     plan=livescene.PLAN)
     try:
         assert v.seed(earlier) == len(earlier)
-        deadline = time.monotonic() + 20.0
-        while not v.connected:
-            assert time.monotonic() < deadline, f"the viewer's server did not come up: {v.stats()}"
-            v.on_idle()
-            time.sleep(0.05)
-        for kind, x in items:
-            (v.on_batch if kind == "batch" else v.on_message)(x)
-        while v.stats()["history_pending"]:
-            v.on_idle()
-        v.on_idle()
-        assert v.stats()["errors"] == 0
+        _feed(v, items)
         yield v
     finally:
         v.stop()
@@ -190,17 +196,7 @@ def served_set(set_scene: setscene.Scene) -> Iterator[RerunViewer]:
                     plan=setscene.PLANS["xy"], plans=set_scene.config["plans"], sets=set_scene.config["sets"])
     try:
         assert v.seed(set_scene.earlier) == len(set_scene.earlier) - 1  # the tests, and the set
-        deadline = time.monotonic() + 20.0
-        while not v.connected:
-            assert time.monotonic() < deadline, f"the viewer's server did not come up: {v.stats()}"
-            v.on_idle()
-            time.sleep(0.05)
-        for kind, x in set_scene.items:
-            (v.on_batch if kind == "batch" else v.on_message)(x)
-        while v.stats()["history_pending"]:
-            v.on_idle()
-        v.on_idle()
-        assert v.stats()["errors"] == 0
+        _feed(v, set_scene.items)
         yield v
     finally:
         v.stop()
