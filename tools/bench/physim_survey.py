@@ -56,6 +56,12 @@ def draw(rng: np.random.Generator, rate: float) -> tuple[ps.Machine, ps.Path, ps
     return machine, path, gauge
 
 
+def _kind(axis: ps.Axis) -> str:
+    if axis.comp_um == 0:
+        return "dead band"
+    return "over-set compensation" if axis.play_um == 0 else "dead band and compensation"
+
+
 def run_one(args: tuple[int, int, float]) -> dict[str, Any]:
     seed, index, rate = args
     rng = np.random.default_rng([seed, index])
@@ -63,7 +69,8 @@ def run_one(args: tuple[int, int, float]) -> dict[str, Any]:
     t, L = ps.simulate(machine, path, gauge, seed=int(rng.integers(2**31)))
     plan = TestPlan(sample_hz=rate, radius_mm=path.radius_mm, feed_mm_min=path.feed_mm_min)
     tests = [r for r in analyze_recording(t, L, plan) if r.get("kind") == "test"]
-    out: dict[str, Any] = {"rate": rate, "tests": len(tests), "absent": {}, "present": {}}
+    out: dict[str, Any] = {"rate": rate, "tests": len(tests), "absent": {}, "present": {},
+                           "kind": {"x": _kind(machine.x), "y": _kind(machine.y)}}
     if not tests:
         return out
     params: dict[str, Any] = dict(cast(dict[str, Any], tests[0].get("parameters") or {}))
@@ -115,6 +122,12 @@ def report(results: list[dict[str, Any]], rates: list[float]) -> None:
         k = sum(abs(z) <= 3 for z in zs)
         med = float(np.median(np.abs(zs))) if zs else float("nan")
         print(f"  {n:22s} {k:3d} of {len(zs):3d}  median |z| {med:6.2f}")
+    print("lost motion within 3 stated standard errors, by its kind:")
+    for kind in ("dead band", "over-set compensation", "dead band and compensation"):
+        zs = [r["present"][f"backlash_{a}_um"] for r in results for a in "xy"
+              if r.get("kind", {}).get(a) == kind and f"backlash_{a}_um" in r["present"]]
+        k = sum(abs(z) <= 3 for z in zs)
+        print(f"  {kind:28s} {k:3d} of {len(zs):3d}")
 
 
 def main(argv: list[str] | None = None) -> None:
