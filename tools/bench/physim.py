@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import signal
 
+from ballbar.analysis import TestPlan
+
 
 @dataclass(frozen=True)
 class Axis:
@@ -70,20 +72,10 @@ class Gauge:
     length_offset_um: float = 0.0  # the bar's calibration error
 
 
-@dataclass(frozen=True)
-class Path:
-    """The programme as it runs: start at R + f, feed in, arcs, feed out."""
-
-    radius_mm: float = 100.0
-    feed_mm_min: float = 1000.0
-    start_deg: float = 0.0
-    overshoot_deg: float = 180.0
-    data_arc_deg: float = 360.0
-    feed_in_mm: float = 1.5
-    dwell_s: float = 0.5
-    directions: str = "both"
-    pre_s: float = 1.0
-    post_s: float = 1.0
+# The programme as it runs is the plan's: start at R + f, feed in, arcs, feed out.
+Path = TestPlan
+PRE_S = 1.0  # at rest before the feed-in
+POST_S = 1.0  # at rest after the feed-out
 
 
 def _profile(length: float, v: float, a: float, j: float, dt: float) -> np.ndarray:
@@ -134,7 +126,7 @@ def command(path: Path, machine: Machine, dt: float) -> tuple[np.ndarray, np.nda
         xs.append(r * np.cos(ang))
         ys.append(r * np.sin(ang))
 
-    rest(path.pre_s, R + f, u)
+    rest(PRE_S, R + f, u)
     radial(R + f, R, u)
     rest(path.dwell_s, R, u)
     for d in dirs:
@@ -145,7 +137,7 @@ def command(path: Path, machine: Machine, dt: float) -> tuple[np.ndarray, np.nda
         u = ang[-1]
         rest(path.dwell_s, R, u)
     radial(R, R + f, u)
-    rest(path.post_s, R + f, u)
+    rest(POST_S, R + f, u)
     return np.concatenate(xs), np.concatenate(ys)
 
 
