@@ -1117,7 +1117,8 @@ def test_a_clean_stop_on_ctrl_c_logs_no_error(tmp_path: Path) -> None:
     daemon's last flush, so Rerun's client logs no ERROR (it logged two at every such stop when the server died
     first: "Write messages call failed: transport error", "Failed to flush previous sink")."""
     code = (
-        "import time, sys\n"
+        "import faulthandler, signal, time, sys\n"
+        "faulthandler.register(signal.SIGUSR1, all_threads=True)\n"
         "from ballbar.daemon.rerun import RerunViewer, ViewerOptions\n"
         "v = RerunViewer(ViewerOptions(mode='serve', bind='127.0.0.1', port=int(sys.argv[1])))\n"
         "try:\n"
@@ -1137,7 +1138,14 @@ def test_a_clean_stop_on_ctrl_c_logs_no_error(tmp_path: Path) -> None:
         assert proc.stdout.readline().strip() == "ready"
         time.sleep(0.5)
         os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
-        out, err = proc.communicate(timeout=30)
+        try:
+            out, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:  # where it hangs: every thread's stack, then the rest of its output
+            os.kill(proc.pid, signal.SIGUSR1)
+            time.sleep(1.0)
+            os.killpg(proc.pid, signal.SIGKILL)
+            out, err = proc.communicate(timeout=10)
+            pytest.fail(f"no exit within 30 s of Ctrl-C; its threads and log:\n{err[-6000:]}")
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
