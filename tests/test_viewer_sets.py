@@ -24,6 +24,9 @@ def scene() -> setscene.Scene:
     return setscene.build()
 
 
+# Under a load of 4 the connect-mode receiver once saved one trend point of eleven (the ten seeded before it
+# connected missing): a race between the viewer's connection and the history it is sent, run alone until found.
+@pytest.mark.serial
 def test_each_plan_and_the_set_reach_the_viewer(scene: setscene.Scene, tmp_path: Path) -> None:
     port = free_port()
     rx = Receiver(tmp_path, "rx", port)
