@@ -283,6 +283,32 @@ def test_a_second_daemon_on_the_same_state_dir_exits_2_naming_the_holder(tmp_pat
             first.wait()
 
 
+def test_deleting_the_lock_file_lets_no_second_daemon_in(tmp_path: Path) -> None:
+    """The lock is the directory's: an operator who deletes ``ballbar.lock`` as stale lets no second daemon start,
+    and the first one's recording is left alone (a lock on the file let the second rewrite it)."""
+    first = _start(tmp_path)
+    try:
+        _wait_for_lock(tmp_path, first.pid)
+        recordings = tmp_path / "state" / "recordings"
+        deadline = time.monotonic() + 30
+        while not list(recordings.glob("*.mcap")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        (open_file,) = recordings.glob("*.mcap")
+        inode = open_file.stat().st_ino
+        (tmp_path / "state" / "ballbar.lock").unlink()
+        second = ballbar("run", "--source", SIM, "--state-dir", str(tmp_path / "state"), "--set",
+                         "zenoh.enabled=false", "--set", 'rerun.mode="off"', timeout=30)
+        _one_line_exit_2(second, "is in use by another ballbar daemon")
+        assert first.poll() is None
+        assert open_file.stat().st_ino == inode and list(recordings.glob("*.mcap")) == [open_file]
+        first.send_signal(signal.SIGTERM)
+        assert first.wait(10) == 0
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+
+
 def test_a_lock_left_by_kill_9_does_not_block_a_restart(tmp_path: Path) -> None:
     first = _start(tmp_path)
     try:
