@@ -171,6 +171,40 @@ TOPICS: dict[str, str] = {
 LAST_TOPICS = ("circle", "test", "set", "event", "status", "config", "alert")
 HISTORY_TOPICS: tuple[HistoryTopic, ...] = ("circle", "test", "set", "event", "alert")
 CONTROL_NEXT_PLAN = "control/next_plan"  # a service names the next test's plan here (subscribed)
+CONTROL_MAX_BYTES = 1024  # a put on it longer than this is refused unread
+CONTROL_NAME_CHARS = 64  # a plan's name: at most this many printable characters, no white space
+CONTROL_LOG_S = 10.0  # refusals are logged at most once in this many seconds
+
+
+def parse_control(payload: bytes) -> tuple[str | None, str | None]:
+    """A put on the control key as ``(name or None, None)``, or ``(None, why)`` for one not of the documented
+    shape: ``{"plan": NAME}``, ``{"plan": null}``, ``"NAME"``, the bare ``NAME`` or ``null``.  Bounded before it is
+    parsed: no nesting or size a peer sends can make more than one short reason of it."""
+    if len(payload) > CONTROL_MAX_BYTES:
+        return None, f"{len(payload)} bytes, more than {CONTROL_MAX_BYTES}"
+    text = payload.decode("utf-8", "replace").strip()
+    body: object
+    if text[:1] in ('{', '[', '"') or text == "null" or text[:1].isdigit():
+        try:
+            body = json.loads(text)
+        except (ValueError, RecursionError):
+            return None, "not valid JSON"
+        if isinstance(body, dict):
+            if set(body) != {"plan"}:
+                keys = ", ".join(sorted(repr(k)[:40] for k in body)[:5]) or "none"
+                return None, f"an object must hold the key 'plan' alone (it has {keys})"
+            body = body["plan"]
+            if body is None:
+                return None, None
+        elif body is None:
+            return None, None
+    else:
+        body = text
+    if not isinstance(body, str):
+        return None, f"a plan's name is a string, not {type(body).__name__}"
+    if not 0 < len(body) <= CONTROL_NAME_CHARS or not body.isprintable() or any(c.isspace() for c in body):
+        return None, f"not a plan's name ({CONTROL_NAME_CHARS} printable characters at most, no spaces): {body[:40]!r}"
+    return body, None
 HISTORY_LIMIT = 100
 HISTORY_LIMIT_MAX = 1000
 RECOVERY_WAIT_S = 60.0  # an event found at start waits this long for a subscriber to put it to
@@ -404,6 +438,7 @@ class _Counters:
     query_errors: int = 0
     skipped: int = 0
     controls: int = 0
+    controls_refused: int = 0
 
 
 class ZenohBus(Listener):
@@ -446,6 +481,8 @@ class ZenohBus(Listener):
         self._last: dict[str, bytes] = {}
         self._history: dict[str, deque[tuple[int, bytes]]] = {k: deque(maxlen=history_size) for k in HISTORY_TOPICS}
         self._counters = _Counters(published=dict.fromkeys(TOPICS.values(), 0))
+        self._refused_since_log = 0
+        self._refusal_log_at = 0.0  # monotonic: when the next refusal may be logged
         self._warned_kinds: set[str] = set()
         self._last_slot = -(2**62)
         self._session: zenoh.Session | None = None
@@ -653,14 +690,21 @@ class ZenohBus(Listener):
         self._control = choose
 
     def _on_control(self, sample: zenoh.Sample) -> None:
-        """``{"plan": NAME}``, the bare name, or null: handed on as it is (the analysis checks the name)."""
+        """``{"plan": NAME}``, ``{"plan": null}``, the name (bare or a JSON string) or ``null``: handed on (the
+        analysis checks the name); anything else is refused here with one reason, logged at most once every
+        ``CONTROL_LOG_S`` seconds (with the count since), so that a flood makes no more lines than one put."""
+        name, why = parse_control(sample.payload.to_bytes())
+        if why is not None:
+            self._counters.controls_refused += 1
+            self._refused_since_log += 1
+            now = time.monotonic()
+            if now >= self._refusal_log_at:
+                log.warning("zenoh: %s: refused: %s (%d refused since the last such line)", CONTROL_NEXT_PLAN, why,
+                            self._refused_since_log)
+                self._refused_since_log = 0
+                self._refusal_log_at = now + CONTROL_LOG_S
+            return
         self._counters.controls += 1
-        text = sample.payload.to_bytes().decode("utf-8", "replace").strip()
-        try:
-            body = json.loads(text)
-            name = body.get("plan") if isinstance(body, dict) else body
-        except ValueError:
-            name = text
         log.info("zenoh: %s: %r", CONTROL_NEXT_PLAN, name)
         if self._control is not None:
             self._control(name)
@@ -680,6 +724,7 @@ class ZenohBus(Listener):
             "query_errors": c.query_errors,
             "skipped": c.skipped,
             "controls": c.controls,
+            "controls_refused": c.controls_refused,
             "history": {k: len(v) for k, v in self._history.items()},
         }
         session = self._session

@@ -99,3 +99,50 @@ def test_a_live_test_of_no_plan_gets_no_result_and_an_event_with_the_candidates(
     validate(ev)
     assert ev["reason"] == "no_match" and ev["signature"] == code and sorted(ev["candidates"]) == ["yz", "zx"]
     assert f"code {code}" in ev["message"]
+
+
+@pytest.mark.parametrize(
+    ("payload", "why"),
+    [
+        (b"[" * 200_000 + b"]" * 200_000, "bytes, more than 1024"),
+        (b"[" * 500 + b"]" * 500, "a plan's name is a string, not list"),
+        (b'{"foo": 1}', "the key 'plan' alone (it has 'foo')"),
+        (b'{"plan": "xy", "also": 2}', "the key 'plan' alone"),
+        (b'{"plan": 7}', "not int"),
+        (b"42", "not int"),
+        (b'{"plan": ', "not valid JSON"),
+        (b"two words", "not a plan's name"),
+        (b"x" * 65, "not a plan's name"),
+        (b'"\\u0007bell"', "not a plan's name"),
+    ],
+)
+def test_the_control_key_refuses_what_is_not_its_documented_shape(payload: bytes, why: str) -> None:
+    from ballbar.daemon.bus import parse_control
+
+    name, reason = parse_control(payload)
+    assert name is None and reason is not None and why in reason and len(reason) < 200, reason
+
+
+def test_the_documented_shapes_of_the_control_key() -> None:
+    from ballbar.daemon.bus import parse_control
+
+    assert [parse_control(p) for p in (b'{"plan": "zx"}', b'"zx"', b"zx", b"null", b'{"plan": null}')] == [
+        ("zx", None), ("zx", None), ("zx", None), (None, None), (None, None)]
+
+
+def test_a_flood_of_hostile_puts_hands_on_nothing_and_logs_one_line(caplog: pytest.LogCaptureFixture) -> None:
+    """A deep JSON (a RecursionError traceback before), no 'plan' key (read as a withdrawal before), 1 MB names:
+    none reaches the analysis, the counter says how many, and 2 000 of them make one log line, not thousands."""
+    got: list[Any] = []
+    hostile = [b"[" * 200_000 + b"]" * 200_000, b'{"foo": 1}', b"n" * 1_000_000] + [b'{"x": 1}'] * 1997
+    with caplog.at_level("INFO", logger="ballbar.daemon.bus"), running_bus("ctl") as (bus, ep), client(ep) as s:
+        bus.bind_control(got.append)
+        time.sleep(0.5)  # the subscription propagates
+        for p in hostile:
+            s.put("ballbar/ctl/control/next_plan", p)
+        s.put("ballbar/ctl/control/next_plan", "zx")  # a real choice after the flood still arrives
+        wait_until(lambda: got == ["zx"], what="the real choice")
+        assert bus.stats()["controls_refused"] == len(hostile) and bus.stats()["controls"] == 1
+    lines = [r for r in caplog.records if "next_plan" in r.getMessage()]
+    assert len([r for r in lines if "refused" in r.getMessage()]) == 1, [r.getMessage()[:100] for r in lines]
+    assert all(len(r.getMessage()) < 300 for r in lines)

@@ -282,7 +282,7 @@ def _main(argv: Sequence[str] | None, pending: list[threading.Thread]) -> int:
     def on_sample(sample: zenoh.Sample) -> None:
         try:
             obj = json.loads(sample.payload.to_bytes())
-        except ValueError:
+        except (ValueError, RecursionError):  # a peer's put nested deeper than the parser recurses
             log.warning("%s: not JSON (%d bytes)", sample.key_expr, len(sample.payload))
             return
         inbox.put(obj if isinstance(obj, dict) else {"key": str(sample.key_expr), "value": obj})

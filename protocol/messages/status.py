@@ -61,6 +61,8 @@ class ZenohStats(TypedDict):
     query_errors: NotRequired[Annotated[int, doc("replies that failed")]]
     skipped: NotRequired[Annotated[int, doc("messages of a kind with no topic")]]
     controls: NotRequired[Annotated[int, doc("choices of the next plan received on control/next_plan")]]
+    controls_refused: NotRequired[Annotated[int, doc(
+        "puts on control/next_plan refused as not of the documented shape (too long, not a name, other keys)")]]
     history: Annotated[Counts, doc("results and events held for history/<topic>, by topic")]
     zid: NotRequired[Annotated[str, doc("this session's Zenoh id")]]
     links: NotRequired[Annotated[Counts, doc("sessions connected to this one, by kind (peer, client, router)")]]
