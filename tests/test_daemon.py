@@ -312,6 +312,8 @@ def test_a_finite_sources_end_lets_the_analysis_take_all_it_was_given() -> None:
         q.close(1.0)
 
 
+# Wall-clock bound (the speed-up within 1 %): 1.0101 under a load of 4, so it runs alone.
+@pytest.mark.serial
 def test_simulate_states_what_it_reads_and_its_figures_in_device_terms(tmp_path: Path) -> None:
     """``ballbar run --simulate`` as a new user runs it (sped up): it reads and names the pty of its
     simulated device, the status states the speed-up and its rate, clock and drift in device terms (a

@@ -233,6 +233,9 @@ def check_set_screenshot(px: np.ndarray, set_status: str, test_status: str) -> N
     assert cy + 1.7 * r0 < 0.8 * h and cx - 1.7 * r0 > 0, "the polar plot is cut by its view"
 
 
+# The viewer shoots at its 10th frame whatever it has ingested (issue 32): under a load of 4 before the set's
+# last test arrived; alone until the view says when it is live.
+@pytest.mark.serial
 def test_live_view_of_a_set(served_set: RerunViewer, set_scene: setscene.Scene, tmp_path: Path) -> None:
     exe = _viewer_or_skip()
     worst = max(setscene.STATUS.values(), key=("pass", "warning", "fail").index)

@@ -958,6 +958,8 @@ def test_live_circle_is_sent_in_pieces(script: Script, receivers: list[Receiver]
     assert list(shown) == ["/live/ccw/measured"] and len(shown["/live/ccw/measured"]) > 500
 
 
+# Host-clock spacing within 0.1 %: missed at 10 kHz under a load of 4, so it runs alone.
+@pytest.mark.serial
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
 def test_length_series_is_decimated_and_coalesced(rate: float, receivers: list[Receiver], tmp_path: Path) -> None:
     """Whatever the sample rate: length_hz points per second of the host clock, sent every send_interval_s."""
