@@ -21,7 +21,7 @@ from ballbar.analysis.errors import BallbarError
 
 from ..listeners import TEST_END_EVENTS
 from ..spool import read_spool
-from .format import _MAGIC, TOPIC_EVENTS, TOPIC_RESULTS, list_recordings
+from .format import _MAGIC, TOPIC_EVENTS, TOPIC_RESULTS, hold_file, list_recordings
 from .reader import _records, _why_stopped, read_log
 
 log = logging.getLogger(__name__)
@@ -99,7 +99,8 @@ def recover_file(path: Path) -> Recovered:
 def recover_crashed(directory: str | os.PathLike[str]) -> list[Recovered]:
     """Each of the logger's files in ``directory`` left without a footer by a killed daemon, rewritten once
     with its index (so every reader opens it, and no later start warns about it again).  A file that
-    cannot be rewritten is left as it was, with a warning."""
+    cannot be rewritten is left as it was, with a warning; so is a file another process holds open (its
+    writer's ``flock``: a live daemon's file has no footer until it closes, and is never rewritten)."""
     out: list[Recovered] = []
     d = Path(directory)
     if not d.is_dir():
@@ -111,12 +112,23 @@ def recover_crashed(directory: str | os.PathLike[str]) -> list[Recovered]:
         if _has_footer(path):
             continue
         try:
+            fd = hold_file(path)
+        except OSError as err:
+            log.warning("mcap log: cannot recover %s (left as it is): %s", path.name, err.strerror or err)
+            continue
+        if fd is None:  # its writer is alive: not cut, only not finished yet
+            log.warning("mcap log: %s has no footer but is open in another process (its writer, still running): "
+                        "left alone", path.name)
+            continue
+        try:
             r = recover_file(path)
         except (OSError, McapError) as err:
             log.warning("mcap log: cannot recover %s (left as it is): %s", path.name, err)
             with contextlib.suppress(OSError):
                 path.with_name(path.name + ".recovering").unlink()
             continue
+        finally:
+            os.close(fd)  # after the rename: the file now at the path is the rewritten one
         _cut_by(r, d)
         what = f"a write outage ({r.outage})" if r.outage else "a crash"
         test = ""

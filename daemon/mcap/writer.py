@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import json
 import logging
 import math
@@ -54,6 +55,7 @@ from .format import (
     LogConfigError,
     _take,
     encode_samples,
+    hold_file,
     list_recordings,
     scaled_ints,
 )
@@ -65,8 +67,17 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 def _open_output(path: Path) -> IO[bytes]:
-    """A new file for writing; refuses to overwrite.  (Tests replace this to simulate a full disk.)"""
-    return open(path, "xb")
+    """A new file for writing; refuses to overwrite.  (Tests replace this to simulate a full disk.)
+
+    The file is held with an exclusive ``flock`` while it is open (the lock goes with the descriptor, at its close
+    or the process's end): recovery and retention in any other process leave a file so held alone."""
+    fh = open(path, "xb")  # noqa: SIM115 - the caller keeps it open
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        raise
+    return fh
 
 
 def _disk_space(path: Path) -> tuple[int, int] | None:
@@ -211,6 +222,7 @@ class McapLogger(Listener):
         self._stopped = False
         self._file_seq = 0
         self._last_retention = time.monotonic()  # first run when the first file opens
+        self._held_elsewhere: set[Path] = set()  # files retention left alone, another process writing them (said once)
         self._next_reason = "start"
         # failures
         self._failing = False
@@ -872,7 +884,16 @@ class McapLogger(Listener):
             if not (old or total > self.quota_bytes):
                 continue
             try:
-                p.unlink()
+                fd = hold_file(p)
+                if fd is None:  # another process writes it (a daemon on this directory without its lock)
+                    if p not in self._held_elsewhere:
+                        self._held_elsewhere.add(p)
+                        log.warning("mcap log: %s is open in another process: retention leaves it alone", p.name)
+                    continue
+                try:
+                    p.unlink()
+                finally:
+                    os.close(fd)
             except FileNotFoundError:
                 pass
             except OSError as err:
