@@ -261,6 +261,15 @@ def _wait_for_lock(tmp_path: Path, pid: int, timeout: float = 30.0) -> None:
     raise AssertionError("the first daemon did not take the lock")
 
 
+def _the_open_file(recordings: Path, timeout: float = 30.0) -> Path:
+    """The one recording a daemon that just started writes, once it is there."""
+    deadline = time.monotonic() + timeout
+    while not list(recordings.glob("*.mcap")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    (open_file,) = recordings.glob("*.mcap")
+    return open_file
+
+
 def test_a_second_daemon_on_the_same_state_dir_exits_2_naming_the_holder(tmp_path: Path) -> None:
     first = _start(tmp_path)
     try:
@@ -291,10 +300,7 @@ def test_deleting_the_lock_file_lets_no_second_daemon_in(tmp_path: Path) -> None
     try:
         _wait_for_lock(tmp_path, first.pid)
         recordings = tmp_path / "state" / "recordings"
-        deadline = time.monotonic() + 30
-        while not list(recordings.glob("*.mcap")) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        (open_file,) = recordings.glob("*.mcap")
+        open_file = _the_open_file(recordings)
         inode = open_file.stat().st_ino
         (tmp_path / "state" / "ballbar.lock").unlink()
         second = ballbar("run", "--source", SIM, "--state-dir", str(tmp_path / "state"), "--set",
@@ -315,17 +321,15 @@ def test_a_file_another_process_writes_is_never_recovered_nor_deleted(tmp_path: 
     second daemon that got past the state lock would be) leave it alone: the writer holds an ``flock`` on it.  The
     file then holds every sample its daemon says it wrote, none lost (on the old code recovery rewrote it: the
     daemon went on writing to the replaced inode, and retention deleted it)."""
-    from ballbar.daemon.mcap import McapLogger, list_recordings, read_log, recover_crashed
+    from ballbar.daemon.mcap import McapLogger, read_log, recover_crashed
+    from ballbar.tools.bench.bench_diskfull import stop_daemon
 
     first = _start(tmp_path)
     recordings = tmp_path / "state" / "recordings"
     try:
         _wait_for_lock(tmp_path, first.pid)
-        deadline = time.monotonic() + 30
-        while not list(recordings.glob("*.mcap")) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        open_file = _the_open_file(recordings)
         time.sleep(1.5)  # some chunks in it, no footer yet
-        (open_file,) = list_recordings(recordings)
         inode = open_file.stat().st_ino
         assert recover_crashed(recordings) == []
         assert open_file.stat().st_ino == inode
@@ -340,12 +344,9 @@ def test_a_file_another_process_writes_is_never_recovered_nor_deleted(tmp_path: 
             other.stop()
         assert first.poll() is None
         time.sleep(1.0)
-        first.send_signal(signal.SIGTERM)
-        assert first.wait(10) == 0
     finally:
-        if first.poll() is None:
-            first.kill()
-            first.wait()
+        code = stop_daemon(first)
+    assert code == 0
     err = first.stderr.read() if first.stderr is not None else ""
     assert "open in another process" not in err  # the daemon's own retention found nothing held elsewhere
     line = next(x for x in err.splitlines() if "mcap log stopped:" in x)
