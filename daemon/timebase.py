@@ -247,7 +247,7 @@ class Stamper:
                 if expect > w / 4:
                     extra = max(0.0, round((expect - d[0]) / w))
                     d[0] += w * extra
-                    wraps[0] += extra
+                    wraps[0] = round((d[0] - raw_d[0]) / w)  # every wrap between the two readings (d is the step)
                     back[0] = False
             else:
                 d = raw_d

@@ -110,3 +110,53 @@ def test_a_device_restarted_meanwhile_is_a_reset_and_counts_nothing(tmp_path: Pa
     resets = [e for e in events if e.get("event") == "device_reset"]
     assert [(e["run_id"], e["seq"]) for e in resets] == [(second_id, int(b[0]))], resets
     assert not [e for e in events if e.get("event") == "lost" and e.get("detail") == "restart"]
+
+
+def _readings(raw_seq: np.ndarray, clock_s: np.ndarray) -> Any:
+    from ballbar.protocol._common import Readings
+
+    n = raw_seq.size
+    return Readings(np.zeros(n), np.zeros(n, np.uint8), raw_seq.astype(np.int64), clock_s.astype(np.float64))
+
+
+@pytest.mark.parametrize("stopped_s", [2.0, 40 * 60.0, 50 * 60.0, 3 * 3600.0])
+def test_the_stamper_resumed_counts_the_gap_whatever_the_clock_wrapped(stopped_s: float) -> None:
+    """After resume(), a stop of any length within the counter's range is a gap of exactly what the counter
+    stepped, also where the device clock (binary: 2**32 us, 71.6 min) wrapped meanwhile, or nearly half or more of
+    a wrap went by: no device reset, no clock jump (the host clock map, which settles the wraps while running, is
+    not known yet after a start)."""
+    from ballbar.daemon.timebase import Stamper
+    from ballbar.protocol.binary import CLOCK_WRAP_S, SEQ_MODULUS
+
+    rate = 1000.0
+    last_raw, last_clk = 4_000_000, 4_000.0  # recorded: sample 4 000 000 at 4000 s of device time
+    st = Stamper(SEQ_MODULUS, CLOCK_WRAP_S, rate)
+    st.resume(last_raw, last_raw, last_clk, last_clk, 1.0 / rate)
+    missing = round(stopped_s * rate) - 1
+    raw = last_raw + 1 + missing + np.arange(200)
+    out = st.stamp(_readings(raw % SEQ_MODULUS, ((raw / rate) % CLOCK_WRAP_S)), t_read=100.0)
+    assert out.gaps == [(last_raw + 1, missing)] and out.reset_seqs == [] and out.jumps == []
+    assert int(out.seq[0]) == int(raw[0]) and abs(float(out.t_device[0]) - raw[0] / rate) < 1e-6
+
+
+def test_the_stamper_resumed_after_a_device_reset_uses_the_saved_offsets() -> None:
+    """A device reset in the previous run re-based the numbers (they went on by one): with the offsets saved then,
+    the raw counter of the last recorded number is known, and the gap is still exact."""
+    from ballbar.daemon.timebase import Stamper
+    from ballbar.protocol.binary import CLOCK_WRAP_S, SEQ_MODULUS
+
+    rate = 1000.0
+    first = Stamper(SEQ_MODULUS, CLOCK_WRAP_S, rate)
+    a = np.arange(5000, 6000)
+    first.stamp(_readings(a, a / rate), 1.0)
+    b = np.arange(10, 1010)  # the device restarted: counter and clock from 10
+    got = first.stamp(_readings(b, b / rate), 2.0)
+    assert got.reset_seqs == [6000]
+    offsets = first.offsets()
+    last_seq, last_td = int(got.seq[-1]), float(got.t_device[-1])
+    again = Stamper(SEQ_MODULUS, CLOCK_WRAP_S, rate)
+    again.resume(last_seq, (last_seq - offsets[0]) % SEQ_MODULUS, last_td, (last_td - offsets[1]) % CLOCK_WRAP_S,
+                 1.0 / rate)
+    c = np.arange(1500, 1600)  # 490 samples not read across the restart
+    out = again.stamp(_readings(c, c / rate), 3.0)
+    assert out.gaps == [(last_seq + 1, 490)] and out.reset_seqs == [] and out.jumps == []
