@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -302,7 +303,13 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         if stop.is_set():
             return 0
         cut = _recover(cfg)  # before the bus reads the history from the recordings
+        if cfg.mcap.enabled:  # after recovery: the last recorded sample, to count what the restart lost
+            from .restarts import resume_count, save_counter
+
+            resume_count(cfg.daemon.state_dir, source)
         listeners = build_listeners(cfg)
         daemon = Daemon(cfg, source, listeners, speedup=args.speedup if args.simulate else 1.0)
+        if cfg.mcap.enabled:
+            daemon.on_device_reset = functools.partial(save_counter, cfg.daemon.state_dir, source)
         daemon.startup_messages.extend(cut)
         return daemon.run(stop, max_tests=args.tests, duration_s=args.duration_s)

@@ -435,6 +435,8 @@ class Daemon:
         self.tests_seen = 0
         # events found at start (a test a crash cut), sent after the config
         self.startup_messages: list[TestIncomplete] = []
+        # called after a batch with a device_reset: the sample numbers' offset from the device's counter changed
+        self.on_device_reset: Callable[[], None] | None = None
         self._count_lock = threading.Lock()
 
     def choose_plan(self, name: str | None) -> None:
@@ -461,6 +463,8 @@ class Daemon:
             kind = d.pop("kind")
             if kind == "lost":
                 self.lost += ev.count
+            elif kind == "device_reset" and self.on_device_reset is not None:
+                self.on_device_reset()
             if kind == "unplugged":
                 self.source_reason = ev.detail
             elif kind in ("replugged", "opened", "resumed"):

@@ -166,10 +166,39 @@ class Stamper:
         self._th_read = math.nan  # host time of the last read that had samples
         self._clk_period = math.nan  # the device clock's step per counter step (s)
         self._clk_period_at = -math.inf  # the host time it was last measured
+        self._resume_period = math.nan  # resume(): the device clock's period, for the first read's wrap count
 
     @property
     def last_seq(self) -> int | None:
         return self._seq
+
+    def resume(self, seq: int, seq_raw: int, td: float | None, clk_raw: float | None, period_s: float | None) -> None:
+        """Go on from a sample stamped before (a previous daemon run's last recorded one): its number ``seq``, the
+        raw counter ``seq_raw`` the device sent with it, its device time ``td`` and raw clock ``clk_raw`` (None:
+        not known), ``period_s`` the device clock's step per sample then.  The first read is then stamped as if it
+        followed that sample: a counter that stepped on is a gap, counted exactly, one that went back a device
+        reset, a clock that disagrees with the counter a clock jump.  The clock's wraps over the time between are
+        counted from the counter's step (the host clock map is not known yet)."""
+        self._seq = int(seq)
+        self._seq_raw = int(seq_raw) if self.seq_modulus is not None else None
+        if td is not None and clk_raw is not None and math.isfinite(td) and math.isfinite(clk_raw):
+            self._td = float(td)
+            self._clk_raw = float(clk_raw)
+            self._clk_base = float(td) - float(clk_raw)
+        self._resume_period = float(period_s) if period_s is not None and period_s > 0 else math.nan
+
+    def offsets(self) -> tuple[int, float]:
+        """The sample numbers' and device times' offsets from the raw counter and clock (modulo their wraps): 0 and
+        0.0 until a device reset re-bases them; what :meth:`resume` needs to tell the raw values of a number."""
+        seq_off = 0
+        if self._seq is not None and self._seq_raw is not None and self.seq_modulus is not None:
+            seq_off = (self._seq - self._seq_raw) % self.seq_modulus
+        clk_off = 0.0
+        if self._clk_raw is not None and math.isfinite(self._td):
+            clk_off = self._td - self._clk_raw
+            if self.clock_wrap_s is not None:
+                clk_off %= self.clock_wrap_s
+        return seq_off, clk_off
 
     def stamp(self, r: Readings, t_read: float) -> Stamped:
         n = len(r)
@@ -207,15 +236,19 @@ class Stamper:
                 d = np.mod(raw_d, w)
                 back = d > w / 2
                 wraps[(raw_d < 0) & ~back] = 1.0
+                expect = math.nan
                 if self._clk_raw is not None and self.clock.ready and not math.isnan(self._th_read):
                     # After an outage of more than a quarter wrap the wrap count is
                     # ambiguous: the host clock decides.
                     expect = (t_read - self._th_read) / self.clock.ratio
-                    if expect > w / 4:
-                        extra = max(0.0, round((expect - d[0]) / w))
-                        d[0] += w * extra
-                        wraps[0] += extra
-                        back[0] = False
+                elif self._clk_raw is not None and self._resume_period > 0 and r.seq is not None and (
+                        self.seq_modulus is not None and 0 < int(steps[0]) < self.seq_modulus // 2):
+                    expect = float(steps[0]) * self._resume_period  # after resume(): the counter decides
+                if expect > w / 4:
+                    extra = max(0.0, round((expect - d[0]) / w))
+                    d[0] += w * extra
+                    wraps[0] = round((d[0] - raw_d[0]) / w)  # every wrap between the two readings (d is the step)
+                    back[0] = False
             else:
                 d = raw_d
                 back = d < 0
@@ -271,6 +304,7 @@ class Stamper:
         if td.shape[0] and not math.isnan(td[-1]):
             self._td = float(td[-1])
         self._th_read = t_read
+        self._resume_period = math.nan  # (the first read after resume() only)
         return Stamped(keep, seq, td, th, gaps, reset_seqs, jumps)
 
     def _stamp_steady(self, r: Readings, t_read: float) -> Stamped | None:

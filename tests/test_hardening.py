@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -260,6 +261,15 @@ def _wait_for_lock(tmp_path: Path, pid: int, timeout: float = 30.0) -> None:
     raise AssertionError("the first daemon did not take the lock")
 
 
+def _the_open_file(recordings: Path, timeout: float = 30.0) -> Path:
+    """The one recording a daemon that just started writes, once it is there."""
+    deadline = time.monotonic() + timeout
+    while not list(recordings.glob("*.mcap")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    (open_file,) = recordings.glob("*.mcap")
+    return open_file
+
+
 def test_a_second_daemon_on_the_same_state_dir_exits_2_naming_the_holder(tmp_path: Path) -> None:
     first = _start(tmp_path)
     try:
@@ -290,10 +300,7 @@ def test_deleting_the_lock_file_lets_no_second_daemon_in(tmp_path: Path) -> None
     try:
         _wait_for_lock(tmp_path, first.pid)
         recordings = tmp_path / "state" / "recordings"
-        deadline = time.monotonic() + 30
-        while not list(recordings.glob("*.mcap")) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        (open_file,) = recordings.glob("*.mcap")
+        open_file = _the_open_file(recordings)
         inode = open_file.stat().st_ino
         (tmp_path / "state" / "ballbar.lock").unlink()
         second = ballbar("run", "--source", SIM, "--state-dir", str(tmp_path / "state"), "--set",
@@ -307,6 +314,46 @@ def test_deleting_the_lock_file_lets_no_second_daemon_in(tmp_path: Path) -> None
         if first.poll() is None:
             first.kill()
             first.wait()
+
+
+def test_a_file_another_process_writes_is_never_recovered_nor_deleted(tmp_path: Path) -> None:
+    """Recovery and retention outside the daemon that writes a file (another process: here the test's own, as a
+    second daemon that got past the state lock would be) leave it alone: the writer holds an ``flock`` on it.  The
+    file then holds every sample its daemon says it wrote, none lost (on the old code recovery rewrote it: the
+    daemon went on writing to the replaced inode, and retention deleted it)."""
+    from ballbar.daemon.mcap import McapLogger, read_log, recover_crashed
+    from ballbar.tools.bench.bench_diskfull import stop_daemon
+
+    first = _start(tmp_path)
+    recordings = tmp_path / "state" / "recordings"
+    try:
+        _wait_for_lock(tmp_path, first.pid)
+        open_file = _the_open_file(recordings)
+        time.sleep(1.5)  # some chunks in it, no footer yet
+        inode = open_file.stat().st_ino
+        assert recover_crashed(recordings) == []
+        assert open_file.stat().st_ino == inode
+        # retention in another writer on the same directory: over its quota and past keep_days, the file stays
+        other = McapLogger(tmp_path / "state", "other", rotate_bytes=4096, quota_bytes=8192, keep_days=1e-9)
+        try:
+            os.utime(open_file, (time.time() - 86400, time.time() - 86400))
+            other._retention(time.monotonic())
+            assert open_file.exists() and open_file.stat().st_ino == inode
+            assert other.stats()["deleted_files"] == 0
+        finally:
+            other.stop()
+        assert first.poll() is None
+        time.sleep(1.0)
+    finally:
+        code = stop_daemon(first)
+    assert code == 0
+    err = first.stderr.read() if first.stderr is not None else ""
+    assert "open in another process" not in err  # the daemon's own retention found nothing held elsewhere
+    line = next(x for x in err.splitlines() if "mcap log stopped:" in x)
+    written, lost = (int(v) for v in re.search(r"files, (\d+) samples, .*; (\d+) samples lost", line).groups())
+    assert lost == 0 and written > 1000, line
+    lg = read_log(open_file)
+    assert lg.complete and int((~lg.preroll).sum()) == written, (len(lg.samples), written)
 
 
 def test_a_lock_left_by_kill_9_does_not_block_a_restart(tmp_path: Path) -> None:

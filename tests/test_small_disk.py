@@ -112,6 +112,53 @@ def test_a_full_8_mib_disk_resumes_and_what_the_outage_held_survives_the_stop(sm
     assert held_id in {r.get("test_id") for r in recorded if r.get("kind") == "test"}
 
 
+def test_an_outage_across_a_feed_in_leaves_the_test_reportable(small_disk: Disk) -> None:
+    """A full disk that covers a test's feed-in: writing resumes within the preroll's 10 s, and the samples of the
+    outage the preroll buffer still holds are written first, so the recordings hold the test from its feed-in and
+    ``ballbar analyze --test-id`` gives its result (on the old code: exit 1, "do not hold it from feed-in to
+    feed-out").  The lost count is what the buffer did not hold: the log_gap says it, the stop line agrees."""
+    state = small_disk.path / "state"
+    proc, log = start_daemon(state)
+    covered: str | None = None
+    try:
+        log.wait_for("mcap log: writing", 60.0)
+        for _attempt in range(4):  # the disk filled at a test's result, freed 3 s later: the next feed-in inside
+            _t, line = log.wait_for(" test: ", 60.0, log.mark())
+            at = log.mark()
+            small_disk.fill()
+            t_fail, _line = log.wait_for("mcap log: cannot write", 30.0, at)
+            time.sleep(3.0)
+            at = log.mark()
+            small_disk.release()
+            t_back, _line = log.wait_for("mcap log: writing again", 30.0, at)
+            _t, line = log.wait_for(" test: ", 60.0, log.mark())
+            test_id = TEST_LINE.search(line)["id"]  # type: ignore[index]
+            time.sleep(1.0)
+            feed_ins = [e for p in list_recordings(state / "recordings") for e in read_log(p, samples=False).events
+                        if e.get("event") == "feed_in" and e.get("test_id") == test_id]
+            if feed_ins and t_fail < float(feed_ins[0]["t_host"]) < t_back:
+                covered = test_id
+                break
+    finally:
+        code = stop_daemon(proc)
+    text = log.text()
+    assert code == 0, text[-3000:]
+    assert covered is not None, "no feed-in fell inside an outage"
+    got = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(state / "recordings"),
+                          "--test-id", covered, "--json"], capture_output=True, text=True, timeout=120)
+    assert got.returncode == 0, got.stderr[-2000:]
+    assert json.loads(got.stdout)["source"]["test_id"] == covered
+    assert "which the preroll buffer still held" in text, text[-3000:]
+    # every sample written or counted: the stop line's written + lost is what the files hold + the log_gaps' counts
+    stop = re.search(r"mcap log stopped: \d+ files, (\d+) samples, .*; (\d+) samples lost", text)
+    assert stop is not None, text[-2000:]
+    logs = [read_log(p) for p in list_recordings(state / "recordings")]
+    held = sum(int((~lg.preroll).sum()) for lg in logs)
+    gaps = sum(int(e.get("count") or 0) for lg in logs for e in lg.events if e.get("event") == "log_gap")
+    deleted = "mcap log: deleted" in text  # retention (quota 4 MiB) may have taken the oldest files
+    assert (held <= int(stop[1]) if deleted else held == int(stop[1])) and gaps <= int(stop[2]), (held, gaps, stop[0])
+
+
 def test_the_headroom_scales_with_the_file_system() -> None:
     from ballbar.daemon.mcap import FILE_NEEDS_BYTES, McapLogger
 

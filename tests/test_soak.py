@@ -1,4 +1,4 @@
-"""The soak tool, short: every fault once, and every sample still accounted for.
+"""The soak tool, short: every fault once (the restarts too), and every sample still accounted for.
 
 The figures' trends need the long run (``python -m ballbar.tools.bench.soak --minutes 30``, README "Soak");
 this only checks that the tool works and that the accounting adds up across each kind of fault.
@@ -15,7 +15,7 @@ from pathlib import Path
 def test_a_short_soak_accounts_for_every_sample(tmp_path: Path) -> None:
     report = tmp_path / "soak.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "ballbar.tools.bench.soak", "--minutes", "0.6", "--fault-every-s", "7",
+        [sys.executable, "-m", "ballbar.tools.bench.soak", "--minutes", "0.9", "--fault-every-s", "7",
          "--unplug-s", "1",
          "--freeze-s", "3", "--disk-full-s", "2", "--disk-mb", "96", "--sample-s", "1", "--samples-hz", "50",
          "--workdir", str(tmp_path / "work"), "--json", str(report)],
@@ -23,13 +23,18 @@ def test_a_short_soak_accounts_for_every_sample(tmp_path: Path) -> None:
     )
     assert report.exists(), proc.stdout + proc.stderr
     r = json.loads(report.read_text())
-    assert [f["fault"] for f in r["faults"]] == ["unplug", "reset", "garbage", "freeze", "disk-full"]
+    assert [f["fault"] for f in r["faults"]] == ["unplug", "reset", "garbage", "freeze", "disk-full", "restart", "kill"]
     acc = r["accounting"]
     assert acc["problems"] == [], proc.stdout
-    assert acc["lost"] > 0 and acc["lost_by_cause"].keys() == {"outage"}  # the unplug cost samples, all counted
-    assert acc["decode"].get("skipped_bytes", 0) >= acc["device"]["garbage_bytes"]  # and a cut frame: checked above
+    # the unplug and each restart cost samples, all counted (the restarts by the next start, from the device's counter)
+    assert acc["counted_lost"] > 0 and acc["lost_by_cause"].keys() == {"outage", "restart"}
+    assert len(acc["restart_losses"]) == 2 and min(acc["restart_losses"]) > 0
+    assert acc["skipped_bytes"] >= acc["device"]["garbage_bytes"]  # and a cut frame: checked above
+    assert [life["exit_code"] for life in r["daemon"]["lives"]] == [0, -9, 0]
     if r["disk"]["tmpfs"]:
-        assert acc["mcap"]["samples_lost"] > 0 and acc["recorded"]["log_gaps"] == 1  # the spell, and its log_gap
+        # the spell and its log_gap; the samples of its 2 s are written when writing resumes, from the preroll buffer
+        assert acc["recorded"]["log_gaps"] == 1
+        assert "which the preroll buffer still held" in (tmp_path / "work" / "daemon.log").read_text()
     else:
         assert "skipped" in r["faults"][-1]
     assert r["daemon"]["exit_code"] == 0

@@ -22,7 +22,8 @@ recognised a little after it happened: a test's file holds the whole test, and
 ``ballbar analyze FILE`` finds it as the file's first test.  Retention runs at
 each new file and every minute: the oldest files go while the directory holds
 more than ``quota_bytes``, and every file last written more than ``keep_days``
-ago; the open file never goes, nor files not named like the logger's.
+ago; the open file never goes, nor files not named like the logger's.  The logger holds an exclusive
+``flock`` on the file it writes; recovery and retention leave any file so held (another process's) alone.
 
 Channels
 --------

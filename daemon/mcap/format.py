@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import logging
 import os
 import re
@@ -200,6 +202,21 @@ def list_recordings(directory: str | os.PathLike[str]) -> list[Path]:
         if m and p.is_file():
             found.append((m["ts"], int(m["seq"]), p.name, p))
     return [p for *_k, p in sorted(found)]
+
+
+def hold_file(path: str | os.PathLike[str]) -> int | None:
+    """A descriptor of ``path`` holding an exclusive ``flock`` on it, or ``None`` when another open file holds one:
+    the logger that writes a file holds it so (another process's, or a previous start's still alive), and recovery
+    and retention leave such a file alone.  ``OSError`` (the file gone, unreadable) passes to the caller."""
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as err:
+        os.close(fd)
+        if err.errno in (errno.EWOULDBLOCK, errno.EACCES):
+            return None
+        raise
+    return fd
 
 
 def mcap_files(directory: str | os.PathLike[str]) -> list[Path]:

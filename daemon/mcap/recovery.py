@@ -11,8 +11,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zstandard
 from mcap.exceptions import McapError
+from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
@@ -21,7 +23,7 @@ from ballbar.analysis.errors import BallbarError
 
 from ..listeners import TEST_END_EVENTS
 from ..spool import read_spool
-from .format import _MAGIC, TOPIC_EVENTS, TOPIC_RESULTS, list_recordings
+from .format import _MAGIC, NS, TOPIC_EVENTS, TOPIC_RESULTS, TOPIC_SAMPLES, decode_samples, hold_file, list_recordings
 from .reader import _records, _why_stopped, read_log
 
 log = logging.getLogger(__name__)
@@ -99,7 +101,8 @@ def recover_file(path: Path) -> Recovered:
 def recover_crashed(directory: str | os.PathLike[str]) -> list[Recovered]:
     """Each of the logger's files in ``directory`` left without a footer by a killed daemon, rewritten once
     with its index (so every reader opens it, and no later start warns about it again).  A file that
-    cannot be rewritten is left as it was, with a warning."""
+    cannot be rewritten is left as it was, with a warning; so is a file another process holds open (its
+    writer's ``flock``: a live daemon's file has no footer until it closes, and is never rewritten)."""
     out: list[Recovered] = []
     d = Path(directory)
     if not d.is_dir():
@@ -111,12 +114,23 @@ def recover_crashed(directory: str | os.PathLike[str]) -> list[Recovered]:
         if _has_footer(path):
             continue
         try:
+            fd = hold_file(path)
+        except OSError as err:
+            log.warning("mcap log: cannot recover %s (left as it is): %s", path.name, err.strerror or err)
+            continue
+        if fd is None:  # its writer is alive: not cut, only not finished yet
+            log.warning("mcap log: %s has no footer but is open in another process (its writer, still running): "
+                        "left alone", path.name)
+            continue
+        try:
             r = recover_file(path)
         except (OSError, McapError) as err:
             log.warning("mcap log: cannot recover %s (left as it is): %s", path.name, err)
             with contextlib.suppress(OSError):
                 path.with_name(path.name + ".recovering").unlink()
             continue
+        finally:
+            os.close(fd)  # after the rename: the file now at the path is the rewritten one
         _cut_by(r, d)
         what = f"a write outage ({r.outage})" if r.outage else "a crash"
         test = ""
@@ -157,3 +171,53 @@ def _cut_by(r: Recovered, directory: Path) -> None:
     r.outcome = test_id is not None and any(
         m.get("test_id") == test_id and (m.get("kind") == "test" or m.get("event") in TEST_END_EVENTS) for m in later
     )
+
+
+@dataclass(frozen=True)
+class LastSample:
+    """The newest sample of the recordings (see :func:`last_recorded`)."""
+
+    path: Path
+    source: str
+    seq: int
+    t_device_s: float | None
+    t_host_ns: int  # wall clock, as stored
+    period_s: float | None  # the device clock's step per sample in its last message (None: no clock)
+
+
+def last_recorded(directory: str | os.PathLike[str], max_files: int = 16) -> LastSample | None:
+    """The newest sample in the newest of the logger's files that holds samples (from its summary: one chunk
+    read), looking back at most ``max_files`` files; None when none holds any, or the newest that holds samples
+    cannot be read so (a file without a summary: a cut one that recovery could not rewrite)."""
+    d = Path(directory)
+    if not d.is_dir():
+        return None
+    for path in reversed(list_recordings(d)[-max_files:]):
+        try:
+            with open(path, "rb") as fh:
+                reader = make_reader(fh)
+                summary = reader.get_summary()
+                if summary is None:
+                    return None
+                if not any(c.topic == TOPIC_SAMPLES and summary.statistics is not None
+                           and summary.statistics.channel_message_counts.get(c.id) for c in summary.channels.values()):
+                    continue
+                for _schema, _channel, msg in reader.iter_messages(topics=[TOPIC_SAMPLES], reverse=True):
+                    dec = decode_samples(json.loads(msg.data))
+                    break
+                else:
+                    continue
+        except (OSError, McapError, struct.error, ValueError, KeyError, TypeError, EOFError, MemoryError,
+                RecursionError, zstandard.ZstdError) as err:
+            log.warning("mcap log: cannot read the last sample of %s: %s", path.name, err)
+            return None
+        td = dec.t_device_ns
+        period = None
+        if td is not None and dec.seq.size >= 2:
+            steps = np.diff(dec.seq)
+            ok = steps > 0
+            if ok.any():
+                period = float(np.median(np.diff(td)[ok] / steps[ok])) / NS
+        return LastSample(path, dec.source, int(dec.seq[-1]), None if td is None else int(td[-1]) / NS,
+                          int(dec.t_host_ns[-1]), period)
+    return None

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import json
 import logging
 import math
@@ -53,7 +54,9 @@ from .format import (
     TOPIC_STATUS,
     LogConfigError,
     _take,
+    decode_samples,
     encode_samples,
+    hold_file,
     list_recordings,
     scaled_ints,
 )
@@ -65,8 +68,17 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 def _open_output(path: Path) -> IO[bytes]:
-    """A new file for writing; refuses to overwrite.  (Tests replace this to simulate a full disk.)"""
-    return open(path, "xb")
+    """A new file for writing; refuses to overwrite.  (Tests replace this to simulate a full disk.)
+
+    The file is held with an exclusive ``flock`` while it is open (the lock goes with the descriptor, at its close
+    or the process's end): recovery and retention in any other process leave a file so held alone."""
+    fh = open(path, "xb")  # noqa: SIM115 - the caller keeps it open
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        raise
+    return fh
 
 
 def _disk_space(path: Path) -> tuple[int, int] | None:
@@ -108,6 +120,7 @@ class _LogFile:
     bytes_counted: int = 0
     first_t: float = math.nan  # host time of the first and newest sample in it
     last_t: float = math.nan
+    last_ns: int | None = None  # the newest sample's stored host time (wall ns), written to it (maybe not flushed)
     has_test: bool = False
     holds_held: bool = False  # results and events held through an outage were written to it: never deleted
     header: int = 0  # the header and metadata
@@ -211,6 +224,10 @@ class McapLogger(Listener):
         self._stopped = False
         self._file_seq = 0
         self._last_retention = time.monotonic()  # first run when the first file opens
+        # The stored host time (wall ns) of the newest sample known to be in a file: after a write outage, what the
+        # preroll ring holds beyond it was counted lost, and is written when writing resumes.
+        self._kept_ns: int | None = None
+        self._held_elsewhere: set[Path] = set()  # files retention left alone, another process writing them (said once)
         self._next_reason = "start"
         # failures
         self._failing = False
@@ -271,9 +288,10 @@ class McapLogger(Listener):
                 return
             now = time.monotonic()
             n = len(batch)
+            ok = self._ensure_file(now)  # (a file opened now after an outage takes the ring's lost samples first)
             if n:
                 self._remember(batch)
-            if not self._ensure_file(now):
+            if not ok:
                 self._lose(n)
                 self._c["messages_lost"] += len(batch.events)
                 return
@@ -496,6 +514,32 @@ class McapLogger(Listener):
                 return
         self._mark_dirty(time.monotonic())
 
+    def _rescue(self) -> list[SampleBatch]:
+        """The samples of a write outage that the preroll ring still holds (those after the newest sample known to
+        be in a file), taken off the outage's lost count: the file that resumes writing takes them first, so that a
+        test whose feed-in the outage covered is in it from its feed-in (when the ring reaches back that far)."""
+        out: list[SampleBatch] = []
+        n = 0
+        for b in self._ring:
+            stored = scaled_ints(b.t_host, NS) + self.host_clock_offset_ns
+            keep = np.isfinite(b.t_host) if self._kept_ns is None else stored > self._kept_ns
+            if keep.any():
+                part = b if keep.all() else _take(b, keep)
+                out.append(part)
+                n += len(part)
+        if n > self._fail_lost:  # never more than was counted lost (the newest are the ones to keep)
+            extra = n - self._fail_lost
+            while out and extra >= len(out[0]):
+                extra -= len(out[0])
+                n -= len(out[0])
+                out.pop(0)
+            if out and extra:
+                out[0] = _take(out[0], slice(extra, None))
+                n -= extra
+        self._fail_lost -= n
+        self._c["samples_lost"] -= n
+        return out
+
     def _rotate(self, reason: str, now: float) -> None:
         if self._file is not None:
             log.info("mcap log: rotating %s (%s)", self._file.path.name, reason)
@@ -582,13 +626,21 @@ class McapLogger(Listener):
             self._write(TOPIC_CONFIG, self._config, self._wall_ns(now))
         if self._timing is not None:  # a test's file alone says how its polled samples were stamped
             self._write(TOPIC_EVENTS, {**self._timing, "repeated": True}, self._wall_ns(now))
+        rescued: list[SampleBatch] = []
         if self._failing:
+            rescued = self._rescue()
             self._write(TOPIC_EVENTS, self._log_gap(now), self._wall_ns(now))
         if self._held and self._file is not None:
             held = len(self._held)
             self._file.holds_held = True
             self._write_held()
             log.info("mcap log: wrote %d results and events held in memory during the outage", held)
+        if rescued and self._file is not None:
+            n = sum(len(b) for b in rescued)
+            for group in _group_by_period(rescued, self.flush_s):
+                self._write_samples(group, preroll=False)
+            if self._file is not None:
+                log.info("mcap log: wrote the last %d samples of the outage, which the preroll buffer still held", n)
         if self._file is not None:
             self._flush_file()  # proves the disk takes data again, and makes the head readable at once
         if self._file is None:
@@ -628,6 +680,8 @@ class McapLogger(Listener):
             self._failed(OSError(errno.EIO, str(err)), f.path)
             return
         self._c["bytes"] += size - f.bytes_counted
+        if f.last_ns is not None:
+            self._kept_ns = f.last_ns
         self._file = None
         self._dirty_since = None
 
@@ -650,6 +704,8 @@ class McapLogger(Listener):
             f.overhead = size  # the first chunk holds the schemas (~70 kB before compression): not counted
         f.unflushed_samples = 0
         f.flushed_records += 1
+        if f.last_ns is not None:
+            self._kept_ns = f.last_ns
         self._dirty_since = None
         if size - f.overhead >= self.rotate_bytes * (2 if self._in_test else 1):
             self._rotate("size", time.monotonic())
@@ -785,6 +841,7 @@ class McapLogger(Listener):
                     if math.isnan(f.first_t):
                         f.first_t = float(th[i])
                     f.last_t = float(th[j - 1])
+                    f.last_ns = int(t_host_ns[j - 1])
         if done < total and not preroll:
             self._lose(total - done)
 
@@ -803,11 +860,13 @@ class McapLogger(Listener):
         unwritten = 0
         if f is not None:
             f.close_quietly()
-            if f.flushed_records <= 1 and not f.holds_held:  # at most the head (metadata, config): nothing to keep
-                delete = f.path
+            if f.flushed_records <= 1 and not f.holds_held and f.samples == f.unflushed_samples:
+                delete = f.path  # at most the head (metadata, config): nothing to keep
             elif f.unflushed_samples:  # a write cut short can have left whole chunks of them: those are not lost
-                unwritten = f.unflushed_samples - min(
-                    f.unflushed_samples, _samples_after(f.path, f.bytes_counted, f.channels[TOPIC_SAMPLES]))
+                made, last_ns = _samples_after(f.path, f.bytes_counted, f.channels[TOPIC_SAMPLES])
+                unwritten = f.unflushed_samples - min(f.unflushed_samples, made)
+                if made and last_ns is not None:
+                    self._kept_ns = last_ns
             if delete == f.path:
                 unwritten = f.unflushed_samples
         lost = self._pending.n + unwritten
@@ -872,7 +931,16 @@ class McapLogger(Listener):
             if not (old or total > self.quota_bytes):
                 continue
             try:
-                p.unlink()
+                fd = hold_file(p)
+                if fd is None:  # another process writes it (a daemon on this directory without its lock)
+                    if p not in self._held_elsewhere:
+                        self._held_elsewhere.add(p)
+                        log.warning("mcap log: %s is open in another process: retention leaves it alone", p.name)
+                    continue
+                try:
+                    p.unlink()
+                finally:
+                    os.close(fd)
             except FileNotFoundError:
                 pass
             except OSError as err:
@@ -884,20 +952,23 @@ class McapLogger(Listener):
             log.info("mcap log: deleted %s (%s)", p.name, "older than keep_days" if old else "over quota")
 
 
-def _samples_after(path: Path, offset: int, channel: int) -> int:
-    """The samples (preroll copies aside) in the whole records of ``path`` from byte ``offset`` on: what a write
-    that failed part way got into the file after all."""
+def _samples_after(path: Path, offset: int, channel: int) -> tuple[int, int | None]:
+    """The samples (preroll copies aside) in the whole records of ``path`` from byte ``offset`` on, and the stored
+    host time (wall ns) of the newest of them: what a write that failed part way got into the file after all."""
     n = 0
+    last: int | None = None
     try:
         with open(path, "rb") as fh:
             fh.seek(offset)
             for rec in _records(fh, skip_magic=offset > 0):
                 if isinstance(rec, Message) and rec.channel_id == channel:
                     msg = json.loads(rec.data)
-                    n += 0 if msg.get("preroll") else int(msg["count"])
+                    if not msg.get("preroll"):
+                        n += int(msg["count"])
+                        last = int(decode_samples(msg).t_host_ns[-1])
     except (OSError, McapError, struct.error, ValueError, KeyError, TypeError, EOFError, zstandard.ZstdError):
         pass  # the first record cut short: the end of what is readable
-    return n
+    return n, last
 
 
 def _group_by_period(batches: Sequence[SampleBatch], period_s: float) -> list[list[SampleBatch]]:

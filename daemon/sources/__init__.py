@@ -145,7 +145,11 @@ outage when the port returns, then the samples lost across it.  A device that
 stops sending is a ``stall``, then ``resumed``.  A restarted device (its
 counter or clock went back) is a ``device_reset``, a device clock that steps by
 more than its counter says a ``clock_jump``; each names the first sample after
-it (``seq``), so that the analysis can place the break exactly.
+it (``seq``), so that the analysis can place the break exactly.  A source with a
+device counter (binary frames) can be told, before its first read, the last sample a
+previous daemon run recorded (:meth:`Source.resume`, :mod:`ballbar.daemon.restarts`):
+the samples the restart lost are then a ``lost`` event (detail ``restart``), by the
+same rules.
 """
 
 from .base import DEFAULT_BATCH_S, RATE_MAX_HZ, RATE_MIN_HZ, RELAXED_BATCH_S, TTY_READ_BYTES, Source

@@ -100,6 +100,18 @@ class Source(abc.ABC):
         """A snapshot of the running totals."""
         return self._stats.copy()
 
+    def resume(self, seq: int, t_device_s: float | None, period_s: float | None, offsets: tuple[int, float]) -> bool:
+        """Count on from a previous run's last recorded sample (number ``seq``, device time ``t_device_s``, the
+        device clock's period ``period_s``; ``offsets``: what :meth:`counter_offsets` said then), before the first
+        read: what the device sent meanwhile is then counted lost (``lost``, detail ``restart``), exactly, by its
+        own counter.  False where this source cannot (no device counter): the default."""
+        return False
+
+    def counter_offsets(self) -> tuple[int, float] | None:
+        """How the sample numbers and device times handed out differ from the device's raw counter and clock
+        (modulo their wraps; they change at a device reset), for a later run's :meth:`resume`; None: no counter."""
+        return None
+
     def close(self) -> None:
         """Release the port or file; safe twice, and from another thread."""
         with self._close_lock:

@@ -457,6 +457,23 @@ class SerialSource(Source):
                 break
         return b"".join(parts) if len(parts) != 1 else parts[0]
 
+    def resume(self, seq: int, t_device_s: float | None, period_s: float | None, offsets: tuple[int, float]) -> bool:
+        m, w = self._decoder.seq_modulus, self._decoder.clock_wrap_s
+        if m is None or self.mode != "stream" or self._stamper.last_seq is not None:
+            return False
+        seq_off, clk_off = offsets
+        clk_raw = None
+        if t_device_s is not None and w is not None:
+            clk_raw = (t_device_s - clk_off) % w
+        self._stamper.resume(seq, (seq - seq_off) % m, t_device_s, clk_raw, period_s)
+        self._gap_cause = "restart"
+        return True
+
+    def counter_offsets(self) -> tuple[int, float] | None:
+        if self._decoder.seq_modulus is None or self.mode != "stream":
+            return None
+        return self._stamper.offsets()
+
     def _samples(self, r: Readings, t_read: float) -> SampleBatch | None:
         st = self._stamper.stamp(r, t_read)
         if st.gaps:

@@ -77,7 +77,7 @@ class Lost(SourceStamp):
     event: Name[Literal["lost"]]
     count: Annotated[int, doc("how many", minimum=1)]
     seq: NotRequired[Annotated[int, doc("the first one's sample number")]]
-    detail: NotRequired[Annotated[str, doc("gap, outage, stall, poll_timeout or poll_late")]]
+    detail: NotRequired[Annotated[str, doc("gap, outage, stall, poll_timeout, poll_late or restart")]]
 
 
 class DecodeErrors(SourceStamp):

@@ -13,6 +13,10 @@ injected, in turn:
                  (alternately)
 ``disk-full``    the file system of the state directory is filled for ``--disk-full-s``,
                  then the filler is removed
+``restart``      the daemon is stopped (SIGTERM, exit 0 expected) and started again on the same
+                 state directory and device
+``kill``         the daemon is killed (``kill -9``) and started again: its last half second of
+                 reading never reached the file, and the next start rewrites its cut file
 
 The state directory is on a tmpfs of ``--disk-mb`` that the soak mounts (root only); where
 it cannot mount one, the state directory is an ordinary directory and the disk-full spell is
@@ -27,14 +31,18 @@ each fault (the previous fault over, the next not begun; after ``--warmup-min``)
 of a leak, not of the faults (Theil-Sen: the median of the slopes between every two samples).
 
 At the end the device stops sending (a stall) and, once the daemon has read everything, the
-samples are accounted for:
+samples are accounted for, over every life of the daemon (the restarts'), from what the recordings hold:
 
 - device: taken = sent + lost while unplugged + stalled (the final stall's tail excepted);
-- daemon: taken = received + counted lost, and counted lost, by cause, = what the device
-  lost while unplugged + what was on the wire when it went (sent, never received);
-- recording: received = samples in the MCAP files (preroll copies excepted) + samples the
-  logger counted lost (the disk-full spells; = the files' ``log_gap`` counts) + samples in
-  batches its queue dropped (must be none).
+- daemon: taken = samples in the MCAP files (preroll copies excepted) + samples the logger
+  could not write (the disk-full spells: the files' ``log_gap`` counts) + samples counted lost
+  (the ``lost`` events of every life's files, by cause); of these, lost across unplugs and
+  restarts (``outage``, ``restart``: what each next start counted by the device's counter) =
+  what the device lost while unplugged + what it sent that no life recorded (on the wire when
+  the adapter went, in the port or the killed daemon's last reading at a restart); a
+  ``restart`` fault that the next start did not count is a problem too;
+- recording, the last life: received = its samples in the files + what its logger counted lost
+  (= its files' ``log_gap`` counts) + samples in batches its queue dropped (must be none).
 
 Exit code 0 when everything adds up and memory, descriptors, threads and queues are flat
 (criteria in :func:`verdict`), 1 otherwise, 2 on a usage error.
@@ -76,7 +84,7 @@ from ballbar.protocol.binary import FRAME_SIZE
 log = logging.getLogger(__name__)
 
 MACHINE = "soak"
-FAULTS = ("unplug", "reset", "garbage", "freeze", "disk-full")
+FAULTS = ("unplug", "reset", "garbage", "freeze", "disk-full", "restart", "kill")
 QUIET_BEFORE_S = 2.0  # the "quiet" sample is taken this long before each fault
 
 
@@ -169,6 +177,11 @@ class Notify:
                         self.max_watchdog_gap_s = max(self.max_watchdog_gap_s, now - self.last_watchdog)
                     self.last_watchdog = now
                     self.watchdogs += 1
+
+    def restarted(self) -> None:
+        """A new daemon: READY awaited again; the watchdog's gaps count within each life, not across."""
+        self.ready.clear()
+        self.last_watchdog = None
 
     def close(self) -> None:
         self._stop.set()
@@ -463,20 +476,43 @@ class Soak:
         env.pop("WATCHDOG_PID", None)
         self.daemon_log = open(self.workdir / "daemon.log", "wb")  # noqa: SIM115 - closed by the stack
         self.stack.callback(self.daemon_log.close)
-        self.daemon = subprocess.Popen(
-            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--config", str(conf), "--source", self.dev.url,
-             *(x for item in a.sets for x in ("--set", item))],
-            env=env, stdin=subprocess.DEVNULL, stdout=self.daemon_log, stderr=subprocess.STDOUT,
-        )
+        self._cmd = [sys.executable, "-m", "ballbar.daemon.cli", "run", "--config", str(conf), "--source", self.dev.url,
+                     *(x for item in a.sets for x in ("--set", item))]
+        self._env = env
+        self.lives: list[dict[str, Any]] = []
+        self._spawn()
         self.stack.callback(self._kill_daemon)
-        if not self.notify.ready.wait(60):
-            raise RuntimeError(f"the daemon did not send READY=1 within 60 s (see {self.workdir / 'daemon.log'})")
         self.bus = Bus(self.endpoint)
         self.stack.callback(self.bus.close)
         self.sub = Subscriber(self.endpoint, self.workdir / "subscriber.jsonl")
         self.sub.start()
         self.stack.callback(self.sub.stop)
         self.dev.send("start")
+
+    def _spawn(self) -> None:
+        self.daemon = subprocess.Popen(self._cmd, env=self._env, stdin=subprocess.DEVNULL, stdout=self.daemon_log,
+                                       stderr=subprocess.STDOUT)
+        if not self.notify.ready.wait(60):
+            raise RuntimeError(f"the daemon did not send READY=1 within 60 s (see {self.workdir / 'daemon.log'})")
+        self.lives.append({"pid": self.daemon.pid,
+                           "started_min": round((time.monotonic() - self.t0) / 60.0, 3) if self.t0 else 0.0})
+
+    def _restart(self, sig: signal.Signals) -> dict[str, Any]:
+        """Stop the daemon with ``sig`` and start it again; what it took."""
+        t0 = time.monotonic()
+        self.daemon.send_signal(sig)
+        try:
+            code = self.daemon.wait(30)
+        except subprocess.TimeoutExpired:
+            self.daemon.kill()
+            code = self.daemon.wait(10)
+            self.lives[-1]["stop_timeout"] = True
+        self.lives[-1].update(ended_by=sig.name, exit_code=code, stop_s=round(time.monotonic() - t0, 3))
+        self.notify.restarted()
+        t1 = time.monotonic()
+        self._spawn()
+        now = time.monotonic()
+        return {"exit_code": code, "down_s": round(now - t0, 3), "start_s": round(now - t1, 3)}
 
     def _kill_daemon(self) -> None:
         if self.daemon.poll() is None:
@@ -509,6 +545,8 @@ class Soak:
             n = self.disk.fill()
             self.note(what, seconds=a.disk_full_s, filled_mb=round(n / 2**20, 1), free_mb=self.disk.free_mb())
             self.at(now + a.disk_full_s, self.disk.release)
+        elif what in ("restart", "kill"):
+            self.note(what, **self._restart(signal.SIGTERM if what == "restart" else signal.SIGKILL))
 
     def _sample(self, quiet: bool) -> None:
         row: dict[str, float] = {}
@@ -591,17 +629,21 @@ class Soak:
         self.daemon.send_signal(signal.SIGTERM)
         code = self.daemon.wait(30)
         stop_s = time.monotonic() - t_stop
+        self.lives[-1].update(ended_by="SIGTERM", exit_code=code, stop_s=round(stop_s, 3))
         files = self._read_recordings()
         events = dict(self.bus.events)
         results = dict(self.bus.results)
         self.sub.stop()
         summary = self.series.summary(a.warmup_min)
-        accounting = account(final, files)
+        restarts = sum(1 for f in self.faults if f["fault"] in ("restart", "kill"))
+        accounting = account(final, files, restarts)
         quiet_span = a.minutes - a.warmup_min
         bad = verdict(summary, quiet_span)
         bad += [f"accounting: {c}" for c in accounting["problems"]]
         if code != 0:
             bad.append(f"the daemon exited with {code} on SIGTERM")
+        bad += [f"a restart's SIGTERM: exit {life['exit_code']}" for life in self.lives[:-1]
+                if life.get("ended_by") == "SIGTERM" and life.get("exit_code") != 0]
         return {
             "settings": {k: v for k, v in vars(a).items() if k != "json"},
             "workdir": str(self.workdir),
@@ -613,7 +655,7 @@ class Soak:
             "bus": {"events": events, "results": results, "statuses": self.bus.statuses,
                     "frozen_subscriber_lines": self.sub.lines(), "frozen_subscriber_starts": self.sub.starts},
             "watchdog": {"pings": self.notify.watchdogs, "max_gap_s": self.notify.max_watchdog_gap_s},
-            "daemon": {"exit_code": code, "stop_s": stop_s},
+            "daemon": {"exit_code": code, "stop_s": stop_s, "lives": self.lives},
             "problems": bad,
         }
 
@@ -621,60 +663,90 @@ class Soak:
         from ballbar.daemon.mcap import list_recordings, read_log
 
         paths = list_recordings(self.disk.path / "recordings")
-        samples = preroll = gaps = gap_events = 0
+        samples = preroll = gaps = gap_events = unplugs = skipped = 0
+        last_run = {"samples": 0, "log_gap_samples": 0}
+        lost: dict[str, int] = {}
+        restarts: list[int] = []
         incomplete = []
+        runs: list[str] = []
         for p in paths:
             lg = read_log(p)
-            samples += int((~lg.preroll).sum())
+            run = lg.metadata.get("run_id", "")
+            if not runs or runs[-1] != run:
+                runs.append(run)
+                last_run = {"samples": 0, "log_gap_samples": 0}
+            own = int((~lg.preroll).sum())
+            samples += own
+            last_run["samples"] += own
             preroll += int(lg.preroll.sum())
             for ev in lg.events:
-                if ev.get("event") == "log_gap":
+                name = ev.get("event")
+                if name == "log_gap":
                     gaps += int(ev.get("count", 0))
+                    last_run["log_gap_samples"] += int(ev.get("count", 0))
                     gap_events += 1
+                elif name == "lost":
+                    cause = str(ev.get("detail") or "gap")
+                    lost[cause] = lost.get(cause, 0) + int(ev.get("count", 0))
+                    if cause == "restart":
+                        restarts.append(int(ev.get("count", 0)))
+                elif name == "unplugged":
+                    unplugs += 1
+                elif name == "decode_errors":
+                    skipped += int((ev.get("counts") or {}).get("skipped_bytes", 0))
             if not lg.complete:
                 incomplete.append(p.name)
         size = sum(p.stat().st_size for p in paths)
         return {"files": len(paths), "bytes": size, "newest": paths[-1].name if paths else None,
                 "samples": samples, "preroll": preroll, "log_gap_samples": gaps, "log_gaps": gap_events,
-                "incomplete": incomplete}
+                "incomplete": incomplete, "runs": len(runs), "last_run": last_run, "lost_by_cause": lost,
+                "restart_losses": restarts, "unplugs": unplugs, "skipped_bytes": skipped}
 
 
-def account(final: dict[str, Any], files: dict[str, Any]) -> dict[str, Any]:
-    """Every sample the device took, followed to where it went (see the module docstring)."""
+def account(final: dict[str, Any], files: dict[str, Any], restarts: int = 0) -> dict[str, Any]:
+    """Every sample the device took, followed to where it went, over every life of the daemon (see the module
+    docstring); ``restarts``: how many restart and kill faults there were."""
     dev, before, st = final["device"], final["device_before_stall"], final["status"]
     tail = dev["stalled"] - before["stalled"]  # taken after the last one sent: nobody could see them
     taken = dev["generated"] - tail
-    received, lost = int(st["samples"]), int(st["lost_samples"])
-    by_cause = dict(st["source"].get("lost_by_cause", {}))
-    in_transit = dev["sent"] - received  # sent, and gone with the adapter when it was unplugged
+    received, lost = int(st["samples"]), int(st["lost_samples"])  # the last life's
+    by_cause = dict(files["lost_by_cause"])  # every life's, as recorded
+    counted = sum(by_cause.values())
+    kept = files["samples"] + files["log_gap_samples"]  # in the files, or counted not written by a logger
+    in_transit = dev["sent"] - kept  # sent, and never recorded: on the wire at an unplug, in the port at a restart
     mcap = st["outputs"].get("mcap", {})
     mq = st["queues"].get("mcap", {})
     problems = []
     device_sum = dev["sent"] + dev["unplugged"] + dev["stalled"] + dev["dropped"] + dev["corrupted"]
     if device_sum != dev["generated"]:
         problems.append(f"device: taken {dev['generated']} != sent + lost on the device {device_sum}")
-    if received + lost != taken:
-        problems.append(f"daemon: received {received} + counted lost {lost} = {received + lost} != taken {taken}")
-    if by_cause.get("outage", 0) != dev["unplugged"] + in_transit:
-        problems.append(f"lost across unplugs {by_cause.get('outage', 0)} != lost while unplugged "
-                        f"{dev['unplugged']} + on the wire {in_transit}")
-    # The decoder skips the junk, and at each unplug at most the part of a frame cut off by it.
-    skipped = int(st["source"].get("decode", {}).get("skipped_bytes", 0))
-    unplugs = int(st["source"].get("unplugs", 0))
-    if not dev["garbage_bytes"] <= skipped < dev["garbage_bytes"] + FRAME_SIZE * unplugs + 1:
+    if kept + counted != taken:
+        problems.append(f"daemon: recorded {files['samples']} + not written {files['log_gap_samples']} + counted "
+                        f"lost {counted} = {kept + counted} != taken {taken}")
+    across = by_cause.get("outage", 0) + by_cause.get("restart", 0)
+    if across != dev["unplugged"] + in_transit:
+        problems.append(f"lost across unplugs and restarts {across} != lost while unplugged "
+                        f"{dev['unplugged']} + sent and never recorded {in_transit}")
+    if restarts and len(files["restart_losses"]) != restarts:
+        problems.append(f"{restarts} restarts, {len(files['restart_losses'])} counted what they lost")
+    # The decoder skips the junk, and at each unplug or restart at most the part of a frame cut off by it.
+    skipped = int(files["skipped_bytes"])
+    cuts = int(files["unplugs"]) + restarts
+    if not dev["garbage_bytes"] <= skipped < dev["garbage_bytes"] + FRAME_SIZE * cuts + 1:
         problems.append(f"the decoder skipped {skipped} bytes: not the {dev['garbage_bytes']} junk bytes sent "
-                        f"plus less than a frame at each of {unplugs} unplugs")
-    other = {k: v for k, v in by_cause.items() if k != "outage" and v}
+                        f"plus less than a frame at each of {cuts} unplugs and restarts")
+    other = {k: v for k, v in by_cause.items() if k not in ("outage", "restart") and v}
     if other:
         problems.append(f"losses nobody injected: {other}")
-    recorded = files["samples"] + int(mcap.get("samples_lost", 0))
+    last = files["last_run"]
+    recorded = last["samples"] + int(mcap.get("samples_lost", 0))
     if mq.get("dropped", 0):
         problems.append(f"the MCAP queue dropped {mq['dropped']} batches")
     if recorded != received:
-        problems.append(f"recording: {files['samples']} in the files + {mcap.get('samples_lost', 0)} counted lost "
-                        f"by the logger = {recorded} != received {received}")
-    if files["log_gap_samples"] != int(mcap.get("samples_lost", 0)):
-        problems.append(f"log_gap events say {files['log_gap_samples']} samples, the logger counted "
+        problems.append(f"recording (the last life): {last['samples']} in the files + {mcap.get('samples_lost', 0)} "
+                        f"counted lost by the logger = {recorded} != received {received}")
+    if last["log_gap_samples"] != int(mcap.get("samples_lost", 0)):
+        problems.append(f"log_gap events of the last life say {last['log_gap_samples']} samples, its logger counted "
                         f"{mcap.get('samples_lost', 0)}")
     # A file a write error cut has no footer (the next start rewrites it, as after a crash); the others must.
     cut = files["incomplete"]
@@ -687,9 +759,12 @@ def account(final: dict[str, Any], files: dict[str, Any]) -> dict[str, Any]:
         "taken": taken,
         "received": received,
         "lost": lost,
+        "counted_lost": counted,
         "lost_by_cause": by_cause,
+        "restart_losses": files["restart_losses"],
         "in_transit_at_unplug": in_transit,
         "decode": dict(st["source"].get("decode", {})),
+        "skipped_bytes": skipped,
         "recorded": files,
         "mcap": {k: mcap.get(k) for k in ("samples", "samples_lost", "messages_lost", "messages_held",
                                           "messages_held_written", "write_errors", "files")},
@@ -727,17 +802,17 @@ def report(r: dict[str, Any]) -> Iterator[str]:
     yield (f"  device   taken {d['generated']} = sent {d['sent']} + while unplugged {d['unplugged']} "
            f"+ stalled {d['stalled']} (of them {a['final_stall_tail']} after the last sent, at the end)"
            f" + dropped {d['dropped']} + corrupted {d['corrupted']}")
-    yield (f"  daemon   taken before the end {a['taken']} = received {a['received']} + counted lost {a['lost']} "
-           f"{a['lost_by_cause']}")
-    yield (f"           lost across unplugs = while unplugged {d['unplugged']} + on the wire when it went "
-           f"{a['in_transit_at_unplug']}")
     rec = a["recorded"]
-    yield (f"  record   received {a['received']} = in {rec['files']} MCAP files {rec['samples']} "
-           f"(+ {rec['preroll']} preroll copies) + lost by the logger {a['mcap']['samples_lost']} "
-           f"(log_gap events: {rec['log_gap_samples']} in {rec['log_gaps']}); MCAP queue dropped "
+    yield (f"  daemon   taken before the end {a['taken']} = in {rec['files']} MCAP files of {rec['runs']} lives "
+           f"{rec['samples']} (+ {rec['preroll']} preroll copies) + not written {rec['log_gap_samples']} "
+           f"(log_gap events: {rec['log_gaps']}) + counted lost {a['counted_lost']} {a['lost_by_cause']}")
+    yield (f"           lost across unplugs and restarts = while unplugged {d['unplugged']} + sent and never "
+           f"recorded {a['in_transit_at_unplug']}; each restart counted {a['restart_losses']}")
+    yield (f"  record   the last life received {a['received']} = its samples in the files "
+           f"{rec['last_run']['samples']} + lost by its logger {a['mcap']['samples_lost']}; MCAP queue dropped "
            f"{a['mcap_queue'].get('dropped', 0)}")
-    yield (f"  garbage  device sent {d['garbage_bytes']} junk bytes; decoder: {a['decode']} (and the frames that "
-           f"unplugs cut); resets {d['resets']}")
+    yield (f"  garbage  device sent {d['garbage_bytes']} junk bytes; decoders skipped {a['skipped_bytes']} "
+           f"(and the frames that unplugs and restarts cut); resets {d['resets']}")
     yield (f"  held     results/events held through disk-full spells: {a['mcap']['messages_held']} "
            f"(written {a['mcap']['messages_held_written']}); status messages lost {a['mcap']['messages_lost']}")
     b = r["bus"]
