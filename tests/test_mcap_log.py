@@ -614,6 +614,62 @@ def test_retention_deletes_the_oldest_beyond_quota_and_the_too_old(state: Path) 
     assert lg.stats()["deleted_files"] == 3
 
 
+def test_recovery_and_retention_leave_a_file_another_process_holds_alone(
+    state: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A file without a footer that another live process holds an ``flock`` on (its writer: here a child process
+    holding it) is neither rewritten by recovery nor deleted by retention, each saying so in one line (retention
+    once, however often it runs); once the holder is gone the same file is recovered and deleted (so it was the
+    lock that kept them off, nothing else).  On the old code recovery rewrote it at once."""
+    lg = McapLogger(state, "m")
+    for k in range(0, 2000, 100):
+        lg.on_batch(make_batch(k, 100))
+        lg.flush()
+    lg.stop()
+    (path,) = files(state)
+    data = path.read_bytes()[:-200]  # the footer and summary cut off: what a live writer's file looks like
+    path.write_bytes(data)
+    old = time.time() - 400 * 86400
+    os.utime(path, (old, old))
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, sys\n"
+         "fh = open(sys.argv[1], 'rb'); fcntl.flock(fh, fcntl.LOCK_EX); print('held', flush=True); sys.stdin.read()",
+         str(path)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        with caplog.at_level(logging.WARNING, logger="ballbar.daemon.mcap"):
+            assert mcap_log.recover_crashed(state / "recordings") == []
+            other = McapLogger(state, "m", rotate_bytes=4096, quota_bytes=8192, keep_days=1)
+            try:
+                other._retention(time.monotonic())
+                other._retention(time.monotonic())
+                assert other.stats()["deleted_files"] == 0
+            finally:
+                other.stop()
+        assert path.read_bytes() == data and path.stat().st_mtime == old
+        said = [r.getMessage() for r in caplog.records if path.name in r.getMessage()]
+        assert len(said) == 2, said
+        assert "open in another process" in said[0] and "left alone" in said[0]
+        assert "open in another process: retention leaves it alone" in said[1]
+    finally:
+        assert holder.stdin is not None
+        holder.stdin.close()
+        assert holder.wait(10) == 0
+        assert holder.stdout is not None
+        holder.stdout.close()
+    (r,) = mcap_log.recover_crashed(state / "recordings")
+    assert r.path == path and read_log(path).complete
+    os.utime(path, (old, old))
+    again = McapLogger(state, "m", rotate_bytes=4096, quota_bytes=8192, keep_days=1)
+    try:
+        again._retention(time.monotonic())
+    finally:
+        again.stop()
+    assert path not in files(state) and again.stats()["deleted_files"] >= 1
+
+
 # ----------------------------------------------------------------------------- write errors
 
 
