@@ -76,6 +76,17 @@ def files(state: Path) -> list[Path]:
     return list_recordings(state / "recordings")
 
 
+def one_file(state: Path) -> Path:
+    """A finished log file of samples 0 to 1999, one chunk per 100 of them."""
+    lg = McapLogger(state, "m")
+    for k in range(0, 2000, 100):
+        lg.on_batch(make_batch(k, 100))
+        lg.flush()
+    lg.stop()
+    (path,) = files(state)
+    return path
+
+
 def assert_same_samples(a: SampleBatch, b: SampleBatch) -> None:
     assert len(a) == len(b)
     for name in ("t_host", "t_device", "length_mm"):
@@ -414,12 +425,7 @@ def test_mcap_package_reads_every_channel_and_messages_follow_their_schemas(stat
 
 
 def test_any_truncation_reads_a_prefix(state: Path, tmp_path: Path) -> None:
-    lg = McapLogger(state, "m")
-    for k in range(0, 2000, 100):
-        lg.on_batch(make_batch(k, 100))
-        lg.flush()
-    lg.stop()
-    (path,) = files(state)
+    path = one_file(state)
     data = path.read_bytes()
     cut = tmp_path / "cut.mcap"
     previous = -1
@@ -621,12 +627,7 @@ def test_recovery_and_retention_leave_a_file_another_process_holds_alone(
     holding it) is neither rewritten by recovery nor deleted by retention, each saying so in one line (retention
     once, however often it runs); once the holder is gone the same file is recovered and deleted (so it was the
     lock that kept them off, nothing else).  On the old code recovery rewrote it at once."""
-    lg = McapLogger(state, "m")
-    for k in range(0, 2000, 100):
-        lg.on_batch(make_batch(k, 100))
-        lg.flush()
-    lg.stop()
-    (path,) = files(state)
+    path = one_file(state)
     data = path.read_bytes()[:-200]  # the footer and summary cut off: what a live writer's file looks like
     path.write_bytes(data)
     old = time.time() - 400 * 86400
