@@ -34,11 +34,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     for var in BLAS_THREADS:
         os.environ.setdefault(var, "1")
     stop = threading.Event()
-    if subcommand(args) == "run":
+    asked = subcommand(args)
+    if asked == "run":
         _install_stop_handlers(stop)  # first: a SIGTERM from now on is a clean stop, exit 0
     from .commands import run_command
 
-    return run_command(args, stop)
+    return run_command(args, stop, asked)
 
 
 def subcommand(args: Sequence[str]) -> str | None:
@@ -55,13 +56,6 @@ def _install_stop_handlers(stop: threading.Event) -> None:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-
-
-def log_format(env: dict[str, str] | None = None) -> str:
-    """Log lines with a local timestamp (milliseconds), except under systemd, whose journal stamps its own."""
-    env = dict(os.environ) if env is None else env
-    plain = "%(levelname)s %(name)s: %(message)s"
-    return plain if env.get("JOURNAL_STREAM") else "%(asctime)s " + plain
 
 
 if __name__ == "__main__":

@@ -481,14 +481,21 @@ def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
     return 0
 
 
-def run_command(argv: Sequence[str], stop: threading.Event) -> int:
+def log_format(env: dict[str, str] | None = None) -> str:
+    """Log lines with a local timestamp (milliseconds), except under systemd, whose journal stamps its own."""
+    env = dict(os.environ) if env is None else env
+    plain = "%(levelname)s %(name)s: %(message)s"
+    return plain if env.get("JOURNAL_STREAM") else "%(asctime)s " + plain
+
+
+def run_command(argv: Sequence[str], stop: threading.Event, asked: str | None = None) -> int:
     """Parse ``argv`` and run its subcommand; ``stop`` is the event :mod:`.cli`'s SIGTERM and SIGINT handlers set
-    for ``run``."""
-    from .cli import log_format, subcommand
+    for ``run``.  ``asked``: the subcommand :mod:`.cli` found in ``argv``, whose plug-in alone is then imported
+    (None: every one plugged in)."""
     from .plugins import PluginError
 
     try:
-        commands = plugged_in(subcommand(argv))  # only the one asked for is imported
+        commands = plugged_in(asked)  # only the one asked for is imported
         parser = build_parser(commands)
         args = parser.parse_args(argv)
     except (UsageError, PluginError) as err:

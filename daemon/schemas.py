@@ -16,7 +16,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from ballbar.protocol.messages import NAMES, schema, schema_text
+from ballbar.protocol.messages.documents import NAMES, schema, schema_text
 from ballbar.protocol.messages.fields import fields_of
 from ballbar.protocol.messages.results import Parameters
 from ballbar.protocol.messages.tables import markdown

@@ -371,7 +371,7 @@ def test_events_are_logged_as_sentences() -> None:
 
 
 def test_log_lines_are_timestamped_except_under_journald() -> None:
-    from ballbar.daemon.cli import log_format
+    from ballbar.daemon.commands import log_format
 
     assert log_format({}).startswith("%(asctime)s ")
     assert "asctime" not in log_format({"JOURNAL_STREAM": "8:12345"})  # the journal stamps its own

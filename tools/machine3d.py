@@ -22,7 +22,9 @@ each axis (the library's ``D = (x0, y0)`` of each plane).
 :func:`set_tests` runs a set's plans in turn on one sample clock, each
 program with its signature where its plan has one, and gives the lengths as
 the bar reads them assembled for each plan (:class:`~ballbar.analysis.plans.PlanLibrary`):
-``L - (R - R0)``.
+``L - (R - R0)``.  :func:`simulated_tests` is the daemon's ``sim:`` plug-in: a
+set's tests on this machine, or one plan's on a plane-free
+:class:`~ballbar.tools.simulator.MachineModel`.
 """
 
 from __future__ import annotations
@@ -32,12 +34,14 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, cast
 
+import numpy as np
+
 from ballbar.analysis.errors import PlanError
 from ballbar.analysis.plan import PLANE_AXES, Plane, TestPlan
 from ballbar.analysis.plans import NamedPlan, PlanLibrary, signature_moves
 from ballbar.analysis.program import Move, moves
 
-from .simulator import MachineModel, SimResult, iter_programs, truth_of
+from .simulator import MachineModel, SimResult, iter_programs, iter_tests, truth_of
 
 AXIS_KEYS = (
     "backlash_{}_um", "backlash_comp_{}_um", "kv_{}_per_s", "velocity_loop_{}_hz", "spike_{}_um", "spike_tau_{}_s",
@@ -177,9 +181,34 @@ def set_tests(
         yield p.name, res
 
 
+def simulated_tests(
+    plan: TestPlan,
+    machine: MachineModel | None,
+    sample_hz: float,
+    seed: int = 0,
+    repeat: int | None = None,
+    gap_s: float = 0.0,
+    *,
+    library: Any = None,
+    run_plans: Sequence[str] | None = None,
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """The daemon's ``sim:`` source's tests (the ``tests`` plug-in, ``ballbar.daemon.plugins``): each test's sample
+    times (s) and lengths (mm), one after the other on one clock; ``machine`` None is the default machine.  With
+    a ``library`` of plans, its ``run_plans`` (default all) in turn on a machine with X, Y and Z errors
+    (``machine`` a :class:`Machine3D`, default one), each program with its signature."""
+    if library is not None:
+        names = list(run_plans) if run_plans else list(library.names)
+        m3 = machine if isinstance(machine, Machine3D) else Machine3D()
+        for _name, res in set_tests(library, names, m3, sample_hz, seed, repeat, gap_s):
+            yield res.t_s, res.length_mm
+        return
+    for res in iter_tests(plan, machine if machine is not None else MachineModel(), sample_hz, seed, repeat, gap_s):
+        yield res.t_s, res.length_mm
+
+
 def truth_table(machine: Machine3D, planes: Sequence[str] = ("XY", "YZ", "ZX")) -> dict[str, dict[str, float]]:
     """Each plane's expected result fields (:meth:`Machine3D.truth`)."""
     return {plane: machine.truth(plane) for plane in planes}
 
 
-__all__ = ["AXIS_KEYS", "SQUARENESS_KEYS", "Machine3D", "program_of", "set_tests", "truth_table"]
+__all__ = ["AXIS_KEYS", "SQUARENESS_KEYS", "Machine3D", "program_of", "set_tests", "simulated_tests", "truth_table"]

@@ -1027,33 +1027,6 @@ def parse_set(items: Sequence[str]) -> dict[str, Any]:
     return out
 
 
-def simulated_tests(
-    plan: TestPlan,
-    machine: MachineModel | None,
-    sample_hz: float,
-    seed: int = 0,
-    repeat: int | None = None,
-    gap_s: float = 0.0,
-    *,
-    library: Any = None,
-    run_plans: Sequence[str] | None = None,
-) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """The daemon's ``sim:`` source's tests (the ``tests`` plug-in, ``ballbar.daemon.plugins``): each test's sample
-    times (s) and lengths (mm), one after the other on one clock; ``machine`` None is the default machine.  With
-    a ``library`` of plans, its ``run_plans`` (default all) in turn on a machine with X, Y and Z errors
-    (``machine`` a :class:`~.machine3d.Machine3D`, default one), each program with its signature."""
-    if library is not None:
-        from .machine3d import Machine3D, set_tests
-
-        names = list(run_plans) if run_plans else list(library.names)
-        m3 = machine if isinstance(machine, Machine3D) else Machine3D()
-        for _name, res in set_tests(library, names, m3, sample_hz, seed, repeat, gap_s):
-            yield res.t_s, res.length_mm
-        return
-    for res in iter_tests(plan, machine if machine is not None else MachineModel(), sample_hz, seed, repeat, gap_s):
-        yield res.t_s, res.length_mm
-
-
 def write_csv(path: str, t_s: np.ndarray, length_mm: np.ndarray, *, append: bool = False) -> None:
     """CSV ``t_s,length_mm`` with nanosecond / nanometre digits."""
     with open(path, "a" if append else "w", encoding="ascii", newline="\n") as fh:

@@ -11,10 +11,13 @@ and tests keep the shipped copies equal to what they give.  On the wire the
 messages stay plain JSON (:func:`to_json`); producers make the envelope with
 :func:`stamp`, and mypy checks producers and consumers against the types.
 
-Importing this package loads the envelope alone; the types and the generator
-load when first named.  The daemon names them only under ``TYPE_CHECKING``
-(its annotations are postponed, its MCAP channels' schemas are the shipped
-files, :mod:`.channels`): it runs on plain dicts and pays nothing for them.
+Importing this package loads the envelope alone; the types load when first
+named.  The daemon names them only under ``TYPE_CHECKING`` (its annotations
+are postponed, its MCAP channels' schemas are the shipped files,
+:mod:`.channels`): it runs on plain dicts and pays nothing for them.  The
+generator is built of this package's types, so the package does not name it:
+its ``NAMES``, ``schema`` and ``schema_text`` are imported from
+``ballbar.protocol.messages.documents`` itself.
 """
 
 from functools import reduce
@@ -27,8 +30,8 @@ from .envelope import SchemaVersion, Stamp, stamp, to_json, utc_now, utc_text
 if TYPE_CHECKING:
     from typing import TypeAlias
 
+    from .channels import MCAP_CHANNELS
     from .config import ConfigMessage, Settings
-    from .documents import MCAP_CHANNELS, NAMES, schema, schema_text
     from .events import Event, EventBody, LogGap, PipelineEvent, SourceEvent
     from .monitor import Alert, Conditions, Forecast, ForecastAlert, HistoryEntry, LimitEntry, Verdict, VerdictAlert
     from .replies import HistoryReply, QueryError
@@ -57,15 +60,14 @@ if TYPE_CHECKING:
 
 # Where each name is, loaded when first asked for (the imports above are mypy's); the unions built of them.
 _LAZY = {
-    "ConfigMessage": "config", "Settings": "config", "MCAP_CHANNELS": "documents", "NAMES": "documents",
-    "schema": "documents", "schema_text": "documents", "Event": "events", "EventBody": "events", "LogGap": "events",
-    "PipelineEvent": "events", "SourceEvent": "events", "Alert": "monitor", "Conditions": "monitor",
-    "Forecast": "monitor", "ForecastAlert": "monitor", "HistoryEntry": "monitor", "LimitEntry": "monitor",
-    "Verdict": "monitor", "VerdictAlert": "monitor", "HistoryReply": "replies", "QueryError": "replies",
-    "Analysis": "results", "Body": "results", "CircleBody": "results", "CircleResult": "results",
-    "CircleTiming": "results", "Parameter": "results", "Parameters": "results", "Result": "results",
-    "TestBody": "results", "TestResult": "results", "TestTiming": "results", "McapSamples": "samples",
-    "Samples": "samples", "SetResult": "sets", "Status": "status",
+    "ConfigMessage": "config", "Settings": "config", "MCAP_CHANNELS": "channels", "Event": "events",
+    "EventBody": "events", "LogGap": "events", "PipelineEvent": "events", "SourceEvent": "events", "Alert": "monitor",
+    "Conditions": "monitor", "Forecast": "monitor", "ForecastAlert": "monitor", "HistoryEntry": "monitor",
+    "LimitEntry": "monitor", "Verdict": "monitor", "VerdictAlert": "monitor", "HistoryReply": "replies",
+    "QueryError": "replies", "Analysis": "results", "Body": "results", "CircleBody": "results",
+    "CircleResult": "results", "CircleTiming": "results", "Parameter": "results", "Parameters": "results",
+    "Result": "results", "TestBody": "results", "TestResult": "results", "TestTiming": "results",
+    "McapSamples": "samples", "Samples": "samples", "SetResult": "sets", "Status": "status",
 }
 _UNIONS = {
     "AnalysisOutput": ("CircleBody", "TestBody", "EventBody"),
@@ -83,7 +85,6 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "MCAP_CHANNELS",
-    "NAMES",
     "Alert",
     "Analysis",
     "AnalysisOutput",
@@ -120,8 +121,6 @@ __all__ = [
     "TestTiming",
     "Verdict",
     "VerdictAlert",
-    "schema",
-    "schema_text",
     "stamp",
     "to_json",
     "utc_now",

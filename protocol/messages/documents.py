@@ -16,7 +16,6 @@ from ballbar import SCHEMA_VERSION
 
 from . import events as ev
 from . import monitor, replies, results, samples, sets, status
-from .channels import MCAP_CHANNELS as MCAP_CHANNELS  # re-exported: the channels' documents
 from .config import ConfigMessage
 from .jsonschema import Builder, Schema, document
 

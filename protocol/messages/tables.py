@@ -7,7 +7,8 @@ them): field, type, unit, description; an optional field is marked ``?``.
 from collections.abc import Iterator
 from typing import Any, Literal, get_args, get_origin, is_typeddict
 
-from .documents import DOCUMENTS, MCAP_CHANNELS
+from .channels import MCAP_CHANNELS
+from .documents import DOCUMENTS
 from .fields import Doc, description_of, fields_of, is_union, unwrap
 
 HEADER = """\
