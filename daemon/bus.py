@@ -194,9 +194,7 @@ def parse_control(payload: bytes) -> tuple[str | None, str | None]:
                 keys = ", ".join(sorted(repr(k)[:40] for k in body)[:5]) or "none"
                 return None, f"an object must hold the key 'plan' alone (it has {keys})"
             body = body["plan"]
-            if body is None:
-                return None, None
-        elif body is None:
+        if body is None:
             return None, None
     else:
         body = text

@@ -31,7 +31,7 @@ MACHINE = ("backlash_x_um=4", "kv_y_per_s=33", "squareness_urad=15", "centre_x_u
 PLAN = {"radius_mm": 50, "feed_mm_min": 2000, "overshoot_deg": 10, "dwell_s": 0.2}
 
 
-# Host-stamped polled readings: under a CPU load of 4 (the parallel phase) the stamps' scheduling jitter exceeds the
+# Host-stamped polled readings: under a CPU load of 4 (four parallel workers) the stamps' scheduling jitter exceeds the
 # timing uncertainty the polled path states (backlash 3.87 and 4.15 um against 4.0 +- 0.1), so this runs alone.
 @pytest.mark.serial
 @pytest.mark.parametrize("profile", ["mitutoyo", "sylvac", "tesa"])

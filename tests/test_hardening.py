@@ -243,10 +243,15 @@ def test_blas_threads_are_the_entry_points_choice_not_the_librarys() -> None:
 # ----------------------------------------------------------------------------- one daemon per state dir
 
 
+def _run_args(tmp_path: Path) -> list[str]:
+    """``ballbar run`` on the simulated source with its state in ``tmp_path/state``, no bus, no viewer."""
+    return ["run", "--source", SIM, "--state-dir", str(tmp_path / "state"), "--set", "zenoh.enabled=false",
+            "--set", 'rerun.mode="off"']
+
+
 def _start(tmp_path: Path, *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, "-m", "ballbar.daemon.cli", "run", "--source", SIM, "--state-dir", str(tmp_path / "state"),
-         "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"', *extra],
+        [sys.executable, "-m", "ballbar.daemon.cli", *_run_args(tmp_path), *extra],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"),
     )
 
@@ -274,8 +279,7 @@ def test_a_second_daemon_on_the_same_state_dir_exits_2_naming_the_holder(tmp_pat
     first = _start(tmp_path)
     try:
         _wait_for_lock(tmp_path, first.pid)
-        second = ballbar("run", "--source", SIM, "--state-dir", str(tmp_path / "state"), "--set",
-                         "zenoh.enabled=false", "--set", 'rerun.mode="off"', timeout=30)
+        second = ballbar(*_run_args(tmp_path), timeout=30)
         _one_line_exit_2(second, f"PID {first.pid}")
         assert first.poll() is None
         first.send_signal(signal.SIGTERM)
@@ -303,8 +307,7 @@ def test_deleting_the_lock_file_lets_no_second_daemon_in(tmp_path: Path) -> None
         open_file = _the_open_file(recordings)
         inode = open_file.stat().st_ino
         (tmp_path / "state" / "ballbar.lock").unlink()
-        second = ballbar("run", "--source", SIM, "--state-dir", str(tmp_path / "state"), "--set",
-                         "zenoh.enabled=false", "--set", 'rerun.mode="off"', timeout=30)
+        second = ballbar(*_run_args(tmp_path), timeout=30)
         _one_line_exit_2(second, "is in use by another ballbar daemon")
         assert first.poll() is None
         assert open_file.stat().st_ino == inode and list(recordings.glob("*.mcap")) == [open_file]
