@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from .plan import MachineConfig, TestPlan
+from .plan import MachineConfig, TestPlan, plane_keys
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages.results import Advice
@@ -91,7 +91,8 @@ def advise(params: Mapping[str, Any], plan: TestPlan, machine: MachineConfig) ->
         else:
             add("servo_mismatch_ms", "machine",
                 f"{slow} lags {fast} by {abs(m):.3f} ms: raise the {slow} position-loop gain (Kv) or lower "
-                f"the {fast} one until the lags match (configure kv_x/kv_y for a value)", m, "ms", "gain")
+                f"the {fast} one until the lags match (configure [machine] "
+                f"{plane_keys('kv', plan.plane)} for a value)", m, "ms", "gain")
     s = _value(params, "squareness_urad")
     if s is not None:
         add("squareness_urad", "machine",

@@ -47,7 +47,7 @@ from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
 from .fit import FitResult, solve
 from .patterns import Pattern, select
-from .plan import AnalysisOptions, MachineConfig, TestPlan
+from .plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan
 from .plans import PlanLibrary, RecentSamples, Recognition, SignatureReading, at_feed_in, at_feed_out, read_signature
 from .result import result_body
 from .testfit import DEFAULT_SPIKE_WIDTH_DEG, analyze_test, feed_accel
@@ -138,6 +138,12 @@ class TestAnalyzer:
     provisional circles run only where the plan is known at the feed-in.
     :meth:`choose` names the next test's plan.  Every result says its plan:
     ``plan.name``, ``plan.axes`` and ``recognition``.
+
+    ``machine``: the machine's axes (:class:`~.plan.MachineAxes`), each test's
+    plan taking its plane's two; or one plane's (:class:`~.plan.MachineConfig`),
+    which every plan then takes as its first and second axis (a recording made
+    before the machine's axes were named).  :attr:`machine` is the current
+    plan's.
     """
 
     __test__ = False
@@ -145,7 +151,7 @@ class TestAnalyzer:
     def __init__(
         self,
         plan: TestPlan,
-        machine: MachineConfig | None = None,
+        machine: MachineConfig | MachineAxes | None = None,
         options: AnalysisOptions | None = None,
         hints: TimingHints | None = None,
         curves: bool = False,
@@ -166,7 +172,8 @@ class TestAnalyzer:
         self.on_submit = on_submit
         self._pending: tuple[int, StepEvent, cf.Future[dict[str, Any]], Recognition | None] | None = None
         self.curves = curves
-        self.machine = machine or MachineConfig()
+        self.machine_axes = machine if isinstance(machine, MachineAxes) else None
+        self.machine = machine if isinstance(machine, MachineConfig) else MachineConfig()
         self.options = options or AnalysisOptions()
         self.hints = hints or TimingHints()
         self.library = library if library is not None else PlanLibrary.single(plan)
@@ -176,6 +183,8 @@ class TestAnalyzer:
             plan = self.plan = self.library.detection_plan()
         elif library is not None:
             self.plan = self.library.first.plan
+        if self.machine_axes is not None:
+            self.machine = self.machine_axes.for_plane(self.plan.plane)
         self.plan_hints: dict[str, TimingHints] = dict(plan_hints or {})
         self._recent = RecentSamples() if self.multi else None
         self._pre: tuple[np.ndarray, np.ndarray] = (np.empty(0), np.empty(0))
@@ -398,6 +407,8 @@ class TestAnalyzer:
         self.plan, self.plan_name = p.plan, name
         self._offset = self.library.offset_mm(name)
         self.hints = self.plan_hints.get(name, TimingHints())
+        if self.machine_axes is not None:
+            self.machine = self.machine_axes.for_plane(self.plan.plane)
         self.patterns = select(self.options.patterns, self.plan.direction_list, self.machine.pitch_x_mm,
                                self.machine.pitch_y_mm)
 
@@ -608,7 +619,7 @@ def analyze_recording(
     t: np.ndarray,
     L: np.ndarray,
     plan: TestPlan,
-    machine: MachineConfig | None = None,
+    machine: MachineConfig | MachineAxes | None = None,
     options: AnalysisOptions | None = None,
     curves: bool = False,
     breaks: Sequence[tuple[int, str]] = (),

@@ -39,7 +39,7 @@ from .fit import Factor, FitResult, solve
 from .loops import DEFAULT_KV_PER_S, FAST_LOOP_S, Lag, loop_lag
 from .patterns import FEED_FORWARD, Geometry, Pattern, design, select, wrap
 from .physics import MODEL_WORDS, LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
-from .plan import AnalysisOptions, MachineConfig, TestPlan
+from .plan import AnalysisOptions, MachineConfig, TestPlan, plane_keys
 from .program import accel_from_spread, arc_start_deg, data_start_deg, feed_from_span, model_limits, schedule
 from .result import (
     result_body,
@@ -765,7 +765,7 @@ class TestFit:
         return "fitted", (
             f"fitted to the data arcs with the timing: {kv:.3g}/s (its log known to {sd:.2g}; the data prefer it to "
             f"the default {DEFAULT_KV_PER_S:g}/s by more than {TAU_NATS:g} nats); the feed-in's settling is not "
-            "resolved at this sample rate and no kv_x/kv_y is configured"
+            f"resolved at this sample rate and no {plane_keys('kv', self.plan.plane)} is configured"
         )
 
     def _timing_cov(self, fit: FitResult) -> np.ndarray | None:

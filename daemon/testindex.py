@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ballbar.analysis.errors import BallbarError, DataError, DetectionError
-from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan
 from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
 
@@ -250,7 +250,7 @@ def analyze_recorded(
     index: TestIndex,
     test: RecordedTest,
     plan: TestPlan,
-    machine: MachineConfig,
+    machine: MachineConfig | MachineAxes,
     options: AnalysisOptions,
     curves: bool = False,
     library: PlanLibrary | None = None,

@@ -152,7 +152,8 @@ class Recognition(TypedDict):
 
 
 class Machine(TypedDict):
-    """what the analysis knows of the machine ([machine])"""
+    """what the analysis knew of the machine: [machine] of the plane's two axes, x the first and y the second
+    (plan.axes: in ZX, x is Z's and y X's)"""
 
     pitch_x_mm: Annotated[float | None, doc("first axis' screw pitch", "mm", null="unknown, no cyclic error fitted")]
     pitch_y_mm: Annotated[float | None, doc("second axis' screw pitch", "mm", null="unknown")]
