@@ -217,3 +217,21 @@ def test_analyze_takes_the_machines_axes_from_flags(tmp_path: Path, recording: t
         first, second = PAIRS[name]
         assert r["plan"]["name"] == name
         assert (r["machine"]["kv_x_per_s"], r["machine"]["kv_y_per_s"]) == (KV[first], KV[second])
+
+
+def test_a_recording_made_before_the_axes_were_named_keeps_its_meaning() -> None:
+    """A configuration recorded with the five keys of old (x, y: the plan's first and second axis) is analysed as
+    the daemon analysed it; a flag that adds a machine axis names its x and y by the recorded plane's axes."""
+    from ballbar.daemon.commands import build_parser, configs_from_args, resolve_plan_arg
+
+    zx = vertical("ZX")
+    recorded = {"plan": zx.to_dict(), "machine": dict(MachineConfig(kv_x_per_s=KV["Z"], kv_y_per_s=KV["X"]).to_dict())}
+
+    def machine(*flags: str) -> MachineAxes | MachineConfig:
+        args = build_parser().parse_args(["analyze", "rec.mcap", *flags])
+        resolve_plan_arg(args, ())
+        return configs_from_args(args, base={k: dict(v) for k, v in recorded.items()})[1]
+
+    assert machine() == MachineConfig(kv_x_per_s=KV["Z"], kv_y_per_s=KV["X"])
+    assert machine("--kv-y", "36") == MachineAxes(kv_z_per_s=KV["Z"], kv_x_per_s=KV["X"], kv_y_per_s=36.0)
+    assert machine("--kv-z", "20").for_plane("ZX") == MachineConfig(kv_x_per_s=20.0, kv_y_per_s=KV["X"])
