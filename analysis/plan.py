@@ -8,7 +8,7 @@ is configuration: the analyzer assumes the timing of the program that
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from typing import TYPE_CHECKING, Any, Literal, cast
 
@@ -222,6 +222,25 @@ class MachineAxes:
         return _from_dict(cls, data, "machine")
 
 
+def check_axes(machine: MachineAxes, planes: Sequence[str]) -> None:
+    """A :class:`PlanError` naming the key where ``machine`` gives only X and Y keys and one of them is for an
+    axis no plane of ``planes`` moves: written when x and y were a plan's first and second axis
+    (``kv_y_per_s`` of a ZX plan was X's gain), it cannot mean the machine's Y.  A Z key says the table names
+    the machine's axes: then a key of an axis no plan moves is a fact about the machine, kept."""
+    if any(getattr(machine, key) is not None for key in MachineAxes.axis_keys(("Z",))):
+        return
+    planes = list(dict.fromkeys(planes))
+    moved = {axis for plane in planes for axis in PLANE_AXES[plane]}
+    for setting in AXIS_SETTINGS:
+        for axis in MACHINE_AXES[:2]:
+            key = axis_key(setting, axis)
+            if getattr(machine, key) is not None and axis not in moved:
+                raise PlanError(
+                    f"machine.{key}: no plan moves {axis} (planes {', '.join(planes)}); [machine] keys name the "
+                    f"machine's axes now, not a plan's first and second: set "
+                    f"{'; '.join(f'{plane_keys(setting, p)} for {p}' for p in planes)}")
+
+
 def machine_of(data: Mapping[str, Any] | Machine | MachineSection) -> MachineAxes | MachineConfig:
     """A configuration's ``[machine]`` table: the machine's axes (:class:`MachineAxes`); or, where it has the
     keys of :class:`MachineConfig` and no others (a configuration recorded before the machine's axes were named,
@@ -343,6 +362,7 @@ __all__ = [
     "Plane",
     "TestPlan",
     "axis_key",
+    "check_axes",
     "for_plane",
     "machine_of",
     "plane_keys",

@@ -239,6 +239,13 @@ def library_sections(args: argparse.Namespace, base: dict[str, Any]) -> dict[str
     return base
 
 
+def machine_given(args: argparse.Namespace) -> dict[str, Any]:
+    """The machine's keys that ``--plan FILE``'s ``[machine]`` and the flags give (the machine's axes)."""
+    given = dict(load_config_file(args.plan_file).get("machine", {})) if getattr(args, "plan_file", None) else {}
+    return given | {dest: getattr(args, dest) for _f, dest, _t, _h in MACHINE_FLAGS
+                    if getattr(args, dest, None) is not None}
+
+
 def configs_from_args(
     args: argparse.Namespace, base: dict[str, Any] | None = None
 ) -> tuple[TestPlan, MachineAxes | MachineConfig, AnalysisOptions]:
@@ -256,8 +263,7 @@ def configs_from_args(
         base = recorded_config(args.file) if getattr(args, "file", None) else {}
     plan_d = dict(base.get("plan", {}))
     machine_d = dict(base.get("machine", {}))
-    given = dict(load_config_file(args.plan_file).get("machine", {})) if getattr(args, "plan_file", None) else {}
-    given |= {dest: getattr(args, dest) for _f, dest, _t, _h in MACHINE_FLAGS if getattr(args, dest, None) is not None}
+    given = machine_given(args)
     if given:
         try:
             recorded = machine_of(machine_d)
@@ -447,6 +453,14 @@ def _configs_and_library(
     resolve_plan_arg(args, names)
     plan, machine, options = configs_from_args(args, base=dict(base))
     library, chosen = library_from_args(args, sections, plan)
+    given = {k: v for k, v in machine_given(args).items() if k != "controller"}
+    if given:  # written now: X or Y keys alone for an axis no plan moves were a plan's first and second axis
+        from ballbar.analysis.plan import MachineAxes, check_axes
+
+        try:
+            check_axes(MachineAxes.from_dict(given), [p.plan.plane for p in library.plans])
+        except PlanError as err:
+            raise UsageError(str(err)) from err
     return plan, machine, options, library, chosen
 
 

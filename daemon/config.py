@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ballbar.analysis.errors import PlanError
-from ballbar.analysis.plan import MACHINE_AXES, PLANE_AXES, AnalysisOptions, MachineAxes, TestPlan, plane_keys
+from ballbar.analysis.plan import AnalysisOptions, MachineAxes, TestPlan, check_axes
 
 from .errors import ConfigError
 from .secrets import REDACTED, is_secret_key
@@ -561,23 +561,12 @@ def _validate(cfg: Config) -> None:
 
 
 def check_machine_axes(cfg: Config) -> None:
-    """A ConfigError naming the key where ``[machine]`` gives only X and Y keys and one of them is for an axis no
-    plan moves: written when x and y were a plan's first and second axis (``kv_y_per_s`` of a ZX plan was X's
-    gain), it cannot mean the machine's Y now.  A Z key says the table names the machine's axes: then a key of
-    an axis no plan moves is a fact about the machine, kept."""
-    machine = cfg.machine
-    if any(getattr(machine, key) is not None for key in MachineAxes.axis_keys(("Z",))):
-        return
-    planes = list(dict.fromkeys(p.plan.plane for p in cfg.library.plans))
-    moved = {axis for plane in planes for axis in PLANE_AXES[plane]}
-    for key in MachineAxes.axis_keys(MACHINE_AXES[:2]):
-        axis = key.split("_")[1].upper()
-        if getattr(machine, key) is not None and axis not in moved:
-            setting = key.split("_")[0]
-            raise ConfigError(
-                f"machine.{key}: no plan moves {axis} (planes {', '.join(planes)}); [machine] keys name the "
-                f"machine's axes now, not a plan's first and second: set "
-                f"{'; '.join(f'{plane_keys(setting, p)} for {p}' for p in planes)}")
+    """:func:`~ballbar.analysis.plan.check_axes` of ``[machine]`` and the library's planes, as a ConfigError:
+    X or Y keys alone, one for an axis no plan moves, were written as a plan's first and second axis."""
+    try:
+        check_axes(cfg.machine, [p.plan.plane for p in cfg.library.plans])
+    except PlanError as err:
+        raise ConfigError(str(err)) from None
 
 
 def check_listen(key: str, host: str, port: int, datagram: bool = False) -> None:

@@ -235,3 +235,17 @@ def test_a_recording_made_before_the_axes_were_named_keeps_its_meaning() -> None
     assert machine() == MachineConfig(kv_x_per_s=KV["Z"], kv_y_per_s=KV["X"])
     assert machine("--kv-y", "36") == MachineAxes(kv_z_per_s=KV["Z"], kv_x_per_s=KV["X"], kv_y_per_s=36.0)
     assert machine("--kv-z", "20").for_plane("ZX") == MachineConfig(kv_x_per_s=20.0, kv_y_per_s=KV["X"])
+
+
+def test_analyze_refuses_flags_written_as_a_plans_first_and_second(tmp_path: Path,
+                                                                    recording: tuple[np.ndarray, np.ndarray],
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    csv = tmp_path / "set.csv"
+    write_csv(str(csv), *recording)
+    zx = ["--plane", "ZX", "--start-deg", "-115", "--overshoot-deg", "5", "--data-arc-deg", "220", "--sample-hz", "100"]
+    assert main(["analyze", str(csv), *zx, "--kv-x", "24", "--kv-y", "30", "--json"]) == 2
+    err = capsys.readouterr().err
+    assert "machine.kv_y_per_s: no plan moves Y (planes ZX)" in err and err.count("\n") == 1
+    assert main(["analyze", str(csv), *zx, "--kv-z", "24", "--kv-x", "30", "--test", "3", "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["plan"]["plane"] == "ZX" and (r["machine"]["kv_x_per_s"], r["machine"]["kv_y_per_s"]) == (24.0, 30.0)
