@@ -334,12 +334,19 @@ class RerunViewer(Scene, Listener):
         points at their own wall-clock time and at test numbers up to 0 (this run's tests count from 1), and the
         newest as the last complete test (its verdict, findings and fitted model: its samples are not read).
         With a library of plans, every plan's tests, each plan's trends apart, and the newest set.
-        Returns how many were taken."""
+        Returns how many were taken.
+
+        A sink made before the seeding (a viewer that answered the constructor's first probe, or a server up at
+        once) was sent the scene without them: it is sent the scene again."""
+        n = self._seed_plans(list(results)) if self._plans else self._seed_one(list(results))
+        if n and self._sink_live:
+            self._send_scene()
+        return n
+
+    def _seed_one(self, results: list[Mapping[str, Any]]) -> int:
+        """:meth:`seed` with one plan: its tests' trend and the newest as the last complete test."""
         from ballbar.analysis.monitor import CONDITION_KEYS
 
-        results = list(results)
-        if self._plans:
-            return self._seed_plans(results)
         want = {k: getattr(self.plan, k, None) for k in CONDITION_KEYS} if self.plan is not None else None
         tests = [r for r in results if r.get("kind") == "test" and _epoch(r.get("t_wall")) is not None
                  and (want is None or {k: (r.get("plan") or {}).get(k) for k in CONDITION_KEYS} == want)]
