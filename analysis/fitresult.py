@@ -13,10 +13,10 @@ import numpy as np
 
 from . import iso230, noise, standards
 from .advice import advise
-from .circle import Timing
+from .circle import Timing, _after_onsets
 from .errors import DataError
 from .fit import Factor, FitResult, solve
-from .fitstate import RESOLVE_SAMPLES, TAU_NATS, WIDTH_AT_BOUND, Pieces, _after_onsets
+from .fitstate import RESOLVE_SAMPLES, TAU_NATS, WIDTH_AT_BOUND, Pieces
 from .loops import DEFAULT_KV_PER_S, FAST_LOOP_S
 from .patterns import Pattern, design
 from .physics import MODEL_WORDS, LostMotion, Offset, make_offset

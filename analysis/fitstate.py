@@ -11,11 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from .circle import Timing
+from .circle import Timing, _after_onsets
 from .detect import StepEvent
 from .errors import DataError
 from .loops import DEFAULT_KV_PER_S, Lag
-from .patterns import FEED_FORWARD, Geometry, select, wrap
+from .patterns import FEED_FORWARD, Geometry, select
 from .physics import LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .program import accel_from_spread, arc_start_deg, feed_from_span, schedule
@@ -142,16 +142,6 @@ class _State:
     lost: LostMotion
     found: Found | None = None
     se: dict[str, float] | None = None
-
-
-def _after_onsets(g: Geometry, reach_rad: float) -> np.ndarray:
-    """Samples within ``reach_rad`` past a table's reversal (where friction sets in), any axis."""
-    out = np.zeros(len(g), dtype=bool)
-    for axis, points in ((0, (0.0, math.pi)), (1, (0.5 * math.pi, 1.5 * math.pi))):
-        for at in points:
-            du = wrap(g.d * (g.u - at) - g.onset_rad[axis], 2.0 * math.pi)  # travel past the onset
-            out |= du < reach_rad
-    return out
 
 
 class Pieces:
