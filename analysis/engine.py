@@ -46,11 +46,12 @@ from .circle import CircleFit, make_timing
 from .detect import StepEvent, TestDetector
 from .errors import DataError, DetectionError
 from .fit import FitResult, solve
+from .fitstate import DEFAULT_SPIKE_WIDTH_DEG, feed_accel
 from .patterns import Pattern, select
 from .plan import AnalysisOptions, MachineConfig, TestPlan
 from .plans import PlanLibrary, RecentSamples, Recognition, SignatureReading, at_feed_in, at_feed_out, read_signature
 from .result import result_body
-from .testfit import DEFAULT_SPIKE_WIDTH_DEG, analyze_test, feed_accel
+from .testfit import analyze_test
 from .timeaxis import Break, TimeAxis
 
 if TYPE_CHECKING:
@@ -553,7 +554,7 @@ class TestAnalyzer:
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
                      "message": f"the analysis failed on this test ({what}): please report it with the recording"}]
         result["test_index"] = index
-        # assembled field by field (analysis/testfit.py): its shape is TestBody's, which the schema tests check
+        # assembled field by field (analysis/fitresult.py): its shape is TestBody's, which the schema tests check
         body = cast("TestBody", result)
         self._name_plan(body, rec)
         if self.multi:

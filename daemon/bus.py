@@ -142,6 +142,7 @@ from ballbar import SCHEMA_VERSION
 from ballbar.analysis.errors import BallbarError
 from ballbar.protocol.messages import stamp, to_json
 
+from .config import Config, ZenohSection
 from .listeners import Listener, Message
 from .samples import SampleBatch
 from .secrets import REDACTED, is_secret_key
@@ -234,7 +235,9 @@ def zenoh_message(err: BaseException) -> str:
 
 @dataclass
 class ZenohConfig:
-    """Zenoh settings, passed through to :class:`zenoh.Config`.
+    """A session's Zenoh settings, passed through to :class:`zenoh.Config`: the daemon's of its ``[zenoh]`` section
+    (:func:`zenoh_config`, the one definition of the keys and their defaults), a client's of its command line
+    (``ballbar-subscribe``, the benchmarks).
 
     ``None`` means "not set": the config file's value if there is a file, else
     the loopback default (``peer``; listen on ``tcp/127.0.0.1:7447`` for a peer
@@ -325,16 +328,16 @@ def _insert(cfg: zenoh.Config, key: str, value: Any, name: str) -> None:
         raise BusConfigError(f"zenoh.{name}: {shown or text}: {detail}") from err
 
 
-def zenoh_config(cfg: Any) -> ZenohConfig:
+def zenoh_config(cfg: Config) -> ZenohConfig:
     """The :class:`ZenohConfig` of the daemon's ``[zenoh]`` section (empty values: not set)."""
     z = cfg.zenoh
     return ZenohConfig(
-        mode=getattr(z, "mode", None) or None,
-        listen=list(getattr(z, "listen", None) or []) or None,
-        connect=list(getattr(z, "connect", None) or []) or None,
-        config_file=getattr(z, "config_file", None) or None,
-        multicast_scouting=getattr(z, "multicast_scouting", None),
-        options=dict(getattr(z, "options", None) or {}),
+        mode=z.mode or None,
+        listen=list(z.listen) or None,
+        connect=list(z.connect) or None,
+        config_file=z.config_file or None,
+        multicast_scouting=z.multicast_scouting,
+        options=dict(z.options),
     )
 
 
@@ -456,10 +459,10 @@ class ZenohBus(Listener):
         machine: str,
         config: ZenohConfig | None = None,
         *,
-        samples_hz: float = 0.0,
-        history_size: int = 500,
+        samples_hz: float = ZenohSection.samples_hz,
+        history_size: int = ZenohSection.history_size,
         history_loader: Callable[[], Iterable[Mapping[str, Any]]] | None = None,
-        close_timeout_s: float = 2.0,
+        close_timeout_s: float = ZenohSection.close_timeout_s,
         slow_put_s: float = 0.1,
     ) -> None:
         self.machine = check_machine(machine)
@@ -505,21 +508,20 @@ class ZenohBus(Listener):
             self._opener.start()
 
     @classmethod
-    def from_config(cls, cfg: Any, history_loader: Callable[[], Iterable[Mapping[str, Any]]] | None = None
+    def from_config(cls, cfg: Config, history_loader: Callable[[], Iterable[Mapping[str, Any]]] | None = None
                     ) -> ZenohBus:
         """From the daemon's configuration: ``cfg.daemon.machine_id`` and the ``[zenoh]`` section.
 
         Empty ``listen``, ``connect`` and ``config_file`` mean "not set" (the
-        defaults above); ``options``, ``history_size`` and ``close_timeout_s``
-        are read when the section has them.
+        defaults above).
         """
         z = cfg.zenoh
         return cls(
             cfg.daemon.machine_id,
             zenoh_config(cfg),
-            samples_hz=float(getattr(z, "samples_hz", 0.0) or 0.0),
-            history_size=int(getattr(z, "history_size", 500)),
-            close_timeout_s=float(getattr(z, "close_timeout_s", 2.0)),
+            samples_hz=z.samples_hz,
+            history_size=z.history_size,
+            close_timeout_s=z.close_timeout_s,
             history_loader=history_loader,
         )
 

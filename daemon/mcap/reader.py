@@ -8,6 +8,7 @@ import os
 import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
@@ -461,3 +462,22 @@ def recording(lg: McapLog, name: str) -> Recording:
 
 
 # ----------------------------------------------------------------------------- after a crash
+
+
+def _samples_after(path: Path, offset: int, channel: int) -> tuple[int, int | None]:
+    """The samples (preroll copies aside) in the whole records of ``path`` from byte ``offset`` on, and the stored
+    host time (wall ns) of the newest of them: what a write that failed part way got into the file after all."""
+    n = 0
+    last: int | None = None
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            for rec in _records(fh, skip_magic=offset > 0):
+                if isinstance(rec, Message) and rec.channel_id == channel:
+                    msg = json.loads(rec.data)
+                    if not msg.get("preroll"):
+                        n += int(msg["count"])
+                        last = int(decode_samples(msg).t_host_ns[-1])
+    except (OSError, McapError, struct.error, ValueError, KeyError, TypeError, EOFError, zstandard.ZstdError):
+        pass  # the first record cut short: the end of what is readable
+    return n, last

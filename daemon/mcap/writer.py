@@ -6,26 +6,21 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
-import json
 import logging
 import math
 import os
 import re
-import struct
 import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
-import zstandard
-from mcap.exceptions import McapError
-from mcap.records import Message
 from mcap.writer import CompressionType, Writer
 
 from ballbar import __version__
@@ -53,14 +48,15 @@ from .format import (
     TOPIC_SAMPLES,
     TOPIC_STATUS,
     LogConfigError,
+    _group_by_period,
+    _runs,
     _take,
-    decode_samples,
     encode_samples,
     hold_file,
     list_recordings,
     scaled_ints,
 )
-from .reader import _records
+from .reader import _samples_after
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages.events import LogGap
@@ -950,60 +946,4 @@ class McapLogger(Listener):
             self._c["deleted_files"] += 1
             self._c["deleted_bytes"] += sizes[p]
             log.info("mcap log: deleted %s (%s)", p.name, "older than keep_days" if old else "over quota")
-
-
-def _samples_after(path: Path, offset: int, channel: int) -> tuple[int, int | None]:
-    """The samples (preroll copies aside) in the whole records of ``path`` from byte ``offset`` on, and the stored
-    host time (wall ns) of the newest of them: what a write that failed part way got into the file after all."""
-    n = 0
-    last: int | None = None
-    try:
-        with open(path, "rb") as fh:
-            fh.seek(offset)
-            for rec in _records(fh, skip_magic=offset > 0):
-                if isinstance(rec, Message) and rec.channel_id == channel:
-                    msg = json.loads(rec.data)
-                    if not msg.get("preroll"):
-                        n += int(msg["count"])
-                        last = int(decode_samples(msg).t_host_ns[-1])
-    except (OSError, McapError, struct.error, ValueError, KeyError, TypeError, EOFError, zstandard.ZstdError):
-        pass  # the first record cut short: the end of what is readable
-    return n, last
-
-
-def _group_by_period(batches: Sequence[SampleBatch], period_s: float) -> list[list[SampleBatch]]:
-    """Consecutive non-empty batches in groups that start at most ``period_s`` (host time) apart: a group takes
-    every batch whose first sample is less than ``period_s`` after the group's first sample."""
-    groups: list[list[SampleBatch]] = []
-    start = math.nan
-    for b in batches:
-        if not len(b):
-            continue
-        t0 = float(b.t_host[0])
-        if groups and t0 - start < period_s:
-            groups[-1].append(b)
-        else:
-            groups.append([b])
-            start = t0
-    return groups
-
-
-def _runs(batches: Sequence[SampleBatch]) -> Iterator[tuple[str, SampleBatch]]:
-    """Consecutive samples with one source and one device-clock presence, as single batches."""
-    parts: list[tuple[str, bool, SampleBatch]] = []
-    for b in batches:
-        if not len(b):
-            continue
-        has = np.isfinite(b.t_device)
-        cuts = np.flatnonzero(np.diff(has.astype(np.int8))) + 1
-        for piece in np.split(np.arange(len(b)), cuts):
-            sub = b if piece.size == len(b) else _take(b, piece)
-            key = bool(has[piece[0]])
-            if parts and parts[-1][0] == b.source and parts[-1][1] == key:
-                prev = parts[-1][2]
-                parts[-1] = (b.source, key, SampleBatch.concat([prev, sub]))
-            else:
-                parts.append((b.source, key, sub))
-    for source, _key, b in parts:
-        yield source, b
 

@@ -1,7 +1,7 @@
 """The analysis' results: a circle's and a test's body, as the analysis makes them and the daemon publishes them.
 
 :class:`CircleBody` and :class:`TestBody` are what ``ballbar.analysis`` returns
-(``analysis/result.py``, ``analysis/engine.py``, ``analysis/testfit.py``);
+(``analysis/result.py``, ``analysis/engine.py``, ``analysis/fitresult.py``);
 :class:`Analysis` is ``ballbar analyze --json`` (a test body with ``source``);
 :class:`CircleResult` and :class:`TestResult` are the daemon's
 ``ballbar/<m>/result/circle`` and ``result/test`` (the body plus the daemon's
