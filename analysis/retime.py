@@ -16,7 +16,9 @@ from before the step, the samples after it come back to the grid.
 after it (held back until they are in).  Each sample of that window is put no
 later than any later sample of it allows, one period per sample between them
 (``t'_j = min over k >= j of t_k - (k - j) P``, the early envelope of the
-window, counted on the device's grid).  After a stall the burst falls back on
+window, counted on the device's grid; ``k`` up to ``STALL_MAX_S`` ahead, since
+the median period ``P`` is good to some 0.1 % only and its error grows with
+the distance).  After a stall the burst falls back on
 the grid and the step is gone; after a loss (a radio link's drop-out) the
 samples after it stay where their stamps put them, on their own grid, and the
 time axis sees the gap for what it is, a gap of whole periods, which the
@@ -38,6 +40,7 @@ import numpy as np
 from .timeaxis import CHECK_BLOCK, GAP_PERIODS, MIN_STEPS, PERIOD_WINDOW, median_period
 
 HOLD_S = 0.5  # how long after a long step its window runs (and live, how long samples are held for it)
+STALL_MAX_S = 0.2  # the longest stall re-timed: how far ahead of a sample the envelope looks
 PERIOD_SAMPLE = 1 << 14  # the period is the median step of at most this many recent and new samples
 
 
@@ -130,8 +133,9 @@ class Retimer:
 
     def _settle(self, t: np.ndarray, g: int, h: int, before: float, P: float) -> None:
         w = t[g:h]
-        k = np.arange(w.size, dtype=float) * P
-        cap = np.minimum.accumulate((w - k)[::-1])[::-1] + k  # no later than any later sample allows
+        cap = w.copy()
+        for m in range(1, min(w.size, math.ceil(STALL_MAX_S / P) + 1)):
+            np.minimum(cap[:-m], w[m:] - m * P, out=cap[:-m])  # no later than a later sample allows
         if math.isfinite(before):
             cap = np.maximum(cap, before)  # never before the sample before the step
         cap = np.maximum.accumulate(cap)
@@ -169,4 +173,4 @@ def retime(t: np.ndarray) -> np.ndarray:
     return np.concatenate((out, rest)) if rest.size else out
 
 
-__all__ = ["HOLD_S", "Retimer", "retime"]
+__all__ = ["HOLD_S", "STALL_MAX_S", "Retimer", "retime"]
