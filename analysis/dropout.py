@@ -7,8 +7,9 @@ where it matters: a jump lengthens the feed-in to feed-out span by the gap,
 so the feed measured from the span falls short of the programmed one by just
 that much, while a loss leaves the span alone.  A gap of at most
 ``MAX_DROPOUT_S`` that only the times show (no device reset or jump was told)
-is therefore taken as samples lost, and the test analysed with what is
-there, unless the gap takes what the result cannot do without:
+is therefore taken as samples lost, and so is one the source counted as
+lost (a device's counter, a logger's gap: :class:`~.timeaxis.Lost`); the test
+is analysed with what is there, unless the gap takes what the result cannot do without:
 
 - the feed-in or the feed-out step: every angle hangs on their centroids;
 - an axis reversal of a data arc (within ``REVERSAL_MARGIN_DEG`` of it): the
@@ -37,7 +38,7 @@ from .detect import StepEvent
 from .patterns import Geometry, Pattern, design
 from .plan import TestPlan
 from .program import data_start_deg, feed_from_span, schedule
-from .timeaxis import Break
+from .timeaxis import Break, Lost
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages.results import Dropout, DropoutCost
@@ -49,8 +50,9 @@ FEED_TOLERANCE = 0.002  # the measured feed may miss the expected by this much b
 
 
 def is_dropout(brk: Break) -> bool:
-    """Whether a break may be a drop-out: one the times alone show, of at most ``MAX_DROPOUT_S``."""
-    return not brk.reason and brk.visible and brk.missing_s <= MAX_DROPOUT_S
+    """Whether a break may be a drop-out: one the times show, of at most ``MAX_DROPOUT_S``, that nobody told of
+    or was told as samples lost (:class:`~.timeaxis.Lost`: a device reset or a clock jump never is)."""
+    return (not brk.reason or isinstance(brk.reason, Lost)) and brk.visible and brk.missing_s <= MAX_DROPOUT_S
 
 
 def in_step(brk: Break, step: StepEvent) -> bool:

@@ -24,8 +24,10 @@ from ballbar.analysis import TestPlan
 from ballbar.analysis.engine import TestAnalyzer, analyze_recording
 from ballbar.analysis.retime import Retimer, retime
 from ballbar.analysis.timeaxis import GAP_PERIODS, TimeAxis
+from ballbar.daemon import config as cfgmod
 from ballbar.daemon.cli import main
-from ballbar.daemon.samples import EventKind
+from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
+from ballbar.daemon.service import AnalysisListener
 from ballbar.daemon.sources import open_source
 from ballbar.protocol import ascii as ascii_proto
 from ballbar.protocol.gauges import PROFILES
@@ -37,7 +39,7 @@ FS = 250.0
 P = 1.0 / FS
 # R 100 mm at 1500 mm/min: 14.3 deg/s, so 2 s lost are 29 deg; about 56 s a test.
 PLAN = TestPlan(radius_mm=100, feed_mm_min=1500, overshoot_deg=10, dwell_s=0.2, sample_hz=FS)
-MACHINE = MachineModel(lead_s=0.5, tail_s=0.5, backlash_x_um=3.0, squareness_urad=20.0, noise_um=0.1)
+MACHINE = MachineModel(lead_s=0.5, tail_s=2.0, backlash_x_um=3.0, squareness_urad=20.0, noise_um=0.1)
 CHECKED = ("backlash_x_um", "squareness_urad", "servo_mismatch_ms")
 
 
@@ -299,3 +301,48 @@ def test_a_device_clock_jump_the_source_reports_is_still_rejected(rec: tuple[np.
     tj = np.where(np.arange(t.size) >= j, t + 0.2, t)
     msg = rejection(analyze_recording(tj, L, PLAN, breaks=[(j, "device clock jump of +0.200 s")]))
     assert "device clock jump of +0.200 s" in msg and "run it again" in msg, msg
+
+
+# ----------------------------------------------------------------------------- through the daemon's analysis
+
+
+def listen(t: np.ndarray, L: np.ndarray, seq: np.ndarray, event: SourceEvent) -> list[dict[str, Any]]:
+    """The daemon's analysis of a device-clocked stream (batches of 100), ``event`` on the batch of its sample."""
+    cfg = cfgmod.load(None, ["plan.radius_mm=100", "plan.feed_mm_min=1500", "plan.overshoot_deg=10",
+                             "plan.dwell_s=0.2", "plan.sample_hz=250"], env={})
+    got: list[dict[str, Any]] = []
+    an = AnalysisListener(cfg, got.append)
+    at = int(np.searchsorted(seq, event.seq))
+    for i in range(0, t.size, 100):
+        events = (event,) if i <= at < i + 100 else ()
+        an.on_batch(SampleBatch(t[i : i + 100] + 1000.0, t[i : i + 100], L[i : i + 100], seq[i : i + 100],
+                                np.zeros(min(100, t.size - i), np.uint8), events, "serial:x"))
+    an.stop()
+    return got
+
+
+def test_a_loss_the_devices_counter_reports_is_a_drop_out_the_daemon_analyses(
+    rec: tuple[np.ndarray, np.ndarray], clean: dict[str, Any],
+) -> None:
+    t, L = rec
+    seq = np.arange(t.size)
+    a = cw_arc_time(clean, 225.0)
+    keep = ~((t > a) & (t <= a + 1.5))
+    first = int(np.argmax(~keep))
+    lost = SourceEvent(EventKind.LOST, 0.0, "serial:x", count=375, seq=first, detail="gap")
+    got = listen(t[keep], L[keep], seq[keep], lost)
+    res = only_test([m for m in got if m.get("kind") in ("test", "event")])
+    assert_within(res, clean)
+    assert [g["samples_missing"] for g in res["dropouts"]] == [375]
+
+
+def test_a_device_clock_jump_the_daemon_is_told_of_is_still_rejected(
+    rec: tuple[np.ndarray, np.ndarray], clean: dict[str, Any],
+) -> None:
+    t, L = rec
+    seq = np.arange(t.size)
+    j = int(np.searchsorted(t, cw_arc_time(clean, 225.0)))
+    jump = SourceEvent(EventKind.CLOCK_JUMP, 0.0, "serial:x", seq=j, gap_s=1.5)
+    got = listen(np.where(seq >= j, t + 1.5, t), L, seq, jump)
+    msg = rejection([m for m in got if m.get("kind") in ("test", "event")])
+    assert msg.startswith("device clock jump of +1.500 s") and "run it again" in msg, msg
