@@ -16,10 +16,12 @@ from before the step, the samples after it come back to the grid.
 after it (held back until they are in).  Each sample of that window is put no
 later than any later sample of it allows, one period per sample between them
 (``t'_j = min over k >= j of t_k - (k - j) P``, the early envelope of the
-window, counted on the device's grid; ``k`` up to ``STALL_MAX_S`` ahead, since
-the median period ``P`` is good to some 0.1 % only and its error grows with
-the distance).  After a stall the burst falls back on
-the grid and the step is gone; after a loss (a radio link's drop-out) the
+window, counted on the device's grid; ``P`` the median step of the
+``PERIOD_WINDOW`` samples before the long step, so that the answer does not
+depend on how the stream came chunked; ``k`` up to ``STALL_MAX_S`` ahead, since
+that median is good to some 0.1 % only and its error grows with the
+distance).  After a stall the burst falls back on the grid and the step is
+gone; after a loss (a radio link's drop-out) the
 samples after it stay where their stamps put them, on their own grid, and the
 time axis sees the gap for what it is, a gap of whole periods, which the
 analysis then judges (:mod:`.dropout`).
@@ -27,7 +29,7 @@ analysis then judges (:mod:`.dropout`).
 Where the device sends a clock and a counter, the daemon maps that clock to
 the host's (``daemon/timebase.py``: a lower-envelope fit of rate and offset
 over minutes); the samples then come evenly spaced and nothing here changes
-them.  Outside the windows after a long step no sample is moved at all, so
+them (a move under ``RESOLUTION_S`` is none).  Outside the windows after a long step no sample is moved at all, so
 ordinary jitter and single lost samples are as they were.
 """
 
@@ -41,6 +43,7 @@ from .timeaxis import CHECK_BLOCK, GAP_PERIODS, MIN_STEPS, PERIOD_WINDOW, median
 
 HOLD_S = 0.5  # how long after a long step its window runs (and live, how long samples are held for it)
 STALL_MAX_S = 0.2  # the longest stall re-timed: how far ahead of a sample the envelope looks
+RESOLUTION_S = 1e-9  # a move this small is none (the recordings' resolution)
 PERIOD_SAMPLE = 1 << 14  # the period is the median step of at most this many recent and new samples
 
 
@@ -89,12 +92,16 @@ class Retimer:
         self._t, self._L = np.empty(0), np.empty(0)
         return self._work(t, L, final=True) if t.size else (t, L)
 
-    def _period(self, t: np.ndarray) -> float:
-        head = t[:PERIOD_SAMPLE]
-        both = np.concatenate((self._recent, head)) if self._recent.size else head
-        if both.size <= MIN_STEPS:
+    def _period(self, t: np.ndarray, g: int | None = None) -> float:
+        """The median period of the ``PERIOD_WINDOW`` steps before sample ``g`` of ``t`` (the stream so far is
+        the released samples and ``t``), the same however the stream came chunked; ``None``: a first guess, from
+        the head of ``t`` too, to find the long steps by."""
+        part = t[:PERIOD_SAMPLE] if g is None else t[max(0, g - PERIOD_WINDOW - 1) : g]
+        if part.size <= PERIOD_WINDOW and self._recent.size:
+            part = np.concatenate((self._recent[-(PERIOD_WINDOW + 1 - part.size):], part))
+        if part.size <= MIN_STEPS:
             return math.nan
-        return median_period(both)
+        return median_period(part)
 
     def _work(self, t: np.ndarray, L: np.ndarray, final: bool) -> tuple[np.ndarray, np.ndarray]:
         self._t, self._L = np.empty(0), np.empty(0)
@@ -104,9 +111,8 @@ class Retimer:
         if not P > 0:
             self._keep(t)
             return t, L
-        limit = GAP_PERIODS * P
         prev = float(self._recent[-1]) if self._recent.size else math.nan
-        found = _long_steps(t, prev, limit)
+        found = _long_steps(t, prev, 0.5 * GAP_PERIODS * P)  # candidates; each judged by the period before it
         if not found.size:
             self._keep(t)
             return t, L
@@ -117,7 +123,8 @@ class Retimer:
             if g < h:
                 continue
             before = float(t[g - 1]) if g else prev
-            if not t[g] - before > limit:  # an earlier window moved the samples either side
+            P = self._period(t, g)
+            if not (P > 0 and t[g] - before > GAP_PERIODS * P):  # no long step (or no more, after a window)
                 continue
             h = g + int(np.searchsorted(t[g:], t[g] + self.hold_s, side="left"))
             if h >= t.size and not final:
@@ -136,6 +143,7 @@ class Retimer:
         cap = w.copy()
         for m in range(1, min(w.size, math.ceil(STALL_MAX_S / P) + 1)):
             np.minimum(cap[:-m], w[m:] - m * P, out=cap[:-m])  # no later than a later sample allows
+        cap = np.where(w - cap > RESOLUTION_S, cap, w)  # an evenly spaced clock's rounding is left alone
         if math.isfinite(before):
             cap = np.maximum(cap, before)  # never before the sample before the step
         cap = np.maximum.accumulate(cap)
@@ -173,4 +181,4 @@ def retime(t: np.ndarray) -> np.ndarray:
     return np.concatenate((out, rest)) if rest.size else out
 
 
-__all__ = ["HOLD_S", "STALL_MAX_S", "Retimer", "retime"]
+__all__ = ["HOLD_S", "RESOLUTION_S", "STALL_MAX_S", "Retimer", "retime"]
