@@ -16,11 +16,11 @@ from before the step, the samples after it come back to the grid.
 after it (held back until they are in).  Each sample of that window is put no
 later than any later sample of it allows, one period per sample between them
 (``t'_j = min over k >= j of t_k - (k - j) P``, the early envelope of the
-window, counted on the device's grid; ``P`` the median step of the
-``PERIOD_WINDOW`` samples before the long step, so that the answer does not
-depend on how the stream came chunked; ``k`` up to ``STALL_MAX_S`` ahead, since
-that median is good to some 0.1 % only and its error grows with the
-distance).  After a stall the burst falls back on the grid and the step is
+window, counted on the device's grid; ``P`` the period of the
+``PERIOD_WINDOW`` samples before the long step (their median step, refined by
+the mean time over ``SPAN`` steps), so that the answer does not depend on how
+the stream came chunked; ``k`` up to ``STALL_MAX_S`` ahead, since ``P``'s error
+grows with the distance).  After a stall the burst falls back on the grid and the step is
 gone; after a loss (a radio link's drop-out) the
 samples after it stay where their stamps put them, on their own grid, and the
 time axis sees the gap for what it is, a gap of whole periods, which the
@@ -44,7 +44,8 @@ from .timeaxis import CHECK_BLOCK, GAP_PERIODS, MIN_STEPS, PERIOD_WINDOW, median
 HOLD_S = 0.5  # how long after a long step its window runs (and live, how long samples are held for it)
 STALL_MAX_S = 0.2  # the longest stall re-timed: how far ahead of a sample the envelope looks
 RESOLUTION_S = 1e-9  # a move this small is none (the recordings' resolution)
-PERIOD_SAMPLE = 1 << 14  # the period is the median step of at most this many recent and new samples
+PERIOD_SAMPLE = 1 << 14  # the first guess of the period: the median step of at most this many samples
+SPAN = 16  # steps over which a window's period is refined (see _period)
 
 
 class Retimer:
@@ -101,7 +102,15 @@ class Retimer:
             part = np.concatenate((self._recent[-(PERIOD_WINDOW + 1 - part.size):], part))
         if part.size <= MIN_STEPS:
             return math.nan
-        return median_period(part)
+        P = median_period(part)
+        if g is None or not P > 0 or part.size <= 4 * SPAN:
+            return P
+        # The median step is good to the latency's spread over sqrt(n) only (11 us at 250 Hz over 2048 steps
+        # with 0.5 ms of exponential latency); the time over SPAN steps carries the same latency once, not SPAN
+        # times: the mean of those spans, less any holding a lost sample (a period more) or a late stamp.
+        span = (part[SPAN:] - part[:-SPAN]) / SPAN
+        ok = np.abs(span - P) < 0.25 * P / SPAN
+        return float(np.mean(span[ok])) if np.count_nonzero(ok) >= part.size // 4 else P
 
     def _work(self, t: np.ndarray, L: np.ndarray, final: bool) -> tuple[np.ndarray, np.ndarray]:
         self._t, self._L = np.empty(0), np.empty(0)
