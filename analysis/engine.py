@@ -20,8 +20,14 @@ it (:mod:`.timeaxis`): a step backwards beyond jitter is a :class:`DataError`;
 a gap longer than a few sample periods, and any break the caller tells it of
 (:meth:`TestAnalyzer.mark_break`: a device reset, lost samples), rejects the
 test it falls in (``test_rejected``, with the break's time and size), from the
-feed-in step's first sample to the feed-out step's last.  Only a test that
-passed, with a plausible feed, teaches the next one its timing hints.
+feed-in step's first sample to the feed-out step's last.  Two kinds of gap are
+no break: a stalled host's, whose bunched samples :mod:`.retime` puts back on
+their grid before the time axis sees them (held back only while the samples
+after a long step come in), and a drop-out (samples lost on a clock that ran
+on, :mod:`.dropout`), judged at the feed-out: the test is rejected where it
+takes what the result needs, else analysed and the drop-out stated on its
+result (``dropouts``).  Only a test that passed, with a plausible feed, teaches
+the next one its timing hints.
 
 In the background.  Given an ``executor`` (the daemon's child process), the
 test's fit runs there while the next test's samples come in: :meth:`TestAnalyzer.collect`
@@ -116,8 +122,9 @@ class TestAnalyzer:
     ``"circle"`` (one direction, provisional timing) or ``"test"``; and event
     dictionaries (``kind = "event"``: ``feed_in``, ``feed_out``,
     ``test_rejected``, ``test_incomplete``).  A test is rejected as soon as a
-    break in its time axis is seen (live: at once, not at its feed-out); its
-    feed-out is still reported, and no result follows.
+    break in its time axis is seen (live: at once, not at its feed-out; a
+    drop-out at its feed-out); its feed-out is still reported, and no result
+    follows.
 
     ``executor``: where each test's fit runs (see the module docstring;
     ``None``: inline, its result returned with the feed-out); ``on_submit``
@@ -273,7 +280,8 @@ class TestAnalyzer:
         """A discontinuity between the samples fed so far and the next ones, which the times may not show.
 
         ``reason`` names it in the rejection's message (``"device reset"``,
-        ``"1200 samples lost (outage)"``).  A test it falls in is rejected.
+        ``"1200 samples lost (outage)"``).  A test it falls in is rejected, but for samples lost
+        (:class:`~.timeaxis.Lost`) where the times show a drop-out the test can do without.
         Samples held for re-timing (:mod:`.retime`) are settled first: the break follows them.
         """
         if self.retimer.held or self._queue:
