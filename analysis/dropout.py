@@ -136,16 +136,18 @@ def costs(
     if not isinstance(feed, int | float) or not feed > 0 or not sample_hz > 0:
         return [[] for _ in gaps]
     V = float(feed) / 60.0
+    overhead = timing.get("overhead_s")
+    sched = schedule(plan, V, float(overhead) if isinstance(overhead, int | float) else 0.0)
     w = math.radians(float(timing.get("spike_width_deg") or 0.5))
     step = V / plan.radius_mm / sample_hz  # rad a sample
-    rows_u, rows_d = [], []
+    rows_u, rows_d, rows_t = [], [], []
     for d in plan.direction_list:
         u0 = math.radians(data_start_deg(plan, d))
-        n = max(int(math.radians(plan.data_arc_deg) / step), 2)
-        rows_u.append(u0 + d * step * np.arange(n))
-        rows_d.append(np.full(n, float(d)))
-    u, dd = np.concatenate(rows_u), np.concatenate(rows_d)
-    t_min = np.zeros(u.size)
+        k = np.arange(max(int(math.radians(plan.data_arc_deg) / step), 2))
+        rows_u.append(u0 + d * step * k)
+        rows_d.append(np.full(k.size, float(d)))
+        rows_t.append((sched.data_start_s[d] + k / sample_hz) / 60.0)  # minutes from the feed-in (the drift's)
+    u, dd, t_min = np.concatenate(rows_u), np.concatenate(rows_d), np.concatenate(rows_t)
     X = design(patterns, Geometry(u, dd, t_min, V, plan.radius_mm), w)
     cols = [p for p in patterns for _ in range(p.q)]
     live = np.linalg.norm(X, axis=0) > 0

@@ -60,6 +60,10 @@ class Retimer:
 
     def __init__(self, hold_s: float = HOLD_S) -> None:
         self.hold_s = hold_s
+        self.reset()
+
+    def reset(self) -> None:
+        """Start afresh (the stream cannot go on as it was): what is held is dropped."""
         self._t = np.empty(0)
         self._L = np.empty(0)
         self._recent = np.empty(0)  # the last released times (the period's yardstick)
@@ -77,9 +81,6 @@ class Retimer:
 
     def restore(self, state: tuple[object, ...]) -> None:
         self._t, self._L, self._recent, self.moved, self.windows, self.caught_up = state  # type: ignore[assignment]
-
-    def reset(self) -> None:
-        self.__init__(self.hold_s)  # type: ignore[misc]
 
     def feed(self, t: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The settled samples of the held ones and ``(t, L)``, in order."""
