@@ -486,13 +486,13 @@ class McapLogger(Listener):
         if name in TEST_END_EVENTS:
             self._in_test = False
 
-    def _log_gap(self, now: float, resumed: SampleBatch | None = None) -> LogGap:
-        """The ``log_gap`` event of the write outage going on: what it cost so far, and (samples lost) their span:
-        from the newest sample in a file before it to ``resumed``'s first (the first written after it), else to the
-        newest lost."""
+    def _log_gap(self, now: float, resumed: SampleBatch | None = None, span: bool = True) -> LogGap:
+        """The ``log_gap`` event of the write outage going on: what it cost so far, and (``span``, samples lost)
+        their span: from the newest sample in a file before it to ``resumed``'s first (the first written after
+        it), else to the newest lost."""
         gap: LogGap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
                        "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
-        if not self._fail_lost:
+        if not (self._fail_lost and span):
             return gap
         first = (math.nan, math.nan) if self._kept_ns is None else (
             (self._kept_ns - self.host_clock_offset_ns) / NS, self._kept_td)
@@ -790,7 +790,8 @@ class McapLogger(Listener):
         self._held.clear()
         gap = []
         if self._failing:
-            gap = [(TOPIC_EVENTS, self._log_gap(now), self._wall_ns(now))]
+            # (no span: the next run's files hold it, and that run's clocks are not this one's)
+            gap = [(TOPIC_EVENTS, self._log_gap(now, span=False), self._wall_ns(now))]
         kept = write_spool(self.spool_path, self.run_id, [*held, *gap], self._spool_bytes())  # the newest first
         lost = len(held) - max(0, kept - len(gap))
         self._c["messages_lost"] += lost
