@@ -254,3 +254,23 @@ def test_a_rogue_peers_flood_of_valid_names_leaves_the_machines_events_and_a_bou
     # each choice taken: one line as the bus takes it, at most two as the analysis answers (its line, the event's)
     assert len(lines) - len(floods) <= 3 * taken, lines[:20]
     assert sum(int(ln.split("a flood: ")[1].split()[0]) for ln in floods) == z["controls_dropped"], floods
+
+
+def test_a_repeat_of_the_choice_standing_makes_no_event(tmp_path: Path) -> None:
+    """yz, yz, withdrawn, withdrawn again: two answers, not four (each answer is an event on the bus, a log line
+    and an MCAP record)."""
+    f = tmp_path / "set.toml"
+    f.write_text(SET)
+    cfg = load(str(f), ["mcap.enabled=false", "zenoh.enabled=false", 'rerun.mode="off"',
+                        "daemon.analysis_worker=false", f'daemon.state_dir="{tmp_path}"'], env={})
+    rec = Recorder()
+    src = open_source("sim:?speedup=max&rate=100&repeat=1", library=cfg.library, run_plans=["zx"])
+    d = Daemon(cfg, src, [(rec, 10_000, "drop_newest")])
+    for name in ("yz", "yz", None, None):
+        d.choose_plan(name)
+    assert d.run(threading.Event(), max_tests=1) == 0
+    events = [(m["event"], m.get("plan")) for m in rec.messages if m.get("event") in ("plan_chosen",
+                                                                                     "plan_choice_refused")]
+    assert events == [("plan_chosen", "yz"), ("plan_chosen", None)]
+    (test,) = [m for m in rec.messages if m.get("kind") == "test"]
+    assert test["recognition"]["method"] == "signature"  # the withdrawal stood
