@@ -249,7 +249,7 @@ def model_limits(plan: TestPlan, accel_mm_s2: float = 2000.0) -> list[str]:
     trapezoid's triangle, but the data arcs must run at ``V``: an overshoot
     shorter than the acceleration distance ``V^2 / 2A`` lets a data arc begin
     while the machine still accelerates.  Then no program can run the plan's
-    timing, and :func:`ballbar.tools.ncinterp.check_against_plan` reports the
+    timing, and :func:`ballbar.tools.nccheck.check_against_plan` reports the
     resulting timing errors too.  The analyzer measures ``V / A`` as the
     arc-start lag and warns through this function as well.
     """

@@ -503,6 +503,8 @@ def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
         print(f"{args.file}: no test recorded")
     for r in rows:
         what = headline_text(r["headline"]) if r["headline"] else r["message"]
+        if r.get("reportable") is False and r["headline"]:  # a result recorded, but not its samples
+            what = f"{what}; {r['message']}"
         if mcap:
             files = r["files"][0] + (f" +{len(r['files']) - 1}" if len(r["files"]) > 1 else "")
             of = f"  {r['plan']}" if r.get("plan") else ""

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from ballbar.tools.bench import bench_daemon as bd
+from ballbar.tools.bench import daemon_children as children
+from ballbar.tools.bench import daemon_usage as du
 
 
 def _burn(seconds: float) -> None:
@@ -26,19 +27,40 @@ def _burn(seconds: float) -> None:
         x += 1
 
 
-def test_stat_parsing_takes_names_with_spaces_and_parentheses() -> None:
-    line = "1234 (a (weird) name) S 1 1234 1234 0 -1 4194560 100 0 0 0 250 75 0 0 20 0 3 0 1000 0 0"
-    assert bd.parse_stat(line) == ("a (weird) name", 325)
-    status = "Name:\tx\nVmRSS:\t  20480 kB\nThreads:\t3\nvoluntary_ctxt_switches:\t7\nnonvoluntary_ctxt_switches:\t2\n"
-    assert bd.parse_status(status) == {"VmRSS": 20480, "Threads": 3, "voluntary_ctxt_switches": 7,
-                                       "nonvoluntary_ctxt_switches": 2}
+def test_snapshot_takes_thread_names_with_spaces_and_parentheses() -> None:
+    """A thread's kernel name may hold spaces and parentheses (``Thread-3 (flusher)``): the snapshot reads it
+    whole, through ``daemon/procfs.py``, and the thread's counters with it."""
+    stop = threading.Event()
+    named = threading.Event()
+    tid: list[int] = []
+
+    def sleeper() -> None:
+        with open("/proc/thread-self/comm", "w", encoding="utf-8") as fh:
+            fh.write("a (weird) name")
+        tid.append(threading.get_native_id())
+        named.set()
+        stop.wait(10)
+
+    th = threading.Thread(target=sleeper)
+    th.start()
+    try:
+        assert named.wait(10)
+        snap = du.snapshot(os.getpid())
+    finally:
+        stop.set()
+        th.join()
+    assert snap is not None and snap.comm and snap.rss_kib > 0
+    task = snap.tasks[tid[0]]
+    assert task.comm == "a (weird) name" and task.voluntary >= 1 and task.ticks >= 0
+    assert du.rss_mib(os.getpid()) == pytest.approx(snap.rss_kib / 1024.0, rel=0.5)
+    assert du.snapshot(2**22 + 1) is None  # beyond pid_max's ceiling: gone
 
 
 def test_usage_of_this_process_per_thread() -> None:
     stop = threading.Event()
 
     def sleeper() -> None:
-        bd._set_comm("bench-sleeper")
+        children._set_comm("bench-sleeper")
         while not stop.wait(0.005):
             pass
 
@@ -46,37 +68,37 @@ def test_usage_of_this_process_per_thread() -> None:
     th.start()
     try:
         time.sleep(0.05)
-        a = bd.snapshot(os.getpid())
+        a = du.snapshot(os.getpid())
         _burn(0.3)
         time.sleep(0.2)
-        b = bd.snapshot(os.getpid())
+        b = du.snapshot(os.getpid())
     finally:
         stop.set()
         th.join()
     assert a is not None and b is not None
     assert threading.get_native_id() in b.tasks and b.rss_kib > 0
-    u = bd.usage(a, b)
-    assert 15.0 < u["cpu_pct"] <= 100.0 * (1 + 2 / bd.CLK_TCK / u["seconds"])  # 0.3 s of CPU in about 0.5 s
+    u = du.usage(a, b)
+    assert 15.0 < u["cpu_pct"] <= 100.0 * (1 + 2 / du.CLK_TCK / u["seconds"])  # 0.3 s of CPU in about 0.5 s
     assert u["ctx_per_s"] > 0 and u["ctx_per_s"] == pytest.approx(u["voluntary_per_s"] + u["nonvoluntary_per_s"])
     names = {t["name"]: t for t in u["threads"]}
     assert names["bench-sleeper"]["voluntary_per_s"] > 20  # it wakes every 5 ms
     # The kernel rounds each thread's times and the process's total to clock ticks on their own
     # (and splits user from system time per task), so the threads' sum may exceed the total by
     # up to a tick per thread at each of the two snapshots, and by no more.
-    slack = 100.0 * 2 * sum(t["threads"] for t in u["threads"]) / bd.CLK_TCK / u["seconds"]
+    slack = 100.0 * 2 * sum(t["threads"] for t in u["threads"]) / du.CLK_TCK / u["seconds"]
     assert sum(t["cpu_pct"] for t in u["threads"]) <= u["cpu_pct"] + slack
 
 
 def test_statistics() -> None:
     t = [0.0, 60.0, 120.0, 180.0]
-    assert bd.slope_per_min(t, [100.0, 102.0, 104.0, 106.0]) == pytest.approx(2.0)
-    assert bd.slope_per_min(t[:2], [1.0, 2.0]) is None
-    d = bd.distribution([3.0, 1.0, None, 2.0, float("nan")])
+    assert du.slope_per_min(t, [100.0, 102.0, 104.0, 106.0]) == pytest.approx(2.0)
+    assert du.slope_per_min(t[:2], [1.0, 2.0]) is None
+    d = du.distribution([3.0, 1.0, None, 2.0, float("nan")])
     assert (d["n"], d["median"], d["min"], d["max"]) == (3, 2.0, 1.0, 3.0) and 2.9 < d["p99"] <= 3.0
-    assert bd.distribution([]) == {"n": 0}
-    assert bd._comm_name("listener-analysis") == "L-analysis"
-    assert bd._comm_name("Thread-3 (flusher)") == "T-flusher"
-    assert len(bd._comm_name("x" * 40)) == 15
+    assert du.distribution([]) == {"n": 0}
+    assert children._comm_name("listener-analysis") == "L-analysis"
+    assert children._comm_name("Thread-3 (flusher)") == "T-flusher"
+    assert len(children._comm_name("x" * 40)) == 15
 
 
 def test_quick_run_at_1khz(tmp_path: Path) -> None:

@@ -8,8 +8,9 @@ import pytest
 
 from ballbar.analysis.plan import TestPlan
 from ballbar.daemon.cli import main
-from ballbar.tools.ncinterp import check_against_plan
-from ballbar.tools.simulator import MachineModel, simulate, write_csv
+from ballbar.tools.nccheck import check_against_plan
+from ballbar.tools.simulator import MachineModel, simulate
+from ballbar.tools.simulator_cli import write_csv
 
 
 def test_gcode_writes_the_plan_from_the_daemons_configuration(tmp_path: Path) -> None:

@@ -216,7 +216,7 @@ def test_the_final_fit_brings_its_corrections_to_their_fixed_point_and_stops_onc
     """The physical corrections are made at the fit's own values (the servo mismatch, the centre, the backlash),
     which they change: the final fit steps until they move by less than OFFSET_SETTLED_UM, and the result is
     the one that stepping on to the limit gives."""
-    from ballbar.analysis import testfit
+    from ballbar.analysis import fitresult, testfit
     from ballbar.tools.simulator import MachineModel, simulate
 
     plan = TestPlan(sample_hz=250.0)
@@ -237,7 +237,7 @@ def test_the_final_fit_brings_its_corrections_to_their_fixed_point_and_stops_onc
 
     settled, steps = run()
     assert abs(settled["parameters"]["servo_mismatch_ms"]["value"]) > 0.1  # a correction to settle
-    monkeypatch.setattr(testfit, "OFFSET_SETTLED_UM", 0.0)  # step while anything moves, up to the limit
+    monkeypatch.setattr(fitresult, "OFFSET_SETTLED_UM", 0.0)  # step while anything moves, up to the limit
     to_the_end, more = run()
     assert more > steps, (steps, more)
     for name, p in to_the_end["parameters"].items():

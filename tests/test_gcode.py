@@ -31,7 +31,8 @@ from ballbar.tools.gcode import (
     path_depth,
     pieces_deg,
 )
-from ballbar.tools.ncinterp import NcError, check_against_plan, interpret, model_limits, test_moves
+from ballbar.tools.nccheck import check_against_plan, model_limits, test_moves
+from ballbar.tools.ncinterp import NcError, interpret
 from ballbar.tools.simulator import MachineModel, simulate
 
 PLANS = {

@@ -33,7 +33,8 @@ from ballbar.daemon.csvfile import MAX_LINE_BYTES, read_csv
 from ballbar.daemon.mcap import MAX_RECORD_BYTES, list_recordings, read_log
 from ballbar.daemon.recordings import load_recording
 from ballbar.tools.bench.bench_csv import peak_run
-from ballbar.tools.simulator import MachineModel, simulate, write_csv
+from ballbar.tools.simulator import MachineModel, simulate
+from ballbar.tools.simulator_cli import write_csv
 
 MB = 1 << 20
 CAP_BYTES = 6 << 30  # each child's address space: the old code's 2 GB line needs some 20 GB

@@ -1,5 +1,5 @@
-"""The layers hold: tools over daemon over analysis over protocol, the product never imports the benchmarks, and
-no module imports itself round a circle.
+"""The layers hold: tools over daemon over analysis over protocol, the product never imports the benchmarks, no
+module imports itself round a circle, and none is past 1,000 lines.
 
 import-linter reads the contracts from ``pyproject.toml`` and the code under the package names it is installed
 as (``.typecheck/ballbar``); CI runs the same command.
@@ -148,3 +148,17 @@ def test_no_module_imports_itself_round_a_circle() -> None:
     assert {"ballbar.protocol.messages", "ballbar.protocol.messages.events", "ballbar"} <= set(documents)
     circles = [" / ".join(_cycle(graph, c)) for c in _strongly_connected(graph)]
     assert not circles, "import circles:\n" + "\n".join(circles)
+
+
+MAX_LINES = 1000  # a module past this does more than one job (issue 32 §3; STYLE.md: about 800 is a good guide)
+
+
+def test_no_module_is_past_max_lines() -> None:
+    """Every module under ``protocol/``, ``analysis/``, ``daemon/`` and ``tools/`` (``tools/bench`` too; the tests
+    are not among them) has at most :data:`MAX_LINES` lines: one past it is split along its jobs."""
+    modules = _modules()
+    assert len(modules) > 100 and {"ballbar.tools.bench.bench_daemon", "ballbar.daemon.mcap.writer"} <= set(modules)
+    lines = {name: len(path.read_text().splitlines()) for name, path in modules.items()}
+    assert max(lines.values()) > MAX_LINES // 2  # the lines are counted (a module of this size exists)
+    long = sorted(f"{modules[name].relative_to(ROOT)}: {n}" for name, n in lines.items() if n > MAX_LINES)
+    assert not long, f"past {MAX_LINES} lines:\n" + "\n".join(long)

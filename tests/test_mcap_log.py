@@ -46,7 +46,8 @@ from ballbar.daemon.samples import EventKind, SampleBatch, SourceEvent
 from ballbar.daemon.spool import read_spool
 from ballbar.protocol import Status
 from ballbar.tools.bench.bench_mcap import feed_paced, serial_batches
-from ballbar.tools.simulator import MachineModel, simulate, write_csv
+from ballbar.tools.simulator import MachineModel, simulate
+from ballbar.tools.simulator_cli import write_csv
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

@@ -349,7 +349,7 @@ def test_simulated_drift_changes_the_machine_from_test_to_test() -> None:
 
 @pytest.fixture(scope="module")
 def simulated_csv(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from ballbar.tools.simulator import write_csv
+    from ballbar.tools.simulator_cli import write_csv
 
     plan = alert_survey.PLAN
     path = tmp_path_factory.mktemp("csv") / "test.csv"

@@ -17,8 +17,9 @@ from ballbar.daemon import config as cfgmod
 from ballbar.daemon.cli import main
 from ballbar.tools.gcode import DIALECTS
 from ballbar.tools.machine3d import Machine3D, program_of, set_tests
-from ballbar.tools.ncinterp import check_against_plan, interpret, program_moves, signatures
-from ballbar.tools.simulator import write_csv
+from ballbar.tools.nccheck import check_against_plan, program_moves, signatures
+from ballbar.tools.ncinterp import interpret
+from ballbar.tools.simulator_cli import write_csv
 
 SET_TOML = """
 [plan]

@@ -156,7 +156,7 @@ def test_objects_are_closed_and_described(name: str) -> None:
 
 def _analyze(tmp: Path, sim: list[str], analyze: list[str]) -> dict[str, Any]:
     csv = tmp / "rec.csv"
-    subprocess.run([sys.executable, "-m", "ballbar.tools.simulator", "--out", str(csv), *sim], check=True,
+    subprocess.run([sys.executable, "-m", "ballbar.tools.simulator_cli", "--out", str(csv), *sim], check=True,
                    capture_output=True)
     out = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(csv), "--json", *analyze],
                          check=True, capture_output=True, text=True).stdout

@@ -454,7 +454,8 @@ def synthetic_tests(rate: float, n: int, tests: int = 2, gap_s: float = 0.5) -> 
 
 
 def drive(settings: Any, steps: list[float], commands: dict[float, str], t0: float, rate: float, n: int) -> Any:
-    from ballbar.tools.simdevice import Feed, SimDevice
+    from ballbar.tools.simbar import SimDevice
+    from ballbar.tools.simfeed import Feed
 
     port = FakePort()
     out = os.open(os.devnull, os.O_WRONLY)
@@ -477,7 +478,7 @@ def test_bursts_carry_the_bytes_of_one_write_per_sample(protocol: str) -> None:
     """The device stepped at random coarse times (a write each) sends exactly the bytes and counts
     it sends stepped every millisecond, across faults, a reset, a clock jump and a test boundary."""
     from ballbar.protocol import ascii as ascii_proto
-    from ballbar.tools.simdevice import Settings
+    from ballbar.tools.simbar import Settings
 
     rate, n, t0 = 1000.0, 3000, 1000.0
     fmt = ascii_proto.AsciiFormat(ts_unit="us", width=9, ts_width=12)
@@ -504,7 +505,7 @@ def test_bursts_carry_the_bytes_of_one_write_per_sample(protocol: str) -> None:
 
 
 def test_next_wake_is_the_next_sample_or_the_next_burst() -> None:
-    from ballbar.tools.simdevice import Settings
+    from ballbar.tools.simbar import Settings
 
     t0 = 1000.0
     for rate, expect in ((15.625, 0.064), (1000.0, 0.016)):
@@ -523,7 +524,7 @@ def test_the_next_test_is_made_while_the_current_one_streams() -> None:
     """Feed starts making test 2 as soon as test 1 is loaded, before any of test 1 is taken."""
     import threading
 
-    from ballbar.tools.simdevice import Feed
+    from ballbar.tools.simfeed import Feed
 
     entered, release = threading.Event(), threading.Event()
     made = list(synthetic_tests(RATE, 500, tests=2))

@@ -17,10 +17,9 @@ from ballbar.tools.simulator import (
     SimResult,
     iter_chunks,
     iter_tests,
-    main,
-    parse_set,
     simulate,
 )
+from ballbar.tools.simulator_cli import main, parse_set
 
 PLAN = TestPlan(sample_hz=250.0)  # R = 100 mm, F = 1000 mm/min, 180 deg overshoots, 360 deg data arc
 R = PLAN.radius_mm
@@ -378,7 +377,7 @@ def test_feed_override_and_the_programs_timing_model(kv: float) -> None:
     ],
 )
 def test_motion_profile_is_symmetric_and_complete(length: float, accel: float, jerk: float) -> None:
-    from ballbar.tools.simulator import _Profile
+    from ballbar.tools.feed_profile import _Profile
 
     smooth = accel / jerk if math.isfinite(accel) else 0.0
     p = _Profile(length, V, accel, smooth)

@@ -18,7 +18,8 @@ from ballbar.analysis.iso230 import _lsc_residual
 from ballbar.analysis.plan import STANDARDS, AnalysisOptions, TestPlan
 from ballbar.daemon.cli import main as cli_main
 from ballbar.daemon.commands import STANDARD_CHOICES
-from ballbar.tools.simulator import MachineModel, simulate, write_csv
+from ballbar.tools.simulator import MachineModel, simulate
+from ballbar.tools.simulator_cli import write_csv
 
 
 def brute_min_zone(u: np.ndarray, dr: np.ndarray) -> float:

@@ -958,8 +958,24 @@ def test_live_circle_is_sent_in_pieces(script: Script, receivers: list[Receiver]
     assert list(shown) == ["/live/ccw/measured"] and len(shown["/live/ccw/measured"]) > 500
 
 
-# Host-clock spacing within 0.1 %: missed at 10 kHz under a load of 4, so it runs alone.
-@pytest.mark.serial
+def test_the_wall_clock_offset_holds_through_preemption_and_follows_a_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Points a fixed interval apart on the host clock land the same interval apart on the viewer's time axis: a
+    thread preempted between reading the two clocks does not move them; a wall clock that is stepped does."""
+    from ballbar.daemon.rerun.listener import WallClock
+
+    wall = [1_000_000.0]
+    mono = [50.0]
+    reads = iter([0.0, 0.0, 0.0] + [0.004, 0.0, 0.0] * 5 + [0.0] * 3)  # 4 ms lost between the reads, once per call
+    monkeypatch.setattr(time, "time", lambda: wall[0])
+    monkeypatch.setattr(time, "monotonic", lambda: mono[0] + next(reads, 0.0))
+    clock = WallClock()
+    assert clock.offset() == 999_950.0
+    for _ in range(4):
+        assert clock.offset() == 999_950.0  # not 999_949.996
+    wall[0] += 3600.0  # the wall clock stepped by an hour
+    assert clock.offset() == 999_950.0 + 3600.0
+
+
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
 def test_length_series_is_decimated_and_coalesced(rate: float, receivers: list[Receiver], tmp_path: Path) -> None:
     """Whatever the sample rate: length_hz points per second of the host clock, sent every send_interval_s."""

@@ -159,7 +159,8 @@ def _program(args: argparse.Namespace, plan: TestPlan, signature: int | None, na
     timing model) and carry its signature."""
     from ballbar.analysis.plans import SIGNATURE_STEP, signature_code
     from ballbar.tools.gcode import generate
-    from ballbar.tools.ncinterp import check_against_plan, interpret, model_limits, signatures
+    from ballbar.tools.nccheck import check_against_plan, model_limits, signatures
+    from ballbar.tools.ncinterp import interpret
 
     origin = _origin(args.origin)
     text = generate(plan, args.dialect, decimals=args.decimals, origin=origin, work_offset=args.work_offset,

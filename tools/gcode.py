@@ -4,7 +4,7 @@
 program, block for block, so that the timing the analyzer assumes
 (:func:`~ballbar.analysis.program.schedule`: every move starts and ends at rest,
 each arc is one move) is the timing the machine runs.
-:mod:`ballbar.tools.ncinterp` reads the programs back and checks exactly that.
+:mod:`ballbar.tools.ncinterp` reads the programs back and :mod:`ballbar.tools.nccheck` checks exactly that.
 
 The program
 -----------

@@ -21,7 +21,8 @@ from ballbar.daemon.run import simulated_plans
 from ballbar.daemon.samples import SampleBatch, SourceStats
 from ballbar.daemon.sources import Source, open_source
 
-from .simdevice import DeviceProcess, Settings, source_url
+from .simbar import Settings
+from .simdevice import DeviceProcess, source_url
 
 log = logging.getLogger(__name__)
 

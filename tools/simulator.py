@@ -99,19 +99,13 @@ master-slave step against the direction of travel is a real (tiny) reversal.
 Output: :func:`simulate` returns a :class:`SimResult`; :func:`iter_tests`
 streams tests on one sample clock; ``events`` are commanded times.
 
-Command line::
-
-    python -m ballbar.tools.simulator --out test.csv --truth truth.json \\
-        --radius-mm 100 --feed-mm-min 1000 --sample-hz 1000 --set backlash_x_um=5
+Command line: :mod:`ballbar.tools.simulator_cli` (``ballbar-sim``).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import math
-import sys
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
@@ -122,6 +116,8 @@ from scipy.signal import cont2discrete, lfilter
 from ballbar.analysis.errors import PlanError
 from ballbar.analysis.plan import TestPlan
 from ballbar.analysis.program import Move, data_start_deg, moves
+
+from .feed_profile import _Profile
 
 log = logging.getLogger(__name__)
 
@@ -333,85 +329,6 @@ class SimResult:
 
 # --------------------------------------------------------------------------- motion
 
-
-@dataclass(frozen=True)
-class _Profile:
-    """Path position of one move starting and ending at rest: trapezoid, optionally jerk-limited."""
-
-    length: float
-    feed: float
-    accel: float
-    smooth_s: float  # jerk smoothing time A/J (0: none)
-
-    @property
-    def peak(self) -> float:
-        if math.isinf(self.accel):
-            return self.feed
-        return min(self.feed, math.sqrt(self.length * self.accel))
-
-    @property
-    def t_acc(self) -> float:
-        return 0.0 if math.isinf(self.accel) else self.peak / self.accel
-
-    @property
-    def t_cruise(self) -> float:
-        return self.length / self.peak - self.t_acc
-
-    @property
-    def t_trap(self) -> float:
-        return 2.0 * self.t_acc + self.t_cruise
-
-    @property
-    def duration(self) -> float:
-        return self.t_trap + self.smooth_s
-
-    def _trap(self, tau: np.ndarray) -> np.ndarray:
-        L, vp, ta, tt = self.length, self.peak, self.t_acc, self.t_trap
-        if ta == 0.0:
-            return np.clip(vp * tau, 0.0, L)
-        A = self.accel
-        s = np.where(tau < ta, 0.5 * A * tau**2, 0.5 * A * ta**2 + vp * (tau - ta))
-        dec = L - 0.5 * A * (tt - tau) ** 2
-        s = np.where(tau > tt - ta, dec, s)
-        s = np.where(tau >= tt, L, s)
-        return np.clip(np.where(tau <= 0, 0.0, s), 0.0, L)
-
-    def _trap_integral(self, tau: np.ndarray) -> np.ndarray:
-        """Integral of the trapezoid's path position from 0 to ``tau`` (finite accel only)."""
-        L, vp, ta, tt, A = self.length, self.peak, self.t_acc, self.t_trap, self.accel
-        t2 = tt - ta
-        i1 = A * ta**3 / 6.0
-        i2 = i1 + 0.5 * A * ta**2 * (t2 - ta) + 0.5 * vp * (t2 - ta) ** 2
-        i3 = i2 + L * (tt - t2) - A * ta**3 / 6.0
-        tc = np.clip(tau, 0.0, None)
-        out = np.where(tc <= ta, A * tc**3 / 6.0, 0.0)
-        m = (tc > ta) & (tc <= t2)
-        d = tc - ta
-        out = np.where(m, i1 + 0.5 * A * ta**2 * d + 0.5 * vp * d**2, out)
-        m = (tc > t2) & (tc <= tt)
-        out = np.where(m, i2 + L * (tc - t2) - A * (ta**3 - (tt - tc) ** 3) / 6.0, out)
-        return np.where(tc > tt, i3 + L * (tc - tt), out)
-
-    def position(self, tau: np.ndarray) -> np.ndarray:
-        """Path length travelled ``tau`` seconds after the move's start."""
-        tau = np.asarray(tau, dtype=float)
-        if self.smooth_s == 0.0:
-            return self._trap(tau)
-        # The S-curve of jerk A/Tj is the trapezoid averaged over the last Tj seconds.
-        tj = self.smooth_s
-        s = (self._trap_integral(tau) - self._trap_integral(tau - tj)) / tj
-        return np.clip(s, 0.0, self.length)
-
-    def time_at(self, s_target: float) -> float:
-        """When the path position reaches ``s_target`` (bisection; the profile is monotone)."""
-        lo, hi = 0.0, self.duration
-        for _ in range(80):
-            mid = 0.5 * (lo + hi)
-            if float(self.position(np.array([mid]))[0]) < s_target:
-                lo = mid
-            else:
-                hi = mid
-        return 0.5 * (lo + hi)
 
 
 @dataclass(frozen=True)
@@ -1001,136 +918,6 @@ def iter_chunks(
 # --------------------------------------------------------------------------- command line
 
 
-def parse_set(items: Sequence[str]) -> dict[str, Any]:
-    """``["backlash_x_um=5", "kv_x_per_s=inf"]`` -> machine keys; unknown keys are errors."""
-    types = {f.name: f.type for f in fields(MachineModel)}
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        if not sep:
-            raise PlanError(f"--set needs KEY=VALUE, not {item!r}")
-        if key not in types:
-            raise PlanError(f"unknown machine key {key!r} (known: {', '.join(sorted(types))})")
-        text = text.strip()
-        try:
-            if key == "drop_indices":
-                out[key] = tuple(int(v) for v in text.split(",") if v.strip())
-            elif key == "jitter_stamped":
-                if text.lower() not in ("1", "0", "true", "false", "yes", "no"):
-                    raise ValueError(text)
-                out[key] = text.lower() in ("1", "true", "yes")
-            else:
-                out[key] = float(text)
-        except ValueError as err:
-            raise PlanError(f"machine key {key!r}: bad value {text!r}") from err
-    return out
-
-
-def write_csv(path: str, t_s: np.ndarray, length_mm: np.ndarray, *, append: bool = False) -> None:
-    """CSV ``t_s,length_mm`` with nanosecond / nanometre digits."""
-    with open(path, "a" if append else "w", encoding="ascii", newline="\n") as fh:
-        if not append:
-            fh.write("t_s,length_mm\n")
-        step = 100_000
-        for i in range(0, t_s.size, step):
-            block = np.column_stack([t_s[i : i + step], length_mm[i : i + step]])
-            np.savetxt(fh, block, fmt="%.9f", delimiter=",")
-
-
-def add_plan_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """The test plan's options (all but the sample rate) and ``--set`` for the machine model."""
-    d = TestPlan()
-    p.add_argument("--radius-mm", type=float, default=d.radius_mm)
-    p.add_argument("--feed-mm-min", type=float, default=d.feed_mm_min)
-    p.add_argument("--plane", default=d.plane, choices=["XY", "YZ", "ZX"])
-    p.add_argument("--start-deg", type=float, default=d.start_deg)
-    p.add_argument("--overshoot-deg", type=float, default=d.overshoot_deg)
-    p.add_argument("--data-arc-deg", type=float, default=d.data_arc_deg)
-    p.add_argument("--feed-in-mm", type=float, default=d.feed_in_mm)
-    p.add_argument("--dwell-s", type=float, default=d.dwell_s)
-    p.add_argument("--directions", default=d.directions, choices=["both", "ccw", "cw"])
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="machine model parameter, e.g. backlash_x_um=5 or kv_x_per_s=inf (repeatable)",
-    )
-
-
-def plan_from_args(args: argparse.Namespace, sample_hz: float) -> TestPlan:
-    """The plan that :func:`add_plan_arguments`' options describe."""
-    return TestPlan(
-        plane=args.plane,
-        radius_mm=args.radius_mm,
-        feed_mm_min=args.feed_mm_min,
-        start_deg=args.start_deg,
-        overshoot_deg=args.overshoot_deg,
-        data_arc_deg=args.data_arc_deg,
-        feed_in_mm=args.feed_in_mm,
-        dwell_s=args.dwell_s,
-        directions=args.directions,
-        sample_hz=sample_hz,
-    )
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m ballbar.tools.simulator",
-        description="Simulate ball-bar tests on a physical machine model and write t_s,length_mm CSV.",
-    )
-    p.add_argument("--out", required=True, help="CSV file to write (t_s,length_mm)")
-    p.add_argument("--truth", help="JSON file for the expected results, events and model")
-    add_plan_arguments(p)
-    p.add_argument("--sample-hz", type=float, default=TestPlan().sample_hz)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--repeat", type=int, default=1, help="tests in a row on one sample clock")
-    p.add_argument("--gap-s", type=float, default=0.0, help="extra wait between repeated tests")
-    p.add_argument("-v", "--verbose", action="store_true")
-    return p
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(levelname)s %(name)s: %(message)s",
-        stream=sys.stderr,
-    )
-    try:
-        plan = plan_from_args(args, args.sample_hz)
-        machine = MachineModel(**parse_set(args.set))
-        if args.repeat < 1:
-            raise PlanError(f"--repeat must be >= 1, not {args.repeat}")
-        tests = []
-        for i, res in enumerate(iter_tests(plan, machine, args.sample_hz, args.seed, args.repeat, args.gap_s)):
-            write_csv(args.out, res.t_s, res.length_mm, append=i > 0)
-            tests.append({"index": res.index, "events": res.events})
-            log.info("test %d: %d samples, %.3f..%.3f s", i, res.t_s.size, res.t_s[0], res.t_s[-1])
-    except PlanError as err:
-        log.error("%s", err)
-        return 2
-    except OSError as err:
-        log.error("cannot write: %s", err)
-        return 1
-    if args.truth:
-        doc = {
-            "truth": truth_of(plan, machine),
-            "tests": tests,
-            "plan": plan.to_dict(),
-            "machine": machine.to_dict(),
-            "sample_hz": args.sample_hz,
-            "seed": args.seed,
-        }
-        try:
-            with open(args.truth, "w", encoding="utf-8") as fh:
-                json.dump(doc, fh, indent=2, allow_nan=False)
-                fh.write("\n")
-        except OSError as err:
-            log.error("cannot write: %s", err)
-            return 1
-    return 0
 
 
 __all__ = [
@@ -1139,12 +926,6 @@ __all__ = [
     "iter_chunks",
     "iter_programs",
     "iter_tests",
-    "main",
-    "parse_set",
     "simulate",
     "truth_of",
-    "write_csv",
 ]
-
-if __name__ == "__main__":
-    sys.exit(main())

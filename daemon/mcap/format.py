@@ -5,9 +5,10 @@ from __future__ import annotations
 import errno
 import fcntl
 import logging
+import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -231,3 +232,40 @@ def _take(b: SampleBatch, index: Any) -> SampleBatch:
     return SampleBatch(
         b.t_host[index], b.t_device[index], b.length_mm[index], b.seq[index], b.status[index], (), b.source
     )
+
+
+def _group_by_period(batches: Sequence[SampleBatch], period_s: float) -> list[list[SampleBatch]]:
+    """Consecutive non-empty batches in groups that start at most ``period_s`` (host time) apart: a group takes
+    every batch whose first sample is less than ``period_s`` after the group's first sample."""
+    groups: list[list[SampleBatch]] = []
+    start = math.nan
+    for b in batches:
+        if not len(b):
+            continue
+        t0 = float(b.t_host[0])
+        if groups and t0 - start < period_s:
+            groups[-1].append(b)
+        else:
+            groups.append([b])
+            start = t0
+    return groups
+
+
+def _runs(batches: Sequence[SampleBatch]) -> Iterator[tuple[str, SampleBatch]]:
+    """Consecutive samples with one source and one device-clock presence, as single batches."""
+    parts: list[tuple[str, bool, SampleBatch]] = []
+    for b in batches:
+        if not len(b):
+            continue
+        has = np.isfinite(b.t_device)
+        cuts = np.flatnonzero(np.diff(has.astype(np.int8))) + 1
+        for piece in np.split(np.arange(len(b)), cuts):
+            sub = b if piece.size == len(b) else _take(b, piece)
+            key = bool(has[piece[0]])
+            if parts and parts[-1][0] == b.source and parts[-1][1] == key:
+                prev = parts[-1][2]
+                parts[-1] = (b.source, key, SampleBatch.concat([prev, sub]))
+            else:
+                parts.append((b.source, key, sub))
+    for source, _key, b in parts:
+        yield source, b

@@ -109,6 +109,32 @@ SEED_FILES = 200  # the newest record files read for the earlier tests (one test
 OPEN_FILE_S = 10.0  # a record file modified this recently is being written
 
 
+class WallClock:
+    """The wall-clock time of a host monotonic time, by one offset between the two clocks.
+
+    Read afresh at each call, ``time.time() - time.monotonic()`` moves by however long the thread was
+    preempted between the two reads (milliseconds under load), and points logged a fixed interval apart
+    would land unevenly on the viewer's time axis.  The offset is kept, and taken anew only when the wall
+    clock has really been stepped (by more than ``STEP_S``: NTP slews far more slowly).
+    """
+
+    STEP_S = 0.05
+
+    def __init__(self) -> None:
+        self._offset = self._read()
+
+    @staticmethod
+    def _read() -> float:
+        # the largest of a few paired reads: a preemption between the two reads only ever takes from one
+        return max(time.time() - time.monotonic() for _ in range(3))
+
+    def offset(self) -> float:
+        now = self._read()
+        if abs(now - self._offset) > self.STEP_S:
+            self._offset = now
+        return self._offset
+
+
 def _epoch(t: Any) -> float | None:
     """A result's ``t_wall`` (ISO 8601) as Unix seconds."""
     try:
@@ -159,6 +185,7 @@ class RerunViewer(Scene, Listener):
         self._stop_lock = threading.Lock()
         self._rec: rr.RecordingStream | None = None
         self._sink_live = False
+        self._clock = WallClock()
         self._sink_failures = 0  # the prober's failure count when the sink was made
         self._next_retry = 0.0
         self._next_health = 0.0
@@ -311,12 +338,19 @@ class RerunViewer(Scene, Listener):
         points at their own wall-clock time and at test numbers up to 0 (this run's tests count from 1), and the
         newest as the last complete test (its verdict, findings and fitted model: its samples are not read).
         With a library of plans, every plan's tests, each plan's trends apart, and the newest set.
-        Returns how many were taken."""
+        Returns how many were taken.
+
+        A sink made before the seeding (a viewer that answered the constructor's first probe, or a server up at
+        once) was sent the scene without them: it is sent the scene again."""
+        n = self._seed_plans(list(results)) if self._plans else self._seed_one(list(results))
+        if n and self._sink_live:
+            self._send_scene()
+        return n
+
+    def _seed_one(self, results: list[Mapping[str, Any]]) -> int:
+        """:meth:`seed` with one plan: its tests' trend and the newest as the last complete test."""
         from ballbar.analysis.monitor import CONDITION_KEYS
 
-        results = list(results)
-        if self._plans:
-            return self._seed_plans(results)
         want = {k: getattr(self.plan, k, None) for k in CONDITION_KEYS} if self.plan is not None else None
         tests = [r for r in results if r.get("kind") == "test" and _epoch(r.get("t_wall")) is not None
                  and (want is None or {k: (r.get("plan") or {}).get(k) for k in CONDITION_KEYS} == want)]
@@ -549,7 +583,7 @@ class RerunViewer(Scene, Listener):
         stride = self._stride(self.options.length_hz, self._host_hz)
         i = picked(stride)
         if i.size:
-            wall = th[i] + (time.time() - time.monotonic())
+            wall = th[i] + self._clock.offset()
             if self._sink_live:
                 self._len_pending.append((wall, L[i]))
             # the history: a subset of the live points (same times, same values)
@@ -611,7 +645,7 @@ class RerunViewer(Scene, Listener):
         self._text_event(
             f"source {ev.source or ''} {ev.kind}: {detail}".replace("  ", " "),
             level,
-            ev.t_host + (time.time() - time.monotonic()),
+            ev.t_host + self._clock.offset(),
         )
 
     def _text_event(self, text: str, level: str, wall: float | None = None) -> None:
@@ -736,7 +770,7 @@ class RerunViewer(Scene, Listener):
             i -= 1
         if not abs(float(t[i]) - t_s) <= 1.0:
             return None
-        return float(buf.t_host[i]) + (time.time() - time.monotonic())
+        return float(buf.t_host[i]) + self._clock.offset()
 
     def _start_test(self, index: int, feed_in_s: float) -> None:
         self._test_index = index

@@ -9,17 +9,19 @@ import time
 import urllib.parse
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 from ballbar.analysis.errors import BallbarError
-from ballbar.analysis.plan import TestPlan
+
+from ..config import Config, RerunSection
 
 Mode = Literal["serve", "connect", "off"]
 Clock = Literal["auto", "device", "host"]
 
 APPLICATION_ID = "ballbar"
 # Not the viewer's own 9876: a user's `rerun some.rrd` on this PC must not stream into the daemon's view.
-DEFAULT_SERVE_PORT = 9880
+DEFAULT_SERVE_PORT = RerunSection.port
+_DEFAULT_MODE = cast(Mode, RerunSection.mode)  # the section's key is a str its check holds to the three modes
 
 class ViewerConfigError(BallbarError, ValueError):
     """An invalid viewer option (unknown key or bad value); the message names it."""
@@ -27,7 +29,10 @@ class ViewerConfigError(BallbarError, ValueError):
 
 @dataclass(frozen=True)
 class ViewerOptions:
-    """The streamer's configuration (from the daemon's ``[rerun]`` section: :meth:`RerunViewer.from_config`).
+    """The streamer's configuration (from the daemon's ``[rerun]`` section: :func:`viewer_options`).
+
+    The fields the section has keys for take its defaults (:class:`~ballbar.daemon.config.RerunSection`, the one
+    place they are stated); the others are the streamer's own and no key sets them.
 
     ``mode``: ``serve``, ``connect`` or ``off``.  ``bind``/``port``: where the
     ``serve`` mode listens (default ``127.0.0.1``: this PC only; ``0.0.0.0``:
@@ -69,16 +74,16 @@ class ViewerOptions:
     bound on :meth:`RerunViewer.stop`.
     """
 
-    mode: Mode = "serve"
-    bind: str = "127.0.0.1"  # this PC only; viewers elsewhere: bind an address on purpose, or connect mode
-    port: int = DEFAULT_SERVE_PORT
-    url: str = "rerun+http://127.0.0.1:9876/proxy"
-    server_memory_limit: str = "128MiB"
+    mode: Mode = _DEFAULT_MODE
+    bind: str = RerunSection.bind
+    port: int = RerunSection.port
+    url: str = RerunSection.url
+    server_memory_limit: str = f"{round(RerunSection.memory_limit_mb)}MiB"  # rerun.memory_limit_mb
     server_rss_cap_mb: float | None = None  # None: 2 x server_memory_limit + 128 MiB
     application_id: str = APPLICATION_ID
     recording_name: str = ""
-    tolerance_um: float = 10.0
-    scale_um: float | None = None
+    tolerance_um: float = RerunSection.tolerance_um
+    scale_um: float | None = None  # rerun.magnification
     polar_points: int = 2000
     polar_update_s: float = 0.5
     polar_pieces: int = 16
@@ -86,7 +91,7 @@ class ViewerOptions:
     send_interval_s: float = 0.25
     buffer_hz: float = 1000.0
     max_buffer_samples: int = 250_000
-    history_tests: int = 50
+    history_tests: int = RerunSection.history_tests
     history_length_hz: float = 1.0
     history_length_s: float = 86_400.0
     remove_setup: bool = True
@@ -207,29 +212,27 @@ def proxy_address(url: str) -> tuple[str, int] | None:
     return p.hostname, port or 9876
 
 
-def viewer_options(cfg: Any) -> ViewerOptions:
+def viewer_options(cfg: Config) -> ViewerOptions:
     """The :class:`ViewerOptions` of the daemon's configuration: ``[rerun]``, ``plan``, ``daemon.machine_id``.
 
-    Every :class:`ViewerOptions` field the section has is taken as it is;
-    besides, ``memory_limit_mb`` (MiB) sets ``server_memory_limit`` and
-    ``magnification`` (0: automatic) how many times a deviation is drawn
-    larger than the radius (``r/R0 = 1 + M dR/R``), i.e.
-    ``scale_um = 200 R / M`` (a division, drawn at 0.2 R0).  Keys the section lacks keep the defaults.
-    Raises :class:`ViewerConfigError` naming a bad value.
+    Each key of the section sets its field (the configuration has checked the values it can check alone);
+    ``memory_limit_mb`` (MiB) sets ``server_memory_limit`` and ``magnification`` (0: automatic) how many times a
+    deviation is drawn larger than the radius (``r/R0 = 1 + M dR/R``), i.e. ``scale_um = 200 R / M`` (a division,
+    drawn at 0.2 R0).  Raises :class:`ViewerConfigError` naming a bad value.
     """
     sec = cfg.rerun
-    plan: TestPlan | None = getattr(cfg, "plan", None)
-    kw: dict[str, Any] = {f.name: getattr(sec, f.name) for f in fields(ViewerOptions) if hasattr(sec, f.name)}
-    mem = getattr(sec, "memory_limit_mb", None)
-    if mem is not None:
-        if not (isinstance(mem, int | float) and math.isfinite(mem) and mem >= 1):
-            raise ViewerConfigError(f"rerun.memory_limit_mb must be a number >= 1, not {mem!r}")
-        kw["server_memory_limit"] = f"{round(float(mem))}MiB"
-    mag = getattr(sec, "magnification", None)
-    if mag and plan is not None:
-        kw["scale_um"] = 200.0 * plan.radius_mm / float(mag)
-    machine_id = getattr(getattr(cfg, "daemon", None), "machine_id", "") or ""
-    kw.setdefault("recording_name", f"ballbar {machine_id} {time.strftime('%Y-%m-%d %H:%M:%S')}".strip())
-    return ViewerOptions(**kw)
+    machine_id = cfg.daemon.machine_id or ""
+    return ViewerOptions(
+        mode=cast(Mode, sec.mode),
+        bind=sec.bind,
+        port=sec.port,
+        url=sec.url,
+        server_memory_limit=f"{round(float(sec.memory_limit_mb))}MiB",
+        tolerance_um=sec.tolerance_um,
+        scale_um=200.0 * cfg.plan.radius_mm / float(sec.magnification) if sec.magnification else None,
+        history_tests=sec.history_tests,
+        recording_name=f"ballbar {machine_id} {time.strftime('%Y-%m-%d %H:%M:%S')}".strip(),
+    )
+
 
 __all__ = ["APPLICATION_ID", "DEFAULT_SERVE_PORT", "ViewerConfigError", "ViewerOptions", "viewer_options"]

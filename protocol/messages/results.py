@@ -1,7 +1,7 @@
 """The analysis' results: a circle's and a test's body, as the analysis makes them and the daemon publishes them.
 
 :class:`CircleBody` and :class:`TestBody` are what ``ballbar.analysis`` returns
-(``analysis/result.py``, ``analysis/engine.py``, ``analysis/testfit.py``);
+(``analysis/result.py``, ``analysis/engine.py``, ``analysis/fitresult.py``);
 :class:`Analysis` is ``ballbar analyze --json`` (a test body with ``source``);
 :class:`CircleResult` and :class:`TestResult` are the daemon's
 ``ballbar/<m>/result/circle`` and ``result/test`` (the body plus the daemon's
@@ -477,6 +477,27 @@ class CircleBody(TypedDict):
     warnings: NotRequired[Warnings]
 
 
+class DropoutCost(TypedDict):
+    """what a drop-out costs one pattern"""
+
+    pattern: Annotated[str, doc("the pattern's name (backlash_x, squareness, ...)")]
+    stderr_factor: Annotated[float, doc("its standard errors over what they would be with the lost samples "
+                                        "present, the largest of its parameters'", minimum=1)]
+
+
+class Dropout(TypedDict):
+    """samples lost inside the test, on a clock that ran on (analysis/README.md, "Drop-outs")"""
+
+    t_s: Annotated[float, doc("the time of the last sample before the gap", "s")]
+    duration_s: Annotated[float, doc("the time lost, beyond one sample period", "s")]
+    samples_missing: Annotated[int, doc("about how many samples that is, at the median period", minimum=0)]
+    direction: Annotated[Literal["ccw", "cw"] | None, doc("the data arc the gap falls in", null="in none")]
+    from_deg: Annotated[float | None, doc("the commanded angle where the gap begins", "deg", null="in no data arc")]
+    to_deg: Annotated[float | None, doc("the commanded angle where it ends", "deg", null="in no data arc")]
+    arc_fraction: Annotated[float, doc("the part of that data arc lost, 0..1", minimum=0, maximum=1)]
+    cost: NotRequired[Annotated[list[DropoutCost], doc("per pattern, what the gap costs its standard error")]]
+
+
 class TestBody(TypedDict):
     """A test's result as the analysis makes it: the whole test, on its own timing."""
 
@@ -497,6 +518,7 @@ class TestBody(TypedDict):
     standards: NotRequired[Standards]
     noise: Noise
     samples: SamplesUsed
+    dropouts: NotRequired[Annotated[list[Dropout], doc("drop-outs the test was analysed across (none: no field)")]]
     verdict: NotRequired[Annotated[Verdict, doc("with [limits] on: pass, warning or fail against each limit")]]
 
 

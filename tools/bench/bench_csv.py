@@ -38,9 +38,11 @@ from typing import Any
 
 from ballbar.analysis.plan import TestPlan
 from ballbar.daemon import procfs
-from ballbar.tools.simulator import MachineModel, iter_tests, write_csv
+from ballbar.tools.simulator import MachineModel, iter_tests
 
 # Each run records its own peak (VmHWM) as it exits: the rusage of a child counts the parent's pages it
+from ballbar.tools.simulator_cli import write_csv
+
 # was forked with.
 _PEAK = """
 import atexit, os

@@ -53,478 +53,48 @@ import json
 import logging
 import math
 import os
-import queue
-import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import IO, Any
+from typing import Any
 
+from ballbar.daemon import procfs
 from ballbar.daemon.analysis_worker import WORKER, child_role
+from ballbar.tools.bench.daemon_children import Child, Notify, daemon_main, free_port, reader_main, subscriber_main
+from ballbar.tools.bench.daemon_usage import (
+    CLK_TCK,
+    ProcSnapshot,
+    _restarts,
+    descendants,
+    distribution,
+    rss_mib,
+    rss_summary,
+    slope_per_min,
+    snapshot,
+    usage,
+)
 
 log = logging.getLogger("ballbar.bench_daemon")
 
 MACHINE = "bench"
 DEFAULT_RATES = (15.625, 1000.0, 10000.0)
 OUTPUTS = ("mcap", "zenoh", "rerun")
-PORTS = range(7700, 7800)
 # The issue's goals for the daemon's CPU (% of one core, x1) and result latency (1 kHz at x20).
 CPU_GOAL_PCT = {15.625: 2.0, 1000.0: 5.0, 10000.0: 8.0}
 LATENCY_GOAL_P99_MS = {"circle": 50.0, "test": 250.0}
 FALLBACK_TEST_PERIOD_S = 160.0
 ANALYSIS_WORKER = f"daemon child {WORKER}"  # the daemon's child that fits each test: its CPU is the daemon's too
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 SLOWEST = 12  # the slowest results listed per kind, with when they came
 
 
-# ----------------------------------------------------------------------------- /proc
-
-
-@dataclass(frozen=True)
-class TaskTimes:
-    """One thread's counters: CPU ticks (utime + stime) and context switches."""
-
-    comm: str
-    ticks: int
-    voluntary: int
-    nonvoluntary: int
-
-
-@dataclass
-class ProcSnapshot:
-    """One process at one moment: its CPU ticks (the whole thread group, exited threads included),
-    resident memory and each live thread's counters."""
-
-    pid: int
-    t: float  # time.monotonic() when taken
-    comm: str
-    ticks: int
-    rss_kib: int
-    tasks: dict[int, TaskTimes] = field(default_factory=dict)
-
-
-def parse_stat(text: str) -> tuple[str, int]:
-    """``/proc/.../stat``: the name (``comm``, which may hold spaces and parentheses) and utime + stime in ticks."""
-    lpar, rpar = text.index("("), text.rindex(")")
-    rest = text[rpar + 2:].split()  # rest[0] is field 3 (state): field n is rest[n - 3]
-    return text[lpar + 1:rpar], int(rest[11]) + int(rest[12])
-
-
-def parse_status(text: str) -> dict[str, int]:
-    """The numeric fields of ``/proc/.../status`` this bench reads (``VmRSS`` in KiB)."""
-    out: dict[str, int] = {}
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        if key in ("VmRSS", "Threads", "voluntary_ctxt_switches", "nonvoluntary_ctxt_switches"):
-            out[key] = int(value.split()[0])
-    return out
-
-
-def _read(path: str) -> str:
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        return fh.read()
-
-
-def snapshot(pid: int) -> ProcSnapshot | None:
-    """The process's counters now, or ``None`` if it has gone."""
-    t = time.monotonic()
-    try:
-        comm, ticks = parse_stat(_read(f"/proc/{pid}/stat"))
-        rss = parse_status(_read(f"/proc/{pid}/status")).get("VmRSS", 0)
-        tids = os.listdir(f"/proc/{pid}/task")
-    except (OSError, ValueError, IndexError):
-        return None
-    snap = ProcSnapshot(pid, t, comm, ticks, rss)
-    for name in tids:
-        base = f"/proc/{pid}/task/{name}"
-        try:
-            tcomm, tticks = parse_stat(_read(f"{base}/stat"))
-            st = parse_status(_read(f"{base}/status"))
-        except (OSError, ValueError, IndexError):
-            continue  # the thread exited meanwhile
-        snap.tasks[int(name)] = TaskTimes(
-            tcomm, tticks, st.get("voluntary_ctxt_switches", 0), st.get("nonvoluntary_ctxt_switches", 0)
-        )
-    return snap
-
-
-def rss_mib(pid: int) -> float | None:
-    try:
-        return parse_status(_read(f"/proc/{pid}/status"))["VmRSS"] / 1024.0
-    except (OSError, ValueError, KeyError):
-        return None
-
-
-def descendants(pid: int) -> list[int]:
-    """Children, grandchildren, ... of ``pid`` (``/proc/PID/task/*/children``)."""
-    out: list[int] = []
-    todo = [pid]
-    while todo:
-        p = todo.pop()
-        with contextlib.suppress(OSError):
-            for tid in os.listdir(f"/proc/{p}/task"):
-                with contextlib.suppress(OSError, ValueError):
-                    kids = [int(k) for k in _read(f"/proc/{p}/task/{tid}/children").split()]
-                    out += kids
-                    todo += kids
-    return out
-
-
-def usage(a: ProcSnapshot, b: ProcSnapshot) -> dict[str, Any]:
-    """CPU (% of one core) and context switches per second between two snapshots of one process,
-    in total and per thread name (threads of one name summed; a thread born inside the window
-    counts from zero; one that exited inside it counts only in the process's CPU)."""
-    dt = b.t - a.t
-    if dt <= 0:
-        raise ValueError("snapshots out of order")
-    zero = TaskTimes("", 0, 0, 0)
-    groups: dict[str, dict[str, float]] = {}
-    vol = nonvol = 0
-    for tid, tb in b.tasks.items():
-        ta = a.tasks.get(tid, zero)
-        d_ticks, d_vol, d_non = tb.ticks - ta.ticks, tb.voluntary - ta.voluntary, tb.nonvoluntary - ta.nonvoluntary
-        vol += d_vol
-        nonvol += d_non
-        g = groups.setdefault(tb.comm, {"threads": 0, "ticks": 0, "voluntary": 0, "nonvoluntary": 0})
-        g["threads"] += 1
-        g["ticks"] += d_ticks
-        g["voluntary"] += d_vol
-        g["nonvoluntary"] += d_non
-    threads: list[dict[str, Any]] = [
-        {
-            "name": name, "threads": int(g["threads"]),
-            "cpu_pct": 100.0 * g["ticks"] / CLK_TCK / dt,
-            "ctx_per_s": (g["voluntary"] + g["nonvoluntary"]) / dt,
-            "voluntary_per_s": g["voluntary"] / dt, "nonvoluntary_per_s": g["nonvoluntary"] / dt,
-        }
-        for name, g in groups.items()
-    ]
-    threads.sort(key=lambda r: (-r["cpu_pct"], -r["ctx_per_s"], r["name"]))
-    return {
-        "pid": b.pid, "comm": b.comm, "seconds": dt,
-        "cpu_pct": 100.0 * (b.ticks - a.ticks) / CLK_TCK / dt,
-        "ctx_per_s": (vol + nonvol) / dt, "voluntary_per_s": vol / dt, "nonvoluntary_per_s": nonvol / dt,
-        "threads_start": len(a.tasks), "threads_end": len(b.tasks),
-        "threads_exited": len(set(a.tasks) - set(b.tasks)), "threads_born": len(set(b.tasks) - set(a.tasks)),
-        "threads": threads,
-    }
-
-
-# ----------------------------------------------------------------------------- statistics
-
-
-def slope_per_min(t_s: Sequence[float], y: Sequence[float]) -> float | None:
-    """Least-squares slope of ``y`` against ``t_s`` (seconds), per minute; None with fewer than 3 points."""
-    import numpy as np
-
-    t = np.asarray(t_s, float)
-    v = np.asarray(y, float)
-    ok = np.isfinite(t) & np.isfinite(v)
-    if ok.sum() < 3 or np.ptp(t[ok]) <= 0:
-        return None
-    return float(np.polyfit(t[ok] / 60.0, v[ok], 1)[0])
-
-
-def distribution(values: Iterable[float | None]) -> dict[str, Any]:
-    """n, min, median, p99, max and mean of the finite values (p99 interpolated: with few values it is
-    close to the largest)."""
-    import numpy as np
-
-    v = np.array([x for x in values if x is not None and math.isfinite(x)], float)
-    if v.size == 0:
-        return {"n": 0}
-    return {
-        "n": int(v.size), "min": float(v.min()), "median": float(np.median(v)),
-        "p99": float(np.percentile(v, 99)), "max": float(v.max()), "mean": float(v.mean()),
-    }
-
-
-def _restarts(statuses: Sequence[dict[str, Any]], t0: float) -> list[float]:
-    """When (s from ``t0``, the status that first showed it) the daemon's Rerun server was restarted."""
-    out, last = [], None
-    for st in statuses:
-        n = (st.get("rerun_server") or {}).get("restarts")
-        if isinstance(n, int):
-            if last is not None and n > last:
-                out.append(round(st["rx"] - t0, 1))
-            last = n
-    return out
-
-
-def rss_summary(t_s: Sequence[float], mib: Sequence[float]) -> dict[str, Any]:
-    if not t_s:
-        return {"samples": 0}
-    return {
-        "samples": len(t_s), "start_mib": mib[0], "end_mib": mib[-1], "max_mib": max(mib),
-        "slope_mib_per_min": slope_per_min(t_s, mib),
-    }
-
-
-# ----------------------------------------------------------------------------- helper processes
-
-
-def _stop_on_signals(stop: threading.Event) -> None:
-    def handler(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGTERM, handler)
-    signal.signal(signal.SIGINT, handler)
-
-
-def _stop_on_stdin_eof(stop: threading.Event) -> None:
-    def watch() -> None:
-        with contextlib.suppress(OSError, ValueError):
-            while os.read(sys.stdin.fileno(), 4096):
-                pass
-        stop.set()
-
-    threading.Thread(target=watch, name="stdin-eof", daemon=True).start()
-
-
-def _say(obj: dict[str, Any]) -> None:
-    sys.stdout.write(json.dumps(obj, separators=(",", ":")) + "\n")
-    sys.stdout.flush()
-
-
-def subscriber_main(endpoint: str, machine: str) -> int:
-    """The latency probe: a Zenoh client of the daemon, one JSON line per result, status and event.
-
-    The receipt time is taken first thing in Zenoh's callback; parsing happens on the main thread.
-    """
-    import zenoh
-
-    from ballbar.daemon.bus import ZenohConfig
-
-    stop = threading.Event()
-    _stop_on_signals(stop)
-    _stop_on_stdin_eof(stop)
-    inbox: queue.SimpleQueue[tuple[float, str, bytes]] = queue.SimpleQueue()
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        inbox.put((time.monotonic(), str(sample.key_expr), sample.payload.to_bytes()))
-
-    session = zenoh.open(ZenohConfig(mode="client", connect=[endpoint]).to_zenoh_config())
-    subs = [session.declare_subscriber(f"ballbar/{machine}/{k}", on_sample) for k in ("result/*", "status", "event")]
-    _say({"k": "ready"})
-    try:
-        while not stop.is_set():
-            try:
-                rx, key, payload = inbox.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            try:
-                msg = json.loads(payload)
-            except ValueError:
-                continue
-            kind = msg.get("kind")
-            if kind in ("circle", "test"):
-                _say({
-                    "k": kind, "rx": rx, "last_sample_t_host": msg.get("last_sample_t_host"),
-                    "t_host": msg.get("t_host"), "latency_ms": msg.get("latency_ms"),
-                    "test_id": msg.get("test_id"), "direction": msg.get("direction"), "bytes": len(payload),
-                })
-            elif kind == "status":
-                outputs = msg.get("outputs") or {}
-                _say({
-                    "k": "status", "rx": rx, "samples": msg.get("samples"), "lost_samples": msg.get("lost_samples"),
-                    "sample_rate_hz": msg.get("sample_rate_hz"), "queues": msg.get("queues") or {},
-                    "fit_latency_ms": (msg.get("analysis") or {}).get("fit_latency_ms"),
-                    "mcap": {k: v for k, v in (outputs.get("mcap") or {}).items()
-                             if k in ("samples_lost", "messages_lost", "write_errors", "pending_samples")},
-                    "zenoh": {k: v for k, v in (outputs.get("zenoh") or {}).items()
-                              if k in ("slow_puts", "put_errors", "skipped", "history")},
-                    "rerun_server": {k: v for k, v in ((outputs.get("rerun") or {}).get("server") or {}).items()
-                                     if k in ("restarts", "rss_kills")},
-                })
-            elif kind == "event":
-                _say({"k": "event", "rx": rx, "event": msg.get("event"), "key": key})
-    finally:
-        for sub in subs:
-            with contextlib.suppress(Exception):
-                sub.undeclare()
-        with contextlib.suppress(Exception):
-            session.close()
-    return 0
-
-
-def reader_main(kind: str, target: str) -> int:
-    """The baseline: read the device's pty and decode its frames, nothing else.
-
-    ``raw``: pyserial ``read`` with a 20 ms timeout (the daemon's batching period) and the
-    protocol's :class:`~ballbar.protocol.BinaryDecoder`; ``source``: the daemon's own
-    ``open_source(url)`` and ``read``, with no outputs.  On stop: one line with the counts.
-    """
-    stop = threading.Event()
-    _stop_on_signals(stop)
-    _stop_on_stdin_eof(stop)
-    samples = nbytes = 0
-    if kind == "raw":
-        import serial
-
-        from ballbar.protocol import BinaryDecoder
-
-        port = serial.serial_for_url(target, baudrate=2_000_000, timeout=0.02, exclusive=True)
-        decoder = BinaryDecoder()
-        _say({"k": "ready"})
-        try:
-            while not stop.is_set():
-                data = port.read(1 << 16)
-                if data:
-                    nbytes += len(data)
-                    samples += len(decoder.feed(data))
-        finally:
-            port.close()
-    else:
-        from ballbar.daemon.sources import open_source
-
-        src = open_source(target)
-        _say({"k": "ready"})
-        try:
-            while not stop.is_set():
-                batch = src.read(timeout=0.2)
-                if batch is not None:
-                    samples += len(batch)
-            nbytes = int(src.stats().bytes_read)
-        finally:
-            src.close()
-    _say({"k": "done", "samples": samples, "bytes": nbytes})
-    return 0
-
-
-def _comm_name(name: str) -> str:
-    """A Python thread's name as a kernel ``comm`` (at most 15 bytes), its telling part kept."""
-    name = name.replace("listener-", "L-").replace("ThreadPoolExecutor-", "pool-")
-    m = re.fullmatch(r"Thread-\d+ \((.+)\)", name)
-    if m:
-        name = "T-" + m.group(1)
-    return name.encode("utf-8", "replace")[:15].decode("utf-8", "ignore") or "thread"
-
-
-def _set_comm(name: str) -> None:
-    with contextlib.suppress(OSError), open("/proc/thread-self/comm", "w", encoding="utf-8") as fh:
-        fh.write(_comm_name(name))
-
-
-def daemon_main(argv: list[str]) -> int:
-    """``ballbar run`` with each Python thread's name copied to its kernel name (for the per-thread table)."""
-    boot = threading.Thread._bootstrap_inner  # type: ignore[attr-defined]
-
-    def named_boot(self: threading.Thread) -> None:
-        _set_comm(self.name)
-        boot(self)
-
-    threading.Thread._bootstrap_inner = named_boot  # type: ignore[attr-defined]
-    _set_comm("main")
-    from ballbar.daemon.cli import main
-
-    return main(argv)
-
-
-class Child:
-    """A helper process that speaks JSON lines on stdout, read by a thread of ours."""
-
-    def __init__(self, name: str, argv: list[str], stderr: IO[bytes] | int | None,
-                 on_line: Callable[[dict[str, Any]], None] | None = None) -> None:
-        self.name = name
-        self.lines: list[dict[str, Any]] = []
-        self._on_line = on_line
-        self._cv = threading.Condition()
-        self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=stderr)
-        self._thread = threading.Thread(target=self._pump, name=f"bench-{name}", daemon=True)
-        self._thread.start()
-
-    def _pump(self) -> None:
-        assert self.proc.stdout is not None
-        for raw in self.proc.stdout:
-            try:
-                obj = json.loads(raw)
-            except ValueError:
-                continue
-            if self._on_line is not None:
-                self._on_line(obj)
-            with self._cv:
-                self.lines.append(obj)
-                self._cv.notify_all()
-        with self._cv:
-            self._cv.notify_all()
-
-    def wait_line(self, kind: str, timeout: float) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        with self._cv:
-            while True:
-                for obj in self.lines:
-                    if obj.get("k") == kind:
-                        return obj
-                left = deadline - time.monotonic()
-                if left <= 0 or (self.proc.poll() is not None and not self._thread.is_alive()):
-                    raise RuntimeError(f"{self.name}: no {kind!r} line within {timeout:g} s "
-                                       f"(exit code {self.proc.poll()})")
-                self._cv.wait(min(left, 0.5))
-
-    def stop(self, timeout: float = 10.0) -> int | None:
-        """Close its stdin (its signal to finish), wait, kill it if it will not go."""
-        if self.proc.stdin is not None:
-            with contextlib.suppress(OSError):
-                self.proc.stdin.close()
-        try:
-            self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(timeout)
-        self._thread.join(timeout)
-        return self.proc.returncode
-
-
-class Notify:
-    """A ``NOTIFY_SOCKET`` for the daemon: when it said READY=1."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = str(path)
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind(self.path)
-        self.sock.settimeout(0.25)
-
-    def wait_ready(self, proc: subprocess.Popen[bytes], timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            with contextlib.suppress(TimeoutError, OSError):
-                if b"READY=1" in self.sock.recv(4096).split(b"\n"):
-                    return
-            if proc.poll() is not None:
-                raise RuntimeError(f"the daemon exited with code {proc.returncode} before READY=1")
-        raise RuntimeError(f"the daemon did not send READY=1 within {timeout:g} s")
-
-    def close(self) -> None:
-        self.sock.close()
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(self.path)
-
-
-_ports_taken: set[int] = set()
-
-
-def free_port() -> int:
-    """A free TCP port on loopback within 7700-7799 (the bench's range)."""
-    for port in PORTS:
-        if port in _ports_taken:
-            continue
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-        _ports_taken.add(port)
-        return port
-    raise RuntimeError(f"no free port in {PORTS.start}-{PORTS.stop - 1}")
 
 
 # ----------------------------------------------------------------------------- one rate
@@ -534,7 +104,8 @@ def schedule_period_s(cfg: Any) -> float:
     """Device seconds from one test's first sample to the next's (the simulated device's schedule)."""
     try:
         from ballbar.tools.simulate import SIM_MACHINE, simdevice_args
-        from ballbar.tools.simulator import MachineModel, iter_tests, parse_set
+        from ballbar.tools.simulator import MachineModel, iter_tests
+        from ballbar.tools.simulator_cli import parse_set
 
         argv = simdevice_args(cfg, 1.0)
         gap = float(argv[argv.index("--gap-s") + 1])
@@ -677,7 +248,7 @@ class Measurement:
         for kid in descendants(self.daemon.pid):
             name = str(kid)
             with contextlib.suppress(OSError, ValueError, IndexError):
-                name = parse_stat(_read(f"/proc/{kid}/stat"))[0]
+                name = procfs.stat(kid)[0]
             role = f"daemon child {child_role(kid) or name}"
             out[role if role not in out else f"{role} [{kid}]"] = kid
         if self.reader is not None and self.base_dev is not None:

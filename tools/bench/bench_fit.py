@@ -40,7 +40,8 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ballbar.analysis import TestPlan  # noqa: E402
-from ballbar.tools.simulator import MachineModel, simulate, write_csv  # noqa: E402
+from ballbar.tools.simulator import MachineModel, simulate  # noqa: E402
+from ballbar.tools.simulator_cli import write_csv  # noqa: E402
 
 MACHINE = MachineModel(
     centre_x_um=12.0, backlash_x_um=4.0, backlash_y_um=2.0, kv_y_per_s=32.0, master_slave_a_um=1.0,

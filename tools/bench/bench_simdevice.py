@@ -58,15 +58,24 @@ def proc_wakes(pid: int) -> int:
 
 
 def baseline_script(rev: str, directory: str) -> list[str]:
-    """``tools/simdevice.py`` as committed at ``rev``, written to ``directory``; the command that runs it."""
+    """``tools/simdevice.py`` as committed at ``rev``, with the modules of ``tools/`` beside it that it imports
+    (the device is three modules: :mod:`.simdevice`, :mod:`.simbar`, :mod:`.simfeed`), written to ``directory`` as
+    the package ``baseline`` (their imports of ``ballbar.tools.X`` made ``baseline.X``); the command that runs it."""
     root = Path(__file__).resolve().parent.parent
-    text = subprocess.run(
-        ["git", "-C", str(root), "show", f"{rev}:tools/simdevice.py"], check=True, capture_output=True
-    ).stdout
-    path = os.path.join(directory, "simdevice_baseline.py")
-    with open(path, "wb") as f:
-        f.write(text)
-    return [sys.executable, path]
+    names = subprocess.run(
+        ["git", "-C", str(root), "ls-tree", "--full-tree", "--name-only", rev, "tools/"],
+        check=True, capture_output=True, text=True,
+    ).stdout.split()
+    package = os.path.join(directory, "baseline")
+    os.makedirs(package, exist_ok=True)
+    with open(os.path.join(package, "__init__.py"), "wb"):
+        pass
+    for name in (n for n in names if n.endswith(".py") and n != "tools/__init__.py"):
+        text = subprocess.run(["git", "-C", str(root), "show", f"{rev}:{name}"], check=True, capture_output=True).stdout
+        with open(os.path.join(package, os.path.basename(name)), "wb") as f:
+            f.write(text.replace(b"ballbar.tools.", b"baseline."))  # REV's own modules, not the installed ones
+    run = f"import runpy, sys; sys.path.insert(0, {directory!r}); runpy.run_module('baseline.simdevice', "
+    return [sys.executable, "-c", run + "run_name='__main__')"]
 
 
 def _line(fd: int, buf: bytearray, deadline: float) -> str:
