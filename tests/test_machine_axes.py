@@ -22,7 +22,7 @@ from ballbar.analysis.plans import PlanLibrary
 from ballbar.daemon import config as cfgmod
 from ballbar.daemon.cli import main
 from ballbar.tools.machine3d import Machine3D, set_tests
-from ballbar.tools.simulator import write_csv
+from ballbar.tools.simulator_cli import write_csv
 
 KV = {"X": 30.0, "Y": 36.0, "Z": 24.0}  # distinct: a plan given another plane's pair shows it
 MACHINE = Machine3D.from_settings({"kv_x_per_s": KV["X"], "kv_y_per_s": KV["Y"], "kv_z_per_s": KV["Z"],
