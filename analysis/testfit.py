@@ -97,6 +97,8 @@ SERVO_VAR_SHARE = 0.3  # each axis' loop variance in time known to this share of
 SERVO_MEAN_SHARE = 0.5  # ... and the two axes' mean to this share
 POINT_APERTURES = (0.2, 0.03)  # the last stage integrates the sharp features over these shares of a sample's
 # interval in turn
+MODEL_ERROR_UM = 0.005  # the model's own error, of each pattern's largest radial effect (analysis/README.md,
+# "Uncertainty"): a floor its standard error keeps at any sample count
 FINE_TRIM_S = 0.03  # the fine stage's data arcs, trimmed for timings within this of the coarse stage's
 
 
@@ -661,9 +663,15 @@ class TestFit:
         servo_cov, servo_note = self._servo_cov(fit, theta, V)
         if servo_cov is not None:
             timing_cov = servo_cov if timing_cov is None else timing_cov + servo_cov
+        model_cov = self._model_cov(fit, colmax)
+        timing_cov = model_cov if timing_cov is None else timing_cov + model_cov
         res = self._solve_report(obj, theta, factor, colmax, rho, timing_cov)
         if servo_note:
             res["fit"]["uncertainty_method"] += servo_note
+        res["fit"]["uncertainty_method"] += (
+            f"; and every parameter's holds the model's own error, {MODEL_ERROR_UM:g} um of its largest radial "
+            "effect (what the model leaves of the machine at any sample count)"
+        )
         fit_final = res.pop("_fit")
         all_r = np.concatenate(residuals) if residuals else np.empty(0)
         rms = float(np.sqrt(np.mean(all_r**2))) if all_r.size else math.nan
@@ -802,6 +810,22 @@ class TestFit:
             for p in self.patterns:
                 if p.reversal is not None and p.reversal[0] == axis:
                     self.exclude.setdefault(p.name, why)
+
+    def _model_cov(self, fit: FitResult, colmax: np.ndarray) -> np.ndarray:
+        """The model's own error: each pattern's coefficient known to no better than ``MODEL_ERROR_UM`` of its
+        largest radial effect over the data (``colmax``: um per unit), however many samples fix it.  The
+        corrections, the timing and the loops' shapes are models: what they leave grows with the sample count
+        against the fit's own standard error (at 1 kHz 0.003 um of lost motion), and two tests of one axis would
+        then disagree by many of them on a consistent machine.  The loops' own properties carry none."""
+        cov = np.zeros((fit.x.size, fit.x.size))
+        slices = fit.column_slices()
+        for p in fit.patterns:
+            if p.kind == "loop" or p.name not in slices:
+                continue
+            for j in range(slices[p.name].start, slices[p.name].stop):
+                if j < colmax.size and colmax[j] > 0:
+                    cov[j, j] = (MODEL_ERROR_UM / colmax[j]) ** 2
+        return cov
 
     def _servo_cov(self, fit: FitResult, theta: Theta, V: float) -> tuple[np.ndarray | None, str]:
         """The scale mismatch's and the radius' covariance through what one circle cannot tell of the axes'
