@@ -65,7 +65,7 @@ from .search import (
     make_bins,
     minimise,
 )
-from .validity import check_model, reading_step, sensor_noise
+from .validity import check_model, quantisation_bias, reading_step, sensor_noise
 
 LAG_PRIOR_S = 0.05  # prior on the arc-start lag: where the data cannot see it, it stays near the feed-in's shape's
 WAIT_PRIOR_S = 0.1  # ... and on the feed-in's extra wait
@@ -664,6 +664,7 @@ class TestFit:
         if servo_cov is not None:
             timing_cov = servo_cov if timing_cov is None else timing_cov + servo_cov
         model_cov = self._model_cov(fit, colmax)
+        bias = self.quantisation_bias_um(fit)
         timing_cov = model_cov if timing_cov is None else timing_cov + model_cov
         res = self._solve_report(obj, theta, factor, colmax, rho, timing_cov)
         if servo_note:
@@ -671,6 +672,8 @@ class TestFit:
         res["fit"]["uncertainty_method"] += (
             f"; and every parameter's holds the model's own error, {MODEL_ERROR_UM:g} um of its largest radial "
             "effect (what the model leaves of the machine at any sample count)"
+            + (f", or the mean quantisation error that follows the signal where larger ({bias:.2g} um: readings on "
+               f"{self.step_um:.3g} um steps)" if bias > MODEL_ERROR_UM else "")
         )
         fit_final = res.pop("_fit")
         all_r = np.concatenate(residuals) if residuals else np.empty(0)
@@ -817,6 +820,7 @@ class TestFit:
         corrections, the timing and the loops' shapes are models: what they leave grows with the sample count
         against the fit's own standard error (at 1 kHz 0.003 um of lost motion), and two tests of one axis would
         then disagree by many of them on a consistent machine.  The loops' own properties carry none."""
+        floor = max(MODEL_ERROR_UM, self.quantisation_bias_um(fit))
         cov = np.zeros((fit.x.size, fit.x.size))
         slices = fit.column_slices()
         for p in fit.patterns:
@@ -824,8 +828,16 @@ class TestFit:
                 continue
             for j in range(slices[p.name].start, slices[p.name].stop):
                 if j < colmax.size and colmax[j] > 0:
-                    cov[j, j] = (MODEL_ERROR_UM / colmax[j]) ** 2
+                    cov[j, j] = (floor / colmax[j]) ** 2
         return cov
+
+    def quantisation_bias_um(self, fit: FitResult) -> float:
+        """The mean quantisation error that follows the signal (:func:`.validity.quantisation_bias`), at the
+        gauge's own noise the residual leaves once the quantisation's ``step^2 / 12`` is taken off it."""
+        if not self.step_um > 0:
+            return 0.0
+        own = math.sqrt(max(fit.sigma**2 - self.step_um**2 / 12.0, 0.0)) if math.isfinite(fit.sigma) else 0.0
+        return quantisation_bias(self.step_um, own)
 
     def _servo_cov(self, fit: FitResult, theta: Theta, V: float) -> tuple[np.ndarray | None, str]:
         """The scale mismatch's and the radius' covariance through what one circle cannot tell of the axes'
