@@ -202,7 +202,10 @@ class LevelChange(TypedDict):
 class Checks(TypedDict):
     """the checks that the model describes the test (analysis/README.md, 'When the model does not fit')"""
 
-    sensor_noise_um: Annotated[float | None, doc("the sensor's white noise from the samples alone", "um")]
+    sensor_noise_um: Annotated[float | None, doc("the sensor's white noise from the samples alone, at least the "
+                                                 "quantisation noise of reading_step_um / sqrt(12)", "um")]
+    reading_step_um: Annotated[float | None, doc("the step (resolution) the readings sit on", "um",
+                                                 null="not quantised")]
     residual_rms_um: Annotated[float | None, doc("the fit's residual", "um")]
     last_arc_feed_ratio: Annotated[float | None, doc("the last arc's feed against the first's, as the residual tells "
                                                      "it", null="one direction")]
