@@ -39,6 +39,7 @@ from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
 
 from .mcap import McapLog, mcap_files, read_log, read_logs, recording
+from .mcap.reader import warn_once
 from .recordings import Outcome, analyze, config_sections, outcomes, recorded_library, with_source
 from .samples import Recording
 
@@ -100,6 +101,7 @@ class TestIndex:
     path: str
     files: list[LogFile]
     tests: list[RecordedTest] = field(default_factory=list)
+    problems: dict[str, str] = field(default_factory=dict)  # a file's path: how it ends early or is damaged
 
     def results(self) -> list[dict[str, Any]]:
         """Every result recorded (circle and test), in file order: the history a report's trend draws on."""
@@ -183,9 +185,10 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
         paths = [Path(name)]
     files: list[LogFile] = []
     runs: list[str] = []
+    problems: dict[str, str] = {}
     for p in paths:
         try:
-            lg = read_log(p, samples=False)
+            lg = read_log(p, samples=False, warn=False)
         except BallbarError as err:
             if len(paths) == 1:
                 raise
@@ -196,7 +199,9 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
         if not runs or runs[-1] != run:
             runs.append(run)
         files.append(LogFile(p, len(runs) - 1, lg.metadata, lg.config, lg.events, lg.results))
-    index = TestIndex(name, files)
+        if lg.problem:
+            problems[os.fspath(p)] = lg.problem
+    index = TestIndex(name, files, problems=problems)
     by_key: dict[tuple[int, str], RecordedTest] = {}
     for fi, f in enumerate(files):
         for ev in f.events:
@@ -238,6 +243,9 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
         end = last_of_run[test.run] if test.status == "incomplete" else test.files[-1]
         test.files = list(range(test.files[0], end + 1))
     index.tests = list(by_key.values())
+    if index.tests or len(paths) > 1:  # (one file without tests: its samples are read next, which says it)
+        for where, problem in problems.items():
+            warn_once(where, problem)
     return index
 
 
