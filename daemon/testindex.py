@@ -90,6 +90,7 @@ class RecordedTest:
     message: str = NO_OUTCOME
     result: dict[str, Any] | None = None
     plan: str | None = None  # the plan's name (a library of several: from its result or its feed-in)
+    chosen: str | None = None  # the plan a service chose for it live (control/next_plan), if one did
 
 
 @dataclass
@@ -203,13 +204,17 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
             problems[os.fspath(p)] = lg.problem
     index = TestIndex(name, files, problems=problems)
     by_key: dict[tuple[int, str], RecordedTest] = {}
+    choice: dict[int, str | None] = {}  # per daemon run: the plan chosen for its next test (plan_chosen events)
     for fi, f in enumerate(files):
         for ev in f.events:
+            what = ev.get("event")
+            if what == "plan_chosen":  # taken in order with the samples: it is the next feed-in's
+                choice[f.run] = ev.get("plan") if isinstance(ev.get("plan"), str) else None
+                continue
             tid = ev.get("test_id")
             if not isinstance(tid, str):
                 continue
             key = (f.run, tid)
-            what = ev.get("event")
             if what == "feed_in":
                 if key not in by_key:
                     t_s = ev.get("t_s")
@@ -217,6 +222,7 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
                         len(by_key) + 1, tid, ev.get("machine_id"), ev.get("t_wall"),
                         float(t_s) if isinstance(t_s, int | float) else None, ev.get("time_axis"), f.run, [fi],
                         plan=ev.get("plan") if isinstance(ev.get("plan"), str) else None,
+                        chosen=choice.pop(f.run, None),
                     )
                 continue
             test = by_key.get(key)
@@ -238,6 +244,8 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
                 test.status, test.message, test.result = "complete", "", r
                 named = (r.get("plan") or {}).get("name")
                 test.plan = named if isinstance(named, str) else test.plan
+                if (r.get("recognition") or {}).get("method") == "chosen" and isinstance(named, str):
+                    test.chosen = named
     last_of_run = {f.run: i for i, f in enumerate(files)}
     for test in by_key.values():
         end = last_of_run[test.run] if test.status == "incomplete" else test.files[-1]
@@ -267,7 +275,8 @@ def analyze_recorded(
     """Analyse one recorded test from the files that hold it (see the module docstring).
 
     ``library``: the plans its test may run (None: those its daemon run recorded, if any, else ``plan``
-    alone); ``chosen``: analysed as that plan of the library.
+    alone); ``chosen``: analysed as that plan of the library (None: the plan a service chose for it live,
+    :attr:`RecordedTest.chosen`, where the library has it; else recognised as live).
 
     Returns its result with ``source`` (``file``: its first file, ``files``,
     ``test_id``, ``machine_id``, ``time_axis``).  A test the analysis rejects,
@@ -275,6 +284,8 @@ def analyze_recorded(
     """
     if library is None:
         library = recorded_library(index.config_for(test))
+    if chosen is None and test.chosen is not None and library is not None and test.chosen in library.names:
+        chosen = test.chosen  # as live: the plan a service chose for it, whatever its signature or timing say
     tries = [test.files]
     before = test.files[0] - 1
     if before >= 0 and index.files[before].run == test.run:
