@@ -38,6 +38,7 @@ import datetime as dt
 import functools
 import logging
 import math
+import re
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -321,8 +322,9 @@ class LogListener(Listener):
     @staticmethod
     def _result(msg: CircleResult | TestResult) -> None:
         setup = ("centre", "radius")
-        ranked = [r for r in msg["ranking"] if r["significant"] and r["pattern"] not in setup]
-        top = ", ".join(_finding(msg, r["pattern"]) for r in ranked[:5]) or "nothing significant"
+        ranked = _per_axis_spikes([r["pattern"] for r in msg["ranking"] if r["significant"]
+                                   and r["pattern"] not in setup])
+        top = ", ".join(_finding(msg, p) for p in ranked[:5]) or "nothing significant"
         name = msg["plan"].get("name")
         of = f" of plan {name}" if name and name != "default" else ""  # a library of plans: which
         if msg["kind"] == "circle":
@@ -363,8 +365,30 @@ def event_sentence(msg: Mapping[str, Any]) -> str:
     return texts.get(name, f"event {name}: {detail or msg.get('message') or ''}".rstrip(": "))
 
 
+_SPIKE = re.compile(r"reversal_spike_([xy])_(?:pos|neg)_(?:ccw|cw)")
+
+
+def _per_axis_spikes(patterns: list[str]) -> list[str]:
+    """``patterns`` (ranked) with the eight reversal spikes as one entry per axis (``reversal_spike_x``), X before
+    Y, where the first of them ranked: which of an axis's four spikes ranks first is noise on an unchanged
+    machine, and the log line would name another each test."""
+    axes = sorted({m[1] for p in patterns if (m := _SPIKE.fullmatch(p))})
+    out: list[str] = []
+    for p in patterns:
+        if _SPIKE.fullmatch(p) is None:
+            out.append(p)
+        elif axes:
+            out += [f"reversal_spike_{a}" for a in axes]
+            axes = []
+    return out
+
+
 def _finding(msg: CircleResult | TestResult, pattern: str) -> str:
     params = parameter_map(msg["parameters"])
+    if pattern in ("reversal_spike_x", "reversal_spike_y"):  # the axis's largest spike, by size
+        spikes = [p["value"] for k, p in params.items() if _SPIKE.fullmatch(k[: -len("_um")])
+                  and k.startswith(pattern + "_") and p["value"] is not None and p["significant"]]
+        return f"{pattern}_max_um {max(spikes, key=abs):.3g}" if spikes else pattern
     keys = [k for k in params if k.startswith(pattern + "_") and params[k]["value"] is not None]
     if not keys:
         return pattern
