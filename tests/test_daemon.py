@@ -45,6 +45,8 @@ def test_defaults_load_and_layers_apply(tmp_path: Path) -> None:
         (["--set", "plan.radius_mm=-1"], "radius_mm must be > 0"),
         (["--set", 'zenoh.mode="satellite"'], "zenoh.mode must be peer, client or router"),
         (["--set", "queues.mcap=0"], "queues.mcap must be at least 1"),
+        (["--set", "zenoh.history_size=10000000000"], "zenoh.history_size must be within 1..10000"),
+        (["--set", "zenoh.history_size=1e10"], "zenoh.history_size must be a whole number"),
         (["--set", "daemon.status_interval_s=true"], "daemon.status_interval_s must be a number"),
     ],
 )
