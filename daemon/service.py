@@ -314,7 +314,8 @@ class LogListener(Listener):
         elif msg["kind"] == "set":
             log.info("%s set %s: %s", msg["machine_id"], msg["set_id"], msg["verdict"]["summary"])
         elif msg["kind"] == "event" and msg["event"] in (
-            "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
+            "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "counter_jump",
+            "test_rejected",
             "test_incomplete", "analysis_reset", "test_unrecognised", "plan_choice_refused",
         ):
             log.warning("%s", event_sentence(msg))
@@ -356,6 +357,8 @@ def event_sentence(msg: Mapping[str, Any]) -> str:
         "resumed": f"the source resumed after {gap_s} without bytes",
         "device_reset": f"the device restarted at sample {msg.get('seq')} ({detail})",
         "clock_jump": f"the device clock jumped {gap_s} at sample {msg.get('seq')}",
+        "counter_jump": f"the device's sample counter leapt {msg.get('count')} ahead at sample {msg.get('seq')} "
+                        "while its clock ran on (a counter fault: no sample lost)",
         "test_rejected": f"{test} rejected: {msg.get('message')}",
         "test_incomplete": f"{test} incomplete: {msg.get('message')}",
         "analysis_reset": f"the analysis restarted: {msg.get('message')}",
