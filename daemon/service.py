@@ -65,6 +65,7 @@ from .listeners import (
     PlanChoice,
     PlanControl,
     Sender,
+    StartsLate,
     Wake,
 )
 from .mcap import scaled_ints
@@ -555,6 +556,10 @@ class Daemon:
 
     def run(self, stop: threading.Event, max_tests: int | None = None, duration_s: float | None = None) -> int:
         """Read, fan out, report, until ``stop`` (or the limits) say so; then shut down cleanly."""
+        if stop.is_set():  # stopped during start-up: nothing announced, nothing recorded, the outputs closed
+            log.info("stopped during start-up, before it was ready")
+            self.shutdown()
+            return 0
         interval = self.cfg.daemon.status_interval_s
         if self.notifier.watchdog_s:
             interval = min(interval, self.notifier.watchdog_s / 2)
@@ -635,6 +640,9 @@ class Daemon:
         in parallel."""
         self.notifier.stopping()
         t0 = time.monotonic()
+        for q in self.outputs:
+            if isinstance(q.listener, StartsLate):
+                q.listener.cancel_start()  # not started now only to be stopped
         with contextlib.suppress(Exception):
             self.source.close()
         self.analysis_queue.close(timeout=budget_s * 0.4)

@@ -286,6 +286,38 @@ def test_sigterm_to_the_daemon_alone_ends_its_children(tmp_path: Path) -> None:
     assert "Traceback" not in log.read_text()
 
 
+def test_a_sigterm_during_start_up_stops_it_there(tmp_path: Path) -> None:
+    """SIGTERM while the outputs are being started (the bus's history is being seeded): exit 0 without going
+    on to READY, an MCAP file or the viewer; what had started (the bus, the simulated device) is closed."""
+    log = tmp_path / "daemon.log"
+    state = tmp_path / "state"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--state-dir", str(state),
+             "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', "--set", f"rerun.port={free_port()}",
+             "--set", 'daemon.log_level="debug"'],
+            stdout=out, stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + 60
+        while "zenoh: history seeded" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        kids = _descendants(proc.pid)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0, log.read_text()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log.read_text()
+    assert "stopped during start-up" in text, text[-2000:]
+    assert "ready: reading" not in text and "rerun server started" not in text, text[-2000:]
+    assert not list((state / "recordings").glob("*.mcap"))
+    assert "zenoh: session closed" in text and "Traceback" not in text, text[-2000:]
+    time.sleep(0.5)
+    assert not [k for k in kids if _alive(k)]
+
+
 def test_notify_never_blocks_when_nobody_reads(tmp_path: Path) -> None:
     from ballbar.daemon.systemd import Notifier
 
