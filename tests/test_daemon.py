@@ -318,6 +318,38 @@ def test_a_sigterm_during_start_up_stops_it_there(tmp_path: Path) -> None:
     assert not [k for k in kids if _alive(k)]
 
 
+def test_a_killed_daemon_leaves_no_semaphore_for_the_tracker_to_warn_of(tmp_path: Path) -> None:
+    """kill -9 of a daemon whose analysis worker is up: multiprocessing's resource tracker, which outlives it and
+    writes to the same journal, finds no semaphore of its to clean up (no "leaked semaphore objects" warning),
+    (the daemon unlinked their names once its worker had opened them)."""
+    log = tmp_path / "daemon.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--state-dir", str(tmp_path / "state"),
+             "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"', "--set", 'daemon.log_level="debug"'],
+            stdout=out, stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + 60
+        while "analysis worker: process" not in log.read_text() and proc.poll() is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "semaphore names unlinked" in log.read_text(), log.read_text()[-2000:]
+        kids = _descendants(proc.pid)
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and any(_alive(k) for k in kids):
+            time.sleep(0.1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    time.sleep(0.3)
+    text = log.read_text()
+    assert "leaked semaphore" not in text and "Traceback" not in text, text[-2000:]
+
+
 def test_notify_never_blocks_when_nobody_reads(tmp_path: Path) -> None:
     from ballbar.daemon.systemd import Notifier
 
