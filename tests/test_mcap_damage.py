@@ -98,12 +98,12 @@ def test_a_file_cut_to_its_magic_is_one_line_that_says_where_it_ends(recorded: P
     out = analyze(str(cut))
     assert out.returncode == 1 and out.stdout == ""
     (line,) = out.stderr.splitlines()
-    assert line.startswith(f"error: {cut}: no samples") and "ends at byte 8" in line, line
+    assert line.startswith(f"error: {cut}: no samples") and "ends early at byte 8" in line, line
     assert "killed" not in line
     listed = analyze(str(cut), "--list")
     assert listed.returncode == 0 and listed.stderr == ""
     (row,) = listed.stdout.splitlines()
-    assert row.startswith(f"{cut}: no test recorded") and "ends at byte 8" in row
+    assert row.startswith(f"{cut}: no test recorded") and "ends early at byte 8" in row
 
 
 def test_a_file_cut_in_a_record_says_at_which_byte_once(recorded: Path, tmp_path: Path) -> None:

@@ -363,7 +363,7 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True, status: bool = True) 
         what = f"{sum(d.seq.size for d in decoded)} samples" if samples else f"{skipped_blocks} sample records"
         if walk.end >= walk.size:
             after = "its magic" if walk.size <= len(_MAGIC) else "a whole record"
-            problem = f"ends at byte {walk.size}, after {after}, without its footer ({what} before it)"
+            problem = f"ends early at byte {walk.size}, after {after}, without its footer ({what} before it)"
         else:
             problem = f"ends early: {_why_stopped(err)} at byte {walk.end} of {walk.size} ({what} before it)"
     if skipped:
