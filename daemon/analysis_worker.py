@@ -127,6 +127,36 @@ def child_role(pid: int) -> str | None:
     return None
 
 
+def _unlink_semaphore_names(pool: cf.ProcessPoolExecutor) -> int:
+    """Unlink the names of the pool's queue semaphores, once its child has opened them (it has when its first job
+    is back); how many.
+
+    Under ``spawn`` each semaphore has a name in /dev/shm until it is collected, for the child to open it by; a
+    daemon killed with SIGKILL leaves them to multiprocessing's resource tracker, which unlinks them and warns
+    of "leaked semaphore objects" in the journal each time.  Unlinked now (each semaphore lives on, open in both
+    processes), with the library's own clean-up (``SemLock._cleanup``: unlink, and tell the tracker), nothing
+    is left to leak.  The pool starts no other process (one worker, kept; a dead one means a new pool)."""
+    from multiprocessing import synchronize, util
+
+    names: set[str] = set()
+    for queue in (getattr(pool, "_call_queue", None), getattr(pool, "_result_queue", None)):
+        for attr in ("_rlock", "_wlock", "_sem"):
+            name = getattr(getattr(getattr(queue, attr, None), "_semlock", None), "name", None)
+            if isinstance(name, str):
+                names.add(name)
+    cleanup = getattr(synchronize.SemLock, "_cleanup", None)
+    done = 0
+    for fin in list(getattr(util, "_finalizer_registry", {}).values()):
+        args = getattr(fin, "_args", None)
+        if cleanup is not None and getattr(fin, "_callback", None) is cleanup and args and args[0] in names:
+            try:
+                fin()
+            except OSError as err:  # already gone: nothing to leak
+                log.debug("analysis worker: semaphore %s: %s", args[0], err)
+            done += 1
+    return done
+
+
 class AnalysisWorker(cf.Executor):
     """One child process for whole-test analyses; replaced when it dies.  See the module docstring."""
 
@@ -150,7 +180,9 @@ class AnalysisWorker(cf.Executor):
     def _started(self, fut: cf.Future[int]) -> None:
         if not fut.cancelled() and fut.exception() is None:
             self.pid = fut.result()
-            log.debug("analysis worker: process %d ready", self.pid)
+            pool = self._pool
+            unlinked = _unlink_semaphore_names(pool) if pool is not None else 0
+            log.debug("analysis worker: process %d ready (%d semaphore names unlinked)", self.pid, unlinked)
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> cf.Future[Any]:
         with self._lock:

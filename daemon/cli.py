@@ -31,12 +31,12 @@ BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
-    for var in BLAS_THREADS:
-        os.environ.setdefault(var, "1")
     stop = threading.Event()
     asked = subcommand(args)
     if asked == "run":
         _install_stop_handlers(stop)  # first: a SIGTERM from now on is a clean stop, exit 0
+    for var in BLAS_THREADS:
+        os.environ.setdefault(var, "1")
     from .commands import run_command
 
     return run_command(args, stop, asked)

@@ -482,11 +482,14 @@ def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
     from .recordings import analyze, load_recording, outcomes
 
     rows: list[dict[str, Any]]
+    why = ""
     if mcap:
         from .testindex import index_recordings
 
         index = index_recordings(args.file)
         rows = [index.describe(t) for t in index.tests]
+        if not rows and len(index.problems) == 1:
+            why = f" (it {next(iter(index.problems.values()))})"
     else:
         plan, machine, options, library, chosen = _configs_and_library(args, {})
         rows = [
@@ -500,7 +503,7 @@ def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
         sys.stdout.write("\n")
         return 0
     if not rows:
-        print(f"{args.file}: no test recorded")
+        print(f"{args.file}: no test recorded{why}")
     for r in rows:
         what = headline_text(r["headline"]) if r["headline"] else r["message"]
         if r.get("reportable") is False and r["headline"]:  # a result recorded, but not its samples

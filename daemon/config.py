@@ -57,6 +57,7 @@ if TYPE_CHECKING:  # the plans' module (numpy) comes in with a library: a single
 DEFAULT_FILE = Path(__file__).with_name("default.toml")
 SYSTEM_FILE = Path("/etc/ballbar/ballbar.toml")
 ENV_PREFIX = "BALLBAR__"
+HISTORY_SIZE_MAX = 10_000  # zenoh.history_size: five topics of up to this many results, some 10 to 20 kB each
 
 
 @dataclass
@@ -518,7 +519,9 @@ def _validate(cfg: Config) -> None:
         (cfg.rerun.tolerance_um > 0, f"rerun.tolerance_um must be > 0, not {cfg.rerun.tolerance_um}"),
         (cfg.rerun.magnification >= 0, f"rerun.magnification must be >= 0 (0: auto), not {cfg.rerun.magnification}"),
         (cfg.zenoh.samples_hz >= 0, f"zenoh.samples_hz must be 0 (off) or a positive rate, not {cfg.zenoh.samples_hz}"),
-        (cfg.zenoh.history_size >= 1, f"zenoh.history_size must be at least 1, not {cfg.zenoh.history_size}"),
+        (1 <= cfg.zenoh.history_size <= HISTORY_SIZE_MAX,
+         f"zenoh.history_size must be within 1..{HISTORY_SIZE_MAX} (each kept result is held in memory), "
+         f"not {cfg.zenoh.history_size}"),
         (cfg.zenoh.close_timeout_s > 0, f"zenoh.close_timeout_s must be > 0, not {cfg.zenoh.close_timeout_s}"),
         (
             cfg.mcap.rotate_mb * (1 << 20) >= 4096,

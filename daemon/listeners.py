@@ -151,6 +151,14 @@ class PlanControl(Protocol):
     def bind_control(self, choose: Callable[[str | None], None]) -> None: ...
 
 
+@runtime_checkable
+class StartsLate(Protocol):
+    """An output made on its own thread when the first item reaches it (the viewer): ``cancel_start`` at shutdown,
+    so that a stop does not start it only to stop it (what its queue still holds is dropped with it)."""
+
+    def cancel_start(self) -> None: ...
+
+
 class ListenerQueue:
     """A bounded queue and the thread that feeds one listener.
 

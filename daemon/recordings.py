@@ -113,7 +113,7 @@ def recorded_config(path: str | os.PathLike[str]) -> dict[str, Any]:
     files = mcap_files(path) if os.path.isdir(path) else [Path(path)]
     for f in reversed(files):
         try:
-            configs = read_log(f, samples=False).config
+            configs = read_log(f, samples=False, warn=False).config  # (the samples, read next, say how it ends)
         except BallbarError:
             continue  # read_recording reports what is wrong with the file
         if configs:

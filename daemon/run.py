@@ -32,12 +32,27 @@ log = logging.getLogger(__name__)
 SIM_STATE_DIR = "ballbar-state"
 
 
-def build_listeners(cfg: Config) -> list[tuple[Listener, int, DropPolicy]]:
+class StoppedInStartUp(Exception):
+    """A stop (SIGTERM, SIGINT) came while the outputs were being started: those started are stopped again."""
+
+
+def _stopped_in_start_up() -> int:
+    log.info("stopped during start-up, before it was ready")
+    return 0
+
+
+def build_listeners(cfg: Config, stop: threading.Event | None = None) -> list[tuple[Listener, int, DropPolicy]]:
     """The outputs the configuration turns on, each with its queue bound and drop policy.
 
     If one fails to start, those already started are stopped before the error
-    goes on: a Zenoh session left open would keep the process alive.
+    goes on: a Zenoh session left open would keep the process alive.  So they
+    are when ``stop`` is set between two of them (:class:`StoppedInStartUp`).
     """
+
+    def check() -> None:
+        if stop is not None and stop.is_set():
+            raise StoppedInStartUp
+
     out: list[tuple[Listener, int, DropPolicy]] = []
     try:
         loader: Callable[[], list[dict[str, Any]]] | None = None
@@ -46,6 +61,7 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, DropPolicy]]:
 
             logger = McapLogger.from_config(cfg)
             out.append((logger, cfg.queues.mcap, "drop_newest"))
+            check()
             spooled = [m for m in logger.spooled if m.get("kind") in ("circle", "test")]  # held by the last run
             loader = _chain(recorded_results(cfg), lambda: spooled)
         if cfg.limits_enabled:  # before the bus: its history/alert is seeded from the monitor's store
@@ -53,6 +69,7 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, DropPolicy]]:
 
             monitor = MonitorListener.from_config(cfg, seed=recorded_results(cfg) if cfg.mcap.enabled else None)
             out.append((monitor, 1000, "drop_newest"))
+            check()
             alerts = monitor.alert_history
             loader = _chain(loader, alerts) if loader is not None else alerts
         if cfg.to_dict().get("sets"):  # the sets' results, sent through the broadcast like the alerts
@@ -65,10 +82,12 @@ def build_listeners(cfg: Config) -> list[tuple[Listener, int, DropPolicy]]:
             from .bus import ZenohBus
 
             out.append((ZenohBus.from_config(cfg, history_loader=loader), cfg.queues.zenoh, "drop_oldest"))
+            check()
         if cfg.rerun.mode != "off":
             # the viewer's own period (MERGE_S), which its queue needs before Rerun is imported
             out.append((StartedLater("rerun", lambda: _rerun_viewer(cfg), batch_period_s=MERGE_S),
                         cfg.queues.rerun, "drop_oldest"))
+        check()
     except BaseException:
         for listener, _cap, _policy in reversed(out):
             try:
@@ -109,12 +128,16 @@ class StartedLater(Listener):
         self._inner: Listener | None = None
         self._failed = False
         self._stopped = False
+        self._cancelled = False  # the daemon is stopping: never made from now on (no lock: a start may hold it)
         self._lock = threading.Lock()
 
+    def cancel_start(self) -> None:
+        self._cancelled = True
+
     def _listener(self) -> Listener | None:
-        if self._inner is None and not self._failed:
+        if self._inner is None and not self._failed and not self._cancelled:
             with self._lock:
-                if self._inner is None and not self._failed and not self._stopped:
+                if self._inner is None and not self._failed and not self._stopped and not self._cancelled:
                     t0 = time.monotonic()
                     try:
                         self._inner = self._make()
@@ -301,13 +324,18 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
                 raise ConfigError(f"source.url: {err}") from err
             stack.callback(source.close)
         if stop.is_set():
-            return 0
+            return _stopped_in_start_up()
         cut = _recover(cfg)  # before the bus reads the history from the recordings
+        if stop.is_set():
+            return _stopped_in_start_up()
         if cfg.mcap.enabled:  # after recovery: the last recorded sample, to count what the restart lost
             from .restarts import resume_count, save_counter
 
             resume_count(cfg.daemon.state_dir, source)
-        listeners = build_listeners(cfg)
+        try:
+            listeners = build_listeners(cfg, stop)
+        except StoppedInStartUp:
+            return _stopped_in_start_up()
         daemon = Daemon(cfg, source, listeners, speedup=args.speedup if args.simulate else 1.0)
         if cfg.mcap.enabled:
             daemon.on_device_reset = functools.partial(save_counter, cfg.daemon.state_dir, source)

@@ -71,6 +71,10 @@ class EventKind(StrEnum):
     ``clock_jump``   the device's clock stepped by more than its sample counter
                      says (``gap_s``: the excess, s; negative: back); ``seq``: the
                      first sample after the step
+    ``counter_jump`` the device's sample counter leapt by more than its clock
+                     says (``count``: the samples it skipped that the clock
+                     says were never taken; none was lost, the numbers run on
+                     by the clock); ``seq``: the first sample after the leap
     ``end``          a finite source (a replay, a simulator with a repeat count)
                      has nothing more; ``read`` returns ``None`` from then on
     ``timing``       a polled source's stamps: ``values`` holds ``t_uncertainty_s``
@@ -90,6 +94,7 @@ class EventKind(StrEnum):
     RESUMED = "resumed"
     DEVICE_RESET = "device_reset"
     CLOCK_JUMP = "clock_jump"
+    COUNTER_JUMP = "counter_jump"
     END = "end"
     TIMING = "timing"
 

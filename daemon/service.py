@@ -38,6 +38,7 @@ import datetime as dt
 import functools
 import logging
 import math
+import re
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -64,6 +65,7 @@ from .listeners import (
     PlanChoice,
     PlanControl,
     Sender,
+    StartsLate,
     Wake,
 )
 from .mcap import scaled_ints
@@ -319,7 +321,8 @@ class LogListener(Listener):
         elif msg["kind"] == "set":
             log.info("%s set %s: %s", msg["machine_id"], msg["set_id"], msg["verdict"]["summary"])
         elif msg["kind"] == "event" and msg["event"] in (
-            "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "test_rejected",
+            "unplugged", "replugged", "lost", "stall", "resumed", "device_reset", "clock_jump", "counter_jump",
+            "test_rejected",
             "test_incomplete", "analysis_reset", "test_unrecognised", "plan_choice_refused",
         ):
             log.warning("%s", event_sentence(msg))
@@ -327,8 +330,9 @@ class LogListener(Listener):
     @staticmethod
     def _result(msg: CircleResult | TestResult) -> None:
         setup = ("centre", "radius")
-        ranked = [r for r in msg["ranking"] if r["significant"] and r["pattern"] not in setup]
-        top = ", ".join(_finding(msg, r["pattern"]) for r in ranked[:5]) or "nothing significant"
+        ranked = _per_axis_spikes([r["pattern"] for r in msg["ranking"] if r["significant"]
+                                   and r["pattern"] not in setup])
+        top = ", ".join(_finding(msg, p) for p in ranked[:5]) or "nothing significant"
         name = msg["plan"].get("name")
         of = f" of plan {name}" if name and name != "default" else ""  # a library of plans: which
         if msg["kind"] == "circle":
@@ -360,6 +364,8 @@ def event_sentence(msg: Mapping[str, Any]) -> str:
         "resumed": f"the source resumed after {gap_s} without bytes",
         "device_reset": f"the device restarted at sample {msg.get('seq')} ({detail})",
         "clock_jump": f"the device clock jumped {gap_s} at sample {msg.get('seq')}",
+        "counter_jump": f"the device's sample counter leapt {msg.get('count')} ahead at sample {msg.get('seq')} "
+                        "while its clock ran on (a counter fault: no sample lost)",
         "test_rejected": f"{test} rejected: {msg.get('message')}",
         "test_incomplete": f"{test} incomplete: {msg.get('message')}",
         "analysis_reset": f"the analysis restarted: {msg.get('message')}",
@@ -369,8 +375,30 @@ def event_sentence(msg: Mapping[str, Any]) -> str:
     return texts.get(name, f"event {name}: {detail or msg.get('message') or ''}".rstrip(": "))
 
 
+_SPIKE = re.compile(r"reversal_spike_([xy])_(?:pos|neg)_(?:ccw|cw)")
+
+
+def _per_axis_spikes(patterns: list[str]) -> list[str]:
+    """``patterns`` (ranked) with the eight reversal spikes as one entry per axis (``reversal_spike_x``), X before
+    Y, where the first of them ranked: which of an axis's four spikes ranks first is noise on an unchanged
+    machine, and the log line would name another each test."""
+    axes = sorted({m[1] for p in patterns if (m := _SPIKE.fullmatch(p))})
+    out: list[str] = []
+    for p in patterns:
+        if _SPIKE.fullmatch(p) is None:
+            out.append(p)
+        elif axes:
+            out += [f"reversal_spike_{a}" for a in axes]
+            axes = []
+    return out
+
+
 def _finding(msg: CircleResult | TestResult, pattern: str) -> str:
     params = parameter_map(msg["parameters"])
+    if pattern in ("reversal_spike_x", "reversal_spike_y"):  # the axis's largest spike, by size
+        spikes = [p["value"] for k, p in params.items() if _SPIKE.fullmatch(k[: -len("_um")])
+                  and k.startswith(pattern + "_") and p["value"] is not None and p["significant"]]
+        return f"{pattern}_max_um {max(spikes, key=abs):.3g}" if spikes else pattern
     keys = [k for k in params if k.startswith(pattern + "_") and params[k]["value"] is not None]
     if not keys:
         return pattern
@@ -534,6 +562,10 @@ class Daemon:
 
     def run(self, stop: threading.Event, max_tests: int | None = None, duration_s: float | None = None) -> int:
         """Read, fan out, report, until ``stop`` (or the limits) say so; then shut down cleanly."""
+        if stop.is_set():  # stopped during start-up: nothing announced, nothing recorded, the outputs closed
+            log.info("stopped during start-up, before it was ready")
+            self.shutdown()
+            return 0
         interval = self.cfg.daemon.status_interval_s
         if self.notifier.watchdog_s:
             interval = min(interval, self.notifier.watchdog_s / 2)
@@ -614,6 +646,9 @@ class Daemon:
         in parallel."""
         self.notifier.stopping()
         t0 = time.monotonic()
+        for q in self.outputs:
+            if isinstance(q.listener, StartsLate):
+                q.listener.cancel_start()  # not started now only to be stopped
         with contextlib.suppress(Exception):
             self.source.close()
         self.analysis_queue.close(timeout=budget_s * 0.4)

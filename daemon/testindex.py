@@ -39,6 +39,7 @@ from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
 
 from .mcap import McapLog, mcap_files, read_log, read_logs, recording
+from .mcap.reader import warn_once
 from .recordings import Outcome, analyze, config_sections, outcomes, recorded_library, with_source
 from .samples import Recording
 
@@ -94,6 +95,7 @@ class RecordedTest:
     plan: str | None = None  # the plan's name (a library of several: from its result or its feed-in)
     feed_out_s: float | None = None  # the feed-out's time on the same clock as feed_in_s
     unreportable: str | None = None  # why the records cannot give it again (samples lost to a write outage)
+    chosen: str | None = None  # the plan a service chose for it live (control/next_plan), if one did
 
 
 @dataclass
@@ -105,6 +107,7 @@ class TestIndex:
     path: str
     files: list[LogFile]
     tests: list[RecordedTest] = field(default_factory=list)
+    problems: dict[str, str] = field(default_factory=dict)  # a file's path: how it ends early or is damaged
 
     def results(self) -> list[dict[str, Any]]:
         """Every result recorded (circle and test), in file order: the history a report's trend draws on."""
@@ -189,9 +192,10 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
         paths = [Path(name)]
     files: list[LogFile] = []
     runs: list[str] = []
+    problems: dict[str, str] = {}
     for p in paths:
         try:
-            lg = read_log(p, samples=False)
+            lg = read_log(p, samples=False, warn=False)
         except BallbarError as err:
             if len(paths) == 1:
                 raise
@@ -202,15 +206,21 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
         if not runs or runs[-1] != run:
             runs.append(run)
         files.append(LogFile(p, len(runs) - 1, lg.metadata, lg.config, lg.events, lg.results))
-    index = TestIndex(name, files)
+        if lg.problem:
+            problems[os.fspath(p)] = lg.problem
+    index = TestIndex(name, files, problems=problems)
     by_key: dict[tuple[int, str], RecordedTest] = {}
+    choice: dict[int, str | None] = {}  # per daemon run: the plan chosen for its next test (plan_chosen events)
     for fi, f in enumerate(files):
         for ev in f.events:
+            what = ev.get("event")
+            if what == "plan_chosen":  # taken in order with the samples: it is the next feed-in's
+                choice[f.run] = ev.get("plan") if isinstance(ev.get("plan"), str) else None
+                continue
             tid = ev.get("test_id")
             if not isinstance(tid, str):
                 continue
             key = (f.run, tid)
-            what = ev.get("event")
             if what == "feed_in":
                 if key not in by_key:
                     t_s = ev.get("t_s")
@@ -218,6 +228,7 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
                         len(by_key) + 1, tid, ev.get("machine_id"), ev.get("t_wall"),
                         float(t_s) if isinstance(t_s, int | float) else None, ev.get("time_axis"), f.run, [fi],
                         plan=ev.get("plan") if isinstance(ev.get("plan"), str) else None,
+                        chosen=choice.pop(f.run, None),
                     )
                 continue
             test = by_key.get(key)
@@ -241,6 +252,8 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
                 test.status, test.message, test.result = "complete", "", r
                 named = (r.get("plan") or {}).get("name")
                 test.plan = named if isinstance(named, str) else test.plan
+                if (r.get("recognition") or {}).get("method") == "chosen" and isinstance(named, str):
+                    test.chosen = named
     gaps = [(f.run, ev) for f in files for ev in f.events if ev.get("event") == "log_gap" and ev.get("count")]
     for test in by_key.values():
         test.unreportable = _lost_in(test, [ev for run, ev in gaps if run == test.run])
@@ -249,6 +262,9 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
         end = last_of_run[test.run] if test.status == "incomplete" else test.files[-1]
         test.files = list(range(test.files[0], end + 1))
     index.tests = list(by_key.values())
+    if index.tests or len(paths) > 1:  # (one file without tests: its samples are read next, which says it)
+        for where, problem in problems.items():
+            warn_once(where, problem)
     return index
 
 
@@ -293,7 +309,8 @@ def analyze_recorded(
     """Analyse one recorded test from the files that hold it (see the module docstring).
 
     ``library``: the plans its test may run (None: those its daemon run recorded, if any, else ``plan``
-    alone); ``chosen``: analysed as that plan of the library.
+    alone); ``chosen``: analysed as that plan of the library (None: the plan a service chose for it live,
+    :attr:`RecordedTest.chosen`, where the library has it; else recognised as live).
 
     Returns its result with ``source`` (``file``: its first file, ``files``,
     ``test_id``, ``machine_id``, ``time_axis``).  A test the analysis rejects,
@@ -303,6 +320,8 @@ def analyze_recorded(
         raise DataError(f"{index.files[test.files[0]].path}: test {test.test_id}: {test.unreportable}")
     if library is None:
         library = recorded_library(index.config_for(test))
+    if chosen is None and test.chosen is not None and library is not None and test.chosen in library.names:
+        chosen = test.chosen  # as live: the plan a service chose for it, whatever its signature or timing say
     tries = [test.files]
     before = test.files[0] - 1
     if before >= 0 and index.files[before].run == test.run:

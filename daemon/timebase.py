@@ -106,6 +106,8 @@ class Stamped:
     counter or clock seen in these readings.  ``jumps``: ``(seq, seconds)``,
     the first sample after the device clock stepped by more than its counter
     says (a clock jump; ``seconds`` the excess, negative for a step back).
+    ``counter_jumps``: ``(seq, count)``, the first sample after the counter
+    leapt ``count`` beyond the samples its clock says were taken (no gap).
     """
 
     keep: NDArray[np.bool_]
@@ -115,6 +117,7 @@ class Stamped:
     gaps: list[tuple[int, int]] = field(default_factory=list)
     reset_seqs: list[int] = field(default_factory=list)
     jumps: list[tuple[int, float]] = field(default_factory=list)
+    counter_jumps: list[tuple[int, int]] = field(default_factory=list)
 
     @property
     def resets(self) -> int:
@@ -144,7 +147,12 @@ class Stamper:
     more than ``JUMP_FRACTION`` of the step) is a clock jump: reported, and the
     host clock map starts afresh.  The period is the device's own (the median
     clock step per counter step), so a nominal rate that is a little off does
-    not matter.
+    not matter.  A clock that steps back while the counter runs on (a step of
+    at most ``JUMP_PERIODS``) is such a jump too, not a restart: the device
+    time then runs on by the counter's step, so that it never runs back.  A
+    counter that leaps by more than ``JUMP_PERIODS`` while the clock steps
+    at most that many periods is a counter fault, not lost samples: the
+    numbers run on by the clock's step (a ``counter_jump``).
     """
 
     JUMP_PERIODS = 8.0
@@ -211,8 +219,12 @@ class Stamper:
                 return done
         first = self._seq is None
         restart = np.zeros(n, bool)
+        clock_back = np.zeros(n, bool)
         keep = np.ones(n, bool)
         steps = np.ones(n, np.int64)
+        counter = r.seq is not None and self.seq_modulus is not None
+        back_jumps: list[tuple[int, float]] = []  # (index, s): the clock stepped back, the counter ran on
+        counter_leaps: list[tuple[int, int]] = []  # (index, samples): the counter leapt, the clock ran on
 
         if r.seq is not None and self.seq_modulus is not None:
             m = self.seq_modulus
@@ -252,7 +264,24 @@ class Stamper:
             else:
                 d = raw_d
                 back = d < 0
-            restart |= back
+            if counter:
+                # The clock went back while the counter ran on (a step of a few samples): the clock jumped back,
+                # the device did not restart; its time runs on by the counter's step.
+                clock_back = back & ~restart & (steps >= 1) & (steps <= self.JUMP_PERIODS)
+                restart |= back & ~clock_back
+                # The counter leapt while the clock stepped about one period: the counter is at fault, no
+                # sample was lost; the clock's step says how many samples it was.
+                per = self._clk_period
+                if per > 0:
+                    leap = keep & ~restart & ~back & (steps > self.JUMP_PERIODS) & (d <= self.JUMP_PERIODS * per)
+                    if first:
+                        leap[0] = False
+                    for i in np.flatnonzero(leap).tolist():
+                        counted = max(1, round(float(d[i]) / per))
+                        counter_leaps.append((i, int(steps[i]) - counted))
+                        steps[i] = counted
+            else:
+                restart |= back
             if r.seq is None and self.rate_hz:
                 steps = np.maximum(np.rint(d * self.rate_hz).astype(np.int64), 1)
             # Device time is the raw clock plus a base that grows by a wrap at each
@@ -261,18 +290,24 @@ class Stamper:
             # Across a restart the clock's own reading is the time since it began
             # (a lower bound: at least one period has passed): re-base to continue.
             floor = 1.0 / self.rate_hz if self.rate_hz else 1e-6
-            for i in np.flatnonzero(restart).tolist():
+            period = self._clk_period if self._clk_period > 0 else floor
+            for i in np.flatnonzero(restart | clock_back).tolist():
                 if first and i == 0:
                     continue
                 prev = self._td if i == 0 else clk[i - 1] + cbase[i - 1]
-                cbase[i:] += prev + max(float(clk[i]), floor) - clk[i] - cbase[i]
+                if clock_back[i]:  # the step back is the excess (reported); the time runs on by the counter
+                    back_jumps.append((i, float(d[i] - (w or 0.0)) - float(steps[i]) * period))
+                    cbase[i:] += prev + float(steps[i]) * period - clk[i] - cbase[i]
+                else:
+                    cbase[i:] += prev + max(float(clk[i]), floor) - clk[i] - cbase[i]
             td = clk + cbase
             self._clk_base = float(cbase[-1])
             self._clk_raw = float(clk[-1])
 
         jump_at: list[tuple[int, float]] = []
-        if clk is not None and r.seq is not None and self.seq_modulus is not None:
-            jump_at = self._clock_jumps(d, steps, keep & ~restart, 1 if first else 0, t_read)
+        if clk is not None and counter:
+            jump_at = self._clock_jumps(d, steps, keep & ~restart & ~clock_back, 1 if first else 0, t_read)
+            jump_at = sorted(jump_at + back_jumps)
 
         if first:
             restart[0] = False
@@ -295,6 +330,7 @@ class Stamper:
         gaps = [(int(seq[i] - steps[i] + 1), int(steps[i] - 1)) for i in np.flatnonzero(steps > 1).tolist()]
         reset_seqs = [int(seq[i]) for i in np.flatnonzero(restart).tolist()]
         jumps = [(int(seq[i]), excess) for i, excess in jump_at]
+        leaps = [(int(seq[i]), count) for i, count in counter_leaps]
         if reset_seqs or jumps:
             self.clock.reset()
 
@@ -305,7 +341,7 @@ class Stamper:
             self._td = float(td[-1])
         self._th_read = t_read
         self._resume_period = math.nan  # (the first read after resume() only)
-        return Stamped(keep, seq, td, th, gaps, reset_seqs, jumps)
+        return Stamped(keep, seq, td, th, gaps, reset_seqs, jumps, leaps)
 
     def _stamp_steady(self, r: Readings, t_read: float) -> Stamped | None:
         """The usual read, in a few array operations: a counter that steps by one throughout, a clock that

@@ -45,6 +45,8 @@ def test_defaults_load_and_layers_apply(tmp_path: Path) -> None:
         (["--set", "plan.radius_mm=-1"], "radius_mm must be > 0"),
         (["--set", 'zenoh.mode="satellite"'], "zenoh.mode must be peer, client or router"),
         (["--set", "queues.mcap=0"], "queues.mcap must be at least 1"),
+        (["--set", "zenoh.history_size=10000000000"], "zenoh.history_size must be within 1..10000"),
+        (["--set", "zenoh.history_size=1e10"], "zenoh.history_size must be a whole number"),
         (["--set", "daemon.status_interval_s=true"], "daemon.status_interval_s must be a number"),
     ],
 )
@@ -140,7 +142,7 @@ def test_unit_verifies_and_is_hardened(tmp_path: Path) -> None:
     assert float(m.group(1)) <= 1.2
     for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "DynamicUser=yes", "StateDirectory=ballbar",
                 "DevicePolicy=closed", "DeviceAllow=char-ttyUSB rw", "DeviceAllow=char-ttyACM rw",
-                "SupplementaryGroups=dialout", "RestrictAddressFamilies="):
+                "SupplementaryGroups=dialout", "RestrictAddressFamilies=", "KillMode=mixed"):
         assert key in text
 
 
@@ -227,6 +229,125 @@ def test_the_daemon_lives_under_the_units_seccomp_filters(tmp_path: Path) -> Non
             proc.wait()
     text = log.read_text()
     assert "unitsandbox: address families" in text and "Traceback" not in text and "ERROR" not in text, text[-3000:]
+
+
+def _descendants(pid: int) -> set[int]:
+    out: set[int] = set()
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        with contextlib.suppress(OSError):
+            for tid in os.listdir(f"/proc/{p}/task"):
+                with contextlib.suppress(OSError), open(f"/proc/{p}/task/{tid}/children") as fh:
+                    kids = {int(k) for k in fh.read().split()} - out
+                    out |= kids
+                    todo += kids
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_sigterm_to_the_daemon_alone_ends_its_children(tmp_path: Path) -> None:
+    """What the unit's ``KillMode=mixed`` does: SIGTERM to the main process only (the Rerun server, the analysis
+    worker and the simulated device are not signalled); the daemon flushes, ends each of them and exits 0,
+    and none is left (systemd would SIGKILL a survivor only after the main process is gone)."""
+    log = tmp_path / "daemon.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--speedup", "20",
+             "--state-dir", str(tmp_path / "state"), "--set", "zenoh.enabled=false",
+             "--set", f"rerun.port={free_port()}"],
+            stdout=out, stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None and (
+                "ready: reading" not in log.read_text() or "rerun" not in _children(proc.pid)):
+            time.sleep(0.2)
+        assert "rerun" in _children(proc.pid), log.read_text()[-2000:]
+        kids = _descendants(proc.pid)
+        assert len(kids) >= 2, kids  # the simulated device and the Rerun server at least
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0, log.read_text()[-2000:]
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline and any(_alive(k) for k in kids):
+            time.sleep(0.1)
+        assert not [k for k in kids if _alive(k)], log.read_text()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert "Traceback" not in log.read_text()
+
+
+def test_a_sigterm_during_start_up_stops_it_there(tmp_path: Path) -> None:
+    """SIGTERM while the outputs are being started (the bus's history is being seeded): exit 0 without going
+    on to READY, an MCAP file or the viewer; what had started (the bus, the simulated device) is closed."""
+    log = tmp_path / "daemon.log"
+    state = tmp_path / "state"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--state-dir", str(state),
+             "--set", f'zenoh.listen=["tcp/127.0.0.1:{free_port()}"]', "--set", f"rerun.port={free_port()}",
+             "--set", 'daemon.log_level="debug"'],
+            stdout=out, stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + 60
+        while "zenoh: history seeded" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        kids = _descendants(proc.pid)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0, log.read_text()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log.read_text()
+    assert "stopped during start-up" in text, text[-2000:]
+    assert "ready: reading" not in text and "rerun server started" not in text, text[-2000:]
+    assert not list((state / "recordings").glob("*.mcap"))
+    assert "zenoh: session closed" in text and "Traceback" not in text, text[-2000:]
+    time.sleep(0.5)
+    assert not [k for k in kids if _alive(k)]
+
+
+def test_a_killed_daemon_leaves_no_semaphore_for_the_tracker_to_warn_of(tmp_path: Path) -> None:
+    """kill -9 of a daemon whose analysis worker is up: multiprocessing's resource tracker, which outlives it and
+    writes to the same journal, finds no semaphore of its to clean up (no "leaked semaphore objects" warning),
+    (the daemon unlinked their names once its worker had opened them)."""
+    log = tmp_path / "daemon.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--state-dir", str(tmp_path / "state"),
+             "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"', "--set", 'daemon.log_level="debug"'],
+            stdout=out, stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + 60
+        while "analysis worker: process" not in log.read_text() and proc.poll() is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "semaphore names unlinked" in log.read_text(), log.read_text()[-2000:]
+        kids = _descendants(proc.pid)
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and any(_alive(k) for k in kids):
+            time.sleep(0.1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    time.sleep(0.3)
+    text = log.read_text()
+    assert "leaked semaphore" not in text and "Traceback" not in text, text[-2000:]
 
 
 def test_notify_never_blocks_when_nobody_reads(tmp_path: Path) -> None:

@@ -182,6 +182,11 @@ def test_a_listener_started_later_is_made_once_on_first_use_and_stopped() -> Non
     assert made == ["made"] and lst.stats() == {"got": 2}
     lst.stop()
     assert made == ["made", "stopped"]
+    late = StartedLater("x", Inner)
+    late.cancel_start()  # the daemon is stopping: what its queue still holds does not make it
+    late.on_message({"a": 3})
+    late.stop()
+    assert made == ["made", "stopped"]
 
 
 def _catches_sigterm(pid: int) -> bool:

@@ -270,3 +270,32 @@ def test_each_outputs_optional_capabilities_are_its_protocols() -> None:
     assert caps(SetListener) == {"send"}
     assert caps(ZenohBus) == {"control"}
     assert caps(McapLogger) == caps(LogListener) == set()
+
+
+def test_the_log_line_of_each_test_names_the_reversal_spikes_per_axis(
+    tmp_path: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Three tests of the demo machine (``ballbar run --simulate``'s): each test's log line names the same
+    findings (the largest reversal spike of each axis, not whichever of its four spikes the noise ranked first)."""
+    import logging
+    import re
+
+    from ballbar.daemon.config import load
+    from ballbar.daemon.service import Daemon
+    from ballbar.daemon.sources import open_source
+
+    cfg = load(None, ["mcap.enabled=false", "zenoh.enabled=false", 'rerun.mode="off"', "daemon.analysis_worker=false",
+                      f'daemon.state_dir="{tmp_path}"', "plan.sample_hz=100.0"], env={})
+    from ballbar.tools.simulate import SIM_MACHINE
+    from ballbar.tools.simulator import MachineModel
+
+    demo = MachineModel(**{k: float(v) for k, v in (item.split("=") for item in SIM_MACHINE)})
+    d = Daemon(cfg, open_source("sim:?speedup=max&rate=100&repeat=3&seed=3", machine=demo), [])
+    with caplog.at_level(logging.INFO, logger="ballbar.daemon.service"):
+        assert d.run(threading.Event(), max_tests=3) == 0
+    lines = [r.getMessage() for r in caplog.records if re.search(r" test: ", r.getMessage())]
+    assert len(lines) == 3, lines
+    names = [re.findall(r"([a-z_]+) -?[0-9.]+(?:e[-+]?\d+)?", ln.split(" test: ", 1)[1].split(";")[0]) for ln in lines]
+    assert names[0] == names[1] == names[2], lines
+    assert "reversal_spike_x_max_um" in names[0], lines
+    assert not any(re.search(r"reversal_spike_[xy]_(pos|neg)_(ccw|cw)", ln) for ln in lines), lines

@@ -274,3 +274,41 @@ def test_a_repeat_of_the_choice_standing_makes_no_event(tmp_path: Path) -> None:
     assert events == [("plan_chosen", "yz"), ("plan_chosen", None)]
     (test,) = [m for m in rec.messages if m.get("kind") == "test"]
     assert test["recognition"]["method"] == "signature"  # the withdrawal stood
+
+
+def test_analyze_and_report_of_a_recorded_test_take_the_plan_a_service_chose(tmp_path: Path) -> None:
+    """The zx program (its signature says zx) analysed live as yz, the plan a service chose for it: the choice
+    is recorded (a ``plan_chosen`` event, the result's recognition), and ``ballbar analyze DIR --test-id`` and
+    ``ballbar report DIR --test 1``, run as processes, analyse it as yz again, not as its signature says."""
+    import subprocess
+    import sys
+
+    from ballbar.daemon.mcap import McapLogger
+
+    f = tmp_path / "set.toml"
+    f.write_text(SET)
+    state = tmp_path / "state"
+    cfg = load(str(f), ["zenoh.enabled=false", 'rerun.mode="off"', "daemon.analysis_worker=false",
+                        f'daemon.state_dir="{state}"'], env={})
+    src = open_source("sim:?speedup=max&rate=100&repeat=1", library=cfg.library, run_plans=["zx"])
+    d = Daemon(cfg, src, [(McapLogger.from_config(cfg), 10_000, "drop_newest")])
+    d.choose_plan("yz")
+    assert d.run(threading.Event(), max_tests=1) == 0
+    records = state / "recordings"
+    listed = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(records), "--list", "--json"],
+                            capture_output=True, text=True, timeout=120)
+    (row,) = json.loads(listed.stdout)
+    assert row["status"] == "complete" and row["plan"] == "yz", listed.stderr
+
+    out = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(records), "--test-id",
+                          row["test_id"], "--json"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    assert (result["plan"]["name"], result["recognition"]["method"]) == ("yz", "chosen")
+    assert result["plan"]["plane"] == "YZ"
+
+    html = tmp_path / "report.html"
+    rep = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "report", str(records), "--test", "1",
+                          "-o", str(html), "--no-png"], capture_output=True, text=True, timeout=300)
+    assert rep.returncode == 0, rep.stderr
+    assert "ambiguous" not in rep.stderr and "YZ" in html.read_text()

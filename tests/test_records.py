@@ -196,8 +196,8 @@ def test_two_runs_stay_two_when_their_clock_offsets_are_the_same(
     ids = {read_log(p, samples=False).metadata["run_id"] for p in list_recordings(records)}
     assert len(ids) == 2
 
-    def same_offset(path: Path, samples: bool = True) -> Any:
-        lg = read_log(path, samples=samples)
+    def same_offset(path: Path, samples: bool = True, warn: bool = True) -> Any:
+        lg = read_log(path, samples=samples, warn=warn)
         lg.metadata["host_clock_offset_ns"] = "1700000000000000000"
         return lg
 

@@ -11,6 +11,7 @@ import errno
 import math
 import os
 import pty
+import re
 import socket
 import threading
 import time
@@ -237,6 +238,55 @@ def test_stream_values_times_and_exact_gap(dev: FakeDevice) -> None:
     assert [(e.seq, e.count, e.detail) for e in lost] == [(300, 7, "gap")]
     assert st.samples == 493 and st.lost == 7 and st.decode == {}
     assert batch.status.tolist() == [0] * 493
+
+
+def test_a_clock_step_back_is_a_clock_jump_and_a_counter_leap_loses_nothing(dev: FakeDevice) -> None:
+    """The counter runs on while the clock steps 20 s back: a clock jump of -20 s at that sample (not a device
+    reset), the device time running on; the counter leaps 10 000 while the clock runs on: a counter jump, no
+    sample counted lost, the numbers and times running on by one period."""
+    with open_source(f"serial:{dev.link}?rate=1000", cal_mm=0.0) as src:
+        k = np.arange(1000, 1500)
+        dev.write(encode_samples(k, k / 1000, np.zeros(k.size)))
+        head, _ = read_all(src, k.size)
+        k = np.arange(1500, 2000)
+        dev.write(encode_samples(k, k / 1000 - 20.0, np.zeros(k.size)))  # the clock 20 s back from 1500 on
+        mid, _ = read_all(src, k.size)
+        k = np.arange(2000, 2500)
+        dev.write(encode_samples(np.where(k >= 2200, k + 10_000, k), k / 1000 - 20.0, np.zeros(k.size)))
+        tail, _ = read_all(src, k.size)
+        st = src.stats()
+    batch = SampleBatch.concat([head, mid, tail])
+    events = list(batch.events)
+    assert batch.seq.tolist() == list(range(1000, 2500))
+    assert np.allclose(np.diff(batch.t_device), 0.001, atol=1e-6)  # never back, never a leap
+    assert "device_reset" not in kinds(events) and "lost" not in kinds(events)
+    (jump,) = [e for e in events if e.kind == EventKind.CLOCK_JUMP]
+    assert jump.seq == 1500 and jump.gap_s == pytest.approx(-20.0, abs=1e-6)
+    (leap,) = [e for e in events if e.kind == EventKind.COUNTER_JUMP]
+    assert leap.seq == 2200 and leap.count == 10_000
+    assert st.lost == 0 and st.resets == 0
+
+
+def test_line_noise_is_said_at_info_once_per_10_s(dev: FakeDevice, caplog: pytest.LogCaptureFixture) -> None:
+    """1 MB of line noise, then samples: the decoder's drops reach the log at INFO, with their counts, in one line
+    (not one per read), and the samples after the noise come through."""
+    import logging
+
+    noise = np.random.default_rng(5).integers(0, 256, 1 << 20, dtype=np.uint8).tobytes().replace(b"\xa5", b"\x00")
+    with caplog.at_level(logging.INFO, logger="ballbar.daemon.sources"), \
+            open_source(f"serial:{dev.link}?rate=1000", cal_mm=0.0) as src:
+        def send() -> None:  # a pty holds a few kB: written from a thread while the source reads
+            dev.write(noise)
+            dev.frames(np.arange(100, 200))
+
+        writer = threading.Thread(target=send)
+        writer.start()
+        batch, _events = read_all(src, 100, timeout=60.0)
+        writer.join(10.0)
+    assert batch.seq.tolist()[-100:] == list(range(100, 200))
+    said = [r for r in caplog.records if "decoder dropped" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelno == logging.INFO, [r.getMessage() for r in said]
+    assert re.search(r"\d+ skipped_bytes", said[0].getMessage()), said[0].getMessage()
 
 
 def test_counter_and_clock_wrap_around(dev: FakeDevice) -> None:

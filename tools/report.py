@@ -113,13 +113,12 @@ OPEN_FILE_S = 60.0  # a record file modified this recently is taken as being wri
 
 
 class _OpenFileNote(logging.Filter):
-    """The reader's 'writer was probably killed' for a file a live daemon is still writing (modified within
+    """The reader's warning that a file ends early, for a file a live daemon is still writing (modified within
     ``OPEN_FILE_S``): its open chunk is not there yet, nothing is wrong; said at INFO, not as a warning."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        msg = record.getMessage()
-        if record.levelno == logging.WARNING and msg.endswith("the writer was probably killed"):
-            path = msg.split(": ", 1)[0]
+        path = getattr(record, "cut_file", None)
+        if record.levelno == logging.WARNING and isinstance(path, str) and "damaged" not in record.getMessage():
             with contextlib.suppress(OSError):
                 if time.time() - os.stat(path).st_mtime < OPEN_FILE_S:
                     log.info("%s: still being written; read up to its last whole chunk", path)

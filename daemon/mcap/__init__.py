@@ -112,8 +112,11 @@ writes.  Nothing is raised into the pipeline.
 
 Reading
 -------
-The readers take any file: a cut one up to its last whole record, a record or
-chunk larger than :data:`MAX_RECORD_BYTES` as the end of the file, at most
+The readers take any file: a cut one up to its last whole record, a damaged
+chunk (garbled bytes: it does not decompress or its CRC is wrong) skipped to the
+next whole chunk (the byte ranges in one warning, the samples' gap a break of
+the analysis), a record or chunk larger than :data:`MAX_RECORD_BYTES` as the end
+of the file where no whole chunk follows it, at most
 :data:`SIDE_BYTES_MAX` of events, results and status from one file; anything
 else wrong is one :class:`~ballbar.analysis.errors.DataError` line naming the
 file (and, for a directory, :func:`read_logs` with ``skip_bad`` leaves such a

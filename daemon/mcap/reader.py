@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import math
@@ -14,7 +15,9 @@ from typing import IO, Any
 
 import numpy as np
 import zstandard
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -56,7 +59,9 @@ class McapLog:
     ``complete``: every file ended with its footer; ``problem``: why reading
     stopped early ("" if it did not).  ``file_starts``: where each file's
     samples begin in ``samples``, and ``file_events``: which file each event
-    came from (index into ``paths``).
+    came from (index into ``paths``).  ``skipped``: where damaged records were
+    passed over, each as the index in ``samples`` of the first sample after it
+    and what was skipped (the byte range, in words).
     """
 
     paths: list[str]
@@ -73,6 +78,7 @@ class McapLog:
     problem: str = ""
     file_starts: list[int] = field(default_factory=lambda: [0])
     file_events: list[int] = field(default_factory=list)
+    skipped: list[tuple[int, str]] = field(default_factory=list)
 
     def time_axis(self) -> tuple[NDArray[np.float64], str]:
         """The analysis time axis of the valid samples: ``(t_s, "device" | "host")``.
@@ -131,17 +137,122 @@ class _BoundedReads:
         return True
 
 
-def _records(fh: IO[bytes], skip_magic: bool = False) -> Iterator[Any]:
+@dataclass
+class Walk:
+    """How far a walk through a file's records got (:func:`_records`): ``end``, the byte after its last whole
+    record; ``size``, the file's; ``skipped``, the byte ranges ``[start, end)`` of damaged records passed over
+    (a chunk whose bytes are garbled: the reading goes on at the next whole chunk), each with why."""
+
+    size: int = 0
+    end: int = 0
+    skipped: list[tuple[int, int, str]] = field(default_factory=list)
+
+
+_BAD_RECORD = (McapError, struct.error, ValueError, EOFError, MemoryError, zstandard.ZstdError)
+_SCAN_WINDOW = 1 << 20
+_DATA_END_HEAD = bytes([Opcode.DATA_END]) + struct.pack("<Q", 4)
+
+
+def _read_at(fh: IO[bytes], pos: int, size: int) -> tuple[int, bytes]:
+    """The opcode and whole bytes of the record at ``pos``: :class:`~mcap.exceptions.EndOfFile` where it would
+    reach past the end of the file, an McapError where it would be larger than :data:`MAX_RECORD_BYTES`."""
+    fh.seek(pos)
+    head = fh.read(9)
+    if len(head) < 9:
+        raise EndOfFile()
+    opcode, length = struct.unpack("<BQ", head)
+    if length > MAX_RECORD_BYTES:
+        raise McapError(f"a record of {length} bytes, more than any the logger writes ({MAX_RECORD_BYTES})")
+    if pos + 9 + length > size:
+        raise EndOfFile()
+    body = fh.read(length)
+    if len(body) < length:
+        raise EndOfFile()
+    return opcode, head + body
+
+
+def _parse_record(opcode: int, raw: bytes) -> list[Any]:
+    """The records of one top-level record's bytes: a chunk's inner records (checked against its CRC), else the
+    record itself (none for an opcode the format does not know)."""
+    if opcode == Opcode.CHUNK:
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(raw[9:])))
+        _check_chunk(chunk.uncompressed_size, chunk.compression, chunk.data)
+        return list(breakup_chunk(chunk, validate_crc=True))
+    reader = StreamReader(io.BytesIO(raw), skip_magic=True, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES)
+    records = reader.records
+    try:
+        return [next(records)]
+    except EndOfFile:  # an opcode the format does not know: skipped, as the mcap readers do
+        return []
+
+
+def _resync(fh: IO[bytes], start: int, size: int) -> tuple[int, int, list[Any]] | None:
+    """The next whole chunk (its CRC right) or data-end record from byte ``start`` on: ``(its offset, its end,
+    its records)``; None when there is none (the file is cut there, not damaged)."""
+    pos = start
+    while pos < size:
+        fh.seek(pos)
+        window = fh.read(_SCAN_WINDOW + 9)
+        data_end = window.find(_DATA_END_HEAD)
+        at = window.find(bytes([Opcode.CHUNK]))
+        while 0 <= at < _SCAN_WINDOW:
+            if 0 <= data_end < at:
+                break
+            try:
+                _op, raw = _read_at(fh, pos + at, size)
+                chunk = Chunk.read(ReadDataStream(io.BytesIO(raw[9:])))
+                if chunk.uncompressed_crc != 0:  # else nothing tells a chunk from bytes that look like one
+                    _check_chunk(chunk.uncompressed_size, chunk.compression, chunk.data)
+                    return pos + at, pos + at + len(raw), list(breakup_chunk(chunk, validate_crc=True))
+            except _BAD_RECORD:
+                pass
+            at = window.find(bytes([Opcode.CHUNK]), at + 1)
+        if 0 <= data_end < _SCAN_WINDOW and pos + data_end + 13 <= size:
+            return pos + data_end, pos + data_end + 13, []
+        pos += _SCAN_WINDOW
+    return None
+
+
+def _records(fh: IO[bytes], skip_magic: bool = False, walk: Walk | None = None) -> Iterator[Any]:
     """The records of an MCAP file from its start (or, ``skip_magic``, from where ``fh`` is), chunks broken up,
-    none larger than :data:`MAX_RECORD_BYTES` (an McapError where one is)."""
-    reader = StreamReader(_BoundedReads(fh), skip_magic=skip_magic, emit_chunks=True,  # type: ignore[arg-type]
-                          record_size_limit=MAX_RECORD_BYTES)
-    for rec in reader.records:
-        if isinstance(rec, Chunk):
-            _check_chunk(rec.uncompressed_size, rec.compression, rec.data)
-            yield from breakup_chunk(rec)
-        else:
+    none larger than :data:`MAX_RECORD_BYTES`.
+
+    A damaged chunk (its bytes garbled: it does not decompress, or its CRC is wrong) is passed over, its byte
+    range noted in ``walk``; the records go on from the next whole chunk.  Where none follows, the file ends
+    there: :class:`~mcap.exceptions.EndOfFile` (cut short) or the error of the record that ended it."""
+    walk = walk if walk is not None else Walk()
+    start = fh.tell()
+    fh.seek(0, os.SEEK_END)
+    walk.size = fh.tell()
+    fh.seek(start)
+    if not skip_magic:
+        if fh.read(len(_MAGIC)) != _MAGIC:
+            raise McapError("no MCAP magic at the start")
+        start += len(_MAGIC)
+    pos = walk.end = start
+    while True:
+        if pos >= walk.size:
+            raise EndOfFile()
+        try:
+            opcode, raw = _read_at(fh, pos, walk.size)
+            records = _parse_record(opcode, raw)
+            nxt = pos + len(raw)
+        except _BAD_RECORD as err:
+            found = _resync(fh, pos + 1, walk.size)
+            if found is None:
+                raise
+            at, nxt, records = found
+            walk.skipped.append((pos, at, _why_stopped(err)))
+        walk.end = nxt
+        for rec in records:
             yield rec
+            if isinstance(rec, Footer):
+                fh.seek(nxt)
+                if fh.read(len(_MAGIC)) != _MAGIC:
+                    raise EndOfFile()
+                walk.end = nxt + len(_MAGIC)
+                return
+        pos = nxt
 
 
 def _check_chunk(size: int, compression: str, data: bytes | None = None) -> None:
@@ -206,8 +317,14 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True, status: bool = True) 
     n_msg = 0
     skipped_blocks = 0  # sample records not decoded (samples=False)
     side = 0  # bytes of JSON kept in ``lists``
+    walk = Walk()
+    skipped: list[tuple[int, str]] = []
     try:
-        for rec in _records(fh):
+        for rec in _records(fh, walk=walk):
+            while len(skipped) < len(walk.skipped):
+                a, b, why = walk.skipped[len(skipped)]
+                before = sum(d.seq.size for d in decoded) if samples else skipped_blocks
+                skipped.append((before, f"bytes {a} to {b} ({why})"))
             if isinstance(rec, Channel):
                 channels[rec.id] = rec.topic
             elif isinstance(rec, Metadata) and rec.name == METADATA_NAME:
@@ -245,10 +362,19 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True, status: bool = True) 
             elif isinstance(rec, Schema | Chunk):
                 pass
     except (McapError, struct.error, ValueError, EOFError, MemoryError, zstandard.ZstdError) as err:
-        # A killed writer leaves a partial record: a short read, a torn zstd frame, a bad length.
-        detail = _why_stopped(err)
+        # A partial record (a killed writer's, a full disk's, a copy cut short), or one no whole chunk follows.
         what = f"{sum(d.seq.size for d in decoded)} samples" if samples else f"{skipped_blocks} sample records"
-        problem = f"ends early after {what} ({detail})"
+        if walk.end >= walk.size:
+            after = "its magic" if walk.size <= len(_MAGIC) else "a whole record"
+            problem = f"ends early at byte {walk.size}, after {after}, without its footer ({what} before it)"
+        else:
+            problem = f"ends early: {_why_stopped(err)} at byte {walk.end} of {walk.size} ({what} before it)"
+    if skipped:
+        what = "samples" if samples else "sample records"
+        problem = "; ".join(
+            [f"damaged: {where} skipped, {k} {what} before it" for k, where in skipped]
+            + ([problem] if problem else [])
+        )
     if meta and not meta.get("format", "").startswith("ballbar-mcap/1"):
         raise DataError(f"{name}: format {meta.get('format')!r} is not one this version reads (ballbar-mcap/1)")
     try:
@@ -259,6 +385,7 @@ def _parse(name: str, fh: IO[bytes], samples: bool = True, status: bool = True) 
     log_.metadata = meta
     log_.complete = complete
     log_.problem = problem
+    log_.skipped = skipped if samples else []
     for k, v in lists.items():
         setattr(log_, k, v)
     log_.file_events = [0] * len(log_.events)
@@ -297,7 +424,7 @@ def _assemble(paths: list[str], decoded: list[DecodedSamples], offset_ns: int) -
     return McapLog(paths, batch, wall, pre)
 
 
-def read_log(path: str | os.PathLike[str], samples: bool = True, status: bool = True) -> McapLog:
+def read_log(path: str | os.PathLike[str], samples: bool = True, status: bool = True, warn: bool = True) -> McapLog:
     """Everything in one log file; a truncated file (killed writer) is read up to its last whole chunk.
 
     ``samples=False`` leaves the samples and the status messages out (an empty
@@ -310,13 +437,40 @@ def read_log(path: str | os.PathLike[str], samples: bool = True, status: bool = 
     records' JSON; a record or chunk larger than :data:`MAX_RECORD_BYTES` ends
     the reading as a cut file's end does.
 
+    A file that ends early or holds damaged records is read as far as it can
+    be, with one WARNING (:func:`warn_once`; ``warn=False``: none, the caller
+    says it from :attr:`McapLog.problem`; none either for a file read for its
+    samples that holds none, whose :func:`recording` is then an error that says it).
+
     Raises :class:`DataError` (one line, naming the file) when the file is
     missing, unreadable, not MCAP, or holds a malformed samples record.
     """
-    out = _read_one(os.fspath(path), samples, status)
-    if out.problem:
-        log.warning("%s: %s; the writer was probably killed", os.fspath(path), out.problem)
+    name = os.fspath(path)
+    out = _read_one(name, samples, status)
+    # (a file read for its samples that holds none: :func:`recording`'s error says how it ends, in one line)
+    if out.problem and warn and (not samples or len(out.samples)):
+        warn_once(name, out.problem)
     return out
+
+
+_WARNED: dict[tuple[str, int, int], None] = {}
+
+
+def warn_once(name: str, problem: str) -> None:
+    """The WARNING that a file ends early or is damaged (``problem``), once per state of the file in this process:
+    reading a file's records, then its samples, says it once.  The record carries ``cut_file`` (the path), for a
+    filter that knows the file is still being written."""
+    try:
+        st = os.stat(name)
+        key = (os.path.realpath(name), st.st_size, st.st_mtime_ns)
+    except OSError:
+        key = (name, -1, -1)
+    if key in _WARNED:
+        return
+    if len(_WARNED) >= 1024:
+        _WARNED.clear()
+    _WARNED[key] = None
+    log.warning("%s: %s", name, problem, extra={"cut_file": name})
 
 
 def read_results(paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]]:
@@ -335,24 +489,28 @@ def read_results(paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]
 
 
 def read_logs(
-    paths: Iterable[str | os.PathLike[str]], skip_bad: bool = False, status: bool = True
+    paths: Iterable[str | os.PathLike[str]], skip_bad: bool = False, status: bool = True, warn: bool = True
 ) -> McapLog:
     """Several files in the given order, joined; preroll samples already in the file before are dropped.
 
     ``skip_bad``: a file that cannot be read is left out with a warning naming it (one bad file in a directory
-    costs only itself); a DataError only when none can be read.
+    costs only itself); a DataError only when none can be read.  ``warn``: as :func:`read_log`.
     """
     names = list(paths)
     parts: list[McapLog] = []
     errors: list[str] = []
     for path in names:
         try:
-            parts.append(read_log(path, status=status))
+            parts.append(read_log(path, status=status, warn=warn))
         except DataError as err:
             if not skip_bad:
                 raise
             errors.append(str(err))
             log.warning("%s; left out, the other files read", err)
+    if warn and len(parts) > 1:
+        for p in parts:
+            if p.problem and not len(p.samples):
+                warn_once(p.paths[0], p.problem)
     if not parts:
         raise DataError(errors[0] if len(errors) == 1 else
                         f"none of the {len(names)} MCAP files could be read (the first: {errors[0]})" if errors else
@@ -362,12 +520,15 @@ def read_logs(
     pres: list[NDArray[np.bool_]] = []
     starts: list[int] = []
     last_wall: int | None = None
+    skipped: list[tuple[int, str]] = []
     for p in parts:
         starts.append(sum(len(b) for b in keep_batches))
         s, wall, pre = p.samples, p.t_wall_ns, p.preroll
+        kept = np.ones(wall.size, bool)
         if last_wall is not None and pre.any():
-            keep = ~(pre & (wall <= last_wall))
+            kept = keep = ~(pre & (wall <= last_wall))
             s, wall, pre = _take(s, keep), wall[keep], pre[keep]
+        skipped += [(starts[-1] + int(np.count_nonzero(kept[:k])), f"{p.paths[0]}: {where}") for k, where in p.skipped]
         if wall.size:
             last_wall = int(wall.max()) if last_wall is None else max(last_wall, int(wall.max()))
         keep_batches.append(s)
@@ -383,6 +544,7 @@ def read_logs(
         metadata=parts[0].metadata,
         file_starts=starts,
         file_events=[i for i, p in enumerate(parts) for _e in p.events],
+        skipped=skipped,
     )
     for k in _TOPIC_LISTS.values():
         setattr(out, k, [x for p in parts for x in getattr(p, k)])
@@ -419,7 +581,8 @@ def recording(lg: McapLog, name: str) -> Recording:
     or ``clock_jump`` before the sample it names (files written before events
     named one: the first sample stamped after the event), ``GAP_PERIODS`` or
     more samples ``lost``, and a ``log_gap`` (samples the logger could not
-    write) before the first sample of the file it heads.
+    write) before the first sample of the file it heads, and a damaged record
+    the reader passed over (:attr:`McapLog.skipped`) where it was.
     """
     n = len(lg.samples)
     if n == 0:
@@ -457,6 +620,9 @@ def recording(lg: McapLog, name: str) -> Recording:
         else:
             continue
         breaks.append((at, reason))
+    for k, where in lg.skipped:  # the samples of a damaged chunk are missing there
+        if 0 < k < n:
+            breaks.append((int(np.searchsorted(index, k)), f"samples missing: a damaged record ({where}) skipped"))
     from ballbar.analysis.polled import from_events
 
     return Recording(np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(L, dtype=np.float64),

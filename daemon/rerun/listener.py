@@ -96,7 +96,7 @@ _INVALID = np.uint8(int(INVALID))  # status bits of a sample that is not a measu
 
 WARN_EVENTS = frozenset(
     {"test_rejected", "test_incomplete", "test_aborted", "unplugged", "lost", "stall", "device_reset", "clock_jump",
-     "decode_errors"}
+     "counter_jump", "decode_errors"}
 )
 START_DIVISION_UM = 5.0  # the live plot's division before any test has set one
 PRE_TEST_S = 10.0  # samples kept while no test runs: the feed-in event comes after the step settled

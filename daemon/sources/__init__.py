@@ -143,9 +143,13 @@ port raises mid-read, or cannot be opened at start) is an ``unplugged`` event;
 the source retries with exponential backoff and reports ``replugged`` with the
 outage when the port returns, then the samples lost across it.  A device that
 stops sending is a ``stall``, then ``resumed``.  A restarted device (its
-counter or clock went back) is a ``device_reset``, a device clock that steps by
-more than its counter says a ``clock_jump``; each names the first sample after
-it (``seq``), so that the analysis can place the break exactly.  A source with a
+counter went back, or without a counter its clock) is a ``device_reset``, a device
+clock that steps by more than its counter says (ahead, or back while the counter
+runs on) a ``clock_jump``, a counter that leaps while the clock runs on a
+``counter_jump`` (a counter fault: nothing lost, the numbers run on by the clock);
+each names the first sample after it (``seq``), so that the analysis can place
+the break exactly.  Decoder drops are logged at INFO, at most once per 10 s
+with the counts since.  A source with a
 device counter (binary frames) can be told, before its first read, the last sample a
 previous daemon run recorded (:meth:`Source.resume`, :mod:`ballbar.daemon.restarts`):
 the samples the restart lost are then a ``lost`` event (detail ``restart``), by the

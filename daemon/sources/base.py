@@ -58,6 +58,8 @@ class Source(abc.ABC):
         self._wake = threading.Event()
         self._close_lock = threading.Lock()
         self._lost_logged_at = -math.inf
+        self._decode_logged_at = -math.inf
+        self._decode_unlogged: dict[str, int] = {}
         self._lost_unlogged = 0
 
     # -- public -------------------------------------------------------------------
@@ -209,8 +211,14 @@ class Source(abc.ABC):
                 log.warning("%s: %d samples lost (%s, from seq %s)", self.url, self._lost_unlogged, ev.detail, ev.seq)
                 self._lost_logged_at, self._lost_unlogged = ev.t_host, 0
         elif k == EventKind.DECODE_ERRORS:
-            log.debug("%s: decoder dropped %s", self.url, dict(ev.counts))
-        elif k in (EventKind.UNPLUGGED, EventKind.STALL, EventKind.DEVICE_RESET, EventKind.CLOCK_JUMP):
+            # Line noise drops bytes all the time: the counts at INFO, rate-limited like the losses.
+            add_counts(self._decode_unlogged, dict(ev.counts))
+            if ev.t_host - self._decode_logged_at >= 10.0:
+                log.info("%s: the decoder dropped %s", self.url,
+                         ", ".join(f"{v} {k}" for k, v in sorted(self._decode_unlogged.items())))
+                self._decode_logged_at, self._decode_unlogged = ev.t_host, {}
+        elif k in (EventKind.UNPLUGGED, EventKind.STALL, EventKind.DEVICE_RESET, EventKind.CLOCK_JUMP,
+                   EventKind.COUNTER_JUMP):
             log.warning("%s: %s %s", self.url, k, ev.detail or (f"after {ev.gap_s:.3f} s" if ev.gap_s else ""))
         else:
             log.info("%s: %s %s", self.url, k, ev.detail or (f"after {ev.gap_s:.3f} s" if ev.gap_s else ""))

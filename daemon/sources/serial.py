@@ -485,6 +485,9 @@ class SerialSource(Source):
         for seq, excess in st.jumps:
             self._event(EventKind.CLOCK_JUMP, seq=seq, gap_s=excess,
                         detail=f"device clock stepped {excess:+.6f} s beyond its sample counter")
+        for seq, count in st.counter_jumps:
+            self._event(EventKind.COUNTER_JUMP, seq=seq, count=count,
+                        detail=f"sample counter leapt {count} beyond its clock (no sample lost)")
         self._duplicates += st.duplicates
         self._report_decode()
         if self._stamper.clock.ready:

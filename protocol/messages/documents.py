@@ -27,7 +27,7 @@ _SET_DEFS = {"figure": sets.Figure, "observation": sets.Observation}
 SOURCE_EVENTS: dict[str, Any] = {
     "opened": ev.Opened, "unplugged": ev.Unplugged, "replugged": ev.Replugged, "lost": ev.Lost,
     "decode_errors": ev.DecodeErrors, "stall": ev.Stall, "resumed": ev.Resumed, "device_reset": ev.DeviceReset,
-    "clock_jump": ev.ClockJump, "end": ev.End, "timing": ev.Timing,
+    "clock_jump": ev.ClockJump, "counter_jump": ev.CounterJump, "end": ev.End, "timing": ev.Timing,
 }
 PIPELINE_EVENTS: dict[str, Any] = {
     "feed_in": ev.FeedIn, "feed_out": ev.FeedOut, "test_rejected": ev.TestRejected,

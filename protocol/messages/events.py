@@ -118,6 +118,15 @@ class ClockJump(SourceStamp):
     detail: NotRequired[Detail]
 
 
+class CounterJump(SourceStamp):
+    """the device's sample counter leapt while its clock ran on: a counter fault, no sample lost, no break"""
+
+    event: Name[Literal["counter_jump"]]
+    seq: NotRequired[Annotated[int, doc("the first sample after the leap")]]
+    count: NotRequired[Annotated[int, doc("the counter's leap beyond the samples the clock says were taken")]]
+    detail: NotRequired[Detail]
+
+
 class End(SourceStamp):
     """a finite source (replay, sim: with a repeat count) has ended"""
 
