@@ -5,11 +5,11 @@ wider than the window.  And the live view's and the report's rankings of the sam
 
 The scene is :mod:`livescene`: a simulated machine's tests as the daemon hands them to the viewer, each with a
 verdict against limits it passes, warns on or fails, after 20 earlier tests.  The viewer is
-:class:`~ballbar.daemon.rerun.RerunViewer` in serve mode; a real ``rerun`` viewer connects to it under Xvfb
-with Mesa's CPU Vulkan driver (lavapipe) and saves a screenshot (``--screenshot-to``) at 1600x1000 and
-1280x800.  The report is rendered from the same results and loaded at 1400 and 800 px.
+:class:`~ballbar.daemon.rerun.RerunViewer` in serve mode; a real ``rerun`` viewer, headless (``--headless``: its
+offscreen harness, no X server) on Mesa's CPU Vulkan driver (lavapipe), opens it and is shot through its control
+API (:class:`Viewer`) at 1600x1000 and 1280x800 once it holds the whole scene; an ERROR line from it fails.  The report is rendered from the same results and loaded at 1400 and 800 px.
 
-Needs Debian's ``xvfb`` (``xvfb-run``) and ``mesa-vulkan-drivers`` for the viewer and ``chromium`` for the
+Needs Debian's ``mesa-vulkan-drivers`` for the viewer and ``chromium`` for the
 report; without them those tests skip and say why, unless ``BALLBAR_REQUIRE_SCREENSHOTS=1`` (CI) makes that a
 failure.  ``BALLBAR_SCREENSHOTS=1`` writes the screenshots, small, to ``tests/screenshots/`` (the README's).
 """
