@@ -142,3 +142,29 @@ def test_the_layout_of_a_library_builds() -> None:
     bp = default_blueprint({"xy/backlash_um": (0.0, 5.0)}, {"xy": ("X", "Y"), "zx": ("Z", "X")})
     assert bp is not None
     assert np.isfinite(5.0)
+
+
+def test_an_id_names_one_kind_of_view_in_every_layout() -> None:
+    """A viewer keeps a view's state by its id across recordings: the single plan's layout and the libraries'
+    (of two and three plans) never give one id to views of two classes (or containers of two kinds)."""
+    import rerun.blueprint as rrb
+
+    from ballbar.daemon.rerun.blueprint import stable_ids
+
+    kinds: dict[str, set[str]] = {}
+
+    def walk(item: Any) -> None:
+        kind = type(item).__name__ if isinstance(item, rrb.Container) else str(item.class_identifier)
+        kinds.setdefault(str(item.id), set()).add(kind)
+        if isinstance(item, rrb.Container):
+            for sub in item.contents:
+                walk(sub)
+
+    layouts = [default_blueprint(), default_blueprint(None, {"xy": ("X", "Y"), "zx": ("Z", "X")}),
+               default_blueprint(None, {p: tuple(setscene.PLANS[p].axes) for p in setscene.PLANS})]  # type: ignore[misc]
+    for bp in layouts:
+        root = bp.to_blueprint().root_container
+        stable_ids(root, "root")
+        walk(root)
+    assert len(kinds) > 30
+    assert all(len(k) == 1 for k in kinds.values()), {i: k for i, k in kinds.items() if len(k) > 1}
