@@ -7,7 +7,8 @@ The scene is :mod:`livescene`: a simulated machine's tests as the daemon hands t
 verdict against limits it passes, warns on or fails, after 20 earlier tests.  The viewer is
 :class:`~ballbar.daemon.rerun.RerunViewer` in serve mode; a real ``rerun`` viewer, headless (``--headless``: its
 offscreen harness, no X server) on Mesa's CPU Vulkan driver (lavapipe), opens it and is shot through its control
-API (:class:`Viewer`) at 1600x1000 and 1280x800 once it holds the whole scene; an ERROR line from it fails.  The report is rendered from the same results and loaded at 1400 and 800 px.
+API (:class:`Viewer`) at 1600x1000 and 1280x800 once it holds the whole scene; an ERROR line from it fails.
+The report is rendered from the same results and loaded at 1400 and 800 px.
 
 Needs Debian's ``mesa-vulkan-drivers`` for the viewer and ``chromium`` for the
 report; without them those tests skip and say why, unless ``BALLBAR_REQUIRE_SCREENSHOTS=1`` (CI) makes that a
@@ -135,6 +136,20 @@ def _feed(v: RerunViewer, items: Sequence[tuple[str, Any]]) -> None:
     rec.log(FED, rr.AnyValues(done=[True]))
     rec.disable_timeline(FED)
     rec.flush()
+
+
+@pytest.fixture
+def served(scene: livescene.Scene, request: pytest.FixtureRequest) -> Iterator[RerunViewer]:
+    """The daemon's viewer in serve mode, fed the scene with the verdicts of ``request.param``."""
+    items, earlier = livescene.annotated(scene, request.param)
+    v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=_free_port(), server_memory_limit="64MiB"),
+                    plan=livescene.PLAN)
+    try:
+        assert v.seed(earlier) == len(earlier)
+        _feed(v, items)
+        yield v
+    finally:
+        v.stop()
 
 
 class Viewer:
