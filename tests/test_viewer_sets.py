@@ -149,6 +149,7 @@ def test_an_id_names_one_kind_of_view_in_every_layout() -> None:
     (of two and three plans) never give one id to views of two classes (or containers of two kinds)."""
     import rerun.blueprint as rrb
 
+    from ballbar.analysis.plan import PLANE_AXES
     from ballbar.daemon.rerun.blueprint import stable_ids
 
     kinds: dict[str, set[str]] = {}
@@ -161,7 +162,7 @@ def test_an_id_names_one_kind_of_view_in_every_layout() -> None:
                 walk(sub)
 
     layouts = [default_blueprint(), default_blueprint(None, {"xy": ("X", "Y"), "zx": ("Z", "X")}),
-               default_blueprint(None, {p: tuple(setscene.PLANS[p].axes) for p in setscene.PLANS})]  # type: ignore[misc]
+               default_blueprint(None, {p: PLANE_AXES[plan.plane] for p, plan in setscene.PLANS.items()})]
     for bp in layouts:
         root = bp.to_blueprint().root_container
         stable_ids(root, "root")
