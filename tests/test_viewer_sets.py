@@ -3,6 +3,7 @@ verdict from the set, as a real rerun process receives them (tests/setscene.py's
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -65,6 +66,8 @@ def test_each_plan_and_the_set_reach_the_viewer(scene: setscene.Scene, tmp_path:
     # each plan's axes on its view; the last test's view takes the axes of the plan it shows
     assert last(saved, "/plans/zx/reference/axis_labels", "Points2D:labels") == ["+Z", "+X"]
     assert last(saved, "/polar/reference/axis_labels", "Points2D:labels") == ["+Y", "+Z"]  # yz, the last
+    check_last_test_axes(rx.rrd)
+    assert last(saved, "/live/reference/axis_labels", "Points2D:labels") == ["+X", "+Y"]  # xy, in progress
     # the machine's verdict: the set's bar and the head of the findings
     assert "FAIL · set machine: xy pass, zx fail, yz warning" in " ".join(texts(saved, "/set/verdict/text",
                                                                                 "Points2D:labels"))
@@ -74,6 +77,50 @@ def test_each_plan_and_the_set_reach_the_viewer(scene: setscene.Scene, tmp_path:
     # the trends of a plan are that plan's tests alone: ten earlier ones and today's
     xs = [x for x in saved.columns["/plans/zx/trends/backlash_um/x"]["Scalars:scalars"] if x is not None]
     assert len(xs) == 11, xs
+
+
+def _rows_at(path: Path, entity: str, column: str) -> tuple[list[tuple[int, Any]], int]:
+    """``entity``'s values of ``column`` with their times on the ``time`` timeline (ns), in time order; and how
+    many rows of it are static."""
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    rows: list[tuple[int, Any]] = []
+    static = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a file saved by --save has no footer
+        for ch in RrdReader(path).stream():
+            if str(ch.entity_path) != entity:
+                continue
+            rb = ch.to_record_batch()
+            if column not in rb.schema.names:
+                continue
+            if ch.is_static:
+                static += ch.num_rows
+                continue
+            times = rb.column("time").cast("int64").to_pylist()
+            rows += [(t, v) for t, v in zip(times, rb.column(column).to_pylist(), strict=True) if v is not None]
+    return sorted(rows, key=lambda r: r[0]), static
+
+
+def check_last_test_axes(path: Path) -> None:
+    """At the time of each test the last test's view draws (its verdict bar names the plan), the view's axis
+    labels are that plan's plane's: the first axis to the right, the second up (as each plan's own view)."""
+    from ballbar.analysis.plan import PLANE_AXES
+
+    labels, static = _rows_at(path, "/polar/reference/axis_labels", "Points2D:labels")
+    assert static == 0 and labels, (static, len(labels))  # a static label would shadow every test's own
+    bars, _ = _rows_at(path, "/polar/verdict/text", "Points2D:labels")
+    shown = 0
+    for t, text in bars:
+        m = re.search(r"· (\w+) test (\d+)", " ".join(text))
+        assert m, text
+        a, b = PLANE_AXES[setscene.PLANS[m.group(1)].plane]
+        at = [v for tl, v in labels if tl <= t]
+        assert at and at[-1] == [f"+{a}", f"+{b}"], (text, at[-1:] if at else None)
+        shown += 1
+    assert shown >= 3  # xy, zx and yz at least
 
 
 def test_the_sets_words() -> None:
@@ -95,3 +142,30 @@ def test_the_layout_of_a_library_builds() -> None:
     bp = default_blueprint({"xy/backlash_um": (0.0, 5.0)}, {"xy": ("X", "Y"), "zx": ("Z", "X")})
     assert bp is not None
     assert np.isfinite(5.0)
+
+
+def test_an_id_names_one_kind_of_view_in_every_layout() -> None:
+    """A viewer keeps a view's state by its id across recordings: the single plan's layout and the libraries'
+    (of two and three plans) never give one id to views of two classes (or containers of two kinds)."""
+    import rerun.blueprint as rrb
+
+    from ballbar.analysis.plan import PLANE_AXES
+    from ballbar.daemon.rerun.blueprint import stable_ids
+
+    kinds: dict[str, set[str]] = {}
+
+    def walk(item: Any) -> None:
+        kind = type(item).__name__ if isinstance(item, rrb.Container) else str(item.class_identifier)
+        kinds.setdefault(str(item.id), set()).add(kind)
+        if isinstance(item, rrb.Container):
+            for sub in item.contents:
+                walk(sub)
+
+    layouts = [default_blueprint(), default_blueprint(None, {"xy": ("X", "Y"), "zx": ("Z", "X")}),
+               default_blueprint(None, {p: PLANE_AXES[plan.plane] for p, plan in setscene.PLANS.items()})]
+    for bp in layouts:
+        root = bp.to_blueprint().root_container
+        stable_ids(root, "root")
+        walk(root)
+    assert len(kinds) > 30
+    assert all(len(k) == 1 for k in kinds.values()), {i: k for i, k in kinds.items() if len(k) > 1}

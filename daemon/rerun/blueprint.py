@@ -269,12 +269,20 @@ class Blueprints:
 
 
 def stable_ids(item: rrb.Container | rrb.View, place: str) -> set[str]:
-    """Give a container and everything in it ids from their places in the layout; return their blueprint paths."""
-    item.id = uuid.uuid5(LAYOUT_NAMESPACE, place)
+    """Give a container and everything in it ids from their places in the layout and their kinds; return their
+    blueprint paths.
+
+    A viewer keeps each view's state (a 2D view's, a time series') by the view's id for as long as it runs,
+    across recordings: an id that named a time-series view in one layout and names a 2D view in another (the
+    single plan's layout, then a library's, in one viewer) fails every frame ("Failed to downcast view's to
+    the re_view_spatial::ui::SpatialViewState") and leaves that view empty.  So the id says what it is as well
+    as where: a view's class or a container's kind, the parent's included through its place."""
+    kind = item.__class__.__name__ if isinstance(item, rrb.Container) else str(item.class_identifier)
+    item.id = uuid.uuid5(LAYOUT_NAMESPACE, f"{place}:{kind}")
     out = {item.blueprint_path()}
     if isinstance(item, rrb.Container):
         for i, sub in enumerate(item.contents):
-            out |= stable_ids(sub, f"{place}/{i}")
+            out |= stable_ids(sub, f"{place}:{kind}/{i}")
     return out
 
 __all__ = ["TRENDS", "TREND_LINES", "TREND_VIEWS", "Blueprints", "default_blueprint", "plans_blueprint",

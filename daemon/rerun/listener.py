@@ -793,6 +793,8 @@ class RerunViewer(Scene, Listener):
             self._set_times()
             for name in DIRECTIONS.values():
                 self._log(f"live/{name}", rr.Clear(recursive=True))
+            if self._plans and self.plan is not None:  # the plan recognised at the feed-in: its plane's axes
+                self._log_axis_labels("live", self.plan.axes)
             self._log_status()
 
     def _end_test(self) -> None:

@@ -352,8 +352,8 @@ class Scene:
             self._log(f"{view}/{name}", rr.Clear(recursive=True))
         rec.set_time("time", timestamp=r.wall)
         self._log_scale(view, r.scale_um)
-        if r.axes is not None:  # the last test's view shows every plan's tests in turn: their axes with them
-            self._log_axis_labels(view, r.axes)
+        if r.axes is not None and view == "polar":  # it shows every plan's tests in turn: their axes with them,
+            self._log_axis_labels(view, r.axes, static=False)  # at the test's time (a refresh re-sends older ones)
         for name, (pts, colour, width, order) in r.curves.items():
             self._log_strip(f"{view}/{name}", pts, colour, width, order)
         self._log_verdict(r.status, r.headline, view)
@@ -445,7 +445,8 @@ class Scene:
                                 radii=rr.Radius.ui_points(0.5), draw_order=0.4),
                 static=True,
             )
-            self._log_axis_labels(view, (ax1, ax2))
+            if not (view == "polar" and self._plans):  # with a library, its tests' own, at their times
+                self._log_axis_labels(view, (ax1, ax2))
             # the scale rings sit at fixed display radii (+-1..3 divisions, whatever the division is)
             rings = [circle(ring_radius(k), 361) for k in range(-POLAR_DIVISIONS, POLAR_DIVISIONS + 1) if k]
             self._log(
@@ -470,13 +471,16 @@ class Scene:
                     self._log(f"{prefix}/{path}/{name}", rr.SeriesPoints(colors=list(colours), marker_sizes=[0.0]),
                               static=True)
 
-    def _log_axis_labels(self, view: str, axes: tuple[str, str]) -> None:
+    def _log_axis_labels(self, view: str, axes: tuple[str, str], *, static: bool = True) -> None:
+        """The plane's axes at the ends of the view's axis lines: the first to the right, the second up.  Static
+        where a view shows one plane; the last test's view of a library takes each test's at the test's time
+        (a static label would shadow them: Rerun shows static data over temporal)."""
         e = 1.7 * R0
         self._log(
             f"{view}/reference/axis_labels",
             rr.Points2D([[e, 0.0], [0.0, -e]], labels=[f"+{axes[0]}", f"+{axes[1]}"],  # +y is down in the view
                         colors=[COLOURS["axes"]], radii=rr.Radius.ui_points(2.0), show_labels=True),
-            static=True,
+            static=static,
         )
 
     def _log_scale(self, view: str, scale_um: float | None = None) -> None:
