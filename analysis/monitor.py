@@ -565,7 +565,8 @@ def forecast(pts: Sequence[tuple[datetime, float, float, str]], lim: Limit, name
         return out
     if not tr.significant:
         out["reason"] = (f"the trend is flat within its scatter (slope {tr.slope:.3g}/day, {100 * conf:.3g} % "
-                         f"interval {tr.slope_lo:.3g} .. {tr.slope_hi:.3g}, over {m} watched quantities)")
+                         f"interval {tr.slope_lo:.3g} .. {tr.slope_hi:.3g}, {m} {'quantity' if m == 1 else 'quantities'} "
+                         f"watched)")
         return out
     if direction * tr.slope < 0:
         out["reason"] = f"heading away from its limit (|value| falling, slope {tr.slope:.3g}/day)"
