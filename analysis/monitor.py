@@ -564,9 +564,9 @@ def forecast(pts: Sequence[tuple[datetime, float, float, str]], lim: Limit, name
         out["reason"] = f"{len(pts)} valid tests under these conditions, fewer than min_tests = {settings.min_tests}"
         return out
     if not tr.significant:
+        what = "quantity" if m == 1 else "quantities"
         out["reason"] = (f"the trend is flat within its scatter (slope {tr.slope:.3g}/day, {100 * conf:.3g} % "
-                         f"interval {tr.slope_lo:.3g} .. {tr.slope_hi:.3g}, {m} {'quantity' if m == 1 else 'quantities'} "
-                         f"watched)")
+                         f"interval {tr.slope_lo:.3g} .. {tr.slope_hi:.3g}, {m} {what} watched)")
         return out
     if direction * tr.slope < 0:
         out["reason"] = f"heading away from its limit (|value| falling, slope {tr.slope:.3g}/day)"
@@ -745,11 +745,11 @@ __all__ = [
     "evaluate",
     "forecast",
     "forecast_words",
-    "slope_confidence",
     "history_entry",
     "plan_of",
     "points",
     "settings_from_dict",
+    "slope_confidence",
     "theil_sen",
     "validity",
 ]
