@@ -53,27 +53,41 @@ The trend is Theil-Sen's: the median of the pairwise slopes, robust to a test in
 five being an outlier, with Sen's distribution-free confidence interval of the
 slope (Kendall's tau; ``confidence``, 0.95 by default).  Time is wall-clock days
 between tests (``t_wall`` of the results).  The crossing date is where the trend
-line reaches the bound it heads for (``+L`` rising, ``-L`` falling); its
+line reaches the bound it heads for (rule 4 below); its
 interval comes from a bootstrap of the tests (``BOOTSTRAP`` resamples of the
 points, each refitted by Theil-Sen; a resample whose slope does not head for
 the bound never crosses: infinity), the percentiles at ``(1 -+ confidence)/2``.
 The resamples' generator is seeded from the data: the same history gives the
 same interval, live and offline.
 
-A forecast is *due* only when all hold: at least ``min_tests`` points; the
-slope's confidence interval excludes 0 (a flat trend within its uncertainty
-forecasts nothing); and the interval's later bound is within
-``horizon_days`` of the last test.
+A forecast (a crossing date and ``due``) is given only when all hold, in this
+order (``reason`` says which did not):
+
+1. the last test does not fail on the quantity (``|value| - k u > L``) and the
+   trend line has not reached ``L``: what has happened is the verdict's;
+2. at least ``min_tests`` points;
+3. the slope is significant at :func:`slope_confidence`, Bonferroni's
+   ``1 - (1 - confidence) / m`` over the ``m`` quantities watched together;
+4. it moves ``|value|`` away from zero (the bound it heads for is ``+L`` for a
+   positive trend value, ``-L`` for a negative one);
+5. its change over the span is at least ``k`` x the values' median standard
+   uncertainty;
+6. the crossing interval's later bound is within ``horizon_days`` and within
+   ``MAX_EXTRAPOLATION`` x the span of the tests (``reach_days``).
+
+The crossing interval's early bound is never before the last test.
 
 Alerts
 ------
 :class:`AlertTracker` turns verdicts and forecasts into alerts without repeats:
-one alert when the verdict worsens (``warning``, ``fail``), at once; when it
+one alert when the verdict worsens (``warning``, ``fail``; the first verdict
+alerts unless it passes, as ``first verdict``), at once; when it
 improves, only after ``clear_after`` tests in a row at the better state (a value
 hovering at the warning level alerts once, not at every test); a forecast alert
 per limit when it becomes due, and a ``clear`` one after ``clear_after`` tests
 in a row that are clearly not due: the slope no longer significant, or even the
-crossing's earlier bound beyond the horizon (a later bound wavering about the
+crossing's earlier bound beyond the horizon, or no crossing at all (heading
+away, failing; a later bound wavering about the
 horizon clears nothing).  Its state is a plain dict, kept across restarts by the
 daemon.
 """
