@@ -154,3 +154,27 @@ def test_a_small_forecast_survey() -> None:
     assert wear["lead_tests_min"] >= 1
     for s in (const, wear):
         assert s["due_with_crossing_in_the_past"] == 0 and s["due_while_failing"] == 0
+
+
+def test_the_viewers_forecast_text_follows_the_monitors_rule() -> None:
+    """The live trends' forecast text (daemon/rerun): rows built as the viewer builds them from results a few
+    minutes apart; a flat G(b) and a falling X backlash get no crossing date, a rising Y backlash does."""
+    from ballbar.daemon.rerun.listener import RerunViewer
+    from ballbar.daemon.rerun.scene import TREND_WIDTH
+
+    rng = np.random.default_rng(9)
+    s = settings(G_b_um=25.0, parameters={"backlash_x_um": 8.0, "backlash_y_um": 8.0})
+    rows = np.zeros((0, TREND_WIDTH))
+    for i in range(15):
+        when = T0 + timedelta(minutes=4 * i)
+        r = result(i, when, 4.8 + float(rng.normal(0, 0.15)), backlash_x_um=6.0 - 0.1 * i + float(rng.normal(0, 0.02)),
+                   backlash_y_um=2.0 + 0.4 * i + float(rng.normal(0, 0.05)))
+        r["verdict"] = mon.evaluate(r, s)
+        row = RerunViewer._trend_row(r, i, when.timestamp(), rows)
+        assert row is not None
+        rows = np.vstack([rows, row])
+    md = RerunViewer._forecast_markdown(object(), rows)  # type: ignore[arg-type]  # uses only the rows given
+    lines = {ln.split(":")[0]: ln for ln in md.splitlines() if ln.startswith("- ")}
+    assert "no forecast" in lines["- Circularity G(b)"] and "reaches" not in lines["- Circularity G(b)"], md
+    assert "heading away" in lines["- Backlash X"], md
+    assert "reaches its limit 8" in lines["- Backlash Y"], md
