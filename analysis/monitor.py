@@ -125,7 +125,7 @@ _RANK = {s: i for i, s in enumerate(STATUSES)}
 MAX_FEED_DEVIATION = 0.1  # the engine's bound on a plausible measured feed (HINT_MAX_FEED_DEVIATION)
 BOOTSTRAP = 1000
 #: A forecast looks ahead at most this many times the span of the tests it rests on.
-MAX_EXTRAPOLATION = 1.0
+MAX_EXTRAPOLATION = 2.0
 ISO_UNCERTAINTY = (
     "ISO 230-4 figures: standard uncertainty sqrt(2) x the fit's residual RMS (a difference of two measured "
     "points, each off by the noise about the model); the upward bias of taking extremes of noisy data is not "

@@ -248,13 +248,13 @@ def test_the_store_keeps_trend_and_alert_states_across_a_restart(tmp_path: Path)
 
     run(range(0, 4))  # 2.0 .. 3.5: no alert yet (fewer than 5 tests)
     assert sent == []
-    # a restart: the trend goes on from the stored tests; 2 + 0.5 t reaches 8.5 at day 13, due from day 7, the
-    # first test whose span (7 days) reaches that far ahead (6 days; day 6: 7 days ahead of a 6-day span)
+    # a restart: the trend goes on from the stored tests; 2 + 0.5 t reaches 8.5 at day 13, due from day 5, the
+    # first test whose span (5 days) reaches twice as far as that is ahead (8 days; day 4: 9 days, span 4)
     run(range(4, 8))
     assert [(a["alert"], a["state"], a["test_id"]) for a in sent] == [
-        ("forecast", "due", f"m-{mon.time_text(t0 + timedelta(days=7))}")]
+        ("forecast", "due", f"m-{mon.time_text(t0 + timedelta(days=5))}")]
     f = sent[0]["forecast"]
-    assert f["n"] == 8 and f["crossing"] == mon.time_text(t0 + timedelta(days=13))
+    assert f["n"] == 6 and f["crossing"] == mon.time_text(t0 + timedelta(days=13))
     run(range(8, 10))  # another restart: still due, not sent again
     assert len(sent) == 1
     assert [a["alert_id"] for a in MonitorStore(tmp_path, "m").alerts()] == ["m-alert-1"]

@@ -110,12 +110,12 @@ def test_a_constant_machine_tested_every_few_minutes_forecasts_nothing() -> None
 
 
 def test_the_span_bounds_how_far_ahead_a_forecast_looks() -> None:
-    """A clean rise of 0.2 a day from 2 to 3.8 over 9 days: the crossing of 8 is 21 days ahead, more than the
-    span; with 30 days of tests the same line is forecast."""
+    """A clean rise of 0.2 a day from 2 to 3.8 over 9 days: the crossing of 8 is 21 days ahead, more than twice
+    the span; with 24 days of tests the same line is forecast."""
     s = settings(parameters={"backlash_x_um": 8.0})
     short = mon.forecast(pts([2.0 + 0.2 * i for i in range(10)]), s.limits[0], "backlash_x_um", s)
     assert short["significant"] and not short["due"] and "the trend's span" in short["reason"]
-    assert short["reach_days"] == pytest.approx(9.0)
+    assert short["reach_days"] == pytest.approx(2 * 9.0)
     s30 = settings(parameters={"backlash_x_um": 8.0}, trend_tests=40)
     long = mon.forecast(pts([2.0 + 0.2 * i for i in range(25)]), s30.limits[0], "backlash_x_um", s30)
     assert long["due"] and long["days_to_crossing"] == pytest.approx(30.0 - 24.0, abs=0.01)
