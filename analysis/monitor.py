@@ -53,27 +53,41 @@ The trend is Theil-Sen's: the median of the pairwise slopes, robust to a test in
 five being an outlier, with Sen's distribution-free confidence interval of the
 slope (Kendall's tau; ``confidence``, 0.95 by default).  Time is wall-clock days
 between tests (``t_wall`` of the results).  The crossing date is where the trend
-line reaches the bound it heads for (``+L`` rising, ``-L`` falling); its
+line reaches the bound it heads for (rule 4 below); its
 interval comes from a bootstrap of the tests (``BOOTSTRAP`` resamples of the
 points, each refitted by Theil-Sen; a resample whose slope does not head for
 the bound never crosses: infinity), the percentiles at ``(1 -+ confidence)/2``.
 The resamples' generator is seeded from the data: the same history gives the
 same interval, live and offline.
 
-A forecast is *due* only when all hold: at least ``min_tests`` points; the
-slope's confidence interval excludes 0 (a flat trend within its uncertainty
-forecasts nothing); and the interval's later bound is within
-``horizon_days`` of the last test.
+A forecast (a crossing date and ``due``) is given only when all hold, in this
+order (``reason`` says which did not):
+
+1. the last test does not fail on the quantity (``|value| - k u > L``) and the
+   trend line has not reached ``L``: what has happened is the verdict's;
+2. at least ``min_tests`` points;
+3. the slope is significant at :func:`slope_confidence`, Bonferroni's
+   ``1 - (1 - confidence) / m`` over the ``m`` quantities watched together;
+4. it moves ``|value|`` away from zero (the bound it heads for is ``+L`` for a
+   positive trend value, ``-L`` for a negative one);
+5. its change over the span is at least ``k`` x the values' median standard
+   uncertainty;
+6. the crossing interval's later bound is within ``horizon_days`` and within
+   ``MAX_EXTRAPOLATION`` x the span of the tests (``reach_days``).
+
+The crossing interval's early bound is never before the last test.
 
 Alerts
 ------
 :class:`AlertTracker` turns verdicts and forecasts into alerts without repeats:
-one alert when the verdict worsens (``warning``, ``fail``), at once; when it
+one alert when the verdict worsens (``warning``, ``fail``; the first verdict
+alerts unless it passes, as ``first verdict``), at once; when it
 improves, only after ``clear_after`` tests in a row at the better state (a value
 hovering at the warning level alerts once, not at every test); a forecast alert
 per limit when it becomes due, and a ``clear`` one after ``clear_after`` tests
 in a row that are clearly not due: the slope no longer significant, or even the
-crossing's earlier bound beyond the horizon (a later bound wavering about the
+crossing's earlier bound beyond the horizon, or no crossing at all (heading
+away, failing; a later bound wavering about the
 horizon clears nothing).  Its state is a plain dict, kept across restarts by the
 daemon.
 """
@@ -110,6 +124,8 @@ STATUSES = ("pass", "warning", "fail")
 _RANK = {s: i for i, s in enumerate(STATUSES)}
 MAX_FEED_DEVIATION = 0.1  # the engine's bound on a plausible measured feed (HINT_MAX_FEED_DEVIATION)
 BOOTSTRAP = 1000
+#: A forecast looks ahead at most this many times the span of the tests it rests on.
+MAX_EXTRAPOLATION = 2.0
 ISO_UNCERTAINTY = (
     "ISO 230-4 figures: standard uncertainty sqrt(2) x the fit's residual RMS (a difference of two measured "
     "points, each off by the noise about the model); the upward bias of taking extremes of noisy data is not "
@@ -510,35 +526,73 @@ def bootstrap_crossings(t: np.ndarray, y: np.ndarray, bound: float, direction: i
     return np.where(heads, tc, math.inf)
 
 
+def slope_confidence(confidence: float, watched: int) -> float:
+    """The slope interval's confidence for one of ``watched`` quantities: Bonferroni's ``1 - (1 - c) / m``, so
+    that a constant machine forecasts any of its quantities at most ``1 - c`` of the time."""
+    return 1.0 - (1.0 - confidence) / max(int(watched), 1)
+
+
 def forecast(pts: Sequence[tuple[datetime, float, float, str]], lim: Limit, name: str, settings: MonitorSettings,
-             ) -> Forecast:
+             watched: int | None = None) -> Forecast:
     """The trend of one limited quantity and where it crosses its limit: a JSON-ready dict.
 
-    ``due``: whether the forecast alerts (module docstring); ``reason`` says why
-    not.  Times: ``crossing`` (ISO UTC) with ``crossing_lo`` and ``crossing_hi``
-    (null: never, within what the data say), and in days after the last test.
+    ``due``: whether the forecast alerts (the rule in the module docstring); ``reason`` says why not.
+    ``watched``: how many quantities are watched together (Bonferroni; ``settings.quantities()`` by default).
+    Times, only for a trend that heads for its limit and has not reached it: ``crossing`` (ISO UTC) with
+    ``crossing_lo`` (never before the last test) and ``crossing_hi`` (null: never, within what the data
+    say), and in days after the last test.
     """
+    m = len(settings.quantities()) if watched is None else watched
+    conf = slope_confidence(settings.confidence, m)
     out: Forecast = {"name": name, "limit_name": lim.name, "limit": lim.bound, "n": len(pts),
-                           "min_tests": settings.min_tests, "horizon_days": settings.horizon_days,
-                           "confidence": settings.confidence, "method": (
-                               "Theil-Sen slope with Sen's interval; crossing interval from a bootstrap of the tests"),
-                           "due": False, "test_ids": [p[3] for p in pts]}
+                     "min_tests": settings.min_tests, "horizon_days": settings.horizon_days,
+                     "confidence": settings.confidence, "watched": m, "slope_confidence": conf, "method": (
+                         "Theil-Sen slope with Sen's interval (Bonferroni over the watched quantities); crossing "
+                         "interval from a bootstrap of the tests"),
+                     "due": False, "crossing": None, "test_ids": [p[3] for p in pts]}
     if len(pts) < 3:
         out["reason"] = f"{len(pts)} valid tests under these conditions: a trend needs at least 3"
         return out
     t0 = pts[0][0]
     t = np.array([(p[0] - t0).total_seconds() / 86400.0 for p in pts])
     y = np.array([p[1] for p in pts])
-    tr = theil_sen(t, y, settings.confidence)
-    last = float(t[-1])
-    out.update({"slope_per_day": tr.slope, "slope_lo": tr.slope_lo, "slope_hi": tr.slope_hi,
-                "significant": tr.significant, "value_now": tr.at(last), "first": time_text(t0),
-                "last": time_text(pts[-1][0])})
-    direction = 1 if tr.slope > 0 else -1
-    tc = crossing_days(tr, lim.bound) if tr.slope != 0 else math.inf
+    tr = theil_sen(t, y, conf)
+    last, span = float(t[-1]), float(t[-1] - t[0])
+    now = tr.at(last)
+    out.update({"slope_per_day": tr.slope, "slope_lo": _finite(tr.slope_lo), "slope_hi": _finite(tr.slope_hi),
+                "significant": tr.significant, "value_now": now, "first": time_text(t0),
+                "last": time_text(pts[-1][0]), "span_days": span})
+    # |value| is bounded: the trend heads for the limit only where it moves away from zero
+    direction = 1 if (now > 0 or (now == 0 and tr.slope > 0)) else -1
+    y_last, u_last = pts[-1][1], pts[-1][2]
+    u_med = float(np.median([p[2] for p in pts]))
+    rise = abs(tr.slope) * span
+    if abs(y_last) - settings.coverage_k * u_last > lim.bound:
+        out["reason"] = (f"it fails: the last test's {y_last:.3g} exceeds the limit {lim.bound:g} beyond its "
+                         f"uncertainty (the verdict says so; no forecast)")
+        return out
+    if abs(now) >= lim.bound:
+        out["reason"] = f"the trend is already at its limit ({now:.3g} against {lim.bound:g}; no forecast)"
+        return out
+    if len(pts) < settings.min_tests:
+        out["reason"] = f"{len(pts)} valid tests under these conditions, fewer than min_tests = {settings.min_tests}"
+        return out
+    if not tr.significant:
+        what = "quantity" if m == 1 else "quantities"
+        out["reason"] = (f"the trend is flat within its scatter (slope {tr.slope:.3g}/day, {100 * conf:.3g} % "
+                         f"interval {tr.slope_lo:.3g} .. {tr.slope_hi:.3g}, {m} {what} watched)")
+        return out
+    if direction * tr.slope < 0:
+        out["reason"] = f"heading away from its limit (|value| falling, slope {tr.slope:.3g}/day)"
+        return out
+    if rise < settings.coverage_k * u_med:
+        out["reason"] = (f"the trend changes {rise:.3g} over its {len(pts)} tests, less than {settings.coverage_k:g} "
+                         f"x the values' standard uncertainty {u_med:.3g}")
+        return out
+    tc = crossing_days(tr, lim.bound)
     boot = bootstrap_crossings(t, y, lim.bound, direction)
     q = (1.0 - settings.confidence) / 2.0
-    lo = float(np.quantile(boot, q, method="lower"))  # order statistics: no interpolation with infinities
+    lo = max(float(np.quantile(boot, q, method="lower")), last)  # order statistics; never before the last test
     hi = float(np.quantile(boot, 1.0 - q, method="higher"))
 
     def when(d: float) -> str | None:
@@ -546,19 +600,45 @@ def forecast(pts: Sequence[tuple[datetime, float, float, str]], lim: Limit, name
 
     out.update({"bound": direction * lim.bound, "crossing": when(tc), "crossing_lo": when(lo),
                 "crossing_hi": when(hi), "days_to_crossing": (tc - last) if math.isfinite(tc) else None,
-                "days_to_crossing_lo": (lo - last) if math.isfinite(lo) else None,
+                "days_to_crossing_lo": lo - last,
                 "days_to_crossing_hi": (hi - last) if math.isfinite(hi) else None})
-    if len(pts) < settings.min_tests:
-        out["reason"] = f"{len(pts)} valid tests under these conditions, fewer than min_tests = {settings.min_tests}"
-    elif not tr.significant:
-        out["reason"] = (f"the trend is flat within its uncertainty (slope {tr.slope:.3g}/day, "
-                         f"{100 * settings.confidence:g} % interval {tr.slope_lo:.3g} .. {tr.slope_hi:.3g})")
-    elif not math.isfinite(hi) or hi - last > settings.horizon_days:
-        out["reason"] = (f"the crossing's later bound is beyond the horizon of {settings.horizon_days:g} days"
-                         if math.isfinite(hi) else "the crossing's later bound is unbounded")
+    reach = min(settings.horizon_days, MAX_EXTRAPOLATION * span)
+    if not math.isfinite(hi):
+        out["reason"] = "the crossing's later bound is unbounded"
+    elif hi - last > settings.horizon_days:
+        out["reason"] = f"the crossing's later bound is beyond the horizon of {settings.horizon_days:g} days"
+    elif hi - last > MAX_EXTRAPOLATION * span:
+        out["reason"] = (f"the crossing's later bound is {hi - last:.3g} days ahead, beyond {MAX_EXTRAPOLATION:g} x "
+                         f"the trend's span of {span:.3g} days")
     else:
         out["due"] = True
+    out["reach_days"] = reach
     return out
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def forecast_words(f: Mapping[str, Any], label: str, unit: str = "") -> str:
+    """One line of a forecast for a reader (the report, the viewer): the crossing date only where the forecast
+    is due, else why there is none, so that the words say what the trend chart shows."""
+    u = f" {unit}" if unit else ""
+    n = f.get("n", 0)
+    if "slope_per_day" not in f:
+        return f"{label}: no trend yet ({f.get('reason', '')})"
+    slope = f"trend {f['slope_per_day']:+.3g}{u}/day over {n} tests"
+    crossing = f.get("crossing")
+    if f.get("due") and crossing:
+        short = (f.get("reach_days") or 0.0) < 2.0  # a trend of hours: the hour matters
+
+        def day(x: Any) -> str:
+            return (str(x)[:16].replace("T", " ") if short else str(x)[:10]) if x else "never"
+
+        return (f"{label}: {slope}, reaches its limit {f.get('bound', f['limit']):g}{u} about {day(crossing)} "
+                f"({100 * f.get('confidence', 0.95):g} %: {day(f.get('crossing_lo'))} .. "
+                f"{day(f.get('crossing_hi'))})")
+    return f"{label}: {slope}: no forecast, {f.get('reason', 'not due')}"
 
 
 # --------------------------------------------------------------------------- alerts
@@ -574,7 +654,7 @@ class AlertTracker:
     """
 
     clear_after: int = 2
-    state: dict[str, Any] = field(default_factory=lambda: {"verdict": "pass", "better": [], "forecast": {}})
+    state: dict[str, Any] = field(default_factory=lambda: {"verdict": None, "better": [], "forecast": {}})
 
     def update(self, verdict: Mapping[str, Any] | None, forecasts: Sequence[Mapping[str, Any]],
                ) -> list[dict[str, Any]]:
@@ -591,7 +671,12 @@ class AlertTracker:
 
     def _verdict(self, status: str) -> dict[str, Any] | None:
         st = self.state
-        current = st.get("verdict", "pass")
+        current = st.get("verdict")
+        if current is None:  # the first verdict: nothing to compare with; a pass needs no alert
+            st["verdict"], st["better"] = status, []
+            if status == "pass":
+                return None
+            return {"alert": "verdict", "state": status, "previous": None, "cleared": False}
         if _RANK[status] > _RANK[current]:
             st["verdict"], st["better"] = status, []
             return {"alert": "verdict", "state": status, "previous": current, "cleared": False}
@@ -630,7 +715,7 @@ class AlertTracker:
 def _clearly_not_due(f: Mapping[str, Any]) -> bool:
     """A due forecast's clearing rule, stricter than the due rule's negation (hysteresis): the slope is no
     longer significant, or even the crossing's earlier bound lies beyond the horizon."""
-    if not f.get("significant"):
+    if not f.get("significant") or f.get("crossing") is None:  # flat, heading away, failing or at its limit
         return True
     lo, horizon = f.get("days_to_crossing_lo"), f.get("horizon_days")
     return lo is None or (isinstance(horizon, int | float) and lo > horizon)
@@ -644,7 +729,9 @@ def alert_text(alert: Mapping[str, Any]) -> str:
         m = f"{m} plan {plan}"
     if alert.get("alert") == "verdict":
         v = alert.get("verdict") or {}
-        head = f"{m}: verdict {alert['previous']} -> {alert['state']}" + (" (cleared)" if alert.get("cleared") else "")
+        change = (f"verdict {alert['previous']} -> {alert['state']}" if alert.get("previous") is not None
+                  else f"first verdict: {alert['state']}")
+        head = f"{m}: {change}" + (" (cleared)" if alert.get("cleared") else "")
         return f"{head} at test {alert.get('test_id')}: {v.get('summary', '')}"
     f = alert.get("forecast") or {}
     if alert.get("state") == "clear":
@@ -671,10 +758,12 @@ __all__ = [
     "crossing_days",
     "evaluate",
     "forecast",
+    "forecast_words",
     "history_entry",
     "plan_of",
     "points",
     "settings_from_dict",
+    "slope_confidence",
     "theil_sen",
     "validity",
 ]

@@ -596,38 +596,25 @@ def trend_line(x: Sequence[float], y: Sequence[float], ahead: float) -> tuple[li
 
 def forecast_sentence(name: str, wall_s: Sequence[float] | np.ndarray, values: Sequence[float] | np.ndarray,
                       limit: float, axes: tuple[str, str] = ("X", "Y"), unit: str = "",
-                      confidence: float = 0.95) -> str:
-    """When the trend of ``name`` (values at wall-clock seconds) reaches ``|limit|``, in words: the Theil-Sen
-    line and its crossing as the monitor computes them (:func:`ballbar.analysis.monitor.theil_sen`,
-    :func:`~ballbar.analysis.monitor.crossing_days`, the interval from its bootstrap); empty with fewer than
-    3 tests."""
-    from datetime import UTC, datetime, timedelta
+                      confidence: float = 0.95, stderrs: Sequence[float] | np.ndarray | None = None,
+                      watched: int = 1, coverage_k: float = 2.0) -> str:
+    """The monitor's forecast of ``name`` (values at wall-clock seconds, their standard uncertainties) against
+    ``|limit|``, in words (:func:`ballbar.analysis.monitor.forecast` and
+    :func:`~ballbar.analysis.monitor.forecast_words`: a date only where the monitor would forecast one);
+    ``watched``: the quantities watched together; empty with fewer than 3 tests."""
+    from datetime import UTC, datetime
 
-    from .monitor import bootstrap_crossings, crossing_days, theil_sen
+    from .monitor import Limit, MonitorSettings, forecast, forecast_words
 
     t = np.asarray(wall_s, dtype=float)
     y = np.asarray(values, dtype=float)
     if t.size < 3:
         return ""
-    days = (t - t[0]) / 86400.0
-    tr = theil_sen(days, y, confidence)
-    label = quantity_label(name, axes)
-    unit = unit_text(unit or name.rsplit("_", 1)[-1])
-    slope = f"trend {tr.slope:+.3g} {unit}/day over {t.size} tests"
-    if not tr.significant:
-        return f"{label}: {slope}, flat within its uncertainty: no crossing forecast"
-    direction = 1 if tr.slope > 0 else -1
-    tc = crossing_days(tr, abs(limit))
-    if not math.isfinite(tc) or tc <= days[-1]:
-        return f"{label}: {slope}, heading away from its limit {abs(limit):g} {unit}"
-    boot = bootstrap_crossings(days, y, abs(limit), direction)
-    q = (1.0 - confidence) / 2.0
-    lo = float(np.quantile(boot, q, method="lower"))
-    hi = float(np.quantile(boot, 1.0 - q, method="higher"))
-    t0 = datetime.fromtimestamp(float(t[0]), UTC)
-
-    def when(d: float) -> str:
-        return (t0 + timedelta(days=d)).strftime("%Y-%m-%d") if math.isfinite(d) and abs(d) < 36500 else "never"
-
-    return (f"{label}: {slope}, reaches its limit {abs(limit):g} {unit} about {when(tc)} "
-            f"({100 * confidence:g} %: {when(lo)} .. {when(hi)})")
+    u = np.zeros(t.size) if stderrs is None else np.nan_to_num(np.asarray(stderrs, dtype=float))
+    lim = Limit(name, abs(float(limit)), 1.0, (name,), "parameters")
+    settings = MonitorSettings(limits=(lim,), coverage_k=coverage_k, trend_tests=max(t.size, 3),
+                               confidence=confidence)
+    pts = [(datetime.fromtimestamp(float(w), UTC), float(v), float(e), str(i))
+           for i, (w, v, e) in enumerate(zip(t, y, u, strict=True))]
+    f = forecast(pts, lim, name, settings, watched=watched)
+    return forecast_words(f, quantity_label(name, axes), unit_text(unit or name.rsplit("_", 1)[-1]))

@@ -150,6 +150,7 @@ class Monitor:
                 if isinstance(state, dict):
                     self.tracker_of(name).state = state
         self.alert_count = int(saved.get("alerts", 0)) if saved else 0
+        self.last_forecasts: list[Forecast] = []  # the last valid test's (none after an invalid one)
 
     def settings_of(self, result: Mapping[str, Any]) -> mon.MonitorSettings:
         """The limits the result's plan is held to."""
@@ -212,6 +213,7 @@ class Monitor:
             self.store.append_history(entry)
         # An invalid test gives a verdict but changes no trend: its forecasts would be the previous test's.
         forecasts = self.forecasts(result) if entry["invalid"] is None else []
+        self.last_forecasts = forecasts
         changes = self.tracker_of(mon.plan_of(result)).update(verdict, forecasts)
         by_name = {f["name"]: f for f in forecasts}
         alerts: list[Alert] = []

@@ -160,7 +160,7 @@ def test_a_flat_trend_forecasts_nothing() -> None:
     s = settings(parameters={"backlash_x_um": 5.0}, horizon_days=1e4)
     rng = np.random.default_rng(1)
     f = mon.forecast(_pts(list(4.0 + 0.3 * rng.standard_normal(20))), s.limits[0], "backlash_x_um", s)
-    assert not f["significant"] and not f["due"] and "flat within its uncertainty" in f["reason"]
+    assert not f["significant"] and not f["due"] and "flat within its scatter" in f["reason"]
     few = mon.forecast(_pts([1, 2, 3, 4]), s.limits[0], "backlash_x_um", s)
     assert not few["due"] and "fewer than min_tests" in few["reason"]
     validate(f, "forecast")
@@ -168,9 +168,9 @@ def test_a_flat_trend_forecasts_nothing() -> None:
 
 def test_a_falling_trend_heads_for_the_negative_bound() -> None:
     s = settings(parameters={"backlash_x_um": 5.0})
-    f = mon.forecast(_pts([-1.0 - 0.2 * i for i in range(10)]), s.limits[0], "backlash_x_um", s)
+    f = mon.forecast(_pts([-1.0 - 0.2 * i for i in range(15)]), s.limits[0], "backlash_x_um", s)
     assert f["due"] and f["bound"] == -5.0
-    assert f["days_to_crossing"] == pytest.approx(20.0 - 9.0, abs=0.01)  # -1 - 0.2 t = -5 at t = 20
+    assert f["days_to_crossing"] == pytest.approx(20.0 - 14.0, abs=0.01)  # -1 - 0.2 t = -5 at t = 20
 
 
 def test_invalid_tests_never_enter_a_trend() -> None:
@@ -219,7 +219,7 @@ def test_a_due_forecast_clears_only_when_clearly_not_due() -> None:
 
     def step(due: bool, significant: bool = True, lo_days: float | None = 10.0) -> list[str]:
         f = {"name": "b", "due": due, "significant": significant, "days_to_crossing_lo": lo_days,
-             "horizon_days": 30.0}
+             "horizon_days": 30.0, "crossing": "2026-02-01T00:00:00Z"}
         return [a["state"] for a in tr.update(None, [f])]
 
     assert step(True) == ["due"]
@@ -235,7 +235,7 @@ def test_a_due_forecast_clears_only_when_clearly_not_due() -> None:
 
 
 def test_the_store_keeps_trend_and_alert_states_across_a_restart(tmp_path: Path) -> None:
-    s = settings(parameters={"backlash_x_um": 10.0}, min_tests=5)
+    s = settings(parameters={"backlash_x_um": 8.5}, min_tests=5)
     t0 = datetime(2026, 1, 1, tzinfo=UTC)
     sent: list[dict[str, Any]] = []
 
@@ -248,12 +248,14 @@ def test_the_store_keeps_trend_and_alert_states_across_a_restart(tmp_path: Path)
 
     run(range(0, 4))  # 2.0 .. 3.5: no alert yet (fewer than 5 tests)
     assert sent == []
-    run(range(4, 6))  # a restart: the trend goes on from the stored tests; the 5th test makes it due
+    # a restart: the trend goes on from the stored tests; 2 + 0.5 t reaches 8.5 at day 13, due from day 5, the
+    # first test whose span (5 days) reaches twice as far as that is ahead (8 days; day 4: 9 days, span 4)
+    run(range(4, 8))
     assert [(a["alert"], a["state"], a["test_id"]) for a in sent] == [
-        ("forecast", "due", f"m-{mon.time_text(t0 + timedelta(days=4))}")]
+        ("forecast", "due", f"m-{mon.time_text(t0 + timedelta(days=5))}")]
     f = sent[0]["forecast"]
-    assert f["n"] == 5 and f["crossing"] == mon.time_text(t0 + timedelta(days=16))  # 2 + 0.5 t = 10
-    run(range(6, 8))  # another restart: still due, not sent again
+    assert f["n"] == 6 and f["crossing"] == mon.time_text(t0 + timedelta(days=13))
+    run(range(8, 10))  # another restart: still due, not sent again
     assert len(sent) == 1
     assert [a["alert_id"] for a in MonitorStore(tmp_path, "m").alerts()] == ["m-alert-1"]
     for a in sent:
@@ -451,11 +453,12 @@ def test_each_plan_has_its_limits_trend_and_alert_states(tmp_path: Path) -> None
         assert r["verdict"]["status"] == ("fail" if plan == "zx" else "pass")  # 3 um: over zx's 2, under 10
         sent.extend(m.on_test(r))
     assert [(a["conditions"]["plan"], a["state"]) for a in sent] == [("zx", "fail")]  # once, though xy passed between
-    assert "m plan zx: verdict pass -> fail" in sent[0]["message"]
+    assert "m plan zx: first verdict: fail" in sent[0]["message"]
     (f,) = m.forecasts(result("xy", 0.0, 9))
     assert f["n"] == 3 and all("-xy-" in tid for tid in f["test_ids"])  # xy's trend: xy's tests alone
     state = json.loads((tmp_path / "m-state.json").read_text())
-    assert state["trackers"]["zx"]["verdict"] == "fail" and state["tracker"]["verdict"] == "pass"
+    assert state["trackers"]["zx"]["verdict"] == "fail" and state["trackers"]["xy"]["verdict"] == "pass"
+    assert state["tracker"]["verdict"] is None  # the default plan: no test, no verdict yet
     again = Monitor(glob, "m", MonitorStore(tmp_path, "m"), tight)  # a restart: zx's fail is not sent again
     r = result("zx", 3.0, 7)
     r["verdict"] = again.verdict(r)

@@ -69,7 +69,8 @@ def _version() -> str:
 
 def forecast_words(tests: Sequence[Mapping[str, Any]], axes: tuple[str, str]) -> list[str]:
     """Per limit of the newest test's verdict, when its trend crosses the limit (the daemon's forecast,
-    :func:`ballbar.analysis.monitor.forecast`, over these tests), or why no date can be given."""
+    :func:`ballbar.analysis.monitor.forecast`, over these tests, in
+    :func:`~ballbar.analysis.monitor.forecast_words`), or why no date can be given."""
     from ballbar.analysis import monitor
     from ballbar.analysis.report import quantity_label, unit_text
 
@@ -93,16 +94,7 @@ def forecast_words(tests: Sequence[Mapping[str, Any]], axes: tuple[str, str]) ->
         f = monitor.forecast(pts, lim, name, settings)
         label = quantity_label(name, axes)
         unit = unit_text(next((en["unit"] for en in v["limits"] if en["name"] == name), ""))
-        if crossing := f.get("crossing"):
-            lo, hi = f.get("crossing_lo"), f.get("crossing_hi")
-            span = f" ({100 * settings.confidence:g} %: {(lo or 'never')[:10]} .. {(hi or 'never')[:10]})"
-            slope = f.get("slope_per_day") or 0.0
-            when = crossing[:10]
-            flat = "" if f.get("significant") else "; the slope is within its uncertainty"
-            out.append(f"{label}: trend {slope:+.3g} {unit}/day, reaches its limit {lim.bound:g} {unit} about "
-                       f"{when}{span}{flat}")
-        else:
-            out.append(f"{label}: no crossing date ({unit_text(f.get('reason') or 'the trend heads away from it')})")
+        out.append(unit_text(monitor.forecast_words(f, label, unit)))
     return out
 
 

@@ -864,12 +864,16 @@ class RerunViewer(Scene, Listener):
 
         rows = self._trends.rows() if rows is None else rows
         lines = []
+        n = len(TRENDS)
+        limited = [j for j in range(n) if rows.shape[0] and np.isfinite(rows[-1, 2 + 2 * n + 2 * j])]
+        k = float(rows[-1, -1]) if rows.shape[0] and np.isfinite(rows[-1, -1]) else 2.0
         for j, (_p, field, _l, _c) in enumerate(TRENDS):
-            lim = rows[-1, 2 + 2 * len(TRENDS) + 2 * j] if rows.shape[0] else math.nan
-            if not np.isfinite(lim):
+            if j not in limited:
                 continue
+            lim = rows[-1, 2 + 2 * n + 2 * j]
             ok = np.flatnonzero(np.isfinite(rows[:, 2 + j]))[-TREND_FIT_TESTS:]
-            text = forecast_sentence(field, rows[ok, 1], rows[ok, 2 + j], float(lim))
+            text = forecast_sentence(field, rows[ok, 1], rows[ok, 2 + j], float(lim), stderrs=rows[ok, 2 + n + j],
+                                     watched=len(limited), coverage_k=k)
             if text:
                 lines.append(f"- {text}")
         return ("\n### Trend and forecast (the kept tests)\n\n" + "\n".join(lines) + "\n") if lines else ""

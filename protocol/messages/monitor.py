@@ -69,13 +69,18 @@ class Forecast(TypedDict):
     name: Annotated[str, doc("the limited field (a parameter name, G_ccw_um, G_cw_um, G_b_um or H_um)")]
     limit_name: Annotated[str, doc("the configured limit it is held to")]
     limit: Annotated[float, doc("the limit, in the field's unit")]
-    bound: NotRequired[Annotated[float, doc("+limit (rising trend) or -limit (falling)")]]
+    bound: NotRequired[Annotated[float, doc("the bound the trend heads for: +limit (a positive value rising) or "
+                                            "-limit (a negative one falling)")]]
     n: Annotated[int, doc("valid tests in the trend", minimum=0)]
     min_tests: Annotated[int, doc("no forecast from fewer valid tests")]
     horizon_days: Annotated[float, doc("a crossing within this many days is due", "days")]
-    confidence: Annotated[float, doc("the interval's confidence (e.g. 0.95)")]
+    confidence: Annotated[float, doc("the crossing interval's confidence (e.g. 0.95)")]
+    watched: NotRequired[Annotated[int, doc("quantities watched together (the Bonferroni correction)", minimum=1)]]
+    slope_confidence: NotRequired[Annotated[float, doc("the slope interval's confidence: 1 - (1 - confidence) / "
+                                                       "watched")]]
     method: Annotated[str, doc("how the trend and its interval were found, in words")]
-    due: Annotated[bool, doc("the crossing falls within the horizon (its interval's early bound, significant slope)")]
+    due: Annotated[bool, doc("a significant trend heads for the limit and its crossing's later bound is within the "
+                             "horizon and within the tests' span ahead")]
     reason: NotRequired[Annotated[str, doc("when not due: why")]]
     test_ids: Annotated[list[str], doc("the tests in the trend")]
     slope_per_day: NotRequired[Annotated[float, doc("the trend's slope (wall-clock days between tests)",
@@ -83,12 +88,17 @@ class Forecast(TypedDict):
     slope_lo: NotRequired[Annotated[float | None, doc("the slope's lower confidence bound", "unit per day",
                                                       null="too few tests")]]
     slope_hi: NotRequired[Annotated[float | None, doc("its upper bound", "unit per day", null="too few tests")]]
-    significant: NotRequired[Annotated[bool, doc("the slope's interval excludes zero")]]
+    significant: NotRequired[Annotated[bool, doc("the slope's interval (slope_confidence) excludes zero")]]
+    span_days: NotRequired[Annotated[float, doc("from the trend's first test to its last", "days")]]
+    reach_days: NotRequired[Annotated[float, doc("how far ahead a crossing may be forecast: the horizon or the span, "
+                                                 "the shorter", "days")]]
     value_now: NotRequired[Annotated[float, doc("the trend's value at the last test, in the field's unit")]]
     first: NotRequired[Annotated[str, doc("t_wall of the trend's first test (ISO 8601 UTC)")]]
     last: NotRequired[Annotated[str, doc("t_wall of its last test (ISO 8601 UTC)")]]
-    crossing: NotRequired[Annotated[str | None, doc("ISO 8601 UTC", null="the trend does not reach it")]]
-    crossing_lo: NotRequired[Annotated[str | None, doc("the crossing's early confidence bound, ISO 8601 UTC",
+    crossing: NotRequired[Annotated[str | None, doc("ISO 8601 UTC", null="no crossing ahead: flat, heading away, "
+                                                    "or already there")]]
+    crossing_lo: NotRequired[Annotated[str | None, doc("the crossing's early confidence bound, never before the "
+                                                       "last test, ISO 8601 UTC",
                                                        null="none")]]
     crossing_hi: NotRequired[Annotated[str | None, doc("its late bound, ISO 8601 UTC",
                                                        null="unbounded within the confidence")]]
@@ -117,7 +127,7 @@ class VerdictAlert(TypedDict):
     alert_id: AlertId
     alert: Annotated[Literal["verdict"], doc("verdict: a test's verdict changed")]
     state: Annotated[Status, doc("the new verdict")]
-    previous: Annotated[Status, doc("the verdict before this alert")]
+    previous: Annotated[Status | None, doc("the verdict before this alert", null="the first verdict")]
     cleared: Cleared
     test_id: AlertTestId
     t_test: TTest
