@@ -302,7 +302,7 @@ def evaluate(result: Mapping[str, Any], settings: MonitorSettings) -> Verdict:
         "uncertainty": f"parameters: the fit's standard error; {ISO_UNCERTAINTY}",
         "limits": entries,
         "not_evaluated": sum(e["status"] == "not_evaluated" for e in entries),
-        "summary": verdict_text(worst, entries),
+        "summary": verdict_text(worst, entries, _plane_axes(result)),
     }
 
 
@@ -312,15 +312,25 @@ def _unit(result: Mapping[str, Any], lim: Limit, name: str) -> str:
     return "um"
 
 
-def verdict_text(status: str, entries: Sequence[Mapping[str, Any]]) -> str:
-    """One line: the verdict and the limits that are not passed."""
+def _plane_axes(result: Mapping[str, Any]) -> tuple[str, str]:
+    from .plan import PLANE_AXES
+
+    plan = result.get("plan")
+    plane = plan.get("plane") if isinstance(plan, Mapping) else None
+    return PLANE_AXES.get(str(plane), ("X", "Y"))
+
+
+def verdict_text(status: str, entries: Sequence[Mapping[str, Any]], axes: tuple[str, str] = ("X", "Y")) -> str:
+    """One line: the verdict and the limits that are not passed, in the view's words
+    (:func:`ballbar.analysis.report.limit_words`: the quantity with the plane's axes, the limit, by how much)."""
+    from .report import limit_words
+
     bad = [e for e in entries if e["status"] in ("warning", "fail")]
     if not entries:
         return "no limits"
     parts = []
     for e in bad:
-        what = "within uncertainty of the limit" if e.get("within_uncertainty") else e["status"]
-        parts.append(f"{e['name']} {e['value']:.3g} +- {e['uncertainty']:.2g} {e['unit']} vs {e['limit']:g} ({what})")
+        parts.append(limit_words(e, axes) + ("" if e.get("within_uncertainty") else f" ({e['status']})"))
     n_ok = sum(e["status"] == "pass" for e in entries)
     skipped = sum(e["status"] == "not_evaluated" for e in entries)
     tail = f"{n_ok} of {len(entries)} limits passed" + (f", {skipped} not evaluated" if skipped else "")
@@ -650,9 +660,24 @@ def alert_text(alert: Mapping[str, Any]) -> str:
     if alert.get("state") == "clear":
         return (f"{m}: forecast for {alert.get('limit')} cleared at test {alert.get('test_id')}: "
                 f"{f.get('reason', 'no longer due')}")
-    return (f"{m}: {alert.get('limit')} trend {f.get('slope_per_day', math.nan):+.3g}/day crosses "
-            f"{f.get('bound', math.nan):g} on {f.get('crossing')} ({100 * f.get('confidence', 0):g} %: "
-            f"{f.get('crossing_lo')} .. {f.get('crossing_hi')}), from {f.get('n')} tests to {alert.get('test_id')}")
+    from .numbers import limit_texts, measured
+    from .report import quantity_label, unit_text
+
+    name = str(f.get("name") or alert.get("limit") or "")
+    unit = "um" if name in ISO_LIMITS or name.startswith("G_") else name.rsplit("_", 1)[-1]
+    axes = _plane_axes({"plan": alert.get("conditions") or {}})
+    slope, lo, hi = (f.get(k) for k in ("slope_per_day", "slope_lo", "slope_hi"))
+    conf = float(f.get("confidence") or 0.95)
+    se = None  # the slope's standard error from Sen's interval (normal approximation)
+    if isinstance(lo, int | float) and isinstance(hi, int | float) and math.isfinite(lo) and math.isfinite(hi):
+        se = (hi - lo) / (2.0 * _norm_ppf(0.5 + conf / 2.0))
+    bound = f.get("bound", math.nan)
+    lim_t, _m = limit_texts(slope, se, abs(bound) if isinstance(bound, int | float) else None, None, unit)
+    side = "-" if isinstance(bound, int | float) and bound < 0 else ""
+    return (f"{m}: {quantity_label(name, axes)} trend {measured(slope, se, f'{unit}/day', signed=True)} reaches "
+            f"its limit {side}{lim_t} {unit_text(unit)} about {f.get('crossing')} "
+            f"({100 * conf:g} %: {f.get('crossing_lo')} .. {f.get('crossing_hi')}), from {f.get('n')} tests to "
+            f"{alert.get('test_id')}")
 
 
 __all__ = [

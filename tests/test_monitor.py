@@ -7,6 +7,7 @@ engine on every test (``ballbar.tools.bench.alert_survey``), with one test a day
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import replace
 from datetime import UTC, datetime, timedelta
@@ -376,7 +377,11 @@ def test_analyze_gives_the_verdict_of_the_plan_files_limits(simulated_csv: Path,
     validate(v, "verdict")
     assert cli_main(["analyze", str(simulated_csv), "--plan", str(cfg)]) == 0
     text = capsys.readouterr().out
-    assert "Verdict: WARNING: backlash_x_um" in text and "G_b_um" in text
+    # the verdict in the view's words and by the one rounding rule (analysis/numbers.py): the quantity and its
+    # axis, the value to its standard error (0.1 um at the finest), the limit and the margin at that place
+    assert re.search(r"Verdict: WARNING: Backlash X 7\.\d ± 0\.\d µm, limit 8\.0 µm: 1\.\d µm \(\d+ %\) below it, "
+                     r"above the warning level 6\.4 µm \(warning\); 1 of 2 limits passed", text), text
+    assert "G_b_um" in text  # the per-field table keeps the field names for scripts
     # without limits: no verdict
     cfg.write_text(f"[plan]\nfeed_mm_min = {plan.feed_mm_min}\novershoot_deg = {plan.overshoot_deg}\n")
     assert cli_main(["analyze", str(simulated_csv), "--plan", str(cfg), "--json"]) == 0
@@ -395,7 +400,9 @@ def test_the_reports_verdict_box_shows_the_limits(simulated_csv: Path, tmp_path:
                      "--sample-hz", f"{plan.sample_hz:g}"]) == 0
     html = out.read_text()
     assert '<span class="badge" id="verdict-status">FAIL</span>' in html and 'data-status="fail"' in html
-    assert "Backlash X" in html and "limit 6 µm: over by" in html and "± 2 standard uncertainties" in html
+    # the limit and the margin at the value's place (0.1 um), the same words as the log's verdict
+    assert re.search(r"Backlash X 7\.\d ± 0\.\d µm, limit 6\.0 µm: over by 1\.\d µm", html)
+    assert "± 2 standard uncertainties" in html
     assert "<code>backlash_x_um</code>" in html  # the field name, in the statistics
 
 
