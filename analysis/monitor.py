@@ -674,8 +674,8 @@ def alert_text(alert: Mapping[str, Any]) -> str:
     bound = f.get("bound", math.nan)
     lim_t, _m = limit_texts(slope, se, abs(bound) if isinstance(bound, int | float) else None, None, unit)
     side = "-" if isinstance(bound, int | float) and bound < 0 else ""
-    return (f"{m}: {quantity_label(name, axes)} trend {measured(slope, se, f'{unit}/day', signed=True)} reaches "
-            f"its limit {side}{lim_t} {unit_text(unit)} about {f.get('crossing')} "
+    return (f"{m}: {quantity_label(name, axes)} trend {measured(slope, se, f'{unit}/day', signed=True)} crosses "
+            f"its limit {side}{lim_t} {unit_text(unit)} on {f.get('crossing')} "
             f"({100 * conf:g} %: {f.get('crossing_lo')} .. {f.get('crossing_hi')}), from {f.get('n')} tests to "
             f"{alert.get('test_id')}")
 

@@ -29,8 +29,9 @@ RESOLUTION: dict[str, float] = {
 
 
 def resolution(unit: str) -> float | None:
-    """The display resolution of ``unit``; a rate ``X/day`` takes ``X``'s; None for a unit not listed."""
-    u = str(unit or "").strip()
+    """The display resolution of ``unit`` (ASCII or as displayed: ``µm``); a rate ``X/day`` takes ``X``'s; None
+    for a unit not listed."""
+    u = str(unit or "").strip().replace("µ", "u")
     if u in RESOLUTION:
         return RESOLUTION[u]
     if u.endswith("/day"):

@@ -480,7 +480,9 @@ def test_the_words_both_views_use() -> None:
     from ballbar.analysis.report import limit_words, machine_ranking, quantity_label, share_text, value_text
 
     assert value_text(3.0301, 0.0014) == "3.0301 ± 0.0014"  # the report printed "3.030 ± 0.00"
-    assert value_text(53.7, 0.71) == "53.70 ± 0.71" and value_text(2.0, None) == "2.00"
+    assert value_text(53.7, 0.71) == "53.7 ± 0.7" and value_text(2.0, None) == "2.00"
+    # with its unit, never finer than the unit's resolution (analysis/numbers.py; tests/test_numbers.py)
+    assert value_text(3.0301, 0.0014, unit="ms") == "3.03 ± 0.01" and value_text(-0.01, 0.3, unit="um") == "0.0 ± 0.3"
     assert share_text(-0.001) == "< 0.1 %" and share_text(78.48) == "78 %" and share_text(2.04) == "2.0 %"
     ranking = [{"pattern": "centre", "share_pct": 55.6, "significant": True},
                {"pattern": "servo_mismatch", "share_pct": 41.6, "significant": True},
@@ -496,4 +498,7 @@ def test_the_words_both_views_use() -> None:
     assert quantity_label("backlash_y_um", ("Z", "X")) == "Backlash X"
     entry = {"name": "servo_mismatch_ms", "unit": "ms", "value": 3.0301, "uncertainty": 0.0028, "limit": 2.0,
              "margin": -1.0301, "status": "fail", "warning_level": 1.6}
-    assert limit_words(entry) == "Servo mismatch 3.0301 ± 0.0028 ms, limit 2 ms: over by 1.0301 ms"
+    assert limit_words(entry) == "Servo mismatch 3.03 ± 0.01 ms, limit 2.00 ms: over by 1.03 ms"
+    # the place from the standard error, the k u shown at it: the same value reads the same as in the detail table
+    entry["stderr"], entry["uncertainty"] = 0.06, 0.12
+    assert limit_words(entry) == "Servo mismatch 3.03 ± 0.12 ms, limit 2.00 ms: over by 1.03 ms"

@@ -173,9 +173,10 @@ def verdict_markdown(verdict: Any, axes: tuple[str, str] = ("X", "Y")) -> list[s
         raw = str(e.get("unit") or "")
         se = num(e.get("stderr"))
         lim_t, m_t = limit_texts(e.get("value"), se, e.get("limit"), margin, raw)
-        m_text = "–" if margin is None else (f"over by {m_t}" if margin < 0 else f"{m_t} below")
+        u = unit_text(raw)
+        m_text = "–" if margin is None else (f"over by {m_t} {u}" if margin < 0 else f"{m_t} {u} below")
         lines.append(f"| **{st}** | {quantity_label(str(e.get('name')), axes)} (`{e.get('name')}`) | "
-                     f"{measured(e.get('value'), se, raw, shown=e.get('uncertainty'))} | {lim_t} {unit_text(raw)} | "
+                     f"{measured(e.get('value'), se, raw, shown=e.get('uncertainty'))} | {lim_t} {u} | "
                      f"{m_text} |")
     lines += ["", f"fail only beyond the uncertainty (k = {k:g} standard uncertainties)"]
     return lines
