@@ -158,7 +158,7 @@ def summary(result: Mapping[str, Any]) -> str:
     if iso:
         lines += ["", "ISO 230-4:"]
         for k in ("G_ccw_um", "G_cw_um", "G_b_um", "H_um", "F_max_um", "F_min_um"):
-            lines.append(f"  {k:<10} {_fmt(iso.get(k))}")
+            lines.append(f"  {k:<10} {measured(iso.get(k), None, 'um', with_unit=False, ascii=True)}")
     nz = result.get("noise")
     if nz:
         verdict = "significant" if nz.get("vibration_significant") else "not significant"
