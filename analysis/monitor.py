@@ -646,6 +646,14 @@ def _clearly_not_due(f: Mapping[str, Any]) -> bool:
     return lo is None or (isinstance(horizon, int | float) and lo > horizon)
 
 
+def slope_stderr(lo: Any, hi: Any, confidence: float) -> float | None:
+    """A trend slope's standard error from Sen's interval ``lo .. hi`` at ``confidence`` (its half width over the
+    normal quantile): what the rounding rule shows a slope to; None without a finite interval."""
+    if isinstance(lo, int | float) and isinstance(hi, int | float) and math.isfinite(lo) and math.isfinite(hi):
+        return (hi - lo) / (2.0 * _norm_ppf(0.5 + confidence / 2.0))
+    return None
+
+
 def alert_text(alert: Mapping[str, Any]) -> str:
     """One readable line of an alert message."""
     m = alert.get("machine_id", "?")
@@ -668,9 +676,7 @@ def alert_text(alert: Mapping[str, Any]) -> str:
     axes = _plane_axes({"plan": alert.get("conditions") or {}})
     slope, lo, hi = (f.get(k) for k in ("slope_per_day", "slope_lo", "slope_hi"))
     conf = float(f.get("confidence") or 0.95)
-    se = None  # the slope's standard error from Sen's interval (normal approximation)
-    if isinstance(lo, int | float) and isinstance(hi, int | float) and math.isfinite(lo) and math.isfinite(hi):
-        se = (hi - lo) / (2.0 * _norm_ppf(0.5 + conf / 2.0))
+    se = slope_stderr(lo, hi, conf)
     bound = f.get("bound", math.nan)
     lim_t, _m = limit_texts(slope, se, abs(bound) if isinstance(bound, int | float) else None, None, unit)
     side = "-" if isinstance(bound, int | float) and bound < 0 else ""
@@ -700,6 +706,7 @@ __all__ = [
     "plan_of",
     "points",
     "settings_from_dict",
+    "slope_stderr",
     "theil_sen",
     "validity",
 ]

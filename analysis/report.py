@@ -635,7 +635,7 @@ def forecast_sentence(name: str, wall_s: Sequence[float] | np.ndarray, values: S
     3 tests."""
     from datetime import UTC, datetime, timedelta
 
-    from .monitor import bootstrap_crossings, crossing_days, theil_sen
+    from .monitor import bootstrap_crossings, crossing_days, slope_stderr, theil_sen
 
     t = np.asarray(wall_s, dtype=float)
     y = np.asarray(values, dtype=float)
@@ -645,13 +645,15 @@ def forecast_sentence(name: str, wall_s: Sequence[float] | np.ndarray, values: S
     tr = theil_sen(days, y, confidence)
     label = quantity_label(name, axes)
     unit = unit_text(unit or name.rsplit("_", 1)[-1])
-    slope = f"trend {tr.slope:+.3g} {unit}/day over {t.size} tests"
+    se = slope_stderr(tr.slope_lo, tr.slope_hi, confidence)
+    lim_t = limit_texts(tr.slope, se, abs(limit), None, unit)[0]
+    slope = f"trend {measured(tr.slope, se, unit + '/day', signed=True)} over {t.size} tests"
     if not tr.significant:
         return f"{label}: {slope}, flat within its uncertainty: no crossing forecast"
     direction = 1 if tr.slope > 0 else -1
     tc = crossing_days(tr, abs(limit))
     if not math.isfinite(tc) or tc <= days[-1]:
-        return f"{label}: {slope}, heading away from its limit {abs(limit):g} {unit}"
+        return f"{label}: {slope}, heading away from its limit {lim_t} {unit}"
     boot = bootstrap_crossings(days, y, abs(limit), direction)
     q = (1.0 - confidence) / 2.0
     lo = float(np.quantile(boot, q, method="lower"))
@@ -661,5 +663,5 @@ def forecast_sentence(name: str, wall_s: Sequence[float] | np.ndarray, values: S
     def when(d: float) -> str:
         return (t0 + timedelta(days=d)).strftime("%Y-%m-%d") if math.isfinite(d) and abs(d) < 36500 else "never"
 
-    return (f"{label}: {slope}, reaches its limit {abs(limit):g} {unit} about {when(tc)} "
+    return (f"{label}: {slope}, reaches its limit {lim_t} {unit} about {when(tc)} "
             f"({100 * confidence:g} %: {when(lo)} .. {when(hi)})")

@@ -25,6 +25,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ballbar.analysis.numbers import limit_texts, measured
 from ballbar.daemon.output import write_atomic
 
 from . import report_html as H
@@ -99,8 +100,10 @@ def forecast_words(tests: Sequence[Mapping[str, Any]], axes: tuple[str, str]) ->
             slope = f.get("slope_per_day") or 0.0
             when = crossing[:10]
             flat = "" if f.get("significant") else "; the slope is within its uncertainty"
-            out.append(f"{label}: trend {slope:+.3g} {unit}/day, reaches its limit {lim.bound:g} {unit} about "
-                       f"{when}{span}{flat}")
+            se = monitor.slope_stderr(f.get("slope_lo"), f.get("slope_hi"), settings.confidence)
+            lim_t, _m = limit_texts(slope, se, lim.bound, None, unit)
+            out.append(f"{label}: trend {measured(slope, se, unit + '/day', signed=True)}, reaches its limit "
+                       f"{lim_t} {unit} about {when}{span}{flat}")
         else:
             out.append(f"{label}: no crossing date ({unit_text(f.get('reason') or 'the trend heads away from it')})")
     return out
