@@ -165,7 +165,8 @@ def test_content_in_reading_order(data: ReportData, tmp_path: Path) -> None:
     absent = text[text.index('<tr class="absent">'):]
     assert "no X screw pitch configured" in absent and "cyclic_x_um" in absent
     # ISO figures with their conditions; advice; diagnostics
-    assert f'<td id="iso-G_ccw_um">{res["iso230_4"]["G_ccw_um"]:.2f}</td>' in text
+    # at the place the verdict shows them (their uncertainty sqrt(2) x the residual RMS; 0.1 um at the finest)
+    assert f'<td id="iso-G_ccw_um">{res["iso230_4"]["G_ccw_um"]:.1f}</td>' in text
     assert "ISO 230-4:2022" in text
     for a in res["advice"]:
         if not a["pattern"].startswith("reversal_spike_"):
@@ -451,7 +452,7 @@ def test_report_in_headless_chromium(
         assert facts["trendTable"] is not None and facts["trendTable"][0] <= facts["trendTable"][1]
         assert facts["firstPattern"] == res["ranking"][0]["pattern"] == "servo_mismatch"
         assert facts["firstText"].strip() == "Servo mismatch"
-        assert facts["gb"] == f"{res['iso230_4']['G_b_um']:.2f}"
+        assert facts["gb"] == f"{res['iso230_4']['G_b_um']:.1f}"  # 0.1 um: analysis/numbers.py
         assert facts["scripts"] == 0
         assert facts["resources"] == []
         assert requests == [html_path.as_uri()], requests  # nothing but the document itself

@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import datetime as dt
 import html
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from ballbar.analysis.numbers import measured
 from ballbar.analysis.report import (
     LIBRARY_FIELDS,
     advice_lines,
@@ -449,8 +451,11 @@ def iso(result: Mapping[str, Any]) -> str:
     cols = [("G_ccw_um", "G CCW"), ("G_cw_um", "G CW"), ("G_b_um", "G(b)"), ("H_um", "H"),
             ("F_max_um", "F max"), ("F_min_um", "F min")]
     head = "".join(f"<th>{e(n)} (µm)</th>" for _, n in cols)
+    rms = num(result.get("residual_rms_um"))
+    u = math.sqrt(2.0) * rms if rms is not None else None  # the verdict's uncertainty of G and H (monitor.py)
     cells = "".join(
-        f'<td id="iso-{k}"{" class=gb" if k == "G_b_um" else ""}>{e(fmt(iso.get(k), 2))}</td>' for k, _ in cols
+        f'<td id="iso-{k}"{" class=gb" if k == "G_b_um" else ""}>'
+        f'{e(measured(iso.get(k), u, "um", shown=0, with_unit=False))}</td>' for k, _ in cols
     )
     cond = iso.get("conditions") or {}
     a1, a2 = plane_axes(cond or (result.get("plan") or {}))
