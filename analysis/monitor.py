@@ -668,7 +668,7 @@ def alert_text(alert: Mapping[str, Any]) -> str:
     if alert.get("state") == "clear":
         return (f"{m}: forecast for {alert.get('limit')} cleared at test {alert.get('test_id')}: "
                 f"{f.get('reason', 'no longer due')}")
-    from .numbers import limit_texts, measured
+    from .numbers import measured
     from .report import quantity_label, unit_text
 
     name = str(f.get("name") or alert.get("limit") or "")
@@ -678,7 +678,8 @@ def alert_text(alert: Mapping[str, Any]) -> str:
     conf = float(f.get("confidence") or 0.95)
     se = slope_stderr(lo, hi, conf)
     bound = f.get("bound", math.nan)
-    lim_t, _m = limit_texts(slope, se, abs(bound) if isinstance(bound, int | float) else None, None, unit)
+    # the limit is the quantity's (um), not the slope's (um/day): at its unit's resolution, as the verdict shows it
+    lim_t = measured(abs(bound) if isinstance(bound, int | float) else None, None, unit, with_unit=False)
     side = "-" if isinstance(bound, int | float) and bound < 0 else ""
     return (f"{m}: {quantity_label(name, axes)} trend {measured(slope, se, f'{unit}/day', signed=True)} crosses "
             f"its limit {side}{lim_t} {unit_text(unit)} on {f.get('crossing')} "

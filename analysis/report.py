@@ -646,7 +646,7 @@ def forecast_sentence(name: str, wall_s: Sequence[float] | np.ndarray, values: S
     label = quantity_label(name, axes)
     unit = unit_text(unit or name.rsplit("_", 1)[-1])
     se = slope_stderr(tr.slope_lo, tr.slope_hi, confidence)
-    lim_t = limit_texts(tr.slope, se, abs(limit), None, unit)[0]
+    lim_t = measured(abs(limit), None, unit, with_unit=False)  # the quantity's limit, as the verdict shows it
     slope = f"trend {measured(tr.slope, se, unit + '/day', signed=True)} over {t.size} tests"
     if not tr.significant:
         return f"{label}: {slope}, flat within its uncertainty: no crossing forecast"

@@ -25,7 +25,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ballbar.analysis.numbers import limit_texts, measured
+from ballbar.analysis.numbers import measured
 from ballbar.daemon.output import write_atomic
 
 from . import report_html as H
@@ -101,7 +101,7 @@ def forecast_words(tests: Sequence[Mapping[str, Any]], axes: tuple[str, str]) ->
             when = crossing[:10]
             flat = "" if f.get("significant") else "; the slope is within its uncertainty"
             se = monitor.slope_stderr(f.get("slope_lo"), f.get("slope_hi"), settings.confidence)
-            lim_t, _m = limit_texts(slope, se, lim.bound, None, unit)
+            lim_t = measured(lim.bound, None, unit, with_unit=False)  # the quantity's limit, as the verdict shows it
             out.append(f"{label}: trend {measured(slope, se, unit + '/day', signed=True)}, reaches its limit "
                        f"{lim_t} {unit} about {when}{span}{flat}")
         else:
