@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 from .numbers import decimals, fixed
 from .patterns import LIBRARY
-from .plan import MachineConfig, TestPlan
+from .plan import MachineConfig, TestPlan, plane_keys
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages.results import Advice
@@ -108,12 +108,13 @@ def advise(params: Mapping[str, Any], plan: TestPlan, machine: MachineConfig) ->
             nd = decimals(k_new, None if se is None else k_new**2 * se / 1000.0, "1/s")  # d(1/K) = dm
             add("servo_mismatch_ms", "machine",
                 f"raise the {slow} position-loop gain from {fixed(k_old, nd)} to {fixed(k_new, nd)} 1/s to match "
-                f"{fast} ({slow} lags {fast} by {n('servo_mismatch_ms', abs(m))} ms)",
+                f"{fast}",
                 k_new - k_old, "1/s", "gain")
         else:
             add("servo_mismatch_ms", "machine",
                 f"{slow} lags {fast} by {n('servo_mismatch_ms', abs(m))} ms: raise the {slow} position-loop gain "
-                f"(Kv) or lower the {fast} one until the lags match (configure kv_x/kv_y for a value)", m, "ms", "gain")
+                f"(Kv) or lower the {fast} one until the lags match (configure [machine] "
+                f"{plane_keys('kv', plan.plane)} for a value)", m, "ms", "gain")
     s = _value(params, "squareness_urad")
     if s is not None:
         add("squareness_urad", "machine",

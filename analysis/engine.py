@@ -20,8 +20,14 @@ it (:mod:`.timeaxis`): a step backwards beyond jitter is a :class:`DataError`;
 a gap longer than a few sample periods, and any break the caller tells it of
 (:meth:`TestAnalyzer.mark_break`: a device reset, lost samples), rejects the
 test it falls in (``test_rejected``, with the break's time and size), from the
-feed-in step's first sample to the feed-out step's last.  Only a test that
-passed, with a plausible feed, teaches the next one its timing hints.
+feed-in step's first sample to the feed-out step's last.  Two kinds of gap are
+no break: a stalled host's, whose bunched samples :mod:`.retime` puts back on
+their grid before the time axis sees them (held back only while the samples
+after a long step come in), and a drop-out (samples lost on a clock that ran
+on, :mod:`.dropout`), judged at the feed-out: the test is rejected where it
+takes what the result needs, else analysed and the drop-out stated on its
+result (``dropouts``).  Only a test that passed, with a plausible feed, teaches
+the next one its timing hints.
 
 In the background.  Given an ``executor`` (the daemon's child process), the
 test's fit runs there while the next test's samples come in: :meth:`TestAnalyzer.collect`
@@ -44,20 +50,22 @@ import numpy as np
 
 from .circle import CircleFit, make_timing
 from .detect import StepEvent, TestDetector
+from .dropout import costs, in_step, is_dropout, judge
 from .errors import DataError, DetectionError
 from .fit import FitResult, solve
 from .fitstate import DEFAULT_SPIKE_WIDTH_DEG, feed_accel
 from .patterns import Pattern, select
-from .plan import AnalysisOptions, MachineConfig, TestPlan
+from .plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan
 from .plans import PlanLibrary, RecentSamples, Recognition, SignatureReading, at_feed_in, at_feed_out, read_signature
 from .result import result_body
+from .retime import Retimer
 from .testfit import analyze_test
 from .timeaxis import Break, TimeAxis
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages import AnalysisOutput, CircleBody, TestBody
     from ballbar.protocol.messages.events import FeedInBody, FeedOutBody, TestRejectedBody
-    from ballbar.protocol.messages.results import MachineAxis
+    from ballbar.protocol.messages.results import Dropout, MachineAxis
 
 log = logging.getLogger(__name__)
 
@@ -115,8 +123,9 @@ class TestAnalyzer:
     ``"circle"`` (one direction, provisional timing) or ``"test"``; and event
     dictionaries (``kind = "event"``: ``feed_in``, ``feed_out``,
     ``test_rejected``, ``test_incomplete``).  A test is rejected as soon as a
-    break in its time axis is seen (live: at once, not at its feed-out); its
-    feed-out is still reported, and no result follows.
+    break in its time axis is seen (live: at once, not at its feed-out; a
+    drop-out at its feed-out); its feed-out is still reported, and no result
+    follows.
 
     ``executor``: where each test's fit runs (see the module docstring;
     ``None``: inline, its result returned with the feed-out); ``on_submit``
@@ -139,6 +148,12 @@ class TestAnalyzer:
     provisional circles run only where the plan is known at the feed-in.
     :meth:`choose` names the next test's plan.  Every result says its plan:
     ``plan.name``, ``plan.axes`` and ``recognition``.
+
+    ``machine``: the machine's axes (:class:`~.plan.MachineAxes`), each test's
+    plan taking its plane's two; or one plane's (:class:`~.plan.MachineConfig`),
+    which every plan then takes as its first and second axis (a recording made
+    before the machine's axes were named).  :attr:`machine` is the current
+    plan's.
     """
 
     __test__ = False
@@ -146,7 +161,7 @@ class TestAnalyzer:
     def __init__(
         self,
         plan: TestPlan,
-        machine: MachineConfig | None = None,
+        machine: MachineConfig | MachineAxes | None = None,
         options: AnalysisOptions | None = None,
         hints: TimingHints | None = None,
         curves: bool = False,
@@ -167,7 +182,8 @@ class TestAnalyzer:
         self.on_submit = on_submit
         self._pending: tuple[int, StepEvent, cf.Future[dict[str, Any]], Recognition | None] | None = None
         self.curves = curves
-        self.machine = machine or MachineConfig()
+        self.machine_axes = machine if isinstance(machine, MachineAxes) else None
+        self.machine = machine if isinstance(machine, MachineConfig) else MachineConfig()
         self.options = options or AnalysisOptions()
         self.hints = hints or TimingHints()
         self.library = library if library is not None else PlanLibrary.single(plan)
@@ -177,6 +193,8 @@ class TestAnalyzer:
             plan = self.plan = self.library.detection_plan()
         elif library is not None:
             self.plan = self.library.first.plan
+        if self.machine_axes is not None:
+            self.machine = self.machine_axes.for_plane(self.plan.plane)
         self.plan_hints: dict[str, TimingHints] = dict(plan_hints or {})
         self._recent = RecentSamples() if self.multi else None
         self._pre: tuple[np.ndarray, np.ndarray] = (np.empty(0), np.empty(0))
@@ -187,6 +205,8 @@ class TestAnalyzer:
         self._offset = 0.0
         self.detector = TestDetector(self.plan)
         self.axis = TimeAxis()
+        self.retimer = Retimer()
+        self._queue: list[tuple[np.ndarray, np.ndarray] | str] = []  # settled samples and breaks, for the next feed
         self.patterns = select(
             self.options.patterns, plan.direction_list, self.machine.pitch_x_mm, self.machine.pitch_y_mm
         )
@@ -197,6 +217,7 @@ class TestAnalyzer:
         self._emitted: set[int] = set()
         self._added = 0
         self._breaks: list[Break] = []
+        self._dropouts: dict[int, list[Dropout]] = {}  # per test, the drop-outs its result states
         self.last_t = float("nan")
 
     def feed(self, t: np.ndarray, L: np.ndarray, borrow: bool = False) -> list[AnalysisOutput]:
@@ -213,13 +234,36 @@ class TestAnalyzer:
         if t.size and not (np.isfinite(t).all() and np.isfinite(L).all()):
             k = int(np.argmax(~(np.isfinite(t) & np.isfinite(L))))
             raise DataError(f"sample {self.detector.n_seen + k}: time or length is not a finite number")
+        out = self._unqueue()
+        state = self.retimer.state()
+        t, L = self.retimer.feed(t, L)
+        try:
+            out.extend(self._take(t, L, borrow))
+        except DataError:
+            self.retimer.restore(state)
+            raise
+        return out
+
+    def _unqueue(self) -> list[AnalysisOutput]:
+        """Feed what :meth:`mark_break` left queued: the samples settled before a break, and the break."""
+        out: list[AnalysisOutput] = []
+        queue, self._queue = self._queue, []
+        for item in queue:
+            if isinstance(item, str):
+                self.axis.mark(item)
+            else:
+                out.extend(self._take(*item))
+        return out
+
+    def _take(self, t: np.ndarray, L: np.ndarray, borrow: bool = False) -> list[AnalysisOutput]:
+        """Samples on their final time axis (re-timed where a stalled host bunched them)."""
         if self._recent is not None and t.size > 1 and t[-1] - t[0] > RECENT_PIECE_S:
             # in pieces: the samples before each feed-in must still be at hand when it is found
             cuts = np.searchsorted(t, np.arange(t[0] + RECENT_PIECE_S, t[-1], RECENT_PIECE_S)).tolist()
             out: list[AnalysisOutput] = []
             for a, b in zip([0, *cuts], [*cuts, t.size], strict=True):
                 if b > a:
-                    out.extend(self.feed(t[a:b], L[a:b], borrow))
+                    out.extend(self._take(t[a:b], L[a:b], borrow))
             return out
         self._breaks.extend(self.axis.check(t))
         if t.size:
@@ -246,13 +290,23 @@ class TestAnalyzer:
         """A discontinuity between the samples fed so far and the next ones, which the times may not show.
 
         ``reason`` names it in the rejection's message (``"device reset"``,
-        ``"1200 samples lost (outage)"``).  A test it falls in is rejected.
+        ``"1200 samples lost (outage)"``).  A test it falls in is rejected, but for samples lost
+        (:class:`~.timeaxis.Lost`) where the times show a drop-out the test can do without.
+        Samples held for re-timing (:mod:`.retime`) are settled first: the break follows them.
         """
-        self.axis.mark(reason)
+        if self.retimer.held or self._queue:
+            t, L = self.retimer.flush()
+            if t.size:
+                self._queue.append((t, L))
+            self._queue.append(reason)
+        else:
+            self.axis.mark(reason)
 
     def abort(self, reason: str) -> list[AnalysisOutput]:
         """The stream cannot go on as it is (the caller starts afresh): the result of the test in the
         background, if any; reject the test in progress, if any."""
+        self.retimer.reset()
+        self._queue = []
         out = self.collect(wait=True)
         if self._fi is None or self._rejected:
             return out
@@ -262,8 +316,10 @@ class TestAnalyzer:
 
     def finish(self) -> list[AnalysisOutput]:
         """End of the stream: settle the last step; the last result; report a test left unfinished."""
+        out = self._unqueue()
+        out.extend(self._take(*self.retimer.flush()))
         self.detector.finish()
-        out = self._drain()
+        out.extend(self._drain())
         out.extend(self.collect(wait=True))
         if self._fi is not None and not self._rejected:
             out.append(
@@ -334,6 +390,8 @@ class TestAnalyzer:
             assert self._fi is not None
             if not self._rejected and (brk := self._break_in(self._fi.t_begin_s, ev.t_end_s)) is not None:
                 out.append(self._break_rejection(brk))
+            if not self._rejected:
+                self._judge_dropouts(ev, out)
             if self._rejected:
                 out.append(_event(ev, self.test_index))
                 self._fi, self._rejected = None, False
@@ -355,8 +413,30 @@ class TestAnalyzer:
         return out
 
     def _break_in(self, t0: float, t1: float) -> Break | None:
-        """The first break between the samples at ``t0`` and ``t1`` (a test's first and last step sample)."""
-        return next((b for b in self._breaks if b.t_after > t0 and b.t_before < t1), None)
+        """The first break between the samples at ``t0`` and ``t1`` (a test's first and last step sample) that
+        is no drop-out the test may do without (:mod:`.dropout`: judged at the feed-out)."""
+        fi = self._fi
+        return next((b for b in self._breaks if b.t_after > t0 and b.t_before < t1
+                     and not (is_dropout(b) and fi is not None and not in_step(b, fi))), None)
+
+    def _judge_dropouts(self, fo: StepEvent, out: list[AnalysisOutput]) -> None:
+        """At the feed-out: reject the test for a drop-out it cannot do without, else keep them to state."""
+        assert self._fi is not None
+        fi = self._fi
+        stated = []
+        for b in self._breaks:
+            if not (b.t_after > fi.t_begin_s and b.t_before < fo.t_end_s and is_dropout(b)):
+                continue
+            verdict = judge(self.plan, fi, fo, b, self.plan.feed_mm_s * self.hints.feed_ratio, self.hints.overhead_s)
+            if verdict.rejection is not None:
+                out.append(self._reject(
+                    b.t_after, b.missing_s,
+                    f"{b.describe()}, {b.t_after - fi.t_s:.1f} s after the feed-in at t={fi.t_s:.3f} s: a drop-out "
+                    f"the test cannot do without ({verdict.rejection}); run it again"))
+                return
+            stated.append(verdict.stated)
+        if stated:
+            self._dropouts[self.test_index] = stated
 
     def _break_rejection(self, brk: Break) -> TestRejectedBody:
         assert self._fi is not None
@@ -399,6 +479,8 @@ class TestAnalyzer:
         self.plan, self.plan_name = p.plan, name
         self._offset = self.library.offset_mm(name)
         self.hints = self.plan_hints.get(name, TimingHints())
+        if self.machine_axes is not None:
+            self.machine = self.machine_axes.for_plane(self.plan.plane)
         self.patterns = select(self.options.patterns, self.plan.direction_list, self.machine.pitch_x_mm,
                                self.machine.pitch_y_mm)
 
@@ -540,6 +622,7 @@ class TestAnalyzer:
     def _settle(self, index: int, fo: StepEvent, fit: Callable[[], dict[str, Any]], rec: Recognition | None = None,
                 ) -> list[AnalysisOutput]:
         """A test's fit, done: its result, and the hints it teaches; or its rejection."""
+        gaps = self._dropouts.pop(index, None)
         try:
             result = fit()
         except DataError as err:
@@ -554,6 +637,12 @@ class TestAnalyzer:
             return [{"kind": "event", "event": "test_rejected", "test_index": index, "t_s": fo.t_s,
                      "message": f"the analysis failed on this test ({what}): please report it with the recording"}]
         result["test_index"] = index
+        if gaps:
+            hz = result.get("samples", {}).get("sample_hz")
+            for g, cost in zip(gaps, costs(self.plan, self.patterns, result["timing"], gaps, float(hz or 0.0)),
+                               strict=True):
+                g["cost"] = cost
+            result["dropouts"] = gaps
         # assembled field by field (analysis/fitresult.py): its shape is TestBody's, which the schema tests check
         body = cast("TestBody", result)
         self._name_plan(body, rec)
@@ -609,7 +698,7 @@ def analyze_recording(
     t: np.ndarray,
     L: np.ndarray,
     plan: TestPlan,
-    machine: MachineConfig | None = None,
+    machine: MachineConfig | MachineAxes | None = None,
     options: AnalysisOptions | None = None,
     curves: bool = False,
     breaks: Sequence[tuple[int, str]] = (),

@@ -20,6 +20,7 @@ from .fitstate import RESOLVE_SAMPLES, TAU_NATS, WIDTH_AT_BOUND, Pieces
 from .loops import DEFAULT_KV_PER_S, FAST_LOOP_S
 from .patterns import Pattern, design
 from .physics import MODEL_WORDS, LostMotion, Offset, make_offset
+from .plan import plane_keys
 from .program import model_limits
 from .result import (
     result_body,
@@ -35,7 +36,7 @@ from .search import (
     Theta,
     feature_zones,
 )
-from .validity import check_model
+from .validity import check_model, quantisation_bias
 
 SKIP_SAMPLES = 2.0  # samples after each table reversal left out where spikes are below the resolution
 OFFSET_SETTLED_UM = 1e-3  # the corrections' fixed point: they move by less than this (um)
@@ -43,6 +44,8 @@ FINAL_STEPS = 4
 FOLD_ROWS = 16384  # samples whose model is made at a time
 SERVO_VAR_SHARE = 0.3  # each axis' loop variance in time known to this share of the loops' lag squared
 SERVO_MEAN_SHARE = 0.5  # ... and the two axes' mean to this share
+MODEL_ERROR_UM = 0.005  # the model's own error, of each pattern's largest radial effect (analysis/README.md,
+# "Uncertainty"): a floor its standard error keeps at any sample count
 
 
 def _lag1(residuals: Sequence[np.ndarray]) -> float:
@@ -151,9 +154,18 @@ class Assembly(Pieces):
         servo_cov, servo_note = self._servo_cov(fit, theta, V)
         if servo_cov is not None:
             timing_cov = servo_cov if timing_cov is None else timing_cov + servo_cov
+        model_cov = self._model_cov(fit, colmax)
+        bias = self.quantisation_bias_um(fit)
+        timing_cov = model_cov if timing_cov is None else timing_cov + model_cov
         res = self._solve_report(obj, theta, factor, colmax, rho, timing_cov)
         if servo_note:
             res["fit"]["uncertainty_method"] += servo_note
+        res["fit"]["uncertainty_method"] += (
+            f"; and every parameter's holds the model's own error, {MODEL_ERROR_UM:g} um of its largest radial "
+            "effect (what the model leaves of the machine at any sample count)"
+            + (f", or the mean quantisation error that follows the signal where larger ({bias:.2g} um: readings on "
+               f"{self.step_um:.3g} um steps)" if bias > MODEL_ERROR_UM else "")
+        )
         fit_final = res.pop("_fit")
         all_r = np.concatenate(residuals) if residuals else np.empty(0)
         rms = float(np.sqrt(np.mean(all_r**2))) if all_r.size else math.nan
@@ -228,7 +240,7 @@ class Assembly(Pieces):
             feed = obj.last_arc_feed(e, steps, max(fit_final.sigma**2, NOISE_FLOOR_UM**2) * self.final_kappa)
             obj.aperture_scale = scale
             self._account(obj)
-        check_model(res, per_dir, self.sample_hz, fit_final, feed)
+        check_model(res, per_dir, self.sample_hz, fit_final, feed, self.step_um)
         if curves:
             res["curves"] = {}
             for d, (u, y, r) in per_dir.items():
@@ -257,7 +269,7 @@ class Assembly(Pieces):
         return "fitted", (
             f"fitted to the data arcs with the timing: {kv:.3g}/s (its log known to {sd:.2g}; the data prefer it to "
             f"the default {DEFAULT_KV_PER_S:g}/s by more than {TAU_NATS:g} nats); the feed-in's settling is not "
-            "resolved at this sample rate and no kv_x/kv_y is configured"
+            f"resolved at this sample rate and no {plane_keys('kv', self.plan.plane)} is configured"
         )
 
     def _timing_cov(self, fit: FitResult) -> np.ndarray | None:
@@ -292,6 +304,31 @@ class Assembly(Pieces):
             for p in self.patterns:
                 if p.reversal is not None and p.reversal[0] == axis:
                     self.exclude.setdefault(p.name, why)
+
+    def _model_cov(self, fit: FitResult, colmax: np.ndarray) -> np.ndarray:
+        """The model's own error: each pattern's coefficient known to no better than ``MODEL_ERROR_UM`` of its
+        largest radial effect over the data (``colmax``: um per unit), however many samples fix it.  The
+        corrections, the timing and the loops' shapes are models: what they leave grows with the sample count
+        against the fit's own standard error (at 1 kHz 0.003 um of lost motion), and two tests of one axis would
+        then disagree by many of them on a consistent machine.  The loops' own properties carry none."""
+        floor = max(MODEL_ERROR_UM, self.quantisation_bias_um(fit))
+        cov = np.zeros((fit.x.size, fit.x.size))
+        slices = fit.column_slices()
+        for p in fit.patterns:
+            if p.kind == "loop" or p.name not in slices:
+                continue
+            for j in range(slices[p.name].start, slices[p.name].stop):
+                if j < colmax.size and colmax[j] > 0:
+                    cov[j, j] = (floor / colmax[j]) ** 2
+        return cov
+
+    def quantisation_bias_um(self, fit: FitResult) -> float:
+        """The mean quantisation error that follows the signal (:func:`.validity.quantisation_bias`), at the
+        gauge's own noise the residual leaves once the quantisation's ``step^2 / 12`` is taken off it."""
+        if not self.step_um > 0:
+            return 0.0
+        own = math.sqrt(max(fit.sigma**2 - self.step_um**2 / 12.0, 0.0)) if math.isfinite(fit.sigma) else 0.0
+        return quantisation_bias(self.step_um, own)
 
     def _servo_cov(self, fit: FitResult, theta: Theta, V: float) -> tuple[np.ndarray | None, str]:
         """The scale mismatch's and the radius' covariance through what one circle cannot tell of the axes'

@@ -38,7 +38,7 @@ from .search import (
     make_bins,
     minimise,
 )
-from .validity import sensor_noise
+from .validity import reading_step, sensor_noise
 
 LAG_PRIOR_S = 0.05  # prior on the arc-start lag: where the data cannot see it, it stays near the feed-in's shape's
 WAIT_PRIOR_S = 0.1  # ... and on the feed-in's extra wait
@@ -207,9 +207,11 @@ class Pieces:
         self.held: set[int] = set()  # coordinates held at their prior's value (the loops' lag: the default gain)
         self.aperture_scale = 1.0
         self.search_samples = 0  # the samples (or bins) of the search's last stage
-        # the sensor's white noise, from the samples alone (:func:`.validity.sensor_noise`)
-        sw = [sensor_noise((self.L[(self.t >= a) & (self.t <= b)] - plan.radius_mm) * 1000.0)
-              for a, b in self.windows.values()]
+        # the step the readings sit on (a digital gauge's resolution, :func:`.validity.reading_step`), and the
+        # sensor's white noise from the samples alone, at least that step's quantisation noise
+        arcs = [self.L[(self.t >= a) & (self.t <= b)] for a, b in self.windows.values()]
+        self.step_um = 1000.0 * reading_step(np.concatenate(arcs)) if arcs else 0.0
+        sw = [sensor_noise((v - plan.radius_mm) * 1000.0, self.step_um) for v in arcs]
         sw = [v for v in sw if math.isfinite(v)]
         self.white_var = float(np.mean(np.square(sw))) if sw else 0.0
 

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .detect import StepEvent
-from .plan import AnalysisOptions, MachineConfig, TestPlan
+from .plan import AnalysisOptions, MachineConfig, TestPlan, plane_keys
 from .program import arc_start_deg
 
 DEFAULT_KV_PER_S = 30.0
@@ -54,7 +54,7 @@ def loop_lag(
         return Lag(None, None, "linear model chosen", "linear")
     if machine.kv_x_per_s and machine.kv_y_per_s:
         tau = 0.5 * (1.0 / machine.kv_x_per_s + 1.0 / machine.kv_y_per_s)
-        return Lag(tau, None, "configured gains kv_x, kv_y", "configured")
+        return Lag(tau, None, f"configured gains {plane_keys('kv', plan.plane)}", "configured")
     u_in = math.radians(arc_start_deg(plan, plan.direction_list[0]))
     resolvable_s = TAIL_SAMPLES / sample_hz if sample_hz > 0 else math.inf
     u_last = math.radians(arc_start_deg(plan, plan.direction_list[-1]))
@@ -77,6 +77,6 @@ def loop_lag(
         1.0 / DEFAULT_KV_PER_S,
         None,
         f"assumed {DEFAULT_KV_PER_S:g}/s (a common default position gain): the feed-in's settling is not "
-        "resolved at this sample rate and no kv_x/kv_y is configured",
+        f"resolved at this sample rate and no {plane_keys('kv', plan.plane)} is configured",
         "assumed",
     )

@@ -8,12 +8,14 @@ is configuration: the analyzer assumes the timing of the program that
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from typing import TYPE_CHECKING, Any, Literal, cast
 
 from .errors import PlanError
 
 if TYPE_CHECKING:
+    from ballbar.protocol.messages.config import MachineSection
     from ballbar.protocol.messages.results import Machine, ResultPlan
 
 Plane = Literal["XY", "YZ", "ZX"]
@@ -107,12 +109,15 @@ class TestPlan:
 
 @dataclass(frozen=True)
 class MachineConfig:
-    """What the analyzer may know of the machine besides the plan.
+    """What the analyzer of one test may know of the machine besides the plan: its plane's two axes.
 
-    ``pitch_*_mm``: ball-screw pitch per axis of the plane, for the cyclic-error
-    pattern (left out when unknown).  ``kv_*_per_s``: configured position-loop
-    gains in 1/s, for the servo advice and the physical servo model.
-    ``controller``: names the compensation parameters in the advice.
+    ``x`` and ``y`` here are the plane's first and second axis (``plan.axes``:
+    XY takes X, Y; YZ takes Y, Z; ZX takes Z, X), whatever the machine calls
+    them: :meth:`MachineAxes.for_plane` makes one from the machine's own axes.
+    ``pitch_*_mm``: ball-screw pitch, for the cyclic-error pattern (left out
+    when unknown).  ``kv_*_per_s``: configured position-loop gains in 1/s, for
+    the servo advice and the physical servo model.  ``controller``: names the
+    compensation parameters in the advice.
     """
 
     pitch_x_mm: float | None = None
@@ -137,6 +142,117 @@ class MachineConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MachineConfig:
         return _from_dict(cls, data, "machine")
+
+
+MACHINE_AXES = ("X", "Y", "Z")
+#: The per-axis settings of [machine]: each a key per machine axis (:func:`axis_key`).
+AXIS_SETTINGS = ("pitch", "kv")
+
+
+def axis_key(setting: str, axis: str) -> str:
+    """The key of ``setting`` (``pitch``, ``kv``) for machine axis ``axis``: ``axis_key("kv", "Z")`` is
+    ``kv_z_per_s``."""
+    return f"pitch_{axis.lower()}_mm" if setting == "pitch" else f"kv_{axis.lower()}_per_s"
+
+
+def plane_keys(setting: str, plane: str) -> str:
+    """The ``[machine]`` keys of ``setting`` for ``plane``'s two axes, in words: ``kv_z_per_s and kv_x_per_s``
+    for ZX (what advice and reasons tell the user to configure)."""
+    first, second = PLANE_AXES[plane]
+    return f"{axis_key(setting, first)} and {axis_key(setting, second)}"
+
+
+@dataclass(frozen=True)
+class MachineAxes:
+    """The machine's settings per machine axis X, Y, Z (the daemon's ``[machine]``), given once for every plane.
+
+    Each plan takes its plane's two (:meth:`for_plane`): XY takes X and Y, YZ
+    takes Y and Z, ZX takes Z and X (first axis first, :data:`PLANE_AXES`).
+    Units and use as :class:`MachineConfig`.
+    """
+
+    pitch_x_mm: float | None = None
+    pitch_y_mm: float | None = None
+    pitch_z_mm: float | None = None
+    kv_x_per_s: float | None = None
+    kv_y_per_s: float | None = None
+    kv_z_per_s: float | None = None
+    controller: Literal["generic", "fanuc", "siemens", "heidenhain"] = "generic"
+
+    def __post_init__(self) -> None:
+        for name in self.axis_keys():
+            v = getattr(self, name)
+            if v is not None and not _pos(v):
+                raise PlanError(f"{name} must be > 0, not {v!r}")
+        if self.controller not in ("generic", "fanuc", "siemens", "heidenhain"):
+            raise PlanError(
+                f"controller must be generic, fanuc, siemens or heidenhain, not {self.controller!r}"
+            )
+
+    @staticmethod
+    def axis_keys(axes: tuple[str, ...] = MACHINE_AXES) -> tuple[str, ...]:
+        """The per-axis keys of ``axes``, in field order."""
+        return tuple(axis_key(s, a) for s in AXIS_SETTINGS for a in axes)
+
+    def for_plane(self, plane: str) -> MachineConfig:
+        """What a test in ``plane`` knows: its first axis' settings as ``x``, its second's as ``y``."""
+        first, second = PLANE_AXES[plane]
+        return MachineConfig(
+            pitch_x_mm=getattr(self, axis_key("pitch", first)),
+            pitch_y_mm=getattr(self, axis_key("pitch", second)),
+            kv_x_per_s=getattr(self, axis_key("kv", first)),
+            kv_y_per_s=getattr(self, axis_key("kv", second)),
+            controller=self.controller,
+        )
+
+    @classmethod
+    def of_plane(cls, plane: str, machine: MachineConfig) -> MachineAxes:
+        """The machine's axes that ``machine`` (a test's, of ``plane``) names; the third axis unknown."""
+        first, second = PLANE_AXES[plane]
+        return cls(**{
+            axis_key("pitch", first): machine.pitch_x_mm, axis_key("pitch", second): machine.pitch_y_mm,
+            axis_key("kv", first): machine.kv_x_per_s, axis_key("kv", second): machine.kv_y_per_s,
+        }, controller=machine.controller)
+
+    def to_dict(self) -> MachineSection:
+        return cast("MachineSection", asdict(self))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MachineAxes:
+        return _from_dict(cls, data, "machine")
+
+
+def check_axes(machine: MachineAxes, planes: Sequence[str]) -> None:
+    """A :class:`PlanError` naming the key where ``machine`` gives only X and Y keys and one of them is for an
+    axis no plane of ``planes`` moves: written when x and y were a plan's first and second axis
+    (``kv_y_per_s`` of a ZX plan was X's gain), it cannot mean the machine's Y.  A Z key says the table names
+    the machine's axes: then a key of an axis no plan moves is a fact about the machine, kept."""
+    if any(getattr(machine, key) is not None for key in MachineAxes.axis_keys(("Z",))):
+        return
+    planes = list(dict.fromkeys(planes))
+    moved = {axis for plane in planes for axis in PLANE_AXES[plane]}
+    for setting in AXIS_SETTINGS:
+        for axis in MACHINE_AXES[:2]:
+            key = axis_key(setting, axis)
+            if getattr(machine, key) is not None and axis not in moved:
+                raise PlanError(
+                    f"machine.{key}: no plan moves {axis} (planes {', '.join(planes)}); [machine] keys name the "
+                    f"machine's axes now, not a plan's first and second: set "
+                    f"{'; '.join(f'{plane_keys(setting, p)} for {p}' for p in planes)}")
+
+
+def machine_of(data: Mapping[str, Any] | Machine | MachineSection) -> MachineAxes | MachineConfig:
+    """A configuration's ``[machine]`` table: the machine's axes (:class:`MachineAxes`); or, where it has the
+    keys of :class:`MachineConfig` and no others (a configuration recorded before the machine's axes were named,
+    whose x and y were each plan's first and second axis), that.  A bad table is a :class:`PlanError`."""
+    if set(data) == {f.name for f in fields(MachineConfig)}:
+        return MachineConfig.from_dict(dict(data))
+    return MachineAxes.from_dict(dict(data))
+
+
+def for_plane(machine: MachineAxes | MachineConfig, plane: str) -> MachineConfig:
+    """What a test in ``plane`` knows of ``machine`` (a :class:`MachineConfig` is one plane's already)."""
+    return machine.for_plane(plane) if isinstance(machine, MachineAxes) else machine
 
 
 @dataclass(frozen=True)
@@ -234,4 +350,20 @@ def _from_dict(cls: Any, data: dict[str, Any], what: str) -> Any:
     return cls(**kwargs)
 
 
-__all__ = ["PLANE_AXES", "STANDARDS", "AnalysisOptions", "Directions", "MachineConfig", "Plane", "TestPlan"]
+__all__ = [
+    "AXIS_SETTINGS",
+    "MACHINE_AXES",
+    "PLANE_AXES",
+    "STANDARDS",
+    "AnalysisOptions",
+    "Directions",
+    "MachineAxes",
+    "MachineConfig",
+    "Plane",
+    "TestPlan",
+    "axis_key",
+    "check_axes",
+    "for_plane",
+    "machine_of",
+    "plane_keys",
+]

@@ -19,23 +19,23 @@ import numpy as np
 from .fit import FitResult, ParameterResult
 from .numbers import decimals, fixed, limit_texts, measured, shown_stderr
 from .patterns import LIBRARY, Pattern
-from .plan import MachineConfig
+from .plan import axis_key
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages.results import Parameters, RankingEntry
 
 
-def _why_absent(pat: Pattern, machine: MachineConfig) -> str:
-    if pat.needs == "pitch_x":
-        return "no X screw pitch configured (pitch_x_mm): cyclic error not fitted"
-    if pat.needs == "pitch_y":
-        return "no Y screw pitch configured (pitch_y_mm): cyclic error not fitted"
+def _why_absent(pat: Pattern, axes: tuple[str, str]) -> str:
+    if pat.needs in ("pitch_x", "pitch_y"):  # the plane's first, second axis
+        axis = axes[0] if pat.needs == "pitch_x" else axes[1]
+        return f"no {axis} screw pitch configured ({axis_key('pitch', axis)}): cyclic error not fitted"
     if pat.reversal is not None:
         return "this direction is not in the test"
     return "not in the selected patterns"
 
 
-def parameters_dict(fit: FitResult, patterns: Sequence[Pattern], machine: MachineConfig) -> Parameters:
+def parameters_dict(fit: FitResult, patterns: Sequence[Pattern], axes: tuple[str, str]) -> Parameters:
+    """The result's parameters; ``axes``: the machine axes of the plane's first and second axis (``plan.axes``)."""
     fitted = {p.name: i for i, p in enumerate(fit.patterns)}
     slices = fit.column_slices()
     out: dict[str, Any] = {}
@@ -43,7 +43,7 @@ def parameters_dict(fit: FitResult, patterns: Sequence[Pattern], machine: Machin
         results: list[ParameterResult]
         i = fitted.get(pat.name)
         if i is None or not fit.used[i]:
-            reason = fit.reasons.get(pat.name) or _why_absent(pat, machine)
+            reason = fit.reasons.get(pat.name) or _why_absent(pat, axes)
             results = [ParameterResult(f, u, None, None, identifiable=False, reason=reason)
                        for f, u in _report_fields(pat)]
         else:

@@ -34,7 +34,7 @@ def result_body(
 ) -> BodyCommon:
     from .report import parameters_dict, ranking_list
 
-    params = parameters_dict(fit, patterns, machine)
+    params = parameters_dict(fit, patterns, plan.axes)
     return {
         "schema_version": SCHEMA_VERSION,
         "plan": plan.to_dict(),

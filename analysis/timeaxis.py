@@ -48,6 +48,13 @@ MIN_STEPS = 8  # positive steps needed before a forward step is judged
 CHECK_BLOCK = 1 << 20  # samples of a long chunk checked at a time (the size of the temporaries)
 
 
+class Lost(str):
+    """A told break's reason that is samples lost on a clock that ran on (the times show how long): a gap the
+    analysis may judge as a drop-out (:mod:`.dropout`), unlike a device reset or a clock jump."""
+
+    __slots__ = ()
+
+
 class TimeAxisError(DataError):
     """The time axis runs backwards beyond jitter (``index``: the offending sample, counted from 0)."""
 
@@ -195,7 +202,7 @@ class TimeAxis:
         if told and self.n and not (gaps and gaps[0][0] == 0):
             gaps.insert(0, (0, first_prior, float(t[0])))
         for k, before, after in gaps:
-            reason = "; ".join(told) if k == 0 and told else ""
+            reason = (told[0] if len(told) == 1 else "; ".join(told)) if k == 0 and told else ""
             out.append(Break(self.n + k, before, after, period, reason))
         if self.n == 0:
             self.first_t = float(t[0])
@@ -229,6 +236,6 @@ def positive_steps(t: np.ndarray, before: float | None = None) -> np.ndarray:
 
 
 __all__ = [
-    "GAP_PERIODS", "JITTER_PERIODS", "PERIOD_REFRESH", "Break", "TimeAxis", "TimeAxisError", "backward_steps",
+    "GAP_PERIODS", "JITTER_PERIODS", "PERIOD_REFRESH", "Break", "Lost", "TimeAxis", "TimeAxisError", "backward_steps",
     "median_period", "positive_steps",
 ]

@@ -9,7 +9,10 @@ the residual is checked against what the test's own data say about the noise:
 
 - **noise**: the sensor's noise from the data alone, the scatter of second
   differences of consecutive samples (robust: their median absolute value),
-  which no smooth misfit moves;
+  which no smooth misfit moves, and at least the quantisation noise
+  ``q / sqrt(12)`` of the step ``q`` the readings sit on (:func:`reading_step`):
+  a gauge whose own noise is below its resolution repeats its reading, and
+  second differences are then mostly 0;
 - **misfit**: the fit's residual rms far above that noise (more than
   ``MISFIT_RATIO`` times it and by more than ``MISFIT_MIN_UM``): the model
   leaves out most of what the bar saw;
@@ -48,12 +51,62 @@ FEATURE_DEG = 3.0  # level changes whose windows come this close to a 45 deg poi
 # not judged: what the model leaves there is its own fine detail
 
 
-def sensor_noise(y: np.ndarray) -> float:
-    """The white noise (um rms) of consecutive samples: ``median |second difference| / 0.6745 / sqrt(6)``."""
+STEP_SHARE = 0.99  # the share of the values that must sit on a step for the readings to be quantised by it
+STEP_TOLERANCE = 0.05  # ... each within this share of the step (a CSV's decimals parse to the nearest double)
+STEP_QUANTILE = 0.01  # the candidate step: this quantile of the nonzero differences of consecutive values
+
+
+def reading_step(y: np.ndarray) -> float:
+    """The step (the values' unit) that the readings sit on, 0 where they sit on none.
+
+    A digital gauge reports multiples of its resolution: the differences of
+    consecutive readings are then multiples of it too, and the smallest common
+    one (a low quantile of the nonzero differences, so that a few glitches do
+    not set it) is the step.  It is trusted only where nearly all values
+    (``STEP_SHARE``) lie on one grid of that step, whatever its origin (the
+    values' circular mean phase): where the gauge's noise is many steps, the
+    smallest differences are a fraction of a step, and the grid does not hold.
+    """
+    y = y[np.isfinite(y)]
+    if y.size < 16:
+        return 0.0
+    d = np.abs(np.diff(y))
+    d = d[d > 1e-12 * max(float(np.max(np.abs(y))), 1e-300)]  # a difference of round-off is no step
+    if d.size < 8:
+        return 0.0
+    q = float(np.quantile(d, STEP_QUANTILE))
+    if not q > 0:
+        return 0.0
+    phase = 2.0 * math.pi * np.mod(y / q, 1.0)
+    origin = math.atan2(float(np.mean(np.sin(phase))), float(np.mean(np.cos(phase)))) / (2.0 * math.pi)
+    frac = y / q - origin
+    on = np.abs(frac - np.round(frac)) < STEP_TOLERANCE
+    return q if float(np.mean(on)) >= STEP_SHARE else 0.0
+
+
+def quantisation_bias(step: float, noise: float) -> float:
+    """The rms over values of the mean quantisation error at each value (um): the part of a quantised
+    reading's error that follows the signal, not white.
+
+    ``Q(s + n) - s`` is a sawtooth in ``s`` of period ``step`` (rms ``step / sqrt(12)``); the gauge's own
+    noise ``n`` (rms ``noise``) damps its ``k``-th harmonic by ``exp(-2 pi^2 k^2 noise^2 / step^2)``.  Where
+    the signal stands near an extreme for long (a slow part of the profile), that mean error stands with it
+    and reads as a pattern; a noise of half a step leaves 0.6 % of it.
+    """
+    if not step > 0:
+        return 0.0
+    k = np.arange(1.0, 65.0)
+    damp = np.exp(-4.0 * math.pi**2 * k**2 * (noise / step) ** 2)
+    return float(step / (math.pi * math.sqrt(2.0)) * math.sqrt(float(np.sum(damp / k**2))))
+
+
+def sensor_noise(y: np.ndarray, step: float = 0.0) -> float:
+    """The white noise (um rms) of consecutive samples: ``median |second difference| / 0.6745 / sqrt(6)``, and
+    at least ``step / sqrt(12)``, the quantisation noise of readings on that step (um)."""
     if y.size < 8:
         return math.nan
     d2 = y[2:] - 2.0 * y[1:-1] + y[:-2]
-    return float(np.median(np.abs(d2)) / 0.6745 / math.sqrt(6.0))
+    return max(float(np.median(np.abs(d2)) / 0.6745 / math.sqrt(6.0)), step / math.sqrt(12.0))
 
 
 def level_change(u: np.ndarray, r: np.ndarray, d: int, sample_deg: float, sigma: float) -> tuple[float, float]:
@@ -84,21 +137,22 @@ def _window(sample_deg: float) -> int:
 
 def check_model(
     res: dict[str, Any], per_dir: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]], sample_hz: float,
-    fit: FitResult, feed: tuple[float, float] = (math.nan, 0.0),
+    fit: FitResult, feed: tuple[float, float] = (math.nan, 0.0), step_um: float = 0.0,
 ) -> None:
     """Mark ``res`` invalid where the model does not describe the test (see the module docstring).  ``feed``:
-    how much faster the last arc ran than the first, as a share, and that in its standard errors."""
+    how much faster the last arc ran than the first, as a share, and that in its standard errors; ``step_um``:
+    the step the readings sit on (:func:`reading_step`, 0: none)."""
     reasons: list[str] = []
     noises, sq, n = [], 0.0, 0
     for _, y, r in per_dir.values():
-        s = sensor_noise(y)
+        s = sensor_noise(y, step_um)
         if math.isfinite(s):
             noises.append((s, y.size))
         sq += float(r @ r)
         n += r.size
     noise = math.sqrt(sum(s * s * k for s, k in noises) / sum(k for _, k in noises)) if noises else math.nan
     rms = math.sqrt(sq / n) if n else math.nan
-    checks: dict[str, Any] = {"sensor_noise_um": noise, "residual_rms_um": rms}
+    checks: dict[str, Any] = {"sensor_noise_um": noise, "reading_step_um": step_um or None, "residual_rms_um": rms}
     if math.isfinite(noise) and math.isfinite(rms) and rms > MISFIT_RATIO * noise and rms - noise > MISFIT_MIN_UM:
         reasons.append(
             f"the residual, {rms:.3g} um rms, is {rms / max(noise, 1e-9):.3g} times the sensor's noise seen in the "

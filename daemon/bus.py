@@ -58,7 +58,10 @@ key                               how         what
 ``ballbar/<m>/control/next_plan`` subscribed  an explicit choice of the next test's plan, put by a
                                               service: ``{"plan": NAME}`` (or the bare name; ``null``
                                               withdraws it); the daemon answers with a ``plan_chosen``
-                                              or ``plan_choice_refused`` event.  In the secure setup
+                                              or ``plan_choice_refused`` event (none for a repeat of the
+                                              choice standing).  At most 5 at once and 2 a second are
+                                              taken; more are dropped and counted
+                                              (``controls_dropped``).  In the secure setup
                                               only the subjects that ``systemd/zenoh-daemon.json5``
                                               lets put there may
 ``ballbar/<m>/alive``             liveliness  a token while the daemon runs: withdrawn at once on
@@ -91,7 +94,9 @@ recovery``: a test that a crash cut) is put once a subscriber of ``event`` is
 there (checked with each message, at least every status interval; for at most
 ``RECOVERY_WAIT_S``): the subscribers of the daemon before its restart are
 still reconnecting when it starts.  It is in ``last/event`` and
-``history/event`` at once.
+``history/event`` at once.  ``history/event`` keeps the answers to the control
+key (``plan_chosen``, ``plan_choice_refused``) apart, the newest 50 of them, so
+that what peers put there never pushes the machine's own events out.
 
 The history is the daemon's own: a bounded in-memory record of the results
 that went through :meth:`ZenohBus.on_message`, seeded at start by an optional
@@ -174,7 +179,15 @@ HISTORY_TOPICS: tuple[HistoryTopic, ...] = ("circle", "test", "set", "event", "a
 CONTROL_NEXT_PLAN = "control/next_plan"  # a service names the next test's plan here (subscribed)
 CONTROL_MAX_BYTES = 1024  # a put on it longer than this is refused unread
 CONTROL_NAME_CHARS = 64  # a plan's name: at most this many printable characters, no white space
-CONTROL_LOG_S = 10.0  # refusals are logged at most once in this many seconds
+CONTROL_LOG_S = 10.0  # refusals, and choices dropped by the rate limit, are logged at most once in this many seconds
+# The choices handed on to the analysis (each makes an event, a log line and an MCAP record): a token bucket of
+# CONTROL_BURST, refilled at CONTROL_RATE_HZ; a put beyond it is dropped and counted (``controls_dropped``).
+CONTROL_RATE_HZ = 2.0
+CONTROL_BURST = 5
+# Events answering the control key: kept for ``history/event`` apart from the machine's own (feed_in, faults ...),
+# in at most this many, so that a peer's puts never push those out.
+CONTROL_EVENTS = ("plan_chosen", "plan_choice_refused")
+CONTROL_HISTORY = 50
 
 
 def parse_control(payload: bytes) -> tuple[str | None, str | None]:
@@ -440,6 +453,7 @@ class _Counters:
     skipped: int = 0
     controls: int = 0
     controls_refused: int = 0
+    controls_dropped: int = 0
 
 
 class ZenohBus(Listener):
@@ -484,6 +498,11 @@ class ZenohBus(Listener):
         self._counters = _Counters(published=dict.fromkeys(TOPICS.values(), 0))
         self._refused_since_log = 0
         self._refusal_log_at = 0.0  # monotonic: when the next refusal may be logged
+        self._tokens = float(CONTROL_BURST)  # the control key's token bucket (see CONTROL_RATE_HZ)
+        self._tokens_at = time.monotonic()
+        self._dropped_since_log = 0
+        self._drop_log_at = 0.0  # monotonic: when the next line about dropped choices may be logged
+        self._control_history: deque[tuple[int, bytes]] = deque(maxlen=CONTROL_HISTORY)
         self._warned_kinds: set[str] = set()
         self._last_slot = -(2**62)
         self._session: zenoh.Session | None = None
@@ -620,7 +639,7 @@ class ZenohBus(Listener):
         with self._lock:
             self._last[kind] = payload
             if kind in self._history:
-                self._history[kind].append((_record_time(msg), payload))
+                self._history_for(msg).append((_record_time(msg), payload))
         if self._deferred:
             self._put_deferred()
         if msg["kind"] == "event" and msg.get("origin") == "recovery" and not self.has_subscribers("event"):
@@ -629,6 +648,12 @@ class ZenohBus(Listener):
             self._deferred.append((time.monotonic() + RECOVERY_WAIT_S, payload))
             return
         self._put(kind, payload)
+
+    def _history_for(self, msg: Mapping[str, Any]) -> deque[tuple[int, bytes]]:
+        """Where a message is kept for ``history``: the answers to the control key apart (CONTROL_HISTORY)."""
+        if msg.get("kind") == "event" and msg.get("event") in CONTROL_EVENTS:
+            return self._control_history
+        return self._history[str(msg["kind"])]
 
     def _put_deferred(self) -> None:
         """The deferred events, once a subscriber of ``event`` is there; those older than RECOVERY_WAIT_S dropped
@@ -691,23 +716,40 @@ class ZenohBus(Listener):
 
     def _on_control(self, sample: zenoh.Sample) -> None:
         """``{"plan": NAME}``, ``{"plan": null}``, the name (bare or a JSON string) or ``null``: handed on (the
-        analysis checks the name); anything else is refused here with one reason, logged at most once every
-        ``CONTROL_LOG_S`` seconds (with the count since), so that a flood makes no more lines than one put."""
+        analysis checks the name), at most CONTROL_BURST at once and CONTROL_RATE_HZ a second after that;
+        anything else is refused here with one reason.  Refusals and drops are each logged at most once every
+        ``CONTROL_LOG_S`` seconds (with the count since), so that a flood makes no more lines than a few puts."""
         name, why = parse_control(sample.payload.to_bytes())
+        now = time.monotonic()
         if why is not None:
             self._counters.controls_refused += 1
             self._refused_since_log += 1
-            now = time.monotonic()
             if now >= self._refusal_log_at:
                 log.warning("zenoh: %s: refused: %s (%d refused since the last such line)", CONTROL_NEXT_PLAN, why,
                             self._refused_since_log)
                 self._refused_since_log = 0
                 self._refusal_log_at = now + CONTROL_LOG_S
             return
+        self._tokens = min(float(CONTROL_BURST), self._tokens + (now - self._tokens_at) * CONTROL_RATE_HZ)
+        self._tokens_at = now
+        if self._tokens < 1.0:
+            self._counters.controls_dropped += 1
+            self._dropped_since_log += 1
+            if now >= self._drop_log_at:
+                self._log_dropped()
+                self._drop_log_at = now + CONTROL_LOG_S
+            return
+        self._tokens -= 1.0
         self._counters.controls += 1
         log.info("zenoh: %s: %r", CONTROL_NEXT_PLAN, name)
         if self._control is not None:
             self._control(name)
+
+    def _log_dropped(self) -> None:
+        log.warning("zenoh: %s: a flood: %d choices dropped since the last such line (%d dropped in all; at most "
+                    "%d at once and %g a second are taken)", CONTROL_NEXT_PLAN, self._dropped_since_log,
+                    self._counters.controls_dropped, CONTROL_BURST, CONTROL_RATE_HZ)
+        self._dropped_since_log = 0
 
     def stats(self) -> ZenohStats:
         """Counters for the status: connection, peers, what went out, what could not."""
@@ -725,7 +767,9 @@ class ZenohBus(Listener):
             "skipped": c.skipped,
             "controls": c.controls,
             "controls_refused": c.controls_refused,
+            "controls_dropped": c.controls_dropped,
             "history": {k: len(v) for k, v in self._history.items()},
+            "history_controls": len(self._control_history),
         }
         session = self._session
         if session is not None:
@@ -801,6 +845,8 @@ class ZenohBus(Listener):
         """The ``history/<kind>`` reply: results after ``since_us``, oldest first (see the module doc)."""
         with self._lock:
             records = list(self._history[kind])
+            if kind == "event" and self._control_history:
+                records = sorted([*records, *self._control_history], key=lambda r: r[0])
         if since_us is None:
             chosen, more = records[-limit:], len(records) > limit
         else:
@@ -823,11 +869,11 @@ class ZenohBus(Listener):
                 body.setdefault("schema_version", SCHEMA_VERSION)
                 body.setdefault("machine_id", self.machine)
                 payload = to_json(body)
-                self._history[kind].append((_record_time(body), payload))
+                self._history_for(body).append((_record_time(body), payload))
                 n += 1
         except Exception as err:  # a damaged recording must not keep the bus from starting
             log.warning("zenoh: history loader failed after %d results: %s", n, err)
-        for dq in self._history.values():  # keep it ordered by time, whatever the loader's order
+        for dq in [*self._history.values(), self._control_history]:  # ordered by time, whatever the loader's order
             ordered = sorted(dq, key=lambda r: r[0])
             dq.clear()
             dq.extend(ordered)
@@ -840,6 +886,8 @@ class ZenohBus(Listener):
 
     def stop(self) -> None:
         """Withdraw the token, close the session within ``close_timeout_s``; safe to call twice."""
+        if self._dropped_since_log and not self._stopping.is_set():  # the end of a flood no line has told yet
+            self._log_dropped()
         self._stopping.set()
         if self._opener is not None:
             self._opener.join(min(0.5, self.close_timeout_s))  # it only waits on _stopping, or is mid-open

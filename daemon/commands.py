@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 from ballbar.analysis.errors import BallbarError, PlanError
 
 if TYPE_CHECKING:
-    from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+    from ballbar.analysis.plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan
     from ballbar.analysis.plans import PlanLibrary
     from ballbar.protocol.messages import Analysis, Verdict
 
@@ -46,10 +46,13 @@ PLAN_FLAGS: tuple[tuple[str, str, type, str], ...] = (
     ("--directions", "directions", str, "both, ccw or cw"),
 )
 MACHINE_FLAGS: tuple[tuple[str, str, type, str], ...] = (
-    ("--pitch-x-mm", "pitch_x_mm", float, "ball-screw pitch of the plane's first axis (mm), for cyclic error"),
-    ("--pitch-y-mm", "pitch_y_mm", float, "ball-screw pitch of the plane's second axis (mm)"),
-    ("--kv-x", "kv_x_per_s", float, "configured position-loop gain of the first axis (1/s)"),
-    ("--kv-y", "kv_y_per_s", float, "configured position-loop gain of the second axis (1/s)"),
+    # the machine's axes: each plan takes its plane's two (XY: X, Y; YZ: Y, Z; ZX: Z, X)
+    ("--pitch-x-mm", "pitch_x_mm", float, "ball-screw pitch of the machine's X axis (mm), for cyclic error"),
+    ("--pitch-y-mm", "pitch_y_mm", float, "ball-screw pitch of the Y axis (mm)"),
+    ("--pitch-z-mm", "pitch_z_mm", float, "ball-screw pitch of the Z axis (mm)"),
+    ("--kv-x", "kv_x_per_s", float, "configured position-loop gain of the machine's X axis (1/s)"),
+    ("--kv-y", "kv_y_per_s", float, "configured position-loop gain of the Y axis (1/s)"),
+    ("--kv-z", "kv_z_per_s", float, "configured position-loop gain of the Z axis (1/s)"),
     ("--controller", "controller", str, "generic, fanuc, siemens or heidenhain (names in the advice)"),
 )
 #: analysis.plan.STANDARDS, written out: the parser is built before anything slow is imported.
@@ -236,28 +239,48 @@ def library_sections(args: argparse.Namespace, base: dict[str, Any]) -> dict[str
     return base
 
 
+def machine_given(args: argparse.Namespace) -> dict[str, Any]:
+    """The machine's keys that ``--plan FILE``'s ``[machine]`` and the flags give (the machine's axes)."""
+    given = dict(load_config_file(args.plan_file).get("machine", {})) if getattr(args, "plan_file", None) else {}
+    return given | {dest: getattr(args, dest) for _f, dest, _t, _h in MACHINE_FLAGS
+                    if getattr(args, dest, None) is not None}
+
+
 def configs_from_args(
     args: argparse.Namespace, base: dict[str, Any] | None = None
-) -> tuple[TestPlan, MachineConfig, AnalysisOptions]:
-    """``base`` (default: the recorded configuration of an MCAP file), then --plan FILE, then the flags."""
+) -> tuple[TestPlan, MachineAxes | MachineConfig, AnalysisOptions]:
+    """``base`` (default: the recorded configuration of an MCAP file), then --plan FILE, then the flags.
+
+    The machine: its axes (:class:`~ballbar.analysis.plan.MachineAxes`); or, where a configuration recorded
+    before the axes were named is neither changed by a file nor by a flag, its one plane's (every plan's first
+    and second axis, as the daemon analysed it then)."""
     from ballbar.analysis.patterns import BY_NAME
-    from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+    from ballbar.analysis.plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan, machine_of
 
     from .recordings import recorded_config
 
     if base is None:
         base = recorded_config(args.file) if getattr(args, "file", None) else {}
+    plan_d = dict(base.get("plan", {}))
+    machine_d = dict(base.get("machine", {}))
+    given = machine_given(args)
+    if given:
+        try:
+            recorded = machine_of(machine_d)
+            if isinstance(recorded, MachineConfig):  # recorded as a plane's: named by the machine's axes
+                machine_d = dict(MachineAxes.of_plane(TestPlan.from_dict(plan_d).plane, recorded).to_dict())
+        except PlanError as err:
+            raise UsageError(str(err)) from err
     if getattr(args, "plan_file", None):
         for key, value in load_config_file(args.plan_file).items():
             base.setdefault(key, {}).update(value)
-    plan_d = dict(base.get("plan", {}))
-    machine_d = dict(base.get("machine", {}))
+        plan_d = dict(base.get("plan", {}))
+    machine_d |= given
     analysis_d = dict(base.get("analysis", {}))
-    for flags, target in ((PLAN_FLAGS, plan_d), (MACHINE_FLAGS, machine_d)):
-        for _flag, dest, _t, _h in flags:
-            v = getattr(args, dest, None)
-            if v is not None:
-                target[dest] = v
+    for _flag, dest, _t, _h in PLAN_FLAGS:
+        v = getattr(args, dest, None)
+        if v is not None:
+            plan_d[dest] = v
     if getattr(args, "significance", None) is not None:
         analysis_d["significance"] = args.significance
     if getattr(args, "servo_model", None) is not None:
@@ -278,7 +301,7 @@ def configs_from_args(
                 raise UsageError(f"{key} value {k} must be finite, not {v}")
     try:
         plan = TestPlan.from_dict(plan_d)
-        machine = MachineConfig.from_dict(machine_d)
+        machine = MachineAxes.from_dict(machine_d) if given else machine_of(machine_d)
         options = AnalysisOptions.from_dict(analysis_d)
     except PlanError as err:
         raise UsageError(str(err)) from err
@@ -426,7 +449,7 @@ def _analyze_records(args: argparse.Namespace, base: dict[str, Any]) -> Analysis
 
 def _configs_and_library(
     args: argparse.Namespace, base: dict[str, Any],
-) -> tuple[TestPlan, MachineConfig, AnalysisOptions, PlanLibrary, str | None]:
+) -> tuple[TestPlan, MachineAxes | MachineConfig, AnalysisOptions, PlanLibrary, str | None]:
     """The plan, machine and options (:func:`configs_from_args`) and the library with the plan chosen
     (:func:`library_from_args`) of a recording whose configuration is ``base``."""
     sections = library_sections(args, base)
@@ -434,6 +457,14 @@ def _configs_and_library(
     resolve_plan_arg(args, names)
     plan, machine, options = configs_from_args(args, base=dict(base))
     library, chosen = library_from_args(args, sections, plan)
+    given = {k: v for k, v in machine_given(args).items() if k != "controller"}
+    if given:  # written now: X or Y keys alone for an axis no plan moves were a plan's first and second axis
+        from ballbar.analysis.plan import MachineAxes, check_axes
+
+        try:
+            check_axes(MachineAxes.from_dict(given), [p.plan.plane for p in library.plans])
+        except PlanError as err:
+            raise UsageError(str(err)) from err
     return plan, machine, options, library, chosen
 
 
@@ -476,6 +507,8 @@ def _list_tests(args: argparse.Namespace, mcap: bool) -> int:
         print(f"{args.file}: no test recorded")
     for r in rows:
         what = headline_text(r["headline"]) if r["headline"] else r["message"]
+        if r.get("reportable") is False and r["headline"]:  # a result recorded, but not its samples
+            what = f"{what}; {r['message']}"
         if mcap:
             files = r["files"][0] + (f" +{len(r['files']) - 1}" if len(r["files"]) > 1 else "")
             of = f"  {r['plan']}" if r.get("plan") else ""

@@ -20,6 +20,13 @@ a set's tests must all have run).  ``--set plans.NAME.KEY=VALUE`` sets one key
 of one plan.  :attr:`Config.plan` is the library's first plan: the bar's
 calibration ``cal_mm`` is for the bar as assembled for it.
 
+The machine.  ``[machine]`` gives the per-axis settings once, by the machine's
+own axes (``kv_x_per_s``, ``kv_y_per_s``, ``kv_z_per_s``, ``pitch_x_mm`` ...);
+each plan takes its plane's two (:meth:`~ballbar.analysis.plan.MachineAxes.for_plane`),
+so there is no ``[plans.<name>.machine]``.  Before Z had keys, x and y were
+each plan's first and second axis: a configuration with x or y keys alone, for
+an axis no plan moves, meant that, and is refused (:func:`check_machine_axes`).
+
 An unknown section or key, or a value of the wrong type, is one
 :class:`ConfigError` naming it (the command exits with code 2).
 """
@@ -39,7 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ballbar.analysis.errors import PlanError
-from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.plan import AnalysisOptions, MachineAxes, TestPlan, check_axes
 
 from .errors import ConfigError
 from .secrets import REDACTED, is_secret_key
@@ -184,7 +191,7 @@ SECTIONS: dict[str, type] = {
     "daemon": DaemonSection,
     "source": SourceSection,
     "plan": TestPlan,
-    "machine": MachineConfig,
+    "machine": MachineAxes,
     "analysis": AnalysisOptions,
     "mcap": McapSection,
     "zenoh": ZenohSection,
@@ -200,7 +207,7 @@ class Config:
     daemon: DaemonSection
     source: SourceSection
     plan: TestPlan
-    machine: MachineConfig
+    machine: MachineAxes
     analysis: AnalysisOptions
     mcap: McapSection
     zenoh: ZenohSection
@@ -451,6 +458,9 @@ def build_plans(base: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]]
     for name, table in tables.items():
         where = f"plans.{name}"
         data = dict(table)
+        if any(k == "machine" or k.startswith("machine.") for k in data):  # a TOML table, or --set plans.N.machine.K
+            raise ConfigError(f"{where}.machine: the machine's settings are per axis, given once in [machine] "
+                              f"({', '.join(MachineAxes.axis_keys())}); each plan takes its plane's two")
         known = {f.name for f in fields(TestPlan)} | {"signature", "limits"}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -543,10 +553,20 @@ def _validate(cfg: Config) -> None:
             raise ConfigError(f"{where}.plans names a plan twice: {st.plans}")
         if not st.window_minutes > 0:
             raise ConfigError(f"{where}.window_minutes must be > 0, not {st.window_minutes}")
+    check_machine_axes(cfg)
     monitor_settings(cfg)
     for name, entry in cfg.plans.items():
         if entry.limits is not None:
             monitor_settings(cfg, name)
+
+
+def check_machine_axes(cfg: Config) -> None:
+    """:func:`~ballbar.analysis.plan.check_axes` of ``[machine]`` and the library's planes, as a ConfigError:
+    X or Y keys alone, one for an axis no plan moves, were written as a plan's first and second axis."""
+    try:
+        check_axes(cfg.machine, [p.plan.plane for p in cfg.library.plans])
+    except PlanError as err:
+        raise ConfigError(str(err)) from None
 
 
 def check_listen(key: str, host: str, port: int, datagram: bool = False) -> None:

@@ -21,7 +21,7 @@ from .csvfile import read_csv
 from .samples import Recording
 
 if TYPE_CHECKING:
-    from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+    from ballbar.analysis.plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan
     from ballbar.analysis.plans import PlanLibrary
     from ballbar.protocol.messages import Analysis, AnalysisOutput, TestBody
     from ballbar.protocol.messages.results import AnalysisSource
@@ -206,7 +206,7 @@ def with_source(result: TestBody, source: AnalysisSource, plan: TestPlan) -> Ana
 def analyze_file(
     path: str,
     plan: TestPlan,
-    machine: MachineConfig,
+    machine: MachineConfig | MachineAxes,
     options: AnalysisOptions,
     test: int = 1,
     curves: bool = False,
@@ -236,7 +236,7 @@ def recorded_library(sections: dict[str, Any]) -> PlanLibrary | None:
 def analyze(
     rec: Recording,
     plan: TestPlan,
-    machine: MachineConfig,
+    machine: MachineConfig | MachineAxes,
     options: AnalysisOptions,
     curves: bool = False,
     only: int | None = None,

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ballbar.analysis.timeaxis import GAP_PERIODS
+from ballbar.analysis.timeaxis import GAP_PERIODS, Lost
 from ballbar.protocol import INVALID
 
 #: One sample as a record, for writers that want rows (MCAP, CSV).
@@ -219,7 +219,9 @@ def break_reason(event: Mapping[str, Any]) -> str | None:
 
     A device reset (the daemon re-bases the restarted clock, so the times do not
     show the outage), a device clock jump, and ``GAP_PERIODS`` or more samples
-    lost or not logged in a row (which the times do show; named here).
+    lost or not logged in a row (which the times do show; named here, as
+    :class:`~ballbar.analysis.timeaxis.Lost`: the analysis may take a short one
+    as a drop-out and analyse the test across it).
     """
     kind = str(event.get("event") or event.get("kind") or "")
     count = int(event.get("count") or 0)
@@ -229,9 +231,9 @@ def break_reason(event: Mapping[str, Any]) -> str | None:
     if kind == EventKind.CLOCK_JUMP:
         return f"device clock jump of {float(event.get('gap_s') or 0.0):+.3f} s (its sample counter ran on)"
     if kind == EventKind.LOST and count >= GAP_PERIODS:
-        return f"{count} samples lost ({detail or 'gap'})"
+        return Lost(f"{count} samples lost ({detail or 'gap'})")
     if kind == "log_gap" and count:
-        return f"{count} samples not logged ({detail or 'write error'})"
+        return Lost(f"{count} samples not logged ({detail or 'write error'})")
     return None
 
 

@@ -178,10 +178,16 @@ class AnalysisListener(Listener):
             self.settle()
         elif msg["kind"] == "plan_choice":
             with self._lock:
-                self._emit_all([self._choose(msg["plan"])])
+                answer = self._choose(msg["plan"])
+                if answer is not None:
+                    self._emit_all([answer])
 
-    def _choose(self, name: object) -> PlanChosenBody | PlanChoiceRefusedBody:
-        """An explicit choice of the next test's plan (from the bus): taken, or refused with the reason."""
+    def _choose(self, name: object) -> PlanChosenBody | PlanChoiceRefusedBody | None:
+        """An explicit choice of the next test's plan (from the bus): taken, or refused with the reason; None for
+        the choice standing put again (a peer that repeats itself makes no event, log line or record)."""
+        if name == self.analyzer.chosen:
+            log.debug("the choice of the next plan repeated: %r", name)
+            return None
         library = self.cfg.library
         if name is not None and (not isinstance(name, str) or name not in library.names):
             why = (f"no plan {name!r} in the library ({', '.join(library.names)})" if isinstance(name, str)

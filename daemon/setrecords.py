@@ -25,7 +25,7 @@ from typing import Any
 from ballbar import SCHEMA_VERSION
 from ballbar.analysis import sets as aset
 from ballbar.analysis.errors import DataError, PlanError
-from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.plan import AnalysisOptions, TestPlan, machine_of
 
 from .testindex import RecordedTest, TestIndex, analyze_recorded, index_recordings
 
@@ -106,7 +106,7 @@ def recorded_set(path: str | os.PathLike[str], name: str, options: AnalysisOptio
         test = _recorded(done, recorded)
         tcfg = index.config_for(test)
         plan, own = plan_config(cfg, plan_name)
-        machine = MachineConfig.from_dict(dict(tcfg.get("machine") or cfg.get("machine") or {}))
+        machine = machine_of(dict(tcfg.get("machine") or cfg.get("machine") or {}))
         opts = options or AnalysisOptions.from_dict(dict(tcfg.get("analysis") or cfg.get("analysis") or {}))
         # the plan the daemon took it for: recognised again as the daemon did, or (chosen by a service, or
         # recorded before plans were recognised) as that plan

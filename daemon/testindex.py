@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ballbar.analysis.errors import BallbarError, DataError, DetectionError
-from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan
 from ballbar.analysis.plans import PlanLibrary
 from ballbar.analysis.report import headline
 
@@ -73,7 +73,10 @@ class RecordedTest:
     ``time_axis``: the feed-in's time on the live analysis's clock, and which
     clock that was.  ``status``: ``complete`` (a test result was recorded),
     ``rejected``, ``unrecognised`` (no plan of the library, or several, fitted
-    it) or ``incomplete``; ``message``: why not complete.
+    it) or ``incomplete``; ``message``: why not complete.  ``unreportable``:
+    why a test (complete or not) cannot be analysed again from the records:
+    samples between its feed-in and feed-out were lost to a write outage (a
+    ``log_gap`` event with a lost span on its clock).
     ``files``: indices into :attr:`TestIndex.files` of the files that hold it.
     """
 
@@ -89,6 +92,8 @@ class RecordedTest:
     message: str = NO_OUTCOME
     result: dict[str, Any] | None = None
     plan: str | None = None  # the plan's name (a library of several: from its result or its feed-in)
+    feed_out_s: float | None = None  # the feed-out's time on the same clock as feed_in_s
+    unreportable: str | None = None  # why the records cannot give it again (samples lost to a write outage)
 
 
 @dataclass
@@ -124,7 +129,7 @@ class TestIndex:
                 raise DataError(f"{self.path}: holds {n} recorded test(s), test {number} asked for (--list shows them)")
             return self.tests[number - 1]
         if test_id is None or test_id == "latest":
-            done = [t for t in self.tests if t.status == "complete"]
+            done = [t for t in self.tests if t.status == "complete" and t.unreportable is None]
             if not done:
                 last = self.tests[-1]
                 raise DataError(
@@ -160,7 +165,8 @@ class TestIndex:
             "machine_id": test.machine_id,
             "start": test.start,
             "status": test.status,
-            "message": test.message if test.status != "complete" else "",
+            "message": test.unreportable or (test.message if test.status != "complete" else ""),
+            "reportable": test.unreportable is None,
             "files": [self.files[i].path.name for i in test.files],
             "time_axis": test.time_axis,
             "plan": test.plan,
@@ -218,6 +224,8 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
             if test is None:
                 continue
             _holds(test, fi)
+            if what == "feed_out" and isinstance(ev.get("t_s"), int | float):
+                test.feed_out_s = float(ev["t_s"])
             if what in ("test_rejected", "test_unrecognised") and test.status != "complete":
                 test.status = "rejected" if what == "test_rejected" else "unrecognised"
                 test.message = str(ev.get("message", ""))
@@ -233,12 +241,38 @@ def index_recordings(path: str | os.PathLike[str]) -> TestIndex:
                 test.status, test.message, test.result = "complete", "", r
                 named = (r.get("plan") or {}).get("name")
                 test.plan = named if isinstance(named, str) else test.plan
+    gaps = [(f.run, ev) for f in files for ev in f.events if ev.get("event") == "log_gap" and ev.get("count")]
+    for test in by_key.values():
+        test.unreportable = _lost_in(test, [ev for run, ev in gaps if run == test.run])
     last_of_run = {f.run: i for i, f in enumerate(files)}
     for test in by_key.values():
         end = last_of_run[test.run] if test.status == "incomplete" else test.files[-1]
         test.files = list(range(test.files[0], end + 1))
     index.tests = list(by_key.values())
     return index
+
+
+def _lost_in(test: RecordedTest, gaps: list[dict[str, Any]]) -> str | None:
+    """Why ``test`` is not in its records whole: the first write outage (``log_gap``) whose lost samples fall
+    between its feed-in and its feed-out (or its end, not recorded), on the test's own clock; None if none does."""
+    if test.feed_in_s is None:
+        return None
+    end = test.feed_out_s if test.feed_out_s is not None else float("inf")
+    span_key = "lost_t_device" if test.time_axis == "device" else "lost_t_host"
+    for ev in gaps:
+        span = ev.get(span_key)
+        if not (isinstance(span, list) and len(span) == 2):
+            continue
+        lo = span[0] if isinstance(span[0], int | float) else float("-inf")
+        hi = span[1] if isinstance(span[1], int | float) else float("inf")
+        if lo < end and hi > test.feed_in_s:
+            given = ev.get("lost_utc")
+            utc: list[Any] = given if isinstance(given, list) and len(given) == 2 else [None, None]
+            when = f"from {utc[0] or 'the start'} to {utc[1] or 'the end'}"
+            return (f"not reportable: {ev.get('count')} samples {when} were lost to a write outage "
+                    f"({ev.get('detail') or 'a write error'}); the recordings do not hold the test from feed-in to "
+                    "feed-out")
+    return None
 
 
 def _holds(test: RecordedTest, fi: int) -> None:
@@ -250,7 +284,7 @@ def analyze_recorded(
     index: TestIndex,
     test: RecordedTest,
     plan: TestPlan,
-    machine: MachineConfig,
+    machine: MachineConfig | MachineAxes,
     options: AnalysisOptions,
     curves: bool = False,
     library: PlanLibrary | None = None,
@@ -265,6 +299,8 @@ def analyze_recorded(
     ``test_id``, ``machine_id``, ``time_axis``).  A test the analysis rejects,
     or whose samples are gone, is a :class:`DataError` with the reason.
     """
+    if test.unreportable is not None:
+        raise DataError(f"{index.files[test.files[0]].path}: test {test.test_id}: {test.unreportable}")
     if library is None:
         library = recorded_library(index.config_for(test))
     tries = [test.files]

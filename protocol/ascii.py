@@ -175,6 +175,11 @@ class AsciiFormat:
     def digits(self) -> int:
         return DEFAULT_DECIMALS[self.unit] if self.decimals is None else self.decimals
 
+    @property
+    def resolution_um(self) -> float:
+        """The step of the readings the format writes: one unit of its last digit, in um."""
+        return 1000.0 * abs(self.mm_per_count) * 10.0 ** -self.digits
+
 
 # ----------------------------------------------------------------------------- encoder
 

@@ -52,6 +52,9 @@ data_arc_deg = 220.0
 plans = ["xy", "zx", "yz"]
 window_minutes = 60.0
 """
+# The demo machine's gains, configured per machine axis: each plan takes its plane's two (ZX: Z and X)
+GAINS = {k: float(v) for k, v in (item.split("=") for item in SIM_MACHINE_3D) if k.startswith("kv_")}
+SET += "\n[machine]\n" + "".join(f"{k} = {v}\n" for k, v in GAINS.items())
 # The existing end-to-end tolerances (tests/test_e2e.py)
 TOL = {"backlash_x_um": 0.1, "backlash_y_um": 0.1, "servo_mismatch_ms": 0.05, "squareness_urad": 0.5,
        "centre_x_um": 0.1, "centre_y_um": 0.1}
@@ -108,6 +111,11 @@ def test_a_set_runs_is_recognised_and_recovers_each_axis(tmp_path: Path, capsys:
     assert sorted(published) == sorted(t["test_id"] for t in tests)
     feed_ins = [e for e in log.events if e.get("event") == "feed_in"]
     assert [e["plan"] for e in feed_ins[:3]] == ["xy", "zx", "yz"]
+    # Each test's analysis took its plane's two gains of [machine], first axis first.
+    for t in tests:
+        first, second = (f"kv_{a.lower()}_per_s" for a in t["plan"]["axes"])
+        assert (t["machine"]["kv_x_per_s"], t["machine"]["kv_y_per_s"]) == (GAINS[first], GAINS[second])
+        assert t["timing"]["loop_lag_source"] == f"configured gains {first} and {second}", t["timing"]
     # Each plane recovers what it sees of the 3D machine (Z's lost motion, ZX and YZ squareness among it).
     machine = Machine3D.from_settings({k: float(v) for k, v in (item.split("=") for item in SIM_MACHINE_3D)})
     for t in tests:

@@ -169,3 +169,64 @@ def test_the_headroom_scales_with_the_file_system() -> None:
         assert lg.headroom(1 << 40) == lg.headroom_bytes == 64 << 20  # at most headroom_bytes
     finally:
         lg.stop()
+
+
+def test_an_outage_longer_than_the_preroll_marks_the_tests_it_cut_not_reportable(small_disk: Disk) -> None:
+    """A full disk held 22 s, longer than the preroll buffer's 10 s: the feed-ins of the tests early in it are lost
+    for good, though their results are recorded (held in memory).  The recording's log_gap says which span of
+    samples was lost (its device-clock span matches its count at 1 kHz); ``analyze --list`` shows such a test as
+    not reportable and why; ``analyze --test-id`` and ``report --test-id`` exit 1 with one line naming the outage,
+    not the generic "do not hold it from feed-in to feed-out"; a test before the outage stays reportable."""
+    state = small_disk.path / "state"
+    recs = state / "recordings"
+    proc, log = start_daemon(state)
+    try:
+        log.wait_for("mcap log: writing", 60.0)
+        _t, line = log.wait_for(" test: ", 60.0)
+        before = TEST_LINE.search(line)["id"]  # type: ignore[index]
+        time.sleep(1.5)  # its result flushed (one in a chunk the full disk cuts is lost with the chunk)
+        at = log.mark()
+        small_disk.fill()
+        t_fail, _line = log.wait_for("mcap log: cannot write", 30.0, at)
+        time.sleep(22.0)  # 12 s lost beyond the ring's 10 s: more than a test takes at x20 (about 8 s)
+        at = log.mark()
+        small_disk.release()
+        t_back, _line = log.wait_for("mcap log: writing again", 30.0, at)
+        log.wait_for(" test: ", 60.0, log.mark())  # a test after the outage: the held ones are written by now
+        time.sleep(1.0)
+    finally:
+        code = stop_daemon(proc)
+    text = log.text()
+    assert code == 0, text[-3000:]
+    events = [e for p in list_recordings(recs) for e in read_log(p, samples=False).events]
+    (gap,) = [e for e in events if e.get("event") == "log_gap" and e.get("count")]
+    lo, hi = gap["lost_t_device"]
+    assert abs((hi - lo) * 1000.0 - gap["count"]) <= 0.02 * gap["count"] + 50, gap  # 1 kHz on the device clock
+    h_lo, h_hi = gap["lost_t_host"]
+    # from before the failure to where the preroll ring (10 s back from the newest batch) begins
+    assert h_lo < t_fail + 1.0 and t_back - 12.0 <= h_hi <= t_back - 9.0, (gap, t_fail, t_back)
+    cut = [e["test_id"] for e in events if e.get("event") == "feed_in" and t_fail + 1.0 < e["t_host"] < h_hi - 0.5]
+    assert cut, (events, t_fail, t_back)
+    listed = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(recs), "--list", "--json"],
+                            capture_output=True, text=True, timeout=120)
+    assert listed.returncode == 0, listed.stderr[-2000:]
+    rows = {r["test_id"]: r for r in json.loads(listed.stdout)}
+    assert rows[before]["reportable"] is True and rows[before]["status"] == "complete", rows[before]
+    done = [t for t in cut if rows[t]["status"] == "complete"]
+    assert done, [rows[t] for t in cut]  # its result was held through the outage and recorded
+    for t in cut:
+        assert rows[t]["reportable"] is False, rows[t]
+        assert "write outage (No space left on device" in rows[t]["message"], rows[t]
+        assert gap["lost_utc"][0] in rows[t]["message"], rows[t]
+    test_id = done[0]
+    for cmd in (["analyze", str(recs), "--test-id", test_id], ["report", "--test-id", test_id, "--records", str(recs)]):
+        got = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", *cmd], capture_output=True, text=True,
+                             timeout=120, cwd=small_disk.path)
+        # (besides the reader's warning about the file the outage cut short)
+        said = [ln for ln in got.stderr.strip().splitlines() if " WARNING " not in ln]
+        assert got.returncode == 1 and len(said) == 1, (cmd, got.stderr[-2000:])
+        assert "not reportable" in said[0] and "lost to a write outage" in said[0] and test_id in said[0], said
+        assert "do not hold it from feed-in" not in said[0]
+    ok = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(recs), "--test-id", before,
+                         "--json"], capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and json.loads(ok.stdout)["source"]["test_id"] == before, ok.stderr[-2000:]

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ballbar.analysis.errors import DataError
-from ballbar.analysis.plan import AnalysisOptions, MachineConfig, TestPlan
+from ballbar.analysis.plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan, machine_of
 from ballbar.analysis.plans import PlanLibrary
 from ballbar.daemon.mcap import mcap_files, read_results
 from ballbar.daemon.recordings import analyze_file
@@ -158,7 +158,7 @@ def _adopt_identity(result: dict[str, Any], recorded: dict[str, Any]) -> None:
 def from_recording(
     path: str,
     plan: TestPlan,
-    machine: MachineConfig,
+    machine: MachineConfig | MachineAxes,
     options: AnalysisOptions,
     test: int = 1,
     records: str | None = None,
@@ -256,7 +256,7 @@ def from_records(records: str, test_id: str, options: AnalysisOptions | None = N
     test = index.select(test_id)
     cfg = index.config_for(test)
     plan = TestPlan.from_dict(cfg.get("plan", {}))
-    machine = MachineConfig.from_dict(cfg.get("machine", {}))
+    machine = machine_of(cfg.get("machine", {}))
     opts = options or AnalysisOptions.from_dict(cfg.get("analysis", {}))
     return from_recorded_test(index, test, plan, machine, opts)
 
@@ -265,7 +265,7 @@ def from_recorded_test(
     index: TestIndex,
     test: RecordedTest,
     plan: TestPlan,
-    machine: MachineConfig,
+    machine: MachineConfig | MachineAxes,
     options: AnalysisOptions,
     records: str | None = None,
     library: PlanLibrary | None = None,

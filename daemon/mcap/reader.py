@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import struct
 from collections.abc import Iterable, Iterator
@@ -28,6 +29,7 @@ from .format import (
     _MAGIC,
     MAX_RECORD_BYTES,
     METADATA_NAME,
+    NS,
     SIDE_BYTES_MAX,
     TOPIC_CONFIG,
     TOPIC_EVENTS,
@@ -464,11 +466,13 @@ def recording(lg: McapLog, name: str) -> Recording:
 # ----------------------------------------------------------------------------- after a crash
 
 
-def _samples_after(path: Path, offset: int, channel: int) -> tuple[int, int | None]:
+def _samples_after(path: Path, offset: int, channel: int) -> tuple[int, int | None, float]:
     """The samples (preroll copies aside) in the whole records of ``path`` from byte ``offset`` on, and the stored
-    host time (wall ns) of the newest of them: what a write that failed part way got into the file after all."""
+    host time (wall ns) and device time (s, NaN: none) of the newest of them: what a write that failed part way got
+    into the file after all."""
     n = 0
     last: int | None = None
+    last_td = math.nan
     try:
         with open(path, "rb") as fh:
             fh.seek(offset)
@@ -477,7 +481,9 @@ def _samples_after(path: Path, offset: int, channel: int) -> tuple[int, int | No
                     msg = json.loads(rec.data)
                     if not msg.get("preroll"):
                         n += int(msg["count"])
-                        last = int(decode_samples(msg).t_host_ns[-1])
+                        dec = decode_samples(msg)
+                        last = int(dec.t_host_ns[-1])
+                        last_td = math.nan if dec.t_device_ns is None else int(dec.t_device_ns[-1]) / NS
     except (OSError, McapError, struct.error, ValueError, KeyError, TypeError, EOFError, zstandard.ZstdError):
         pass  # the first record cut short: the end of what is readable
-    return n, last
+    return n, last, last_td

@@ -24,6 +24,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from ballbar import __version__
+from ballbar.protocol.messages.envelope import utc_text
 
 from ..listeners import MERGE_S, TEST_END_EVENTS, Listener, to_json
 from ..listeners import Message as ListenerMessage
@@ -117,6 +118,7 @@ class _LogFile:
     first_t: float = math.nan  # host time of the first and newest sample in it
     last_t: float = math.nan
     last_ns: int | None = None  # the newest sample's stored host time (wall ns), written to it (maybe not flushed)
+    last_td: float = math.nan  # and its device time (s; NaN: none)
     has_test: bool = False
     holds_held: bool = False  # results and events held through an outage were written to it: never deleted
     header: int = 0  # the header and metadata
@@ -223,6 +225,10 @@ class McapLogger(Listener):
         # The stored host time (wall ns) of the newest sample known to be in a file: after a write outage, what the
         # preroll ring holds beyond it was counted lost, and is written when writing resumes.
         self._kept_ns: int | None = None
+        self._kept_td = math.nan  # that sample's device time (s)
+        # The newest sample counted lost in a write outage (host s, device s): where its lost span ends, when the
+        # preroll ring gives none of them back.
+        self._lost_last: tuple[float, float] | None = None
         self._held_elsewhere: set[Path] = set()  # files retention left alone, another process writing them (said once)
         self._next_reason = "start"
         # failures
@@ -289,6 +295,8 @@ class McapLogger(Listener):
                 self._remember(batch)
             if not ok:
                 self._lose(n)
+                if n:
+                    self._note_lost(batch)
                 self._c["messages_lost"] += len(batch.events)
                 return
             for ev in batch.events:
@@ -474,10 +482,24 @@ class McapLogger(Listener):
         if name in TEST_END_EVENTS:
             self._in_test = False
 
-    def _log_gap(self, now: float) -> LogGap:
-        """The ``log_gap`` event of the write outage going on: what it cost so far."""
-        return {"event": "log_gap", "t_host": now, "count": self._fail_lost, "gap_s": round(now - self._fail_since, 3),
-                "detail": self._fail_detail}
+    def _log_gap(self, now: float, resumed: SampleBatch | None = None, span: bool = True) -> LogGap:
+        """The ``log_gap`` event of the write outage going on: what it cost so far, and (``span``, samples lost)
+        their span: from the newest sample in a file before it to ``resumed``'s first (the first written after
+        it), else to the newest lost."""
+        gap: LogGap = {"event": "log_gap", "t_host": now, "count": self._fail_lost,
+                       "gap_s": round(now - self._fail_since, 3), "detail": self._fail_detail}
+        if not (self._fail_lost and span):
+            return gap
+        first = (math.nan, math.nan) if self._kept_ns is None else (
+            (self._kept_ns - self.host_clock_offset_ns) / NS, self._kept_td)
+        end = (float(resumed.t_host[0]), float(resumed.t_device[0])) if resumed is not None and len(resumed) else (
+            self._lost_last or (math.nan, math.nan))
+        gap["lost_t_host"] = [_or_none(first[0]), _or_none(end[0])]
+        gap["lost_t_device"] = [_or_none(first[1]), _or_none(end[1])]
+        gap["lost_utc"] = [None if not math.isfinite(t) else
+                           utc_text(datetime.fromtimestamp((t * NS + self.host_clock_offset_ns) / NS, UTC))
+                           for t in (first[0], end[0])]
+        return gap
 
     def _first_sighting(self, name: str, t_host: float, source: str) -> bool:
         """False for an event already written: a source event comes both in its batch and as the
@@ -625,7 +647,8 @@ class McapLogger(Listener):
         rescued: list[SampleBatch] = []
         if self._failing:
             rescued = self._rescue()
-            self._write(TOPIC_EVENTS, self._log_gap(now), self._wall_ns(now))
+            self._write(TOPIC_EVENTS, self._log_gap(now, rescued[0] if rescued else None), self._wall_ns(now))
+            self._lost_last = None
         if self._held and self._file is not None:
             held = len(self._held)
             self._file.holds_held = True
@@ -677,7 +700,7 @@ class McapLogger(Listener):
             return
         self._c["bytes"] += size - f.bytes_counted
         if f.last_ns is not None:
-            self._kept_ns = f.last_ns
+            self._kept_ns, self._kept_td = f.last_ns, f.last_td
         self._file = None
         self._dirty_since = None
 
@@ -701,7 +724,7 @@ class McapLogger(Listener):
         f.unflushed_samples = 0
         f.flushed_records += 1
         if f.last_ns is not None:
-            self._kept_ns = f.last_ns
+            self._kept_ns, self._kept_td = f.last_ns, f.last_td
         self._dirty_since = None
         if size - f.overhead >= self.rotate_bytes * (2 if self._in_test else 1):
             self._rotate("size", time.monotonic())
@@ -763,7 +786,8 @@ class McapLogger(Listener):
         self._held.clear()
         gap = []
         if self._failing:
-            gap = [(TOPIC_EVENTS, self._log_gap(now), self._wall_ns(now))]
+            # (no span: the next run's files hold it, and that run's clocks are not this one's)
+            gap = [(TOPIC_EVENTS, self._log_gap(now, span=False), self._wall_ns(now))]
         kept = write_spool(self.spool_path, self.run_id, [*held, *gap], self._spool_bytes())  # the newest first
         lost = len(held) - max(0, kept - len(gap))
         self._c["messages_lost"] += lost
@@ -838,8 +862,13 @@ class McapLogger(Listener):
                         f.first_t = float(th[i])
                     f.last_t = float(th[j - 1])
                     f.last_ns = int(t_host_ns[j - 1])
+                    f.last_td = float(td[j - 1])
         if done < total and not preroll:
             self._lose(total - done)
+
+    def _note_lost(self, batch: SampleBatch) -> None:
+        if len(batch):
+            self._lost_last = (float(batch.t_host[-1]), float(batch.t_device[-1]))
 
     def _lose(self, n: int) -> None:
         self._c["samples_lost"] += n
@@ -859,13 +888,15 @@ class McapLogger(Listener):
             if f.flushed_records <= 1 and not f.holds_held and f.samples == f.unflushed_samples:
                 delete = f.path  # at most the head (metadata, config): nothing to keep
             elif f.unflushed_samples:  # a write cut short can have left whole chunks of them: those are not lost
-                made, last_ns = _samples_after(f.path, f.bytes_counted, f.channels[TOPIC_SAMPLES])
+                made, last_ns, last_td = _samples_after(f.path, f.bytes_counted, f.channels[TOPIC_SAMPLES])
                 unwritten = f.unflushed_samples - min(f.unflushed_samples, made)
                 if made and last_ns is not None:
-                    self._kept_ns = last_ns
+                    self._kept_ns, self._kept_td = last_ns, last_td
             if delete == f.path:
                 unwritten = f.unflushed_samples
         lost = self._pending.n + unwritten
+        if self._pending.batches:
+            self._note_lost(self._pending.batches[-1])
         self._pending.clear()
         self._c["write_errors"] += 1
         self._c["samples"] -= unwritten
@@ -947,3 +978,6 @@ class McapLogger(Listener):
             self._c["deleted_bytes"] += sizes[p]
             log.info("mcap log: deleted %s (%s)", p.name, "older than keep_days" if old else "over quota")
 
+
+def _or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None

@@ -54,7 +54,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ballbar.analysis.engine import TimingHints
-from ballbar.analysis.plan import MachineConfig, TestPlan
+from ballbar.analysis.plan import MachineConfig, TestPlan, for_plane, machine_of
 from ballbar.analysis.plans import plan_of_result
 from ballbar.protocol import INVALID
 
@@ -82,6 +82,7 @@ if TYPE_CHECKING:
     import rerun as rr
 
     from ballbar.protocol.messages import CircleResult, PipelineEvent, TestResult
+    from ballbar.protocol.messages.config import MachineSection
     from ballbar.protocol.messages.results import Machine, Plan
 else:  # imported at first use: the configuration check and READY=1 do not wait for it (half a second)
     from ..lazy import LazyModule
@@ -280,7 +281,10 @@ class RerunViewer(Scene, Listener):
         ``plans`` and ``sets``, where it has a library of several); seeded with the machine's earlier tests from
         the daemon's records (:meth:`seed`, the newest ``SEED_FILES`` files)."""
         whole = cfg.to_dict() if callable(getattr(cfg, "to_dict", None)) else {}
-        v = cls(viewer_options(cfg), plan=getattr(cfg, "plan", None), machine=getattr(cfg, "machine", None),
+        plan, machine = getattr(cfg, "plan", None), getattr(cfg, "machine", None)
+        if plan is not None and machine is not None:  # the first plan's two axes of the machine's
+            machine = for_plane(machine, plan.plane)
+        v = cls(viewer_options(cfg), plan=plan, machine=machine,
                 plans=whole.get("plans"), sets=whole.get("sets"))
         mcap = getattr(cfg, "mcap", None)
         if mcap is not None and mcap.enabled and v.options.mode != "off":
@@ -689,10 +693,10 @@ class RerunViewer(Scene, Listener):
                 self._event(event)
         # status, samples: nothing to draw
 
-    def _set_plan(self, plan: Plan, machine: Machine) -> None:
+    def _set_plan(self, plan: Plan, machine: Machine | MachineSection) -> None:
         try:
             new = plan_of_result(plan)
-            mach = MachineConfig.from_dict(dict(machine))
+            mach = for_plane(machine_of(machine), new.plane)  # a config's: the machine's axes; a result's: its own
         except (TypeError, ValueError) as err:
             log.warning("rerun viewer: ignoring a plan it cannot read: %s", err)
             return

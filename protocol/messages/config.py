@@ -9,7 +9,7 @@ from typing import Annotated, Literal, NotRequired, TypedDict
 
 from .envelope import MachineId, TWall, Version
 from .fields import doc
-from .results import Machine, Plan
+from .results import Plan
 
 
 class DaemonSection(TypedDict):
@@ -27,6 +27,23 @@ class SourceSection(TypedDict):
 
     url: Annotated[str, doc("the source actually read: with --simulate, the simulated device's pty")]
     cal_mm: Annotated[float | None, doc("the bar's length at zero displacement", "mm", null="the plan's radius")]
+
+
+_LEGACY = "absent: recorded before the machine's axes were named, when x and y were each plan's first and second axis"
+
+
+class MachineSection(TypedDict):
+    """[machine]: per machine axis, each plan taking its plane's two (XY: X, Y; YZ: Y, Z; ZX: Z, X)"""
+
+    pitch_x_mm: Annotated[float | None, doc("the X axis' screw pitch (cyclic error)", "mm", null="unknown")]
+    pitch_y_mm: Annotated[float | None, doc("the Y axis' screw pitch", "mm", null="unknown")]
+    pitch_z_mm: NotRequired[Annotated[float | None, doc(f"the Z axis' screw pitch ({_LEGACY})", "mm",
+                                                        null="unknown")]]
+    kv_x_per_s: Annotated[float | None, doc("the X axis' configured position-loop gain", "1/s", null="unknown")]
+    kv_y_per_s: Annotated[float | None, doc("the Y axis' configured position-loop gain", "1/s", null="unknown")]
+    kv_z_per_s: NotRequired[Annotated[float | None, doc(f"the Z axis' configured position-loop gain ({_LEGACY})",
+                                                        "1/s", null="unknown")]]
+    controller: Annotated[str, doc("generic, fanuc, siemens or heidenhain: parameter names in the advice")]
 
 
 class AnalysisSection(TypedDict):
@@ -153,7 +170,7 @@ class Settings(TypedDict):
                                                            "[plan] alone, named default)")]]
     sets: NotRequired[Annotated[dict[str, SetEntry], doc("[sets.<name>]: tests that together give one picture of "
                                                          "the machine (absent: none)")]]
-    machine: Machine
+    machine: MachineSection
     analysis: AnalysisSection
     mcap: McapSection
     zenoh: ZenohSection

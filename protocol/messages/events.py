@@ -292,3 +292,8 @@ class LogGap(TypedDict):
     count: Annotated[int, doc("samples not logged")]
     gap_s: NotRequired[Annotated[float, doc("over this long", "s")]]
     detail: NotRequired[Annotated[str, doc("the error")]]
+    lost_t_host: NotRequired[Annotated[list[float | None], doc(
+        "samples lost: their span on the host clock, from the newest sample written before to the first after "
+        "(or the newest lost); null: not known", "s")]]
+    lost_t_device: NotRequired[Annotated[list[float | None], doc("the same span on the device clock", "s")]]
+    lost_utc: NotRequired[Annotated[list[str | None], doc("the same span as UTC times (ISO 8601)")]]

@@ -152,7 +152,8 @@ class Recognition(TypedDict):
 
 
 class Machine(TypedDict):
-    """what the analysis knows of the machine ([machine])"""
+    """what the analysis knew of the machine: [machine] of the plane's two axes, x the first and y the second
+    (plan.axes: in ZX, x is Z's and y X's)"""
 
     pitch_x_mm: Annotated[float | None, doc("first axis' screw pitch", "mm", null="unknown, no cyclic error fitted")]
     pitch_y_mm: Annotated[float | None, doc("second axis' screw pitch", "mm", null="unknown")]
@@ -201,7 +202,10 @@ class LevelChange(TypedDict):
 class Checks(TypedDict):
     """the checks that the model describes the test (analysis/README.md, 'When the model does not fit')"""
 
-    sensor_noise_um: Annotated[float | None, doc("the sensor's white noise from the samples alone", "um")]
+    sensor_noise_um: Annotated[float | None, doc("the sensor's white noise from the samples alone, at least the "
+                                                 "quantisation noise of reading_step_um / sqrt(12)", "um")]
+    reading_step_um: Annotated[float | None, doc("the step (resolution) the readings sit on", "um",
+                                                 null="not quantised")]
     residual_rms_um: Annotated[float | None, doc("the fit's residual", "um")]
     last_arc_feed_ratio: Annotated[float | None, doc("the last arc's feed against the first's, as the residual tells "
                                                      "it", null="one direction")]
@@ -476,6 +480,27 @@ class CircleBody(TypedDict):
     warnings: NotRequired[Warnings]
 
 
+class DropoutCost(TypedDict):
+    """what a drop-out costs one pattern"""
+
+    pattern: Annotated[str, doc("the pattern's name (backlash_x, squareness, ...)")]
+    stderr_factor: Annotated[float, doc("its standard errors over what they would be with the lost samples "
+                                        "present, the largest of its parameters'", minimum=1)]
+
+
+class Dropout(TypedDict):
+    """samples lost inside the test, on a clock that ran on (analysis/README.md, "Drop-outs")"""
+
+    t_s: Annotated[float, doc("the time of the last sample before the gap", "s")]
+    duration_s: Annotated[float, doc("the time lost, beyond one sample period", "s")]
+    samples_missing: Annotated[int, doc("about how many samples that is, at the median period", minimum=0)]
+    direction: Annotated[Literal["ccw", "cw"] | None, doc("the data arc the gap falls in", null="in none")]
+    from_deg: Annotated[float | None, doc("the commanded angle where the gap begins", "deg", null="in no data arc")]
+    to_deg: Annotated[float | None, doc("the commanded angle where it ends", "deg", null="in no data arc")]
+    arc_fraction: Annotated[float, doc("the part of that data arc lost, 0..1", minimum=0, maximum=1)]
+    cost: NotRequired[Annotated[list[DropoutCost], doc("per pattern, what the gap costs its standard error")]]
+
+
 class TestBody(TypedDict):
     """A test's result as the analysis makes it: the whole test, on its own timing."""
 
@@ -496,6 +521,7 @@ class TestBody(TypedDict):
     standards: NotRequired[Standards]
     noise: Noise
     samples: SamplesUsed
+    dropouts: NotRequired[Annotated[list[Dropout], doc("drop-outs the test was analysed across (none: no field)")]]
     verdict: NotRequired[Annotated[Verdict, doc("with [limits] on: pass, warning or fail against each limit")]]
 
 

@@ -63,7 +63,11 @@ class ZenohStats(TypedDict):
     controls: NotRequired[Annotated[int, doc("choices of the next plan received on control/next_plan")]]
     controls_refused: NotRequired[Annotated[int, doc(
         "puts on control/next_plan refused as not of the documented shape (too long, not a name, other keys)")]]
+    controls_dropped: NotRequired[Annotated[int, doc(
+        "choices on control/next_plan dropped by the rate limit (more than 5 at once or 2 a second)")]]
     history: Annotated[Counts, doc("results and events held for history/<topic>, by topic")]
+    history_controls: NotRequired[Annotated[int, doc("plan_chosen and plan_choice_refused events held for "
+                                                     "history/event apart from the machine's own")]]
     zid: NotRequired[Annotated[str, doc("this session's Zenoh id")]]
     links: NotRequired[Annotated[Counts, doc("sessions connected to this one, by kind (peer, client, router)")]]
 

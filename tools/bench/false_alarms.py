@@ -15,7 +15,10 @@ equal on 30 % of machines) with the pivot up to 20 um off centre, the machines
 of a survey in which a linear mask fit read the pivot offset times the servo
 mismatch as drift and lateral play; ``--rates 15.625`` restricts either draw
 to one rate (at 15.625 Hz the feed-in's settling is not resolved and the
-loops' lag is searched with the timing: the drift survey).
+loops' lag is searched with the timing: the drift survey).  ``--quantum-um Q``
+reads every machine as a digital indicator of resolution ``Q`` whose own noise
+is below its step (the noise drawn times ``Q``: 0.05..0.3 of a step), the
+survey of issue 34's quantised gauges (``--rates 15.625,50``).
 
 Printed: per family, the share of machines that showed it falsely (with a
 Wilson 95 % interval); the share with any false finding, in all and per
@@ -33,6 +36,7 @@ import multiprocessing
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -132,12 +136,16 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
 
 
 def survey(
-    machines: int, seed: int, jobs: int = 1, draw: str = "standard", rates: Sequence[float] = RATES
+    machines: int, seed: int, jobs: int = 1, draw: str = "standard", rates: Sequence[float] = RATES,
+    quantum_um: float = 0.0,
 ) -> list[Row]:
     """Analyse ``machines`` random machines drawn from ``seed``: per machine its rate, false findings, the
-    coverage of its present patterns and whether the test was judged valid."""
+    coverage of its present patterns and whether the test was judged valid.  ``quantum_um``: read each on
+    that step, its noise drawn times the step (0: as drawn)."""
     rng = np.random.default_rng(seed)
     work = [(i, *random_machine(rng, draw, rates)) for i in range(machines)]
+    if quantum_um > 0:
+        work = [(i, replace(m, quantum_um=quantum_um, noise_um=m.noise_um * quantum_um), fs) for i, m, fs in work]
     if jobs <= 1:
         return [_one(w) for w in work]
     with multiprocessing.get_context("spawn").Pool(jobs) as pool:
@@ -153,11 +161,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="the gains: within 10 %% of each other (standard) or drawn independently, with pivot "
                         "offsets up to 20 um (independent)")
     p.add_argument("--rates", default=",".join(f"{r:g}" for r in RATES), help="sample rates (Hz), comma-separated")
+    p.add_argument("--quantum-um", type=float, default=0.0,
+                   help="read every machine on this step (um), its noise below it (0.05..0.3 of a step)")
     a = p.parse_args(argv)
     t0 = time.perf_counter()
-    rows = survey(a.machines, a.seed, a.jobs, a.draw, [float(r) for r in a.rates.split(",")])
+    rows = survey(a.machines, a.seed, a.jobs, a.draw, [float(r) for r in a.rates.split(",")], a.quantum_um)
     n = len(rows)
-    print(f"{n} random machines ({a.draw} draw) from seed {a.seed}, {time.perf_counter() - t0:.0f} s")
+    read = f", read on {a.quantum_um:g} um steps" if a.quantum_um > 0 else ""
+    print(f"{n} random machines ({a.draw} draw{read}) from seed {a.seed}, {time.perf_counter() - t0:.0f} s")
     for i, fs, found, _, valid in rows:
         if found:
             print(f"  machine {i} at {fs:g} Hz: " + ", ".join(f"{k} (p = {v:.2g})" for k, v in found.items()))
