@@ -106,6 +106,7 @@ from typing import TYPE_CHECKING, Any, Literal, cast
 import numpy as np
 
 from .errors import PlanError
+from .numbers import measured
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages.monitor import Conditions, Forecast, HistoryEntry, LimitEntry, Status, Verdict
@@ -318,7 +319,7 @@ def evaluate(result: Mapping[str, Any], settings: MonitorSettings) -> Verdict:
         "uncertainty": f"parameters: the fit's standard error; {ISO_UNCERTAINTY}",
         "limits": entries,
         "not_evaluated": sum(e["status"] == "not_evaluated" for e in entries),
-        "summary": verdict_text(worst, entries),
+        "summary": verdict_text(worst, entries, _plane_axes(result)),
     }
 
 
@@ -328,15 +329,25 @@ def _unit(result: Mapping[str, Any], lim: Limit, name: str) -> str:
     return "um"
 
 
-def verdict_text(status: str, entries: Sequence[Mapping[str, Any]]) -> str:
-    """One line: the verdict and the limits that are not passed."""
+def _plane_axes(result: Mapping[str, Any]) -> tuple[str, str]:
+    from .plan import PLANE_AXES
+
+    plan = result.get("plan")
+    plane = plan.get("plane") if isinstance(plan, Mapping) else None
+    return PLANE_AXES.get(str(plane), ("X", "Y"))
+
+
+def verdict_text(status: str, entries: Sequence[Mapping[str, Any]], axes: tuple[str, str] = ("X", "Y")) -> str:
+    """One line: the verdict and the limits that are not passed, in the view's words
+    (:func:`ballbar.analysis.report.limit_words`: the quantity with the plane's axes, the limit, by how much)."""
+    from .report import limit_words
+
     bad = [e for e in entries if e["status"] in ("warning", "fail")]
     if not entries:
         return "no limits"
     parts = []
     for e in bad:
-        what = "within uncertainty of the limit" if e.get("within_uncertainty") else e["status"]
-        parts.append(f"{e['name']} {e['value']:.3g} +- {e['uncertainty']:.2g} {e['unit']} vs {e['limit']:g} ({what})")
+        parts.append(limit_words(e, axes) + ("" if e.get("within_uncertainty") else f" ({e['status']})"))
     n_ok = sum(e["status"] == "pass" for e in entries)
     skipped = sum(e["status"] == "not_evaluated" for e in entries)
     tail = f"{n_ok} of {len(entries)} limits passed" + (f", {skipped} not evaluated" if skipped else "")
@@ -627,7 +638,9 @@ def forecast_words(f: Mapping[str, Any], label: str, unit: str = "") -> str:
     n = f.get("n", 0)
     if "slope_per_day" not in f:
         return f"{label}: no trend yet ({f.get('reason', '')})"
-    slope = f"trend {f['slope_per_day']:+.3g}{u}/day over {n} tests"
+    se = slope_stderr(f.get("slope_lo"), f.get("slope_hi"), float(f.get("slope_confidence") or f.get("confidence")
+                                                                      or 0.95))
+    slope = f"trend {measured(f['slope_per_day'], se, (unit or '') + '/day', signed=True)} over {n} tests"
     crossing = f.get("crossing")
     if f.get("due") and crossing:
         short = (f.get("reach_days") or 0.0) < 2.0  # a trend of hours: the hour matters
@@ -635,7 +648,8 @@ def forecast_words(f: Mapping[str, Any], label: str, unit: str = "") -> str:
         def day(x: Any) -> str:
             return (str(x)[:16].replace("T", " ") if short else str(x)[:10]) if x else "never"
 
-        return (f"{label}: {slope}, reaches its limit {f.get('bound', f['limit']):g}{u} about {day(crossing)} "
+        bound = measured(f.get("bound", f["limit"]), None, unit, with_unit=False)
+        return (f"{label}: {slope}, reaches its limit {bound}{u} about {day(crossing)} "
                 f"({100 * f.get('confidence', 0.95):g} %: {day(f.get('crossing_lo'))} .. "
                 f"{day(f.get('crossing_hi'))})")
     return f"{label}: {slope}: no forecast, {f.get('reason', 'not due')}"
@@ -721,6 +735,14 @@ def _clearly_not_due(f: Mapping[str, Any]) -> bool:
     return lo is None or (isinstance(horizon, int | float) and lo > horizon)
 
 
+def slope_stderr(lo: Any, hi: Any, confidence: float) -> float | None:
+    """A trend slope's standard error from Sen's interval ``lo .. hi`` at ``confidence`` (its half width over the
+    normal quantile): what the rounding rule shows a slope to; None without a finite interval."""
+    if isinstance(lo, int | float) and isinstance(hi, int | float) and math.isfinite(lo) and math.isfinite(hi):
+        return (hi - lo) / (2.0 * _norm_ppf(0.5 + confidence / 2.0))
+    return None
+
+
 def alert_text(alert: Mapping[str, Any]) -> str:
     """One readable line of an alert message."""
     m = alert.get("machine_id", "?")
@@ -737,9 +759,23 @@ def alert_text(alert: Mapping[str, Any]) -> str:
     if alert.get("state") == "clear":
         return (f"{m}: forecast for {alert.get('limit')} cleared at test {alert.get('test_id')}: "
                 f"{f.get('reason', 'no longer due')}")
-    return (f"{m}: {alert.get('limit')} trend {f.get('slope_per_day', math.nan):+.3g}/day crosses "
-            f"{f.get('bound', math.nan):g} on {f.get('crossing')} ({100 * f.get('confidence', 0):g} %: "
-            f"{f.get('crossing_lo')} .. {f.get('crossing_hi')}), from {f.get('n')} tests to {alert.get('test_id')}")
+    from .numbers import measured
+    from .report import quantity_label, unit_text
+
+    name = str(f.get("name") or alert.get("limit") or "")
+    unit = "um" if name in ISO_LIMITS or name.startswith("G_") else name.rsplit("_", 1)[-1]
+    axes = _plane_axes({"plan": alert.get("conditions") or {}})
+    slope, lo, hi = (f.get(k) for k in ("slope_per_day", "slope_lo", "slope_hi"))
+    conf = float(f.get("confidence") or 0.95)
+    se = slope_stderr(lo, hi, conf)
+    bound = f.get("bound", math.nan)
+    # the limit is the quantity's (um), not the slope's (um/day): at its unit's resolution, as the verdict shows it
+    lim_t = measured(abs(bound) if isinstance(bound, int | float) else None, None, unit, with_unit=False)
+    side = "-" if isinstance(bound, int | float) and bound < 0 else ""
+    return (f"{m}: {quantity_label(name, axes)} trend {measured(slope, se, f'{unit}/day', signed=True)} crosses "
+            f"its limit {side}{lim_t} {unit_text(unit)} on {f.get('crossing')} "
+            f"({100 * conf:g} %: {f.get('crossing_lo')} .. {f.get('crossing_hi')}), from {f.get('n')} tests to "
+            f"{alert.get('test_id')}")
 
 
 __all__ = [
@@ -764,6 +800,7 @@ __all__ = [
     "points",
     "settings_from_dict",
     "slope_confidence",
+    "slope_stderr",
     "theil_sen",
     "validity",
 ]

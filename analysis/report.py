@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from .fit import FitResult, ParameterResult
+from .numbers import decimals, fixed, limit_texts, measured, shown_stderr
 from .patterns import LIBRARY, Pattern
 from .plan import axis_key
 
@@ -146,7 +147,9 @@ def summary(result: Mapping[str, Any]) -> str:
         if p["value"] is None:
             continue
         mark = "*" if p["significant"] else " "
-        lines.append(f" {mark}{key:<34} {p['value']:12.4f} {_fmt(p['stderr'], 4):>10}  {p['unit']}")
+        nd = decimals(p["value"], p["stderr"], p["unit"])
+        se = "-" if p["stderr"] is None or not math.isfinite(p["stderr"]) else fixed(shown_stderr(p["stderr"], nd), nd)
+        lines.append(f" {mark}{key:<34} {fixed(p['value'], nd):>12} {se:>10}  {p['unit']}")
     missing = [k for k, p in result["parameters"].items() if p["value"] is None and "not in the test" not in
                p.get("reason", "") and "not configured" not in p.get("reason", "")]
     for k in missing:
@@ -155,7 +158,7 @@ def summary(result: Mapping[str, Any]) -> str:
     if iso:
         lines += ["", "ISO 230-4:"]
         for k in ("G_ccw_um", "G_cw_um", "G_b_um", "H_um", "F_max_um", "F_min_um"):
-            lines.append(f"  {k:<10} {_fmt(iso.get(k))}")
+            lines.append(f"  {k:<10} {measured(iso.get(k), None, 'um', with_unit=False, ascii=True)}")
     nz = result.get("noise")
     if nz:
         verdict = "significant" if nz.get("vibration_significant") else "not significant"
@@ -164,9 +167,12 @@ def summary(result: Mapping[str, Any]) -> str:
                   f"{_fmt(nz.get('vibration_peak_hz'), 1)} Hz, {verdict}); "
                   f"stick-slip X {_fmt(nz.get('stick_slip_x_um'))} um, Y {_fmt(nz.get('stick_slip_y_um'))} um"]
     lines += ["", "Advice:"]
-    if not result.get("advice"):
+    from .advice import ranked_advice
+
+    advice = ranked_advice(result)
+    if not advice:
         lines.append("  nothing significant to adjust")
-    for a in result.get("advice", []):
+    for a in advice:
         cp = f"  [{a['controller_parameter']}]" if a.get("controller_parameter") else ""
         lines.append(f"  - {a['action']}{cp}")
     return "\n".join(lines)
@@ -315,22 +321,20 @@ def _finite(v: Any) -> float | None:
     return float(v)
 
 
-def uncertainty_decimals(u: float | None, default: int = 2) -> int:
-    """Decimals that show an uncertainty to two significant digits (0..4), so it never rounds to zero."""
-    if u is None or u <= 0:
+def uncertainty_decimals(u: float | None, default: int = 2, unit: str = "") -> int:
+    """The decimal place :func:`~ballbar.analysis.numbers.decimals` shows a value with uncertainty ``u`` at
+    (``default`` without one and without a unit)."""
+    if (u is None or u <= 0) and not unit:
         return default
-    return int(min(max(1 - math.floor(math.log10(u)), 0), 4))
+    return decimals(None, u, unit)
 
 
-def value_text(value: Any, u: Any = None, default_nd: int = 2) -> str:
-    """``3.030 ± 0.012``: the value to its uncertainty's second significant digit; without one, ``default_nd``."""
-    v, s = _finite(value), _finite(u)
-    if v is None:
-        return "–"
-    nd = uncertainty_decimals(s, default_nd)
-    if s is not None and s > 0:
-        return f"{v:.{nd}f} ± {s:.{nd}f}"
-    return f"{v:.{nd}f}"
+def value_text(value: Any, u: Any = None, default_nd: int = 2, unit: str = "", shown: Any = None) -> str:
+    """``3.03 ± 0.01``: the value with its standard error ``u`` by the one rule (:mod:`ballbar.analysis.numbers`),
+    without the unit; ``shown``: the uncertainty the line quotes (k u) at the same place."""
+    if _finite(u) is None and not unit and _finite(value) is not None:
+        return fixed(float(value), default_nd)
+    return measured(value, u, unit, shown=shown, with_unit=False)
 
 
 def pattern_kind(name: str) -> str:
@@ -396,33 +400,49 @@ def _pv(result: Mapping[str, Any], key: str) -> float | None:
     return _finite(p.get("value")) if isinstance(p, Mapping) else None
 
 
+def param_text(result: Mapping[str, Any], key: str, *, magnitude: bool = False, signed: bool = False,
+               value: float | None = None) -> str:
+    """A result parameter's value with its unit by the one rule (its standard error sets the place, not shown):
+    ``3.03 ms``; ``magnitude``: its absolute value; ``value``: another value of the same place (its opposite)."""
+    p = (result.get("parameters") or {}).get(key)
+    p = p if isinstance(p, Mapping) else {}
+    v = _finite(p.get("value")) if value is None else value
+    if v is None:
+        return "–"
+    unit = str(p.get("unit") or key.rsplit("_", 1)[-1])
+    nd = decimals(v, _finite(p.get("stderr")), unit)
+    return f"{fixed(abs(v) if magnitude else v, nd, signed)} {unit_text(unit)}"
+
+
 def finding_words(name: str, result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> str:
     """One machine pattern as a phrase with its value and sign spelt out (``X lags Y by 3.03 ms``)."""
     a1, a2 = axes
     params: Mapping[str, Any] = result.get("parameters") or {}
     if name.startswith("reversal_spikes_"):
         xy = name[-1]
-        spikes = [x for k in params if re.fullmatch(rf"reversal_spike_{xy}_(pos|neg)_(ccw|cw)_um", k)
+        spikes = [(k, x) for k in params if re.fullmatch(rf"reversal_spike_{xy}_(pos|neg)_(ccw|cw)_um", k)
                   and (x := _pv(result, k)) is not None]
         if spikes:
-            return f"reversal spikes of {_axis(xy, axes)} up to {max(spikes, key=abs):+.2f} µm"
+            k, _x = max(spikes, key=lambda kx: abs(kx[1]))
+            return f"reversal spikes of {_axis(xy, axes)} up to {param_text(result, k, signed=True)}"
         return pattern_label(name, axes)
-    v = _pv(result, (list(LIBRARY_FIELDS.get(name, ())) or [""])[0])
+    key = (list(LIBRARY_FIELDS.get(name, ())) or [""])[0]
+    v = _pv(result, key)
     if name == "servo_mismatch" and v is not None:
         slow, fast = (a1, a2) if v > 0 else (a2, a1)
-        return f"{slow} lags {fast} by {abs(v):.2f} ms"
+        return f"{slow} lags {fast} by {param_text(result, key, magnitude=True)}"
     if name == "squareness" and v is not None:
-        return f"{a1} leans toward {'+' if v > 0 else '−'}{a2} by {abs(v):.1f} µrad"
+        return f"{a1} leans toward {'+' if v > 0 else '−'}{a2} by {param_text(result, key, magnitude=True)}"
     if name == "scale_mismatch" and v is not None:
-        return f"{a1} scales {v:+.1f} ppm relative to {a2}"
+        return f"{a1} scales {param_text(result, key, signed=True)} relative to {a2}"
     if name.startswith("backlash_") and v is not None:
-        return f"backlash of {_axis(name[-1], axes)} {v:.2f} µm"
+        return f"backlash of {_axis(name[-1], axes)} {param_text(result, key)}"
     parts: list[str] = []
-    for key in LIBRARY_FIELDS.get(name, ()):
-        p = params.get(key)
+    for k in LIBRARY_FIELDS.get(name, ()):
+        p = params.get(k)
         if isinstance(p, Mapping) and _finite(p.get("value")) is not None:
-            fl = field_label(key, axes)
-            parts.append(f"{fl + ' ' if fl else ''}{float(p['value']):+.2f} {unit_text(p.get('unit'))}")
+            fl = field_label(k, axes)
+            parts.append(f"{fl + ' ' if fl else ''}{param_text(result, k, signed=True)}")
     label = pattern_label(name, axes)
     return f"{label[0].lower() + label[1:]} {', '.join(parts)}" if parts else label.lower()
 
@@ -439,37 +459,41 @@ def setup_words(result: Mapping[str, Any]) -> list[str]:
     out = []
     cx, cy = _pv(result, "centre_x_um"), _pv(result, "centre_y_um")
     if cx is not None or cy is not None:
-        x, y = (round(v or 0.0, 1) + 0.0 for v in (cx, cy))  # + 0.0: no "-0.0"
-        out.append(f"pivot off the programmed centre by ({x:+.1f}, {y:+.1f}) µm")
+        x, y = (param_text(result, k, signed=True, value=v or 0.0).split()[0]
+                for k, v in (("centre_x_um", cx), ("centre_y_um", cy)))
+        out.append(f"pivot off the programmed centre by ({x}, {y}) µm")
     rad = _pv(result, "radius_um")
     if rad is not None and abs(rad) >= 0.05:
-        out.append(f"circle {rad:+.2f} µm from the nominal radius")
+        out.append(f"circle {param_text(result, 'radius_um', signed=True)} from the nominal radius")
     return out
 
 
 def limit_words(entry: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> str:
-    """One limit of a verdict in words: ``Circularity G(b) 53.7 ± 0.7 µm, limit 25 µm: over by 28.7 µm``."""
+    """One limit of a verdict in words: ``Circularity G(b) 53.7 ± 1.4 µm, limit 25.0 µm: over by 28.7 µm``
+    (the value ± its k standard uncertainties, the limit and the margin at the value's place)."""
     name = str(entry.get("name", ""))
-    unit = unit_text(entry.get("unit"))
+    raw_unit = str(entry.get("unit") or "")
+    unit = unit_text(raw_unit)
     label = quantity_label(name, axes)
     lim = _finite(entry.get("limit"))
-    lim_t = f"{lim:g} {unit}" if lim is not None else "–"
     if entry.get("status") == "not_evaluated" or _finite(entry.get("value")) is None:
-        return f"{label}: not evaluated ({entry.get('reason') or 'no value'}), limit {lim_t}"
-    value = value_text(entry.get("value"), entry.get("uncertainty"))
+        why = f"{label}: not evaluated ({entry.get('reason') or 'no value'})"
+        return f"{why}, limit {lim:g} {unit}" if lim is not None else why
+    se = _finite(entry.get("stderr"))
+    if se is None:
+        se = _finite(entry.get("uncertainty"))
+    value = measured(entry.get("value"), se, raw_unit, shown=entry.get("uncertainty"))
     margin = _finite(entry.get("margin"))
+    lim_t, m_t = limit_texts(entry.get("value"), se, lim, margin, raw_unit)
     if margin is None or lim is None:
-        return f"{label} {value} {unit}, limit {lim_t}"
-    nd = uncertainty_decimals(_finite(entry.get("uncertainty")), 2)
-    if margin < 0:
-        how = f"over by {-margin:.{nd}f} {unit}"
-    else:
-        how = f"{margin:.{nd}f} {unit} ({100 * margin / lim:.0f} %) below it"
+        return f"{label} {value}, limit {lim_t} {unit}"
+    how = f"over by {m_t} {unit}" if margin < 0 else f"{m_t} {unit} ({100 * margin / lim:.0f} %) below it"
     if entry.get("within_uncertainty"):
-        how += ", within the uncertainty of the limit"
+        how += ", within uncertainty of the limit"
     elif entry.get("status") == "warning":
-        how += f", above the warning level {_finite(entry.get('warning_level')) or 0:g} {unit}"
-    return f"{label} {value} {unit}, limit {lim_t}: {how}"
+        wl = _finite(entry.get("warning_level")) or 0.0
+        how += f", above the warning level {limit_texts(entry.get('value'), se, wl, None, raw_unit)[0]} {unit}"
+    return f"{label} {value}, limit {lim_t} {unit}: {how}"
 
 
 def verdict_summary(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> dict[str, Any]:
@@ -484,7 +508,7 @@ def verdict_summary(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y"
     iso = result.get("iso230_4") or {}
     g = next(((k, _finite(iso.get(k))) for k in ("G_b_um", "G_ccw_um", "G_cw_um") if _finite(iso.get(k)) is not None),
              None)
-    g_text = f"{ISO_WORDS[g[0]]} {g[1]:.1f} µm" if g is not None else "no circularity figure"
+    g_text = f"{ISO_WORDS[g[0]]} {measured(g[1], None, 'um')}" if g is not None else "no circularity figure"
     if not isinstance(v, Mapping) or not v.get("limits"):
         return {"status": "none", "word": STATUS_WORDS["none"], "headline": f"{g_text}; no acceptance limits set",
                 "limits": [], "counts": {}, "worst": None}
@@ -507,21 +531,28 @@ def verdict_summary(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y"
 
 
 def advice_lines(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) -> list[dict[str, Any]]:
-    """The result's advice for display: machine first, then set-up; the reversal spikes one line per axis.
+    """The result's advice for display, worth giving and in the order to act on it
+    (:func:`ballbar.analysis.advice.ranked_advice`: what fails its limit first, then by share of the machine's
+    error, set-up last; a finding inside its own limit is no advice); the reversal spikes one line per axis,
+    where the axis' first spike ranks.
 
     Each ``{"kind", "text", "controller_parameter"}``; ``text`` with µm and µrad.
     """
+    from .advice import ranked_advice
+
     out: list[dict[str, Any]] = []
-    spikes: dict[str, list[tuple[str, float]]] = {}
+    spikes: dict[str, list[tuple[str, str]]] = {}
     cps: dict[str, str] = {}
-    for a in result.get("advice") or []:
-        if not isinstance(a, Mapping):
-            continue
+    for a in ranked_advice(result):
         m = re.fullmatch(r"reversal_spike_([xy])_(pos|neg)_(ccw|cw)_um", str(a.get("pattern", "")))
         if m:
             v = _finite(a.get("value"))
             if v is not None:
-                spikes.setdefault(m[1], []).append((f"{_REVERSAL_AT[m[1] + '_' + m[2]][2]}° {m[3].upper()}", v))
+                if m[1] not in spikes:
+                    spikes[m[1]] = []
+                    out.append({"kind": "machine", "spikes": m[1]})
+                spikes[m[1]].append((f"{_REVERSAL_AT[m[1] + '_' + m[2]][2]}° {m[3].upper()}",
+                                     param_text(result, str(a["pattern"]), signed=True, value=v)))
                 if a.get("controller_parameter"):
                     cps[m[1]] = str(a["controller_parameter"])
             continue
@@ -529,11 +560,12 @@ def advice_lines(result: Mapping[str, Any], axes: tuple[str, str] = ("X", "Y")) 
         text = re.sub(r"(\d) deg\b", "\\1°", text)
         out.append({"kind": str(a.get("kind") or "machine"), "text": text,
                     "controller_parameter": a.get("controller_parameter")})
-    for xy, items in sorted(spikes.items()):
-        where = ", ".join(f"{w} {v:+.2f} µm" for w, v in items)
-        out.append({"kind": "machine", "text": f"reversal spikes of {_axis(xy, axes)} ({where}): adjust the friction / "
-                    f"quadrant-glitch compensation of {_axis(xy, axes)}", "controller_parameter": cps.get(xy)})
-    out.sort(key=lambda a: a["kind"] == "setup")
+    for item in out:
+        xy = item.pop("spikes", None)
+        if xy is not None:
+            where = ", ".join(f"{w} {v}" for w, v in spikes[xy])
+            item.update(text=f"reversal spikes of {_axis(xy, axes)} ({where}): adjust the friction / quadrant-glitch "
+                        f"compensation of {_axis(xy, axes)}", controller_parameter=cps.get(xy))
     return out
 
 

@@ -47,6 +47,7 @@ from typing import Any, Literal, NotRequired, TypedDict, TypeGuard
 import numpy as np
 
 from .errors import PlanError
+from .numbers import measured
 from .plan import PLANE_AXES
 
 AXES = ("X", "Y", "Z")
@@ -432,7 +433,8 @@ def _consistency(name: str, what: str, used: list[Observation], mean: float, uni
     x = np.array([o["value"] for o in used], dtype=float)
     se = np.array([o["stderr"] for o in used], dtype=float)
     k = opt.coverage_k
-    who = [f"{o['plan']} ({o['plane']}) {o['value']:.4g} +- {o['stderr']:.2g}" for o in used]
+    who = [f"{o['plan']} ({o['plane']}) {measured(o['value'], o['stderr'], unit, with_unit=False, ascii=True)}"
+           for o in used]
     if len(used) == 2:
         d = float(x[0] - x[1])
         s = float(math.hypot(se[0], se[1]))
@@ -453,10 +455,12 @@ def _consistency(name: str, what: str, used: list[Observation], mean: float, uni
     large = abs(value) > min_disc
     failed = beyond and large
     if failed:
-        msg = (f"{what} disagrees between the planes: {'; '.join(who)} {unit} differ by {abs(value):.3g} {unit}, "
+        apart = measured(abs(value), s, unit, shown=0, ascii=True)
+        msg = (f"{what} disagrees between the planes: {'; '.join(who)} {unit} differ by {apart}, "
                f"{abs(z):.1f} standard errors (more than {k:g}) and more than {min_disc:g} {unit}")
     elif beyond:
-        msg = (f"{what} agrees within {min_disc:g} {unit} ({'; '.join(who)} {unit}: {abs(value):.3g} {unit} apart, "
+        apart = measured(abs(value), s, unit, shown=0, ascii=True)
+        msg = (f"{what} agrees within {min_disc:g} {unit} ({'; '.join(who)} {unit}: {apart} apart, "
                f"{abs(z):.1f} standard errors)")
     else:
         msg = (f"{what} agrees between the planes within {k:g} standard errors ({'; '.join(who)} {unit}: "
@@ -684,13 +688,9 @@ def _verdict(members: list[Member], checks: list[Check]) -> SetVerdict:
     parts = [f"{m['plan']} {m['verdict']}" for m in members]
     head = f"{status.upper()}: " + ", ".join(parts)
     tail = []
-    if failed:
-        names = ", ".join(c["name"] for c in failed)
-        tail.append(f"{len(failed)} check{'s' if len(failed) > 1 else ''} failed ({names})")
     if invalid:
         tail.append(f"invalid: {', '.join(m['plan'] for m in invalid)}")
-    n_ok = sum(c["status"] == "passed" for c in checks)
-    tail.append(f"{n_ok} of {len(checks)} checks passed")
+    tail.insert(0, checks_words(checks))
     return SetVerdict(status=status, trusted=trusted, plans=plans,  # type: ignore[typeddict-item]
                       failed_checks=[c["name"] for c in failed], reasons=reasons,
                       summary=head + "; " + "; ".join(tail), rule=VERDICT_RULE)
@@ -799,6 +799,16 @@ def _member(plan: str, r: Mapping[str, Any]) -> Member:
 STATUS_WORDS = {"fail": "FAIL", "warning": "WARNING", "pass": "PASS", "none": "NO LIMITS SET"}
 
 
+def checks_words(checks: Sequence[Mapping[str, Any]]) -> str:
+    """The set's own checks in words apart from the plans' verdicts: they say whether the planes' figures agree,
+    not whether the machine is within its limits (``FAIL ... 5 of 5 checks passed`` read as a contradiction)."""
+    failed = [c for c in checks if c.get("status") == "failed"]
+    if failed:
+        names = ", ".join(str(c.get("name")) for c in failed)
+        return f"{len(failed)} of {len(checks)} consistency checks failed ({names})"
+    return f"the planes' figures agree ({len(checks)} of {len(checks)} consistency checks)"
+
+
 def set_words(s: Mapping[str, Any]) -> dict[str, Any]:
     """The set's verdict in words, for the live view and the report: ``status`` (``pass``, ``warning``,
     ``fail``; ``none`` where no plan has limits and every check passed), ``word``, ``headline`` (one line:
@@ -812,8 +822,7 @@ def set_words(s: Mapping[str, Any]) -> dict[str, Any]:
     failed = [c for c in checks if c.get("status") == "failed"]
     parts = [f"{m.get('plan')} {STATUS_WORDS.get(str(m.get('verdict')), 'no limits').lower()}"
              + ("" if m.get("valid", True) else " (invalid)") for m in members]
-    tail = (f"{len(failed)} check{'s' if len(failed) > 1 else ''} failed" if failed
-            else f"{sum(c.get('status') == 'passed' for c in checks)} of {len(checks)} checks passed")
+    tail = (f"{len(failed)} of {len(checks)} consistency checks failed" if failed else checks_words(checks))
     name = (s.get("set") or {}).get("name", "?")
     return {"status": status, "word": STATUS_WORDS[status],
             "headline": f"set {name}: " + ", ".join(parts) + f"; {tail}",
@@ -825,11 +834,11 @@ def summary_lines(s: Mapping[str, Any]) -> list[str]:
     """The set result in a few readable lines (the log, ``ballbar analyze --set``)."""
     out = [f"Set {s['set']['name']} ({', '.join(s['set']['plans'])}): {s['verdict']['summary']}"]
 
-    def fig(f: Mapping[str, Any], fmt: str = ".3g") -> str:
+    def fig(f: Mapping[str, Any]) -> str:
         if f.get("value") is None:
             return "-"
-        se = f" +- {f['stderr']:.2g}" if f.get("stderr") is not None else ""
-        return f"{f['value']:{fmt}}{se}{'' if f.get('trusted') else ' (untrusted)'}"
+        text = measured(f["value"], f.get("stderr"), str(f.get("unit") or ""), with_unit=False, ascii=True)
+        return f"{text}{'' if f.get('trusted') else ' (untrusted)'}"
 
     out.append("  lost motion um: " + ", ".join(f"{a} {fig(s['lost_motion'][a])}" for a in AXES))
     out.append("  squareness urad: " + ", ".join(f"{p} {fig(s['squareness'][p])}" for p in PAIRS))
@@ -856,6 +865,7 @@ __all__ = [
     "SetDefinition",
     "SetOptions",
     "SetResult",
+    "checks_words",
     "combine",
     "definitions",
     "plan_name",

@@ -407,14 +407,18 @@ def verdict_of(result: Mapping[str, Any], table: dict[str, Any]) -> Verdict:
 
 
 def verdict_lines(verdict: Mapping[str, Any]) -> str:
+    from ballbar.analysis.numbers import limit_texts, measured
+
     lines = [f"Verdict: {verdict['summary']}", f"  (k = {verdict['coverage_k']:g}; {verdict['rule']})"]
     for e in verdict["limits"]:
         if e["status"] == "not_evaluated":
             lines.append(f"  {e['name']:<28} not evaluated: {e.get('reason')}")
             continue
         note = " (within uncertainty of the limit)" if e["within_uncertainty"] else ""
-        lines.append(f"  {e['name']:<28} {e['value']:10.4g} +- {e['uncertainty']:<8.2g} limit {e['limit']:<8g} "
-                     f"margin {e['margin']:+.3g} {e['unit']}: {e['status']}{note}")
+        value = measured(e["value"], e.get("stderr"), e["unit"], shown=e["uncertainty"], ascii=True)
+        lim, margin = limit_texts(e["value"], e.get("stderr"), e["limit"], e["margin"], e["unit"])
+        lines.append(f"  {e['name']:<28} {value:>22} limit {lim:<8} "
+                     f"margin {'-' if e['margin'] < 0 else '+'}{margin} {e['unit']}: {e['status']}{note}")
     return "\n".join(lines)
 
 

@@ -48,7 +48,10 @@ import numpy as np
 
 from ballbar.analysis.engine import TestAnalyzer, TimingHints
 from ballbar.analysis.errors import BallbarError
+from ballbar.analysis.numbers import measured
+from ballbar.analysis.plan import PLANE_AXES
 from ballbar.analysis.polled import Timing, from_events, state_span
+from ballbar.analysis.report import finding_words, pattern_label
 from ballbar.protocol.messages import stamp
 from ballbar.protocol.messages.publish import parameter_map, published, source_event
 
@@ -339,8 +342,8 @@ class LogListener(Listener):
             log.info("%s %s circle%s: %s", msg["test_id"], msg["direction"].upper(), of, top)
             return
         feed = msg["timing"]["measured_feed_mm_min"]
-        log.info("%s test%s: %s; G(b) %.2f um, feed %.1f mm/min", msg["test_id"], of, top,
-                 msg["iso230_4"]["G_b_um"] or math.nan, math.nan if feed is None else feed)
+        log.info("%s test%s: %s; G(b) %s, feed %.1f mm/min", msg["test_id"], of, top,
+                 measured(msg["iso230_4"]["G_b_um"], None, "um"), math.nan if feed is None else feed)
         verdict = msg.get("verdict")
         if verdict is not None and verdict["limits"]:
             log.info("%s verdict: %s", msg["test_id"], verdict["summary"])
@@ -394,6 +397,8 @@ def _per_axis_spikes(patterns: list[str]) -> list[str]:
 
 
 def _finding(msg: CircleResult | TestResult, pattern: str) -> str:
+    """A finding as the live view says it (:func:`ballbar.analysis.report.finding_words`: the plan's axes, the
+    value by the one rounding rule): ``Backlash Z: backlash of Z 4.0 µm`` for a ZX test's first axis."""
     params = parameter_map(msg["parameters"])
     if pattern in ("reversal_spike_x", "reversal_spike_y"):  # the axis's largest spike, by size
         spikes = [p["value"] for k, p in params.items() if _SPIKE.fullmatch(k[: -len("_um")])
@@ -402,9 +407,8 @@ def _finding(msg: CircleResult | TestResult, pattern: str) -> str:
     keys = [k for k in params if k.startswith(pattern + "_") and params[k]["value"] is not None]
     if not keys:
         return pattern
-    k = keys[0]
-    p = params[k]
-    return f"{k} {p['value']:.3g} {'' if k.endswith(p['unit']) else p['unit']}".strip()
+    axes = PLANE_AXES.get(str(msg["plan"].get("plane")), ("X", "Y"))
+    return f"{pattern_label(pattern, axes)}: {finding_words(pattern, {'parameters': params}, axes)}"
 
 
 # What a source's event makes of its state (events not named leave it as it is).

@@ -7,6 +7,7 @@ engine on every test (``ballbar.tools.bench.alert_survey``), with one test a day
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import replace
 from datetime import UTC, datetime, timedelta
@@ -378,7 +379,11 @@ def test_analyze_gives_the_verdict_of_the_plan_files_limits(simulated_csv: Path,
     validate(v, "verdict")
     assert cli_main(["analyze", str(simulated_csv), "--plan", str(cfg)]) == 0
     text = capsys.readouterr().out
-    assert "Verdict: WARNING: backlash_x_um" in text and "G_b_um" in text
+    # the verdict in the view's words and by the one rounding rule (analysis/numbers.py): the quantity and its
+    # axis, the value to its standard error (0.1 um at the finest), the limit and the margin at that place
+    assert re.search(r"Verdict: WARNING: Backlash X 7\.\d ± 0\.\d µm, limit 8\.0 µm: 1\.\d µm \(\d+ %\) below it, "
+                     r"above the warning level 6\.4 µm \(warning\); 1 of 2 limits passed", text), text
+    assert "G_b_um" in text  # the per-field table keeps the field names for scripts
     # without limits: no verdict
     cfg.write_text(f"[plan]\nfeed_mm_min = {plan.feed_mm_min}\novershoot_deg = {plan.overshoot_deg}\n")
     assert cli_main(["analyze", str(simulated_csv), "--plan", str(cfg), "--json"]) == 0
@@ -397,7 +402,9 @@ def test_the_reports_verdict_box_shows_the_limits(simulated_csv: Path, tmp_path:
                      "--sample-hz", f"{plan.sample_hz:g}"]) == 0
     html = out.read_text()
     assert '<span class="badge" id="verdict-status">FAIL</span>' in html and 'data-status="fail"' in html
-    assert "Backlash X" in html and "limit 6 µm: over by" in html and "± 2 standard uncertainties" in html
+    # the limit and the margin at the value's place (0.1 um), the same words as the log's verdict
+    assert re.search(r"Backlash X 7\.\d ± 0\.\d µm, limit 6\.0 µm: over by 1\.\d µm", html)
+    assert "± 2 standard uncertainties" in html
     assert "<code>backlash_x_um</code>" in html  # the field name, in the statistics
 
 
@@ -419,13 +426,37 @@ def test_the_viewers_findings_and_the_subscribers_text_show_the_verdict() -> Non
     r["verdict"] = mon.evaluate(r, settings(parameters={"backlash_x_um": 10.0}, G_b_um=4.0))
     md = findings_markdown(r)
     assert md.startswith("## FAIL · test") and "### Limits: **FAIL**" in md  # G(b) 5.0 - 0.28 > 4
-    assert ("| **WARNING (within uncertainty)** | Backlash X (`backlash_x_um`) | 10.10 ± 0.20 | 10.000 | over by 0.1 |"
-            in md)
+    # value ± k u, limit and margin at the value's place (0.1 um: the 0.1 um standard error's own place)
+    assert ("| **WARNING (within uncertainty)** | Backlash X (`backlash_x_um`) | 10.1 ± 0.2 µm | 10.0 µm | "
+            "over by 0.1 µm |" in md)
     plain = findings_markdown(fake_result(1.0, 0.1))
     assert plain.startswith("## NO LIMITS SET") and "### Limits" not in plain  # no limits, no verdict
     line = text_line({"kind": "alert", "t_wall": "T", "state": "fail", "cleared": False, "message": "m: x"})
     assert line == "T ALERT FAIL     m: x"
     assert text_line(r).startswith("2026-01-01T00:00:00Z TEST  m-2026-01-01T00:00:00Z: FAIL: ")
+
+
+def test_a_forecast_alert_reads_as_the_view_does() -> None:
+    """The forecast's line: the quantity with the plan's axes, the slope to its uncertainty in its unit per day,
+    the limit at the slope's place; not ``backlash_x_um trend +1.77e+03/day crosses 8``."""
+    t0 = datetime(2026, 1, 1, tzinfo=UTC)
+    lim = settings(parameters={"backlash_x_um": 8.0}, min_tests=3).limits[0]
+    pts = [(t0 + timedelta(days=d), 3.0 + 0.5 * d + 0.01 * (d % 2), 0.05, f"m-{d}") for d in range(6)]
+    f = mon.forecast(pts, lim, "backlash_x_um", settings(parameters={"backlash_x_um": 8.0}, min_tests=3))
+    assert f["significant"] and f["crossing"]
+    alert = {"alert": "forecast", "machine_id": "m", "state": "due", "limit": "backlash_x_um", "forecast": f,
+             "conditions": {"plan": "zx", "plane": "ZX"}, "test_id": "m-5"}
+    text = mon.alert_text(alert)
+    # a rate takes its quantity's resolution (0.1 um/day): the slope's 0.01 um/day standard error is shown as that step
+    assert re.fullmatch(r"m plan zx: Backlash Z trend \+0\.5 ± 0\.1 µm/day crosses its limit 8\.0 µm on "
+                        r"2026-01-1[01]T\S+ \(95 %: \S+ \.\. \S+\), from 6 tests to m-5", text), text
+    # the view's trend sentence (analysis/report.py forecast_sentence): the same slope, the same limit
+    from ballbar.analysis.report import forecast_sentence
+
+    walls = [p[0].timestamp() for p in pts]
+    words = forecast_sentence("backlash_x_um", walls, [p[1] for p in pts], 8.0, ("Z", "X"), "um")
+    assert re.fullmatch(r"Backlash Z: trend \+0\.5 ± 0\.1 µm/day over 6 tests, reaches its limit 8\.0 µm about "
+                        r"2026-01-1[01] \(95 %: \S+ \.\. \S+\)", words), words
 
 
 # ----------------------------------------------------------------------------- per plan
@@ -454,6 +485,10 @@ def test_each_plan_has_its_limits_trend_and_alert_states(tmp_path: Path) -> None
         sent.extend(m.on_test(r))
     assert [(a["conditions"]["plan"], a["state"]) for a in sent] == [("zx", "fail")]  # once, though xy passed between
     assert "m plan zx: first verdict: fail" in sent[0]["message"]
+    # the alert in the view's words: a ZX test's first axis is Z, the figures by the one rounding rule (a 0.01 um
+    # standard error shown as the 0.1 um step)
+    assert sent[0]["message"].endswith(": FAIL: Backlash Z 3.0 ± 0.1 µm, limit 2.0 µm: over by 1.0 µm (fail); "
+                                       "0 of 1 limits passed"), sent[0]["message"]
     (f,) = m.forecasts(result("xy", 0.0, 9))
     assert f["n"] == 3 and all("-xy-" in tid for tid in f["test_ids"])  # xy's trend: xy's tests alone
     state = json.loads((tmp_path / "m-state.json").read_text())

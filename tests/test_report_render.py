@@ -165,7 +165,8 @@ def test_content_in_reading_order(data: ReportData, tmp_path: Path) -> None:
     absent = text[text.index('<tr class="absent">'):]
     assert "no X screw pitch configured" in absent and "cyclic_x_um" in absent
     # ISO figures with their conditions; advice; diagnostics
-    assert f'<td id="iso-G_ccw_um">{res["iso230_4"]["G_ccw_um"]:.2f}</td>' in text
+    # at the place the verdict shows them (their uncertainty sqrt(2) x the residual RMS; 0.1 um at the finest)
+    assert f'<td id="iso-G_ccw_um">{res["iso230_4"]["G_ccw_um"]:.1f}</td>' in text
     assert "ISO 230-4:2022" in text
     for a in res["advice"]:
         if not a["pattern"].startswith("reversal_spike_"):
@@ -451,7 +452,7 @@ def test_report_in_headless_chromium(
         assert facts["trendTable"] is not None and facts["trendTable"][0] <= facts["trendTable"][1]
         assert facts["firstPattern"] == res["ranking"][0]["pattern"] == "servo_mismatch"
         assert facts["firstText"].strip() == "Servo mismatch"
-        assert facts["gb"] == f"{res['iso230_4']['G_b_um']:.2f}"
+        assert facts["gb"] == f"{res['iso230_4']['G_b_um']:.1f}"  # 0.1 um: analysis/numbers.py
         assert facts["scripts"] == 0
         assert facts["resources"] == []
         assert requests == [html_path.as_uri()], requests  # nothing but the document itself
@@ -480,7 +481,9 @@ def test_the_words_both_views_use() -> None:
     from ballbar.analysis.report import limit_words, machine_ranking, quantity_label, share_text, value_text
 
     assert value_text(3.0301, 0.0014) == "3.0301 ± 0.0014"  # the report printed "3.030 ± 0.00"
-    assert value_text(53.7, 0.71) == "53.70 ± 0.71" and value_text(2.0, None) == "2.00"
+    assert value_text(53.7, 0.71) == "53.7 ± 0.7" and value_text(2.0, None) == "2.00"
+    # with its unit, never finer than the unit's resolution (analysis/numbers.py; tests/test_numbers.py)
+    assert value_text(3.0301, 0.0014, unit="ms") == "3.03 ± 0.01" and value_text(-0.01, 0.3, unit="um") == "0.0 ± 0.3"
     assert share_text(-0.001) == "< 0.1 %" and share_text(78.48) == "78 %" and share_text(2.04) == "2.0 %"
     ranking = [{"pattern": "centre", "share_pct": 55.6, "significant": True},
                {"pattern": "servo_mismatch", "share_pct": 41.6, "significant": True},
@@ -496,4 +499,7 @@ def test_the_words_both_views_use() -> None:
     assert quantity_label("backlash_y_um", ("Z", "X")) == "Backlash X"
     entry = {"name": "servo_mismatch_ms", "unit": "ms", "value": 3.0301, "uncertainty": 0.0028, "limit": 2.0,
              "margin": -1.0301, "status": "fail", "warning_level": 1.6}
-    assert limit_words(entry) == "Servo mismatch 3.0301 ± 0.0028 ms, limit 2 ms: over by 1.0301 ms"
+    assert limit_words(entry) == "Servo mismatch 3.03 ± 0.01 ms, limit 2.00 ms: over by 1.03 ms"
+    # the place from the standard error, the k u shown at it: the same value reads the same as in the detail table
+    entry["stderr"], entry["uncertainty"] = 0.06, 0.12
+    assert limit_words(entry) == "Servo mismatch 3.03 ± 0.12 ms, limit 2.00 ms: over by 1.03 ms"

@@ -26,6 +26,7 @@ from browser import Chromium
 from test_report_render import _chromium_or_skip
 from test_screens import CSS_RGB, _check_png, _keep, _pixels
 
+from ballbar.analysis.numbers import measured
 from ballbar.analysis.sets import STATUS_WORDS
 from ballbar.daemon.cli import main
 from ballbar.daemon.mcap import list_recordings, read_log
@@ -103,7 +104,10 @@ def test_the_report_holds_the_set_and_each_plan(report: Path, records: Path) -> 
     for p, plane in (("xy", "XY"), ("zx", "ZX"), ("yz", "YZ")):
         assert f"<b>{p}</b> ({plane} plane)" in head and f"Plan {p} ({plane}): Verdict" in html
     z = live["lost_motion"]["Z"]
-    assert f'<tr id="axis-Z"><td>Z</td><td class="num">{z["value"]:+.2f} ± {z["stderr"]:.2g}</td>' in html
+    # by the one rounding rule (analysis/numbers.py): the error to its place, never finer than 0.1 um
+    zt = measured(z["value"], z["stderr"], "um", signed=True, with_unit=False)
+    assert re.fullmatch(r"\+\d+\.\d ± \d\.\d", zt), zt
+    assert f'<tr id="axis-Z"><td>Z</td><td class="num">{zt}</td>' in html
     # what to do: the failing plan first, with its advice
     todo = html[html.index('id="verdict-todo"'):html.index("</ul>", html.index('id="verdict-todo"'))]
     assert todo.index("<b>zx</b> (fail)") < todo.index("<b>yz</b> (warning)") and "<b>xy</b>" not in todo

@@ -127,7 +127,8 @@ def test_the_sets_words() -> None:
     s: dict[str, Any] = setscene.set_message({r["plan"]["name"]: r for r in setscene.earlier(
         {n: setscene.build().results[n] for n in setscene.PLANS})[-4:-1]})
     status, text = set_headline(s)
-    assert status == "fail" and text.startswith("FAIL · set machine: xy pass, zx fail, yz warning; 5 of 5 checks")
+    assert status == "fail" and text == ("FAIL · set machine: xy pass, zx fail, yz warning; the planes' "
+                                                "figures agree (5 of 5 consistency checks)")
     md = set_markdown(s)
     assert "| X |" in md and "Squareness µrad: XY" in md and "geometric sphericity" in md
     # no plan with limits, every check passed: no limits set, grey, as a test's

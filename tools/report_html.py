@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import datetime as dt
 import html
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from ballbar.analysis.numbers import measured
 from ballbar.analysis.report import (
     LIBRARY_FIELDS,
     advice_lines,
@@ -362,7 +364,8 @@ def findings(result: Mapping[str, Any]) -> str:
             if name.startswith("reversal_spikes_"):
                 fl = pattern_label(k[:-3], axes).split(" ", 2)[-1]
             vals.append((f'<span class="note">{e(fl)}</span> ' if fl else "")
-                        + e(value_text(p.get("value"), p.get("stderr"))) + " " + e(unit_text(p.get("unit"))))
+                        + e(value_text(p.get("value"), p.get("stderr"), unit=str(p.get("unit") or "")))
+                        + " " + e(unit_text(p.get("unit"))))
         share = num(r.get("machine_share_pct")) or 0.0
         rows.append(
             f'<tr class="sig" data-pattern="{e(name)}"><td class="rank">{i}</td>'
@@ -381,7 +384,7 @@ def findings(result: Mapping[str, Any]) -> str:
         if isinstance(r, Mapping) and pattern_kind(str(r.get("pattern"))) == "setup":
             name = str(r.get("pattern"))
             vals = [f"{field_label(k, axes) + ' ' if field_label(k, axes) else ''}"
-                    f"{value_text(params[k].get('value'), params[k].get('stderr'))} µm"
+                    f"{value_text(params[k].get('value'), params[k].get('stderr'), unit='um')} µm"
                     for k in LIBRARY_FIELDS.get(name, ()) if k in params and num(params[k].get("value")) is not None]
             setup_rows.append(f"<li>{e(pattern_label(name, axes))}: {e(', '.join(vals) or MISSING)}</li>")
     setup_html = (f'<h3>Set-up (removed before the machine\'s figures; not a machine error)</h3>'
@@ -401,6 +404,10 @@ def findings(result: Mapping[str, Any]) -> str:
     )
 
 
+def _unit(p: Mapping[str, Any]) -> str:
+    return str(p.get("unit") or "")
+
+
 def statistics(result: Mapping[str, Any]) -> str:
     """Every ranked pattern with its field names, share of all the explained error, F and p; then the parameters
     that were not fitted, with the reason."""
@@ -415,7 +422,8 @@ def statistics(result: Mapping[str, Any]) -> str:
         why = r.get("significance_reason")
         sig = bool(r.get("significant"))
         verdict_text = "yes" if sig else ("no" if not why else significance_words(str(why)))
-        vals = "<br>".join(f"<code>{e(k)}</code> {e(value_text(params[k].get('value'), params[k].get('stderr')))}"
+        vals = "<br>".join(f"<code>{e(k)}</code> "
+                           f"{e(value_text(params[k].get('value'), params[k].get('stderr'), unit=_unit(params[k])))}"
                            for k in keys)
         rows.append(
             f'<tr class="{"sig" if sig else "nsig"}" data-stat="{e(name)}"><td class="rank">{i}</td>'
@@ -443,8 +451,11 @@ def iso(result: Mapping[str, Any]) -> str:
     cols = [("G_ccw_um", "G CCW"), ("G_cw_um", "G CW"), ("G_b_um", "G(b)"), ("H_um", "H"),
             ("F_max_um", "F max"), ("F_min_um", "F min")]
     head = "".join(f"<th>{e(n)} (µm)</th>" for _, n in cols)
+    rms = num(result.get("residual_rms_um"))
+    u = math.sqrt(2.0) * rms if rms is not None else None  # the verdict's uncertainty of G and H (monitor.py)
     cells = "".join(
-        f'<td id="iso-{k}"{" class=gb" if k == "G_b_um" else ""}>{e(fmt(iso.get(k), 2))}</td>' for k, _ in cols
+        f'<td id="iso-{k}"{" class=gb" if k == "G_b_um" else ""}>'
+        f'{e(measured(iso.get(k), u, "um", shown=0, with_unit=False))}</td>' for k, _ in cols
     )
     cond = iso.get("conditions") or {}
     a1, a2 = plane_axes(cond or (result.get("plan") or {}))
@@ -560,7 +571,7 @@ def diagnostics(result: Mapping[str, Any]) -> str:
     take = tm.get("backlash_takeup_deg") or {}
     axes = plane_axes(result.get("plan") or {})
     lag_se, lag_s = num(tm.get("lag_stderr_s")), num(tm.get("lag_s"))
-    lag = (f"{value_text(lag_s * 1000, lag_se * 1000 if lag_se is not None else None)} ms "
+    lag = (f"{value_text(lag_s * 1000, lag_se * 1000 if lag_se is not None else None, unit='ms')} ms "
            f"({fmt(tm.get('lag_deg'), 3)}°)") if lag_s is not None else "not measured"
     timing = [
         ("Measured feed", f"{fmt(tm.get('measured_feed_mm_min'), 2)} mm/min (ratio {fmt(tm.get('feed_ratio'), 5)})"),
@@ -619,8 +630,8 @@ def trend(data: ReportData, qs: Sequence[Any], svg: str | None, caption: str, fo
         cur = i == len(tests) - 1
         cells = []
         for q in qs:
-            v, _s, sig = trend_value(r, q)
-            text = MISSING if v is None else value_text(v, None, 2 if q.key == "G" else 3)
+            v, s, sig = trend_value(r, q)
+            text = MISSING if v is None else value_text(v, s, unit=q.unit, shown=0)
             cells.append(f'<td class="num">{"<b>" + e(text) + "</b>" if sig and q.key != "G" else e(text)}</td>')
         tid = str(r.get("test_id") or f"test {r.get('test_index', i + 1)}")
         rows.append(

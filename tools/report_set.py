@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ballbar.analysis.numbers import measured
 from ballbar.analysis.sets import AXES, PAIRS, set_words
 
 from . import report_html as H
@@ -63,10 +64,14 @@ FIGURE_NAMES = {"G_b_um": "G(b)", "G_um": "G", "G_ccw_um": "G CCW", "G_cw_um": "
 
 
 def _fig(f: Mapping[str, Any] | None, nd: int = 2, signed: bool = True) -> str:
+    """A set figure with its standard uncertainty by the one rule (:mod:`ballbar.analysis.numbers`); ``nd``:
+    the decimals of a figure without a unit."""
     if not isinstance(f, Mapping) or H.num(f.get("value")) is None:
         return H.MISSING
-    se = H.num(f.get("stderr"))
-    return f"{H.fmt(f['value'], nd, signed=signed)}" + (f" ± {se:.2g}" if se is not None else "")
+    unit = str(f.get("unit") or "")
+    if not unit and H.num(f.get("stderr")) is None:
+        return H.fmt(f["value"], nd, signed=signed)
+    return measured(f["value"], f.get("stderr"), unit, signed=signed, with_unit=False)
 
 
 def _trust(f: Mapping[str, Any] | None) -> str:
@@ -138,7 +143,8 @@ def set_verdict(s: Mapping[str, Any], results: Mapping[str, Mapping[str, Any]] |
 def _observations(f: Mapping[str, Any]) -> str:
     obs = f.get("observations") or []
     return "; ".join(
-        f"{o.get('plan')} ({o.get('plane')}) {_fig(o)}" + ("" if o.get("used") else f" (left out: {o.get('reason')})")
+        f"{o.get('plan')} ({o.get('plane')}) {_fig({'unit': f.get('unit'), **o})}"
+        + ("" if o.get("used") else f" (left out: {o.get('reason')})")
         for o in obs) or H.MISSING
 
 

@@ -12,6 +12,7 @@ import datetime
 from collections.abc import Mapping
 from typing import Any
 
+from ballbar.analysis.numbers import limit_texts, measured
 from ballbar.analysis.plan import PLANE_AXES
 from ballbar.analysis.report import (
     advice_lines,
@@ -72,13 +73,14 @@ def headline(result: Mapping[str, Any]) -> tuple[str, str]:
     head = f"{vs['word']} · test {result.get('test_index', '?')}"
     worst = vs.get("worst")
     if isinstance(worst, Mapping) and num(worst.get("value")) is not None:
-        unit = unit_text(worst.get("unit"))
-        lim = num(worst.get("limit"))
+        raw = str(worst.get("unit") or "")
+        se = num(worst.get("stderr"))
+        lim_t, _m = limit_texts(worst.get("value"), se, worst.get("limit"), None, raw)
         return vs["status"], (f"{head} · {quantity_label(str(worst.get('name')), axes)} "
-                              f"{float(worst['value']):.3g} {unit}, limit {lim:g} {unit}")
+                              f"{measured(worst['value'], se, raw, shown=0)}, limit {lim_t} {unit_text(raw)}")
     iso = result.get("iso230_4") or {}
     g = num(iso.get("G_b_um"))
-    return vs["status"], f"{head} · G(b) {g:.3g} µm" if g is not None else head
+    return vs["status"], f"{head} · G(b) {measured(g, None, 'um')}" if g is not None else head
 
 
 def findings_markdown(result: Mapping[str, Any], wall: float | None = None) -> str:
@@ -116,8 +118,8 @@ def findings_markdown(result: Mapping[str, Any], wall: float | None = None) -> s
             "", "### ISO 230-4 (µm)", "",
             "| G CCW | G CW | G(b) | H | F max | F min |",
             "|---:|---:|---:|---:|---:|---:|",
-            "| " + " | ".join(_fmt(iso.get(k), 2) for k in ("G_ccw_um", "G_cw_um", "G_b_um", "H_um", "F_max_um",
-                                                           "F_min_um")) + " |",
+            "| " + " | ".join(measured(iso.get(k), None, "um", with_unit=False)
+                             for k in ("G_ccw_um", "G_cw_um", "G_b_um", "H_um", "F_max_um", "F_min_um")) + " |",
         ]
     nz = result.get("noise")
     if nz:
@@ -145,7 +147,8 @@ def _statistics(result: Mapping[str, Any], axes: tuple[str, str]) -> list[str]:
     for i, r in enumerate(machine_ranking(result)[:12], 1):
         name = str(r["pattern"])
         fields = [k for m in r["members"] for k in params if k.startswith(m + "_") and not k.endswith("_phase_deg")]
-        val = "; ".join(value_text(params[k].get("value"), params[k].get("stderr"))
+        val = "; ".join(value_text(params[k].get("value"), params[k].get("stderr"),
+                                   unit=str(params[k].get("unit") or ""))
                         for k in fields[:2] if num(params[k].get("value")) is not None) or "–"
         why = r.get("significance_reason")
         counted = "**yes**" if r.get("significant") else (significance_words(str(why)).split(":")[0] if why else "no")
@@ -167,9 +170,14 @@ def verdict_markdown(verdict: Any, axes: tuple[str, str] = ("X", "Y")) -> list[s
         if e.get("within_uncertainty"):
             st += " (within uncertainty)"
         margin = num(e.get("margin"))
-        m_text = "–" if margin is None else (f"over by {-margin:.3g}" if margin < 0 else f"{margin:.3g} below")
+        raw = str(e.get("unit") or "")
+        se = num(e.get("stderr"))
+        lim_t, m_t = limit_texts(e.get("value"), se, e.get("limit"), margin, raw)
+        u = unit_text(raw)
+        m_text = "–" if margin is None else (f"over by {m_t} {u}" if margin < 0 else f"{m_t} {u} below")
         lines.append(f"| **{st}** | {quantity_label(str(e.get('name')), axes)} (`{e.get('name')}`) | "
-                     f"{value_text(e.get('value'), e.get('uncertainty'))} | {_fmt(e.get('limit'), 3)} | {m_text} |")
+                     f"{measured(e.get('value'), se, raw, shown=e.get('uncertainty'))} | {lim_t} {u} | "
+                     f"{m_text} |")
     lines += ["", f"fail only beyond the uncertainty (k = {k:g} standard uncertainties)"]
     return lines
 
@@ -184,11 +192,10 @@ def set_headline(s: Mapping[str, Any]) -> tuple[str, str]:
     return w["status"], f"{w['word']} · {w['headline']}"
 
 
-def _fig(f: Mapping[str, Any] | None, nd: int = 2) -> str:
+def _fig(f: Mapping[str, Any] | None) -> str:
     if not isinstance(f, Mapping) or num(f.get("value")) is None:
         return "–"
-    se = num(f.get("stderr"))
-    return f"{float(f['value']):.{nd}f}" + (f" ± {se:.2g}" if se is not None else "") + (
+    return measured(f["value"], f.get("stderr"), str(f.get("unit") or ""), with_unit=False) + (
         "" if f.get("trusted", True) else " (untrusted)")
 
 
@@ -201,9 +208,9 @@ def set_markdown(s: Mapping[str, Any]) -> str:
     lm, sq = s.get("lost_motion") or {}, s.get("squareness") or {}
     lines += ["", "| axis | lost motion µm | relative scale ppm | lag vs mean ms |", "|---|---:|---:|---:|"]
     for a in AXES:
-        lines.append(f"| {a} | {_fig(lm.get(a))} | {_fig((s.get('scale') or {}).get('axes', {}).get(a), 1)} | "
-                     f"{_fig((s.get('servo') or {}).get('axes', {}).get(a), 3)} |")
-    lines += ["", "Squareness µrad: " + ", ".join(f"{p} {_fig(sq.get(p), 1)}" for p in PAIRS)]
+        lines.append(f"| {a} | {_fig(lm.get(a))} | {_fig((s.get('scale') or {}).get('axes', {}).get(a))} | "
+                     f"{_fig((s.get('servo') or {}).get('axes', {}).get(a))} |")
+    lines += ["", "Squareness µrad: " + ", ".join(f"{p} {_fig(sq.get(p))}" for p in PAIRS)]
     vol = s.get("volumetric") or {}
     lcd, sph = vol.get("largest_circular_deviation") or {}, vol.get("geometric_sphericity") or {}
     lines += ["", f"Largest circular deviation {_fig(lcd)} µm ({lcd.get('plan') or '–'}); geometric sphericity "
