@@ -68,7 +68,7 @@ def test_a_falling_value_is_never_said_to_reach_a_positive_limit() -> None:
     assert "reaches its limit" not in text and "heading away" in text
     # a negative backlash growing more negative does head for -8
     g = mon.forecast(pts([-4.0 - 0.2 * i for i in range(20)]), s.limits[0], "backlash_x_um", s)
-    assert g["due"] and g["bound"] == -8.0 and "reaches its limit -8 um" in mon.forecast_words(g, "Backlash X", "um")
+    assert g["due"] and g["bound"] == -8.0 and "reaches its limit -8.0 um" in mon.forecast_words(g, "Backlash X", "um")
 
 
 def test_what_already_fails_gets_no_forecast_and_no_date_is_in_the_past() -> None:
