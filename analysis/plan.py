@@ -127,14 +127,7 @@ class MachineConfig:
     controller: Literal["generic", "fanuc", "siemens", "heidenhain"] = "generic"
 
     def __post_init__(self) -> None:
-        for name in ("pitch_x_mm", "pitch_y_mm", "kv_x_per_s", "kv_y_per_s"):
-            v = getattr(self, name)
-            if v is not None and not _pos(v):
-                raise PlanError(f"{name} must be > 0, not {v!r}")
-        if self.controller not in ("generic", "fanuc", "siemens", "heidenhain"):
-            raise PlanError(
-                f"controller must be generic, fanuc, siemens or heidenhain, not {self.controller!r}"
-            )
+        _check_machine(self, ("pitch_x_mm", "pitch_y_mm", "kv_x_per_s", "kv_y_per_s"))
 
     def to_dict(self) -> Machine:
         return cast("Machine", asdict(self))
@@ -142,6 +135,16 @@ class MachineConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MachineConfig:
         return _from_dict(cls, data, "machine")
+
+
+def _check_machine(m: Any, names: tuple[str, ...]) -> None:
+    """A machine section's settings ``names`` positive where given, its controller one of those named."""
+    for name in names:
+        v = getattr(m, name)
+        if v is not None and not _pos(v):
+            raise PlanError(f"{name} must be > 0, not {v!r}")
+    if m.controller not in ("generic", "fanuc", "siemens", "heidenhain"):
+        raise PlanError(f"controller must be generic, fanuc, siemens or heidenhain, not {m.controller!r}")
 
 
 MACHINE_AXES = ("X", "Y", "Z")
@@ -180,14 +183,7 @@ class MachineAxes:
     controller: Literal["generic", "fanuc", "siemens", "heidenhain"] = "generic"
 
     def __post_init__(self) -> None:
-        for name in self.axis_keys():
-            v = getattr(self, name)
-            if v is not None and not _pos(v):
-                raise PlanError(f"{name} must be > 0, not {v!r}")
-        if self.controller not in ("generic", "fanuc", "siemens", "heidenhain"):
-            raise PlanError(
-                f"controller must be generic, fanuc, siemens or heidenhain, not {self.controller!r}"
-            )
+        _check_machine(self, self.axis_keys())
 
     @staticmethod
     def axis_keys(axes: tuple[str, ...] = MACHINE_AXES) -> tuple[str, ...]:
