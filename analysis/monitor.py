@@ -655,6 +655,40 @@ def forecast_words(f: Mapping[str, Any], label: str, unit: str = "") -> str:
     return f"{label}: {slope}: no forecast, {f.get('reason', 'not due')}"
 
 
+def trend_line(x: Sequence[float], y: Sequence[float], ahead: float) -> tuple[list[float], list[float], bool] | None:
+    """The Theil-Sen line through a trend's points (:func:`theil_sen`), from the first point to ``ahead``
+    past the last: ``([x0, x_last, x_end], [y0, y_last, y_end], significant)``; None with fewer than 3 points."""
+    if len(x) < 3:
+        return None
+    tr = theil_sen(x, y)
+    xs = [float(x[0]), float(x[-1]), float(x[-1]) + ahead]
+    return xs, [tr.at(v) for v in xs], tr.significant
+
+
+def forecast_sentence(name: str, wall_s: Sequence[float] | np.ndarray, values: Sequence[float] | np.ndarray,
+                      limit: float, axes: tuple[str, str] = ("X", "Y"), unit: str = "",
+                      confidence: float = 0.95, stderrs: Sequence[float] | np.ndarray | None = None,
+                      watched: int = 1, coverage_k: float = 2.0) -> str:
+    """The monitor's forecast of ``name`` (values at wall-clock seconds, their standard uncertainties) against
+    ``|limit|``, in words (:func:`forecast` and :func:`forecast_words`: a date only where the monitor would
+    forecast one);
+    ``watched``: the quantities watched together; empty with fewer than 3 tests."""
+    from .report import quantity_label, unit_text
+
+    t = np.asarray(wall_s, dtype=float)
+    y = np.asarray(values, dtype=float)
+    if t.size < 3:
+        return ""
+    u = np.zeros(t.size) if stderrs is None else np.nan_to_num(np.asarray(stderrs, dtype=float))
+    lim = Limit(name, abs(float(limit)), 1.0, (name,), "parameters")
+    settings = MonitorSettings(limits=(lim,), coverage_k=coverage_k, trend_tests=max(t.size, 3),
+                               confidence=confidence)
+    pts = [(datetime.fromtimestamp(float(w), UTC), float(v), float(e), str(i))
+           for i, (w, v, e) in enumerate(zip(t, y, u, strict=True))]
+    f = forecast(pts, lim, name, settings, watched=watched)
+    return forecast_words(f, quantity_label(name, axes), unit_text(unit or name.rsplit("_", 1)[-1]))
+
+
 # --------------------------------------------------------------------------- alerts
 
 
@@ -794,6 +828,7 @@ __all__ = [
     "crossing_days",
     "evaluate",
     "forecast",
+    "forecast_sentence",
     "forecast_words",
     "history_entry",
     "plan_of",
@@ -802,5 +837,6 @@ __all__ = [
     "slope_confidence",
     "slope_stderr",
     "theil_sen",
+    "trend_line",
     "validity",
 ]

@@ -450,8 +450,8 @@ def test_a_forecast_alert_reads_as_the_view_does() -> None:
     # a rate takes its quantity's resolution (0.1 um/day): the slope's 0.01 um/day standard error is shown as that step
     assert re.fullmatch(r"m plan zx: Backlash Z trend \+0\.5 ± 0\.1 µm/day crosses its limit 8\.0 µm on "
                         r"2026-01-1[01]T\S+ \(95 %: \S+ \.\. \S+\), from 6 tests to m-5", text), text
-    # the view's trend sentence (analysis/report.py forecast_sentence): the same slope, the same limit
-    from ballbar.analysis.report import forecast_sentence
+    # the view's trend sentence (analysis/monitor.py forecast_sentence): the same slope, the same limit
+    from ballbar.analysis.monitor import forecast_sentence
 
     walls = [p[0].timestamp() for p in pts]
     words = forecast_sentence("backlash_x_um", walls, [p[1] for p in pts], 8.0, ("Z", "X"), "um")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from ballbar.analysis import monitor as mon
-from ballbar.analysis.report import forecast_sentence
+from ballbar.analysis.monitor import forecast_sentence
 from ballbar.daemon.monitor import Monitor
 from ballbar.tools.bench import forecast_survey
 from ballbar.tools.report_render import forecast_words

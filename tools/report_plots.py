@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ballbar.analysis.monitor import trend_line
 from ballbar.analysis.patterns import LIBRARY
 from ballbar.analysis.plan import PLANE_AXES
 from ballbar.analysis.report import (
@@ -43,7 +44,6 @@ from ballbar.analysis.report import (
     pattern_label,
     polar_division_um,
     quantity_label,
-    trend_line,
     trend_range,
     unit_text,
 )

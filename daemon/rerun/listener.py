@@ -860,7 +860,7 @@ class RerunViewer(Scene, Listener):
     def _forecast_markdown(self, rows: FloatArray | None = None) -> str:
         """When each limited trend crosses its limit, in words (the monitor's forecast over the kept tests of the
         test's plan)."""
-        from ballbar.analysis.report import forecast_sentence
+        from ballbar.analysis.monitor import forecast_sentence
 
         rows = self._trends.rows() if rows is None else rows
         lines = []
