@@ -45,11 +45,19 @@ def test_snapshot_takes_thread_names_with_spaces_and_parentheses() -> None:
     th.start()
     try:
         assert named.wait(10)
-        snap = du.snapshot(os.getpid())
+        # once it blocks in its wait it has switched voluntarily (until then, on a loaded machine, it may only have
+        # been preempted)
+        deadline = time.monotonic() + 10.0
+        while True:
+            snap = du.snapshot(os.getpid())
+            assert snap is not None
+            if snap.tasks[tid[0]].voluntary >= 1 or time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
     finally:
         stop.set()
         th.join()
-    assert snap is not None and snap.comm and snap.rss_kib > 0
+    assert snap.comm and snap.rss_kib > 0
     task = snap.tasks[tid[0]]
     assert task.comm == "a (weird) name" and task.voluntary >= 1 and task.ticks >= 0
     assert du.rss_mib(os.getpid()) == pytest.approx(snap.rss_kib / 1024.0, rel=0.5)

@@ -231,8 +231,8 @@ class SimDevice:
     def emit(self, obj: dict[str, Any]) -> None:
         try:
             os.write(self.out, (json.dumps(obj) + "\n").encode())
-        except BlockingIOError:
-            # Nobody reads our stdout (a pipe left full): lose the line, never stall the device.
+        except (BlockingIOError, BrokenPipeError):
+            # Nobody reads our stdout (a pipe left full, or its reader gone): lose the line, never stall the device.
             self.stats.lines_dropped += 1
 
     # -- commands -----------------------------------------------------------------

@@ -404,7 +404,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     out = sys.stdout.fileno()
     dev = SimDevice(feed, port, settings, out)
-    os.write(out, (port.path + "\n").encode())
+    try:
+        os.write(out, (port.path + "\n").encode())
+    except BrokenPipeError:  # whoever started it is gone before reading where its port is (a daemon killed -9)
+        return 0
     dev.emit({"event": "ready", "path": port.path, "url": source_url(port.path, settings)})
     if stat.S_ISFIFO(os.fstat(out).st_mode):
         # A pipe that its reader stops reading must not stall the device (a terminal is
