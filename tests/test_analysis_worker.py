@@ -107,20 +107,23 @@ def test_the_listener_sends_the_workers_result_when_woken_with_the_test_end_s_la
 
 def test_a_worker_killed_mid_fit_costs_its_test_and_the_next_is_fitted_by_another(worker: AnalysisWorker) -> None:
     t, L, _ = stream(*TESTS)
-    an = TestAnalyzer(PLAN, executor=worker)
-    assert worker.pid is None or worker.pid > 0
-    out: list[dict[str, Any]] = []
-    i = 0
-    while not an.pending:
-        out += an.feed(t[i : i + 250], L[i : i + 250])
-        i += 250
     deadline = time.monotonic() + 30
-    while worker.pid is None and time.monotonic() < deadline:
+    while worker.pid is None and time.monotonic() < deadline:  # its warm-up job back
         time.sleep(0.01)
     first = worker.pid
-    assert first is not None
-    os.kill(first, signal.SIGKILL)
-    out += _feed_all(an, t, L, start=i)
+    assert first is not None and first > 0
+    killed: list[int] = []
+
+    def kill_the_first(fut: Any) -> None:
+        # the moment the first test's fit is handed to the worker: killed with it (the test's feed-out and the
+        # next feed-in may come in one feed, whose call then waits for the fit: no moment between two feeds)
+        if not killed:
+            killed.append(first)
+            os.kill(first, signal.SIGKILL)
+
+    an = TestAnalyzer(PLAN, executor=worker, on_submit=kill_the_first)
+    out = _feed_all(an, t, L)
+    assert killed == [first]
     rejected = [m for m in out if m.get("event") == "test_rejected"]
     assert len(rejected) == 1 and rejected[0]["test_index"] == 1
     assert "ended before its result" in rejected[0]["message"]
