@@ -56,17 +56,23 @@ def test_a_put_on_the_control_key_reaches_the_daemon() -> None:
     assert got == ["yz", "zx", None]
 
 
-def test_the_chosen_plan_is_the_next_tests_and_a_bad_name_is_refused(tmp_path: Path) -> None:
-    """Two tests of the zx program (its signature before each feed-in): the first is analysed as yz, chosen
-    before it; the second as zx again (a choice is for the next test only).  A name the library lacks is
-    refused with an event, and changes nothing."""
+def _set_daemon(tmp_path: Path, url: str) -> tuple[Daemon, Recorder]:
+    """A daemon of the set's library reading the zx program from ``url`` (the simulated device), all it sends
+    recorded; nothing on disk, no bus, no viewer, the fit inline."""
     f = tmp_path / "set.toml"
     f.write_text(SET)
     cfg = load(str(f), ["mcap.enabled=false", "zenoh.enabled=false", 'rerun.mode="off"',
                         "daemon.analysis_worker=false", f'daemon.state_dir="{tmp_path}"'], env={})
     rec = Recorder()
-    src = open_source("sim:?speedup=max&rate=100&repeat=2&gap_s=3", library=cfg.library, run_plans=["zx"])
-    d = Daemon(cfg, src, [(rec, 10_000, "drop_newest")])
+    src = open_source(url, library=cfg.library, run_plans=["zx"])
+    return Daemon(cfg, src, [(rec, 10_000, "drop_newest")]), rec
+
+
+def test_the_chosen_plan_is_the_next_tests_and_a_bad_name_is_refused(tmp_path: Path) -> None:
+    """Two tests of the zx program (its signature before each feed-in): the first is analysed as yz, chosen
+    before it; the second as zx again (a choice is for the next test only).  A name the library lacks is
+    refused with an event, and changes nothing."""
+    d, rec = _set_daemon(tmp_path, "sim:?speedup=max&rate=100&repeat=2&gap_s=3")
     d.choose_plan("nope")
     d.choose_plan("yz")
     stop = threading.Event()
@@ -76,7 +82,7 @@ def test_the_chosen_plan_is_the_next_tests_and_a_bad_name_is_refused(tmp_path: P
     assert "no plan 'nope' in the library (zx, yz)" in events[0]["message"]
     tests = [m for m in rec.messages if m.get("kind") == "test"]
     assert [(t["plan"]["name"], t["recognition"]["method"]) for t in tests] == [("yz", "chosen"), ("zx", "signature")]
-    assert tests[0]["recognition"]["signature"] == cfg.library.get("zx").signature
+    assert tests[0]["recognition"]["signature"] == d.cfg.library.get("zx").signature
     feed_ins = [m for m in rec.messages if m.get("event") == "feed_in"]
     assert [e["plan"] for e in feed_ins] == ["yz", "zx"]
 
@@ -259,13 +265,7 @@ def test_a_rogue_peers_flood_of_valid_names_leaves_the_machines_events_and_a_bou
 def test_a_repeat_of_the_choice_standing_makes_no_event(tmp_path: Path) -> None:
     """yz, yz, withdrawn, withdrawn again: two answers, not four (each answer is an event on the bus, a log line
     and an MCAP record)."""
-    f = tmp_path / "set.toml"
-    f.write_text(SET)
-    cfg = load(str(f), ["mcap.enabled=false", "zenoh.enabled=false", 'rerun.mode="off"',
-                        "daemon.analysis_worker=false", f'daemon.state_dir="{tmp_path}"'], env={})
-    rec = Recorder()
-    src = open_source("sim:?speedup=max&rate=100&repeat=1", library=cfg.library, run_plans=["zx"])
-    d = Daemon(cfg, src, [(rec, 10_000, "drop_newest")])
+    d, rec = _set_daemon(tmp_path, "sim:?speedup=max&rate=100&repeat=1")
     for name in ("yz", "yz", None, None):
         d.choose_plan(name)
     assert d.run(threading.Event(), max_tests=1) == 0
