@@ -76,6 +76,13 @@ does exactly that.
 
 Delivery
 --------
+Order: the daemon puts a test's result before the alerts it causes, and each
+put in the order it happened; Zenoh keeps that order to each subscriber, but
+zenoh-python runs every subscriber's callbacks on a thread of its own, so a
+service that must see a result before its alert subscribes once, on a
+wildcard (``ballbar/<m>/**``), and filters the keys (as ``ballbar-subscribe``
+does): two subscribers' callbacks interleave out of order.
+
 Results, events, alerts and the configuration are put with ``CongestionControl.BLOCK``
 at ``Priority.DATA_HIGH``: a subscriber that is slow for a moment still gets
 every one.  To a subscriber that stops reading they are best effort (below),

@@ -39,9 +39,6 @@ def _sets(items: tuple[str, ...]) -> list[str]:
     return [a for item in items for a in ("--set", item)]
 
 
-# Under a load of 4 an alert once reached the subscriber before the test result it refers to (the monitor's thread
-# sent it before the bus's thread had published the result): a race in the daemon's ordering, run alone until fixed.
-@pytest.mark.serial
 def test_alerts_of_a_wearing_machine(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["--rate", "250", "--speedup", "10", "--repeat", "6", "--gap-s", "2", "--wait", *PLAN,
             "--set", "backlash_x_um=3", "--set", "noise_um=0.1", "--drift", "backlash_x_um=1.5"]

@@ -279,7 +279,12 @@ def _main(argv: Sequence[str] | None, pending: list[threading.Thread]) -> int:
     session = opened
     inbox: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
 
+    keys = sorted({k for t in topics for k in TOPIC_KEYS[t]})
+    wanted = [zenoh.KeyExpr(f"ballbar/{args.machine}/{k}") for k in keys]
+
     def on_sample(sample: zenoh.Sample) -> None:
+        if len(wanted) > 1 and not any(w.includes(sample.key_expr) for w in wanted):
+            return  # (one subscriber on the machine's keys: what else is put there)
         try:
             obj = json.loads(sample.payload.to_bytes())
         except (ValueError, RecursionError):  # a peer's put nested deeper than the parser recurses
@@ -301,8 +306,10 @@ def _main(argv: Sequence[str] | None, pending: list[threading.Thread]) -> int:
     subs: list[Any] = []
     printer = _Printer(args.count, args.format == "text" or (args.format == "auto" and sys.stdout.isatty()))
     try:
-        keys = sorted({k for t in topics for k in TOPIC_KEYS[t]})
-        subs.extend(session.declare_subscriber(f"ballbar/{args.machine}/{k}", on_sample) for k in keys)
+        # One subscriber, so one callback thread: Zenoh runs each subscriber's callbacks on a thread of its own,
+        # and two subscribers' would interleave a daemon's puts out of their order (an alert before its test).
+        subs.append(session.declare_subscriber(f"ballbar/{args.machine}/{keys[0] if len(keys) == 1 else '**'}",
+                                               on_sample))
         if args.alive:
             subs.append(
                 session.liveliness().declare_subscriber(f"ballbar/{args.machine}/alive", on_alive, history=True)
