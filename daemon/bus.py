@@ -634,6 +634,8 @@ class ZenohBus(Listener):
 
     def on_message(self, msg: Message) -> None:
         kind = str(msg.get("kind", ""))
+        if kind == "controller":  # the CNC's data: recorded (MCAP), not published in this version
+            return
         if kind not in TOPICS or kind == "samples":
             self._counters.skipped += 1
             if kind not in self._warned_kinds:

@@ -188,6 +188,32 @@ class QueueSection:
     rerun: int = 500  # drop_oldest
 
 
+@dataclass
+class ControllerSection:
+    """The CNC's own account over OPC UA (``[controller]``; daemon/README.md "Controller").  Absent: no client,
+    asyncua never imported.  Security: ``None`` in this version; the keys for ``Basic256Sha256`` with
+    ``Sign``/``SignAndEncrypt`` (the daemon's certificate and key, the server's certificate trusted) and for a
+    user and password are read and checked already, and refused as not yet supported."""
+
+    endpoint: str = ""  # opc.tcp://host:port[/path]
+    security_policy: str = "None"  # None; Basic256Sha256 (not yet)
+    security_mode: str = "None"  # None; Sign, SignAndEncrypt (with Basic256Sha256)
+    certificate: str = ""  # the daemon's certificate file (DER or PEM)
+    private_key: str = ""  # its private key file
+    server_certificate: str = ""  # the server's certificate, trusted
+    user: str = ""  # empty: anonymous
+    password: str = ""  # never logged nor published
+    namespace: str = "http://opcfoundation.org/UA/CNC"  # the URI a "cnc:" prefix of a browse name stands for
+    channel: str = "Channel_1"  # the channel's browse name under CncChannelList ({channel} in the map)
+    axes: list[str] = field(default_factory=lambda: ["X", "Y", "Z"])  # the axes' browse names under CncAxisList
+    nodes: dict[str, str] = field(default_factory=dict)  # name -> browse path or node id, over the default map
+    publish_ms: float = 100.0  # the subscription's publishing interval
+    sample_ms: float = 20.0  # the monitored items' sampling interval (positions: 50 Hz)
+    timeout_s: float = 4.0  # a request's time-out; the connection is checked as often
+    reconnect_min_s: float = 0.5  # the back-off after a failed connection, doubled up to ...
+    reconnect_max_s: float = 30.0  # ... this
+
+
 SECTIONS: dict[str, type] = {
     "daemon": DaemonSection,
     "source": SourceSection,
@@ -218,6 +244,7 @@ class Config:
     report: ReportSection = field(default_factory=ReportSection)
     plans: dict[str, PlanEntry] = field(default_factory=dict)  # [plans.<name>]; empty: [plan] alone
     sets: dict[str, SetSection] = field(default_factory=dict)
+    controller: ControllerSection | None = None  # [controller]; None: no section, no client
 
     @property
     def cal_mm(self) -> float:
@@ -254,6 +281,8 @@ class Config:
             out["plans"] = {n: e.to_dict() for n, e in self.plans.items()}
         if self.sets:
             out["sets"] = {n: asdict(s) for n, s in self.sets.items()}
+        if self.controller is not None:  # absent, the configuration stays as it was
+            out["controller"] = asdict(self.controller)
         return out
 
 
@@ -334,12 +363,14 @@ def _build(name: str, cls: type, data: Mapping[str, Any]) -> Any:
 
 
 NESTED = ("plans", "sets")  # tables of named tables
+OPTIONAL: dict[str, type] = {"controller": ControllerSection}  # sections that exist only when given
 
 
 def _merge(base: dict[str, dict[str, Any]], layer: Mapping[str, Any], origin: str) -> None:
     for section, values in layer.items():
-        if section not in SECTIONS and section not in NESTED:
-            raise ConfigError(f"{origin}: unknown section [{section}] (known: {', '.join([*SECTIONS, *NESTED])})")
+        if section not in SECTIONS and section not in NESTED and section not in OPTIONAL:
+            known = ", ".join([*SECTIONS, *NESTED, *OPTIONAL])
+            raise ConfigError(f"{origin}: unknown section [{section}] (known: {known})")
         if not isinstance(values, Mapping):
             raise ConfigError(f"{origin}: [{section}] must be a table")
         if section not in NESTED:
@@ -432,6 +463,8 @@ def load(
     if cfg.plans:
         cfg.plan = next(iter(cfg.plans.values())).plan
     cfg.sets = {name: _build(f"sets.{name}", SetSection, table) for name, table in merged.get("sets", {}).items()}
+    if "controller" in merged:
+        cfg.controller = _build("controller", ControllerSection, merged["controller"])
     _validate(cfg)
     return cfg
 
@@ -557,10 +590,54 @@ def _validate(cfg: Config) -> None:
         if not st.window_minutes > 0:
             raise ConfigError(f"{where}.window_minutes must be > 0, not {st.window_minutes}")
     check_machine_axes(cfg)
+    if cfg.controller is not None:
+        check_controller(cfg.controller)
     monitor_settings(cfg)
     for name, entry in cfg.plans.items():
         if entry.limits is not None:
             monitor_settings(cfg, name)
+
+
+_OPC_ENDPOINT = re.compile(r"^opc\.tcp://(?P<host>\[[0-9A-Fa-f:.]+\]|[^:/\s\[\]]+)(?::(?P<port>\d+))?(?:/\S*)?$")
+SECURITY_POLICIES = ("None", "Basic256Sha256")
+SECURITY_MODES = ("None", "Sign", "SignAndEncrypt")
+
+
+def check_controller(c: ControllerSection) -> None:
+    """``[controller]``'s values, each error naming its key (never a secret's value): what can never work is
+    refused at start, before anything opens."""
+    from .secrets import mask_url
+
+    if not _OPC_ENDPOINT.match(c.endpoint):
+        raise ConfigError(f"controller.endpoint must be opc.tcp://HOST[:PORT][/PATH], not {mask_url(c.endpoint)!r}")
+    port = _OPC_ENDPOINT.match(c.endpoint)["port"]  # type: ignore[index]
+    if port is not None and not 1 <= int(port) <= 65535:
+        raise ConfigError(f"controller.endpoint: port {port} is not within 1..65535")
+    if c.security_policy not in SECURITY_POLICIES:
+        raise ConfigError(f"controller.security_policy must be one of {', '.join(SECURITY_POLICIES)}, "
+                          f"not {c.security_policy!r}")
+    if c.security_mode not in SECURITY_MODES:
+        raise ConfigError(f"controller.security_mode must be one of {', '.join(SECURITY_MODES)}, "
+                          f"not {c.security_mode!r}")
+    if (c.security_policy == "None") != (c.security_mode == "None"):
+        raise ConfigError(f"controller.security_mode {c.security_mode!r} does not go with security_policy "
+                          f"{c.security_policy!r} (None with None; Basic256Sha256 with Sign or SignAndEncrypt)")
+    if c.security_policy != "None":
+        raise ConfigError(f"controller.security_policy {c.security_policy!r} is not supported by this version yet "
+                          "(None only)")
+    if c.user or c.password:
+        raise ConfigError("controller.user and controller.password are not supported by this version yet "
+                          "(anonymous only)")
+    for key in ("publish_ms", "sample_ms", "timeout_s", "reconnect_min_s"):
+        if not getattr(c, key) > 0:
+            raise ConfigError(f"controller.{key} must be > 0, not {getattr(c, key)}")
+    if c.reconnect_max_s < c.reconnect_min_s:
+        raise ConfigError(f"controller.reconnect_max_s must be at least reconnect_min_s ({c.reconnect_min_s:g}), "
+                          f"not {c.reconnect_max_s}")
+    for name, path in c.nodes.items():
+        if not isinstance(path, str):
+            raise ConfigError(f"controller.nodes.{name} must be a string (a browse path or a node id; "
+                              f"empty: not read), not {path!r}")
 
 
 def check_machine_axes(cfg: Config) -> None:

@@ -208,6 +208,11 @@ def preflight(cfg: Config, url: str, source_options: dict[str, Any]) -> None:
         check_addresses(cfg)
     if cfg.mcap.enabled:
         _check_writable(os.path.join(cfg.daemon.state_dir, "recordings"))
+    if cfg.controller is not None:
+        import importlib.util
+
+        if importlib.util.find_spec("asyncua") is None:
+            raise ConfigError('[controller] needs the OPC UA client asyncua: pip install "ballbar[controller]"')
 
 
 def _check_writable(directory: str) -> None:
@@ -336,7 +341,13 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
             listeners = build_listeners(cfg, stop)
         except StoppedInStartUp:
             return _stopped_in_start_up()
-        daemon = Daemon(cfg, source, listeners, speedup=args.speedup if args.simulate else 1.0)
+        controller = None
+        if cfg.controller is not None:
+            from .controller import ControllerClient
+
+            controller = ControllerClient(cfg.controller, cfg.daemon.machine_id)
+        daemon = Daemon(cfg, source, listeners, speedup=args.speedup if args.simulate else 1.0,
+                        controller=controller)
         if cfg.mcap.enabled:
             daemon.on_device_reset = functools.partial(save_counter, cfg.daemon.state_dir, source)
         daemon.startup_messages.extend(cut)

@@ -84,6 +84,8 @@ if TYPE_CHECKING:
     from ballbar.protocol.messages.publish import Published
     from ballbar.protocol.messages.status import AnalysisStats, Outputs, Queue, SourceState, SourceStats
 
+    from .controller import ControllerClient
+
 log = logging.getLogger(__name__)
 
 FINISH_ANALYSIS_S = 120.0  # after a finite source's end, at most this for the analysis to catch up
@@ -428,8 +430,14 @@ class Daemon:
         listeners: Sequence[tuple[Listener, int, DropPolicy]],
         notifier: Notifier | None = None,
         speedup: float = 1.0,
+        controller: ControllerClient | None = None,
     ) -> None:
         self.cfg = cfg
+        # The CNC's OPC UA client ([controller]): started after the configuration goes out, its messages
+        # broadcast like the outputs' own, stopped with the source.
+        self.controller = controller
+        if controller is not None:
+            controller.emit = self.broadcast
         # Device time per host time: a simulated device sped up (``--simulate --speedup``) reports its rates and
         # clock in device terms, so that a 5x speed-up does not read as a 5 kHz rate and a -800000 ppm drift.
         self.speedup = float(speedup)
@@ -546,7 +554,7 @@ class Daemon:
         if self.worker is not None:
             analysis["worker"] = {"pid": self.worker.pid, "started": self.worker.started,
                                   "busy": self.analysis.pending}
-        return {
+        out: Status = {
             **stamp(self.cfg.daemon.machine_id),
             "kind": "status",
             "uptime_s": now - self.started,
@@ -563,6 +571,9 @@ class Daemon:
             "outputs": cast("Outputs", outputs),
             "analysis": analysis,
         }
+        if self.controller is not None:
+            out["controller"] = self.controller.stats()
+        return out
 
     def run(self, stop: threading.Event, max_tests: int | None = None, duration_s: float | None = None) -> int:
         """Read, fan out, report, until ``stop`` (or the limits) say so; then shut down cleanly."""
@@ -579,6 +590,8 @@ class Daemon:
         self.broadcast(config)
         for msg in self.startup_messages:  # stamped as they go out
             self.broadcast({**msg, **stamp(self.cfg.daemon.machine_id), "t_host": time.monotonic()})
+        if self.controller is not None:
+            self.controller.start()
         # READY=1 once the source is set up, whether or not its port is there yet: a service waits for its
         # adapter (the status says "waiting" and why, and a warning repeats every minute).
         self.notifier.ready(f"reading {self.source.url}")
@@ -655,6 +668,8 @@ class Daemon:
                 q.listener.cancel_start()  # not started now only to be stopped
         with contextlib.suppress(Exception):
             self.source.close()
+        if self.controller is not None:  # before the outputs close: its last messages reach them
+            self.controller.stop(timeout=min(1.0, budget_s * 0.25))
         self.analysis_queue.close(timeout=budget_s * 0.4)
         if self.worker is not None:
             self.worker.shutdown(wait=False)

@@ -24,7 +24,7 @@ from mcap.stream_reader import StreamReader
 from ballbar.daemon.schemas import NAMES, schema
 
 BY_KIND = {"circle": "result", "test": "result", "set": "set", "event": "event", "status": "status", "config": "config",
-           "alert": "alert", "samples": "samples", "history": "history"}
+           "alert": "alert", "samples": "samples", "history": "history", "controller": "controller"}
 
 
 @cache

@@ -29,6 +29,7 @@ from ballbar.daemon.cli import main as cli_main
 from ballbar.daemon.listeners import to_json
 from ballbar.daemon.mcap import (
     SCHEMAS,
+    TOPIC_CONTROLLER,
     TOPIC_OTHER,
     TOPIC_SAMPLES,
     LogConfigError,
@@ -401,6 +402,11 @@ def test_mcap_package_reads_every_channel_and_messages_follow_their_schemas(stat
     lg.on_message({"kind": "circle", "t_host": 100.1})
     lg.on_message({"kind": "test", "t_host": 100.2, "test_id": "t1"})
     lg.on_message({"kind": "status", "t_host": 100.3})
+    lg.on_message({"schema_version": 2, "kind": "controller", "machine_id": "m", "t_wall": "2026-12-08T00:00:00.000Z",
+                   "t_host": 100.35, "endpoint": "opc.tcp://cnc:4840", "state": "data", "clock_offset_s": 0.002,
+                   "values": [{"name": "override", "value": 80.0, "t_source": "2026-12-08T00:00:00.000Z",
+                               "t_host": 100.3}, {"name": "block", "value": ["N10", "N20"], "t_source": None,
+                                                 "t_host": 100.3}]})
     lg.on_message({"kind": "other"})
     lg.stop()
     (path,) = files(state)
@@ -411,7 +417,7 @@ def test_mcap_package_reads_every_channel_and_messages_follow_their_schemas(stat
             assert schema is not None and schema.encoding == "jsonschema" and channel.message_encoding == "json"
             name, sch, _desc = SCHEMAS[channel.topic]
             assert schema.name == name and json.loads(schema.data) == json.loads(json.dumps(sch))
-            if channel.topic in (TOPIC_SAMPLES, TOPIC_OTHER):  # the payload schemas: real payloads in test_e2e
+            if channel.topic in (TOPIC_SAMPLES, TOPIC_OTHER, TOPIC_CONTROLLER):  # the rest: in test_e2e
                 _validate(json.loads(message.data), json.loads(schema.data), channel.topic)
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
             assert channel.metadata["description"]

@@ -31,6 +31,7 @@ from ballbar.daemon.config import load
 from ballbar.daemon.mcap import (
     SCHEMAS,
     TOPIC_CONFIG,
+    TOPIC_CONTROLLER,
     TOPIC_EVENTS,
     TOPIC_OTHER,
     TOPIC_RESULTS,
@@ -62,7 +63,8 @@ def test_shipped_files_are_the_schemas() -> None:
 def test_mcap_channels_register_the_same_schemas() -> None:
     names = {TOPIC_RESULTS: ("ballbar.Result", "result"), TOPIC_EVENTS: ("ballbar.Event", "mcap-event"),
              TOPIC_STATUS: ("ballbar.Status", "status"), TOPIC_CONFIG: ("ballbar.Config", "config"),
-             TOPIC_SAMPLES: ("ballbar.Samples", "mcap-samples"), TOPIC_OTHER: ("ballbar.Message", "mcap-other")}
+             TOPIC_SAMPLES: ("ballbar.Samples", "mcap-samples"), TOPIC_OTHER: ("ballbar.Message", "mcap-other"),
+             TOPIC_CONTROLLER: ("ballbar.Controller", "controller")}
     assert set(SCHEMAS) == set(names)
     for topic, (mcap_name, name) in names.items():
         assert SCHEMAS[topic][0] == mcap_name, topic

@@ -267,9 +267,9 @@ class SimCnc:
         cnc = await server.register_namespace(CNC_NAMESPACE)
         own = await server.register_namespace(SERVER_NAMESPACE)
         objects = server.nodes.objects
-        iface = await objects.add_object(ua.NodeId("CncInterface", own), ua.QualifiedName("CncInterface", cnc))
-        channels = await iface.add_object(ua.NodeId("CncChannelList", own), ua.QualifiedName("CncChannelList", cnc))
-        channel = await channels.add_object(ua.NodeId("Channel_1", own), ua.QualifiedName("Channel_1", own))
+        iface = await objects.add_object(_node_id("CncInterface", own), ua.QualifiedName("CncInterface", cnc))
+        channels = await iface.add_object(_node_id("CncChannelList", own), ua.QualifiedName("CncChannelList", cnc))
+        channel = await channels.add_object(_node_id("Channel_1", own), ua.QualifiedName("Channel_1", own))
         snap = self.machine.snapshot()
         types = {"ActMainProgramName": ua.VariantType.String, "ActOverride": ua.VariantType.Double,
                  "ActFeedrate": ua.VariantType.Double, "ActGFunctions": ua.VariantType.UInt32,
@@ -277,24 +277,23 @@ class SimCnc:
         nodes: dict[str, Any] = {}
         for name, vt in types.items():
             if name not in self.omit:
-                var = await channel.add_variable(ua.NodeId(f"Channel_1.{name}", own), ua.QualifiedName(name, cnc),
+                var = await channel.add_variable(_node_id(f"Channel_1.{name}", own), ua.QualifiedName(name, cnc),
                                                  snap[name], vt)
                 nodes[name] = (var, vt)
-        axes = await iface.add_object(ua.NodeId("CncAxisList", own), ua.QualifiedName("CncAxisList", cnc))
+        axes = await iface.add_object(_node_id("CncAxisList", own), ua.QualifiedName("CncAxisList", cnc))
         for axis in self.axes:
-            a = await axes.add_object(ua.NodeId(axis, own), ua.QualifiedName(axis, own))
-            pos = await a.add_object(ua.NodeId(f"{axis}.PosIndirect", own), ua.QualifiedName("PosIndirect", cnc))
+            a = await axes.add_object(_node_id(axis, own), ua.QualifiedName(axis, own))
+            pos = await a.add_object(_node_id(f"{axis}.PosIndirect", own), ua.QualifiedName("PosIndirect", cnc))
             for comp, key in (("ActPos", "act"), ("CmdPos", "cmd")):
                 if f"{comp}.{axis}" in self.omit or comp in self.omit:
                     continue
-                var = await pos.add_variable(ua.NodeId(f"{axis}.PosIndirect.{comp}", own), ua.QualifiedName(comp, cnc),
+                var = await pos.add_variable(_node_id(f"{axis}.PosIndirect.{comp}", own), ua.QualifiedName(comp, cnc),
                                              snap[key][axis], ua.VariantType.Double)
                 nodes[f"{key}.{axis}"] = (var, ua.VariantType.Double)
         await server.start()
         return server, nodes
 
     async def _play(self, server: Any, nodes: dict[str, Any]) -> None:
-        from asyncua import ua
 
         period = 1.0 / self.update_hz
         last: dict[str, Any] = {}
@@ -316,11 +315,27 @@ class SimCnc:
                 if last.get(key) == value:
                     continue  # a data change only when the value changes, as a controller's server does
                 last[key] = value
-                dv = ua.DataValue(ua.Variant(value, vt), SourceTimestamp=stamp, ServerTimestamp=stamp)
+                dv = _data_value(value, vt, stamp)
                 await server.write_attribute_value(node.nodeid, dv)
                 self.updates += 1
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), max(0.0, period - (time.monotonic() - now)))
+
+
+def _node_id(name: str, ns: int) -> Any:
+    """A string node id in namespace ``ns`` (stable across the server's restarts)."""
+    from asyncua import ua
+
+    u: Any = ua  # asyncua's stubs want its own int and str subclasses
+    return u.NodeId(name, ns)
+
+
+def _data_value(value: Any, vt: Any, t: dt.datetime) -> Any:
+    """``value`` with its source and server timestamps ``t``."""
+    from asyncua import ua
+
+    u: Any = ua
+    return u.DataValue(u.Variant(value, vt), SourceTimestamp=t, ServerTimestamp=t)
 
 
 def _override_at(text: str) -> tuple[float, float]:

@@ -127,6 +127,7 @@ from .format import (
     MAX_RECORD_BYTES,
     SCHEMAS,
     TOPIC_CONFIG,
+    TOPIC_CONTROLLER,
     TOPIC_EVENTS,
     TOPIC_OTHER,
     TOPIC_RESULTS,
@@ -139,7 +140,7 @@ from .format import (
     mcap_files,
     scaled_ints,
 )
-from .reader import McapLog, read_log, read_logs, read_mcap, read_results, recording, valid_samples
+from .reader import McapLog, read_controller, read_log, read_logs, read_mcap, read_results, recording, valid_samples
 from .recovery import recover_crashed
 from .writer import FILE_NEEDS_BYTES, McapLogger
 
@@ -148,6 +149,7 @@ __all__ = [
     "MAX_RECORD_BYTES",
     "SCHEMAS",
     "TOPIC_CONFIG",
+    "TOPIC_CONTROLLER",
     "TOPIC_EVENTS",
     "TOPIC_OTHER",
     "TOPIC_RESULTS",
@@ -160,6 +162,7 @@ __all__ = [
     "encode_samples",
     "list_recordings",
     "mcap_files",
+    "read_controller",
     "read_log",
     "read_logs",
     "read_mcap",

@@ -33,6 +33,7 @@ TOPIC_RESULTS = "/ballbar/results"
 TOPIC_STATUS = "/ballbar/status"
 TOPIC_CONFIG = "/ballbar/config"
 TOPIC_OTHER = "/ballbar/other"
+TOPIC_CONTROLLER = "/ballbar/controller"
 
 NS = 1_000_000_000
 PM_PER_MM = 1_000_000_000

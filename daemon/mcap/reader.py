@@ -35,6 +35,7 @@ from .format import (
     NS,
     SIDE_BYTES_MAX,
     TOPIC_CONFIG,
+    TOPIC_CONTROLLER,
     TOPIC_EVENTS,
     TOPIC_OTHER,
     TOPIC_RESULTS,
@@ -548,6 +549,29 @@ def read_logs(
     )
     for k in _TOPIC_LISTS.values():
         setattr(out, k, [x for p in parts for x in getattr(p, k)])
+    return out
+
+
+def read_controller(paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]]:
+    """The CNC controller's messages (``/ballbar/controller``, ``[controller]``) of recordings, in file order; a
+    file cut by a crash gives what it holds up to the cut, a damaged record is passed over."""
+    out: list[dict[str, Any]] = []
+    for path in paths:
+        channels: dict[int, str] = {}
+        try:
+            with open(path, "rb") as fh:
+                for rec in _records(fh):
+                    if isinstance(rec, Channel):
+                        channels[rec.id] = rec.topic
+                    elif isinstance(rec, Message) and channels.get(rec.channel_id) == TOPIC_CONTROLLER:
+                        try:
+                            obj = json.loads(rec.data)
+                        except (ValueError, RecursionError):
+                            continue
+                        if isinstance(obj, dict):
+                            out.append(obj)
+        except (OSError, McapError, EndOfFile, struct.error, zstandard.ZstdError) as err:
+            log.warning("%s: controller records read up to a problem: %s", os.fspath(path), err)
     return out
 
 

@@ -43,6 +43,7 @@ from .format import (
     RETENTION_EVERY_S,
     SCHEMAS,
     TOPIC_CONFIG,
+    TOPIC_CONTROLLER,
     TOPIC_EVENTS,
     TOPIC_OTHER,
     TOPIC_RESULTS,
@@ -323,7 +324,7 @@ class McapLogger(Listener):
             kind = str(msg.get("kind", ""))
             topic = {
                 "circle": TOPIC_RESULTS, "test": TOPIC_RESULTS, "set": TOPIC_RESULTS, "status": TOPIC_STATUS,
-                "config": TOPIC_CONFIG,
+                "config": TOPIC_CONFIG, "controller": TOPIC_CONTROLLER,
             }.get(kind, TOPIC_OTHER)
             if kind == "event":
                 self._on_event_message(msg, now)

@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 
     from .channels import MCAP_CHANNELS
     from .config import ConfigMessage, Settings
+    from .controller import ControllerMessage
     from .events import Event, EventBody, LogGap, PipelineEvent, SourceEvent
     from .monitor import Alert, Conditions, Forecast, ForecastAlert, HistoryEntry, LimitEntry, Verdict, VerdictAlert
     from .replies import HistoryReply, QueryError
@@ -56,7 +57,8 @@ if TYPE_CHECKING:
     AnalysisOutput: TypeAlias = CircleBody | TestBody | EventBody
 
     #: Every message a listener of the daemon is handed (``ballbar.daemon.listeners.Listener.on_message``).
-    Message: TypeAlias = CircleResult | TestResult | SetResult | Event | Status | ConfigMessage | Alert | Samples
+    Message: TypeAlias = (CircleResult | TestResult | SetResult | Event | Status | ConfigMessage | Alert | Samples
+                         | ControllerMessage)
 
 # Where each name is, loaded when first asked for (the imports above are mypy's); the unions built of them.
 _LAZY = {
@@ -68,10 +70,12 @@ _LAZY = {
     "CircleResult": "results", "CircleTiming": "results", "Parameter": "results", "Parameters": "results",
     "Result": "results", "TestBody": "results", "TestResult": "results", "TestTiming": "results",
     "McapSamples": "samples", "Samples": "samples", "SetResult": "sets", "Status": "status",
+    "ControllerMessage": "controller",
 }
 _UNIONS = {
     "AnalysisOutput": ("CircleBody", "TestBody", "EventBody"),
-    "Message": ("CircleResult", "TestResult", "SetResult", "Event", "Status", "ConfigMessage", "Alert", "Samples"),
+    "Message": ("CircleResult", "TestResult", "SetResult", "Event", "Status", "ConfigMessage", "Alert", "Samples",
+                "ControllerMessage"),
 }
 
 

@@ -20,6 +20,8 @@ MCAP_CHANNELS: dict[str, tuple[str, str, str]] = {
     "/ballbar/results": ("ballbar.Result", "result", "analysis results (circle, test, set)"),
     "/ballbar/status": ("ballbar.Status", "status", "daemon status"),
     "/ballbar/config": ("ballbar.Config", "config", "effective configuration, at start and at the head of every file"),
+    "/ballbar/controller": ("ballbar.Controller", "controller", "the CNC controller's data over OPC UA "
+                            "([controller]): values with the server's timestamps on the daemon's clock"),
     "/ballbar/other": ("ballbar.Message", "mcap-other", "other pipeline messages"),
 }
 

@@ -160,6 +160,28 @@ class SetEntry(TypedDict):
     window_minutes: Annotated[float, doc("the time within which its tests must all have run", "min")]
 
 
+class ControllerSection(TypedDict):
+    """[controller]: the CNC's OPC UA server (absent: no [controller] section)"""
+
+    endpoint: Annotated[str, doc("opc.tcp://host:port[/path]")]
+    security_policy: Annotated[str, doc("None or Basic256Sha256")]
+    security_mode: Annotated[str, doc("None, Sign or SignAndEncrypt")]
+    certificate: Annotated[str, doc("the daemon's certificate file (empty: none)")]
+    private_key: Annotated[str, doc("its private key file ('<redacted>')")]
+    server_certificate: Annotated[str, doc("the server's trusted certificate file (empty: none)")]
+    user: Annotated[str, doc("the user (empty: anonymous)")]
+    password: Annotated[str, doc("the password ('<redacted>')")]
+    namespace: Annotated[str, doc("the URI a cnc: prefix in a browse path stands for")]
+    channel: Annotated[str, doc("the channel's browse name")]
+    axes: Annotated[list[str], doc("the axes' browse names")]
+    nodes: Annotated[dict[str, str], doc("name -> browse path or node id, over the default map (empty: not read)")]
+    publish_ms: Annotated[float, doc("the subscription's publishing interval", "ms")]
+    sample_ms: Annotated[float, doc("the monitored items' sampling interval", "ms")]
+    timeout_s: Annotated[float, doc("a request's time-out", "s")]
+    reconnect_min_s: Annotated[float, doc("the first back-off", "s")]
+    reconnect_max_s: Annotated[float, doc("the longest back-off", "s")]
+
+
 class Settings(TypedDict):
     """the effective configuration: daemon/default.toml's sections and keys (see there), secrets '<redacted>'"""
 
@@ -178,6 +200,7 @@ class Settings(TypedDict):
     limits: LimitsSection
     queues: QueuesSection
     report: NotRequired[ReportSection]
+    controller: NotRequired[ControllerSection]
 
 
 class ConfigMessage(TypedDict):

@@ -14,8 +14,8 @@ from typing import Any, Union
 
 from ballbar import SCHEMA_VERSION
 
+from . import controller, monitor, replies, results, samples, sets, status
 from . import events as ev
-from . import monitor, replies, results, samples, sets, status
 from .config import ConfigMessage
 from .jsonschema import Builder, Schema, document
 
@@ -89,6 +89,7 @@ DOCUMENTS: dict[str, Document] = {
     "monitor-history": Document(monitor.HistoryEntry),
     "mcap-samples": Document(samples.McapSamples),
     "set": Document(sets.SetResult, _SET_DEFS),
+    "controller": Document(controller.ControllerMessage),
 }
 
 

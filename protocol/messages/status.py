@@ -216,6 +216,24 @@ class AnalysisStats(TypedDict):
 SourceState = Literal["starting", "waiting", "connected", "stalled", "unplugged", "ended"]
 
 
+class ControllerStats(TypedDict):
+    """the CNC controller's OPC UA client ([controller]; absent: no [controller] section)"""
+
+    state: Annotated[Literal["connecting", "connected", "lost", "stopped"], doc(
+        "connecting (never connected yet, or retrying after a failed attempt), connected, lost (retrying with "
+        "back-off) or stopped")]
+    connected: Annotated[bool, doc("the session is up and subscribed")]
+    endpoint: Annotated[str, doc("the server's endpoint")]
+    last_update_age_s: Annotated[float | None, doc("since the last value received", "s", null="none yet")]
+    reconnects: Annotated[int, doc("connections made after the first (each loss and return counts one)")]
+    attempts: Annotated[int, doc("connection attempts that failed")]
+    updates: Annotated[int, doc("values received")]
+    missing: Annotated[list[str], doc("the map's names the server lacks (logged once at each connection)")]
+    clock_offset_s: Annotated[float | None, doc("the daemon's wall clock minus the server's (smallest arrival minus "
+                                                "source timestamp)", "s", null="not known yet")]
+    last_error: Annotated[str | None, doc("why the last attempt failed or the connection was lost", null="none")]
+
+
 class Status(TypedDict):
     """ballbar.Status: the daemon's periodic status (ballbar/<m>/status, every daemon.status_interval_s)."""
 
@@ -237,3 +255,4 @@ class Status(TypedDict):
     queues: Annotated[dict[str, Queue], doc("each output's queue, by name (analysis, mcap, zenoh, rerun, log)")]
     outputs: Outputs
     analysis: AnalysisStats
+    controller: NotRequired[ControllerStats]

@@ -48,6 +48,7 @@ WHERE = {
     "error": "an error reply of `ballbar/<m>/history/<topic>`",
     "monitor-history": "`STATE_DIR/monitor/<m>-history.jsonl`, a line per test",
     "mcap-samples": "MCAP `/ballbar/samples`",
+    "controller": "MCAP `/ballbar/controller` ([controller])",
     "set": "`ballbar/<m>/result/set`, `last/set`, `history/set`; MCAP `/ballbar/results` (also in `result`)",
     "mcap-event": "MCAP `/ballbar/events`: the events without `kind` (a source's without the envelope), and `LogGap`",
     "mcap-other": "MCAP `/ballbar/other`: any other kind, as it came",

@@ -1,0 +1,461 @@
+"""The CNC controller's own account over OPC UA: the client of ``[controller]``.
+
+The controller beside the bar knows what the bar can only infer: the program that runs, the feed override, the
+block, the active G functions, the axes' actual and commanded positions.  Current controllers serve them over
+OPC UA, in the model of OPC 40502 (OPC UA for CNC Systems) or in a vendor's own.  This module is the daemon's
+client: asyncua (a pure-Python OPC UA stack) on a thread of its own (``controller``) with its own event loop, so
+that neither a slow server nor the stack's coroutines ever touch the reader, the watchdog or the outputs.
+
+* **The node map.** Each thing read has a name (``program``, ``override``, ``feed``, ``g_functions``, ``block``,
+  ``act_pos.<axis>``, ``cmd_pos.<axis>``) and a place: a browse path from the Objects folder
+  (``CncInterface/CncChannelList/Channel_1/ActOverride``), each segment matched by its browse name (in any
+  namespace; ``cnc:Name`` in ``[controller] namespace``'s, ``3:Name`` in namespace 3), or a node id
+  (``ns=2;s=/Channel/State/actFeedRateIpo``).  :data:`DEFAULT_NODES` is OPC 40502's;
+  ``[controller] nodes`` changes or adds names (an empty value drops one).  A name the server lacks is one
+  warning naming it at each connection where the set of missing names changed; the rest are read.
+* **Subscriptions.** One subscription at ``publish_ms``, each node sampled every ``sample_ms``, queued so that
+  nothing sampled between two publishes is lost.  What arrives is handed on once per publishing interval, one
+  ``controller`` message (:class:`~ballbar.protocol.messages.controller.ControllerMessage`) for all the values that
+  changed, through ``emit`` (the daemon's broadcast: the MCAP logger records it on ``/ballbar/controller``).
+* **Time.** Each value carries the server's source timestamp; ``t_host`` is that time on the daemon's monotonic
+  clock: ``t_source + clock_offset_s`` as wall time, then wall to monotonic as at its arrival.
+  ``clock_offset_s`` (wall minus server) is the smallest arrival minus source timestamp seen over the last
+  minute: it holds the server's clock offset plus the shortest delay through the stack, never the publishing
+  interval's wait.  A value without a source timestamp gets its arrival time.
+* **Faults.** A server absent at start or lost later is retried with back-off (``reconnect_min_s`` doubling up to
+  ``reconnect_max_s``); meanwhile the daemon reads the bar alone.  The state (:meth:`ControllerClient.stats`, the
+  status' ``controller`` block) says connecting, connected or lost, the last update's age and how many
+  reconnects; a loss is a ``controller`` message with ``state: "lost"`` (and a warning).  Secrets never reach a
+  log line or a message: the endpoint is masked (:func:`~ballbar.daemon.secrets.mask_url`).
+
+asyncua is imported on the client's thread when it starts, never with this module: without ``[controller]`` the
+daemon never imports it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
+
+from ballbar.protocol.messages import stamp
+
+from .secrets import mask_url
+
+if TYPE_CHECKING:
+    from ballbar.protocol.messages.controller import ControllerMessage, ControllerValue, Value
+    from ballbar.protocol.messages.status import ControllerStats
+
+    from .config import ControllerSection
+
+log = logging.getLogger(__name__)
+
+_CHANNEL = "CncInterface/CncChannelList/{channel}"
+_AXIS = "CncInterface/CncAxisList/{axis}/PosIndirect"
+#: OPC 40502's places of what the daemon reads (browse names of the specification; {channel} and {axis} are the
+#: configured instances' names).
+DEFAULT_NODES: dict[str, str] = {
+    "program": f"{_CHANNEL}/ActMainProgramName",
+    "override": f"{_CHANNEL}/ActOverride",
+    "feed": f"{_CHANNEL}/ActFeedrate",
+    "g_functions": f"{_CHANNEL}/ActGFunctions",
+    "block": f"{_CHANNEL}/ActProgramBlock",
+}
+AXIS_NODES: dict[str, str] = {"act_pos": f"{_AXIS}/ActPos", "cmd_pos": f"{_AXIS}/CmdPos"}
+_NODE_ID_PREFIXES = ("ns=", "nsu=", "i=", "s=", "g=", "b=")
+OFFSET_WINDOW_S = 60.0  # the clock offset is the smallest delay seen over about this long
+WARN_EVERY_S = 60.0  # a server still absent is said again this often
+SESSION_TIMEOUT_MS = 60_000  # a session the server may drop a minute after a loss (asyncua asks for an hour)
+
+
+def node_map(section: ControllerSection) -> dict[str, str]:
+    """The names read and where: :data:`DEFAULT_NODES` and :data:`AXIS_NODES` for each configured axis, then
+    ``section.nodes`` over them (an empty place drops the name)."""
+    out = {name: path.format(channel=section.channel) for name, path in DEFAULT_NODES.items()}
+    for axis in section.axes:
+        for name, path in AXIS_NODES.items():
+            out[f"{name}.{axis}"] = path.format(axis=axis)
+    for name, path in section.nodes.items():
+        if path:
+            out[name] = path.format(channel=section.channel)
+        else:
+            out.pop(name, None)
+    return out
+
+
+def _jsonable(v: Any) -> Value:
+    """A node's value as plain JSON data (an array element by element; text of what has no JSON form)."""
+    if v is None or isinstance(v, bool | int | str):
+        return v
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, list | tuple):
+        items = [_jsonable(x) for x in v]  # an array's element that is itself none of these becomes its text
+        return [x if isinstance(x, str | int | float) else str(x) for x in items]
+    text = getattr(v, "Text", None)  # a LocalizedText
+    if isinstance(text, str):
+        return text
+    if isinstance(v, dt.datetime):
+        return _utc(v)
+    return str(v)
+
+
+def _unix(t: dt.datetime) -> float:
+    return (t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)).timestamp()
+
+
+def _utc(t: dt.datetime) -> str:
+    t = t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
+    return t.astimezone(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+class _Offset:
+    """The daemon's wall clock minus the server's: the smallest arrival minus source timestamp over the last
+    :data:`OFFSET_WINDOW_S` (two half windows, so that an old minimum ages out)."""
+
+    def __init__(self) -> None:
+        self._blocks: deque[tuple[float, float]] = deque()  # (block start, smallest delay in it)
+
+    def add(self, delay_s: float, now: float) -> None:
+        half = OFFSET_WINDOW_S / 2
+        if not self._blocks or now - self._blocks[-1][0] >= half:
+            self._blocks.append((now, delay_s))
+            while len(self._blocks) > 2:
+                self._blocks.popleft()
+        elif delay_s < self._blocks[-1][1]:
+            self._blocks[-1] = (self._blocks[-1][0], delay_s)
+
+    @property
+    def value(self) -> float | None:
+        return min(b[1] for b in self._blocks) if self._blocks else None
+
+
+class ControllerClient:
+    """The OPC UA client on its own thread; see the module docstring.
+
+    ``emit`` is handed each ``controller`` message (from the client's thread); :meth:`start` once, :meth:`stop`
+    safe to call twice; :meth:`stats` from any thread.
+    """
+
+    def __init__(self, section: ControllerSection, machine_id: str,
+                 emit: Callable[[ControllerMessage], None] | None = None) -> None:
+        self.section = section
+        self.machine_id = machine_id
+        self.endpoint = mask_url(section.endpoint)
+        self.nodes = node_map(section)
+        self.emit = emit or (lambda _msg: None)
+        self.state: str = "connecting"
+        self.connected = False
+        self.connections = 0
+        self.attempts_failed = 0
+        self.updates = 0
+        self.missing: list[str] = []
+        self.last_error: str | None = None
+        self.last_update: float | None = None  # host monotonic
+        self._offset = _Offset()
+        self._pending: list[ControllerValue] = []
+        self._warned_missing: list[str] | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_event: asyncio.Event | None = None
+        self._stopping = threading.Event()
+
+    # ------------------------------------------------------------------ the daemon's side
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="controller", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Close the session and end the thread, within about ``timeout``."""
+        self._stopping.set()
+        loop, ev = self._loop, self._stop_event
+        if loop is not None and ev is not None:
+            with contextlib.suppress(RuntimeError):  # the loop has ended already
+                loop.call_soon_threadsafe(ev.set)
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.warning("controller: the client did not stop within %.1f s", timeout)
+        self.state = "stopped"
+        self.connected = False
+
+    def stats(self) -> ControllerStats:
+        last = self.last_update
+        return {
+            "state": self.state,  # type: ignore[typeddict-item]
+            "connected": self.connected,
+            "endpoint": self.endpoint,
+            "last_update_age_s": None if last is None else round(time.monotonic() - last, 3),
+            "reconnects": max(0, self.connections - 1),
+            "attempts": self.attempts_failed,
+            "updates": self.updates,
+            "missing": list(self.missing),
+            "clock_offset_s": self._offset.value,
+            "last_error": self.last_error,
+        }
+
+    # ------------------------------------------------------------------ the client's thread
+
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except Exception:
+            log.exception("controller: the client failed; the daemon reads the bar alone")
+            self.state = "stopped"
+            self.connected = False
+
+    async def _main(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stop_event = asyncio.Event()
+        if self._stopping.is_set():
+            return
+        if not log.isEnabledFor(logging.DEBUG):  # the client says what matters in its own lines, once
+            logging.getLogger("asyncua").setLevel(logging.CRITICAL)
+        from asyncua import Client
+
+        delay = self.section.reconnect_min_s
+        warned_at = -math.inf
+        while not self._stop_event.is_set():
+            lost = asyncio.Event()
+            client = Client(self.section.endpoint, timeout=self.section.timeout_s,
+                            watchdog_intervall=min(1.0, self.section.timeout_s))
+            # the asyncua logger would repeat the endpoint (and its credentials) with each warning
+            client.strip_url_credentials = True
+            client.session_timeout = SESSION_TIMEOUT_MS
+
+            async def on_lost(exc: Exception, lost: asyncio.Event = lost) -> None:
+                self.last_error = _why(exc)
+                lost.set()
+
+            client.connection_lost_callback = on_lost
+            try:
+                if not await self._until_stopped(client.connect()):
+                    await self._disconnect(client)
+                    break
+            except Exception as err:
+                self.attempts_failed += 1
+                self.last_error = _why(err)
+                now = time.monotonic()
+                if now - warned_at >= WARN_EVERY_S:
+                    warned_at = now
+                    log.warning("controller: cannot connect to %s (%s); retrying, the daemon reads the bar alone",
+                                self.endpoint, self.last_error)
+                await self._disconnect(client)
+                if await self._wait(self._stop_event, delay):
+                    break
+                delay = min(delay * 2, self.section.reconnect_max_s)
+                continue
+            try:
+                await self._session(client, lost)
+                delay = self.section.reconnect_min_s
+                warned_at = -math.inf
+            except Exception as err:
+                self.last_error = _why(err)
+                log.warning("controller: %s: %s", self.endpoint, self.last_error)
+            was = self.connected
+            self.connected = False
+            await self._disconnect(client)
+            if self._stop_event.is_set():
+                break
+            self.state = "lost" if was or self.connections else "connecting"
+            if was:
+                log.warning("controller: lost %s (%s); reconnecting, the daemon reads the bar alone",
+                            self.endpoint, self.last_error or "connection closed")
+                self._send("lost", [], detail=self.last_error or "connection closed")
+            if await self._wait(self._stop_event, delay):
+                break
+            delay = min(delay * 2, self.section.reconnect_max_s)
+
+    async def _session(self, client: Any, lost: asyncio.Event) -> None:
+        """Resolve the map, subscribe, and hand on what arrives until the connection is lost or the daemon
+        stops."""
+        from asyncua import ua
+
+        found, missing = await self._resolve_all(client)
+        self.missing = missing
+        if missing != self._warned_missing:
+            for name in missing:
+                log.warning("controller: %s has no node %s (%s): not read", self.endpoint, name, self.nodes[name])
+            self._warned_missing = missing
+        by_node: dict[Any, list[str]] = {}  # a node two names share is monitored once
+        unique: list[Any] = []
+        for name, node in found.items():
+            if node.nodeid not in by_node:
+                by_node[node.nodeid] = []
+                unique.append(node)
+            by_node[node.nodeid].append(name)
+        handler = _Handler(self, by_node)
+        sub = await client.create_subscription(self.section.publish_ms, handler)
+        queue = max(1, math.ceil(self.section.publish_ms / self.section.sample_ms) + 1)
+        if unique:
+            handles = await sub.subscribe_data_change(unique, queuesize=queue,
+                                                      sampling_interval=self.section.sample_ms)
+            for node, h in zip(unique, handles, strict=True):
+                if isinstance(h, ua.StatusCode):
+                    for name in by_node[node.nodeid]:
+                        log.warning("controller: %s refused to monitor %s (%s)", self.endpoint, name,
+                                    self.nodes[name])
+        self.connections += 1
+        self.connected = True
+        self.state = "connected"
+        self.last_error = None
+        log.info("controller: connected to %s, %d of %d nodes subscribed%s", self.endpoint, len(found),
+                 len(self.nodes), " (reconnect)" if self.connections > 1 else "")
+        self._send("connected", [], missing=missing)
+        period = self.section.publish_ms / 1000
+        while not lost.is_set() and not self._stop_event.is_set():  # type: ignore[union-attr]
+            await self._wait(lost, period)
+            self._flush()
+        self._flush()
+
+    async def _resolve_all(self, client: Any) -> tuple[dict[str, Any], list[str]]:
+        namespaces: list[str] = await client.get_namespace_array()
+        cnc = namespaces.index(self.section.namespace) if self.section.namespace in namespaces else None
+        cache: dict[str, list[Any]] = {}
+        found: dict[str, Any] = {}
+        missing: list[str] = []
+        for name, path in self.nodes.items():
+            node = await _resolve(client, path, cnc, cache)
+            if node is None:
+                missing.append(name)
+            else:
+                found[name] = node
+        return found, missing
+
+    def _on_value(self, name: str, data_value: Any) -> None:
+        now, wall = time.monotonic(), time.time()
+        ts = data_value.SourceTimestamp
+        t_source: str | None = None
+        t_host = now
+        if isinstance(ts, dt.datetime):
+            ts_unix = _unix(ts)
+            self._offset.add(wall - ts_unix, now)
+            offset = self._offset.value
+            t_source = _utc(ts)
+            if offset is not None:
+                t_host = ts_unix + offset + (now - wall)
+        status = data_value.StatusCode
+        good = status is None or getattr(status, "is_good", lambda: True)()
+        value = _jsonable(data_value.Value.Value) if (good and data_value.Value is not None) else None
+        item: ControllerValue = {"name": name, "value": value, "t_source": t_source, "t_host": t_host}
+        if not good:
+            item["status"] = getattr(status, "name", str(status))
+        self._pending.append(item)
+        self.updates += 1
+        self.last_update = now
+
+    def _flush(self) -> None:
+        if self._pending:
+            values, self._pending = self._pending, []
+            self._send("data", values)
+
+    def _send(self, state: str, values: list[ControllerValue], **extra: Any) -> None:
+        msg: ControllerMessage = {
+            **stamp(self.machine_id), "kind": "controller", "t_host": time.monotonic(), "endpoint": self.endpoint,
+            "state": state, "values": values, "clock_offset_s": self._offset.value,  # type: ignore[typeddict-item]
+        }
+        msg.update(extra)  # type: ignore[typeddict-item]
+        try:
+            self.emit(msg)
+        except Exception:
+            log.exception("controller: a message could not be handed on")
+
+    async def _until_stopped(self, coro: Any) -> bool:
+        """Await ``coro`` unless the daemon stops first (then it is cancelled: False)."""
+        assert self._stop_event is not None
+        task = asyncio.ensure_future(coro)
+        stop = asyncio.ensure_future(self._stop_event.wait())
+        await asyncio.wait({task, stop}, return_when=asyncio.FIRST_COMPLETED)
+        stop.cancel()
+        if not task.done():
+            task.cancel()
+            with contextlib.suppress(BaseException):
+                await task
+            return False
+        task.result()  # its error, if it failed
+        return True
+
+    @staticmethod
+    async def _wait(event: asyncio.Event, timeout: float) -> bool:
+        """Whether ``event`` was set within ``timeout``."""
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(event.wait(), timeout)
+        return event.is_set()
+
+    async def _disconnect(self, client: Any) -> None:
+        """Close the session, within a second once the daemon stops (the server may be gone)."""
+        limit = min(1.0, self.section.timeout_s) if self._stopping.is_set() else self.section.timeout_s
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(client.disconnect(), limit)
+
+
+class _Handler:
+    """asyncua's subscription handler: each data change to the client, by name."""
+
+    def __init__(self, client: ControllerClient, names: Mapping[Any, list[str]]) -> None:
+        self.client = client
+        self.names = names
+
+    def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
+        for name in self.names.get(node.nodeid, ()):
+            self.client._on_value(name, data.monitored_item.Value)
+
+    def status_change_notification(self, status: Any) -> None:
+        log.debug("controller: subscription status %s", getattr(status, "Status", status))
+
+
+async def _resolve(client: Any, path: str, cnc: int | None, cache: dict[str, list[Any]]) -> Any:
+    """The node at ``path`` (a node id, or a browse path from Objects; see the module docstring), None where the
+    server has none.  ``cache`` keeps each node's children across the map's paths."""
+    from asyncua import ua
+
+    path = path.strip()
+    if path.startswith(_NODE_ID_PREFIXES):
+        node = client.get_node(path)
+        try:
+            await node.read_browse_name()
+        except (ua.UaStatusCodeError, ValueError):
+            return None
+        return node
+    node = client.nodes.objects
+    for segment in (s for s in path.strip("/").split("/") if s):
+        prefix, colon, name = segment.partition(":")
+        ns: int | None = None
+        if not colon:
+            name = segment
+        elif prefix == "cnc":
+            if cnc is None:
+                return None  # the server has no CNC namespace
+            ns = cnc
+        elif prefix.isdigit():
+            ns = int(prefix)
+        else:
+            name = segment  # a colon inside a name
+        key = node.nodeid.to_string()
+        if key not in cache:
+            cache[key] = await node.get_children_descriptions()
+        match = next((d for d in cache[key] if d.BrowseName.Name == name
+                      and (ns is None or d.BrowseName.NamespaceIndex == ns)), None)
+        if match is None:
+            return None
+        node = client.get_node(match.NodeId)
+    return node
+
+
+def _why(err: BaseException) -> str:
+    """An error in words, masked (a URL's password never shows)."""
+    text = str(err) or type(err).__name__
+    return mask_url(f"{type(err).__name__}: {text}" if text != type(err).__name__ else text)
+
+
+__all__ = ["AXIS_NODES", "DEFAULT_NODES", "ControllerClient", "node_map"]
