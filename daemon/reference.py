@@ -19,13 +19,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 DEFAULTS = Path(__file__).with_name("default.toml")
-_SECTION = re.compile(r"^\[(?P<name>[^\]]+)\]\s*(?:#\s*(?P<comment>.*))?$")
+_SECTION = re.compile(r"^(?P<off>#\s*)?\[(?P<name>[^\]]+)\]\s*(?:#\s*(?P<comment>.*))?$")
 _KEY = re.compile(r"^(?P<off>#\s*)?(?P<key>[A-Za-z_][A-Za-z0-9_]*)\s*=\s*(?P<value>.+?)\s*(?:#\s*(?P<comment>.*))?$")
 
 
 def config_table(text: str | None = None) -> str:
     """Markdown tables of the defaults' keys: ``key | default | what`` per section.  A key shipped commented out
-    is optional and shows its example value under "default" as ``(unset; e.g. ...)``; an indented comment line
+    is optional and shows its example value under "default" as ``(unset; e.g. ...)``, and so does a section shipped
+    commented out (``# [controller]``), which gets its own table; an indented comment line
     continues the previous key's comment, and full-line comments just above a key without one describe it."""
     text = DEFAULTS.read_text(encoding="utf-8") if text is None else text
     out: list[str] = []
@@ -35,7 +36,9 @@ def config_table(text: str | None = None) -> str:
         line = raw.strip()
         m = _SECTION.match(line)
         if m:
-            out += ["", f"**`[{m['name']}]`**" + (f": {m['comment']}" if m["comment"] else ""), "",
+            optional = " (optional: shipped commented out)" if m["off"] else ""
+            comment = m["comment"] or (" ".join(above) if m["off"] else "")  # the lines above say what it is
+            out += ["", f"**`[{m['name']}]`**{optional}" + (f": {comment}" if comment else ""), "",
                     "| key | default | what |", "|---|---|---|"]
             last, above = None, []
             continue
