@@ -207,7 +207,7 @@ class ControllerSection:
     channel: str = "Channel_1"  # the channel's browse name under CncChannelList ({channel} in the map)
     axes: list[str] = field(default_factory=lambda: ["X", "Y", "Z"])  # the axes' browse names under CncAxisList
     nodes: dict[str, str] = field(default_factory=dict)  # name -> browse path or node id, over the default map
-    publish_ms: float = 100.0  # the subscription's publishing interval
+    publish_ms: float = 250.0  # the subscription's publishing interval (each wake-up costs: 100 ms doubled the CPU)
     sample_ms: float = 20.0  # the monitored items' sampling interval (positions: 50 Hz)
     timeout_s: float = 4.0  # a request's time-out; the connection is checked as often
     reconnect_min_s: float = 0.5  # the back-off after a failed connection, doubled up to ...

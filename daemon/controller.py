@@ -72,6 +72,7 @@ AXIS_NODES: dict[str, str] = {"act_pos": f"{_AXIS}/ActPos", "cmd_pos": f"{_AXIS}
 _NODE_ID_PREFIXES = ("ns=", "nsu=", "i=", "s=", "g=", "b=")
 OFFSET_WINDOW_S = 60.0  # the clock offset is the smallest delay seen over about this long
 WARN_EVERY_S = 60.0  # a server still absent is said again this often
+EVENT_QUEUE = 10_000  # data changes waiting for the client's task (the oldest dropped beyond)
 SESSION_TIMEOUT_MS = 60_000  # a session the server may drop a minute after a loss (asyncua asks for an hour)
 
 
@@ -161,6 +162,7 @@ class ControllerClient:
         self.last_update: float | None = None  # host monotonic
         self._offset = _Offset()
         self._pending: list[ControllerValue] = []
+        self._flush_soon = False
         self._warned_missing: list[str] | None = None
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -294,8 +296,9 @@ class ControllerClient:
                 by_node[node.nodeid] = []
                 unique.append(node)
             by_node[node.nodeid].append(name)
-        handler = _Handler(self, by_node)
-        sub = await client.create_subscription(self.section.publish_ms, handler)
+        # The subscription's own queue, read by one task: a handler would be called from a task per value
+        sub = await client.create_subscription(self.section.publish_ms, None, queue_maxsize=EVENT_QUEUE)
+        events = sub.__aiter__()  # the queue exists before the first publish
         queue = max(1, math.ceil(self.section.publish_ms / self.section.sample_ms) + 1)
         if unique:
             handles = await sub.subscribe_data_change(unique, queuesize=queue,
@@ -312,11 +315,33 @@ class ControllerClient:
         log.info("controller: connected to %s, %d of %d nodes subscribed%s", self.endpoint, len(found),
                  len(self.nodes), " (reconnect)" if self.connections > 1 else "")
         self._send("connected", [], missing=missing)
-        period = self.section.publish_ms / 1000
-        while not lost.is_set() and not self._stop_event.is_set():  # type: ignore[union-attr]
-            await self._wait(lost, period)
-            self._flush()
+        consumer = asyncio.ensure_future(self._consume(events, by_node))
+        ends = [asyncio.ensure_future(lost.wait()), asyncio.ensure_future(self._stop_event.wait()),  # type: ignore[union-attr]
+                consumer]
+        try:
+            await asyncio.wait(ends, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for t in ends:
+                t.cancel()
+            with contextlib.suppress(BaseException):
+                await consumer
         self._flush()
+
+    async def _consume(self, events: Any, by_node: Mapping[Any, list[str]]) -> None:
+        """Each data change, by name; what one publish brought is handed on together, once the queue is drained
+        (the flush is called soon after: when this task next waits)."""
+        loop = asyncio.get_running_loop()
+        async for ev in events:
+            data = getattr(ev, "data", None)
+            if data is None:  # a status change of the subscription
+                log.debug("controller: subscription event %s", ev)
+                continue
+            names = by_node.get(ev.node.nodeid, ())
+            for name in names:
+                self._on_value(name, data.monitored_item.Value)
+            if names and not self._flush_soon:
+                self._flush_soon = True
+                loop.call_soon(self._flush)
 
     async def _resolve_all(self, client: Any) -> tuple[dict[str, Any], list[str]]:
         namespaces: list[str] = await client.get_namespace_array()
@@ -355,6 +380,7 @@ class ControllerClient:
         self.last_update = now
 
     def _flush(self) -> None:
+        self._flush_soon = False
         if self._pending:
             values, self._pending = self._pending, []
             self._send("data", values)
@@ -397,21 +423,6 @@ class ControllerClient:
         limit = min(1.0, self.section.timeout_s) if self._stopping.is_set() else self.section.timeout_s
         with contextlib.suppress(Exception):
             await asyncio.wait_for(client.disconnect(), limit)
-
-
-class _Handler:
-    """asyncua's subscription handler: each data change to the client, by name."""
-
-    def __init__(self, client: ControllerClient, names: Mapping[Any, list[str]]) -> None:
-        self.client = client
-        self.names = names
-
-    def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
-        for name in self.names.get(node.nodeid, ()):
-            self.client._on_value(name, data.monitored_item.Value)
-
-    def status_change_notification(self, status: Any) -> None:
-        log.debug("controller: subscription status %s", getattr(status, "Status", status))
 
 
 async def _resolve(client: Any, path: str, cnc: int | None, cache: dict[str, list[Any]]) -> Any:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -158,6 +159,8 @@ def test_client_reads_the_map_and_the_override_change(cnc: SimCnc, caplog: pytes
         cnc.set_override(75.0)
         _wait(lambda: any(v["name"] == "override" and v["value"] == 75.0 for m in list(msgs) for v in m["values"]),
               5, "the override's change")
+        _wait(lambda: sum(v["name"] == "cmd_pos.X" for m in list(msgs) for v in m["values"]) >= 60, 10,
+              "a second of positions")
         st = client.stats()
     finally:
         client.stop()
@@ -172,7 +175,8 @@ def test_client_reads_the_map_and_the_override_change(cnc: SimCnc, caplog: pytes
     names = {v["name"] for m in msgs for v in m["values"]}
     assert {"program", "override", "feed", "feed_by_id", "g_functions", "act_pos.X", "cmd_pos.Y"} <= names
     xs = [v for m in msgs for v in m["values"] if v["name"] == "cmd_pos.X"]
-    assert len(xs) > 20, "positions at the server's 50 Hz"  # over about 1.5 s
+    steps = sorted(_unix(b["t_source"]) - _unix(a["t_source"]) for a, b in itertools.pairwise(xs))
+    assert steps[len(steps) // 2] < 0.03, "every position of the server's 50 Hz, none lost between publishes"
     # each value on the daemon's clock, at or before it was handed on (within the publishing interval)
     for m in msgs:
         for v in m["values"]:
