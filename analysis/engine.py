@@ -56,14 +56,24 @@ from .fit import FitResult, solve
 from .fitstate import DEFAULT_SPIKE_WIDTH_DEG, feed_accel
 from .patterns import Pattern, select
 from .plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan
-from .plans import PlanLibrary, RecentSamples, Recognition, SignatureReading, at_feed_in, at_feed_out, read_signature
+from .plans import (
+    PlanLibrary,
+    RecentSamples,
+    Recognition,
+    SignatureReading,
+    at_feed_in,
+    at_feed_out,
+    by_controller,
+    controller_checked,
+    read_signature,
+)
 from .result import result_body
 from .retime import Retimer
 from .testfit import analyze_test
 from .timeaxis import Break, TimeAxis
 
 if TYPE_CHECKING:
-    from ballbar.protocol.messages import AnalysisOutput, CircleBody, TestBody
+    from ballbar.protocol.messages import AnalysisOutput, CircleBody, TestBody, results
     from ballbar.protocol.messages.events import FeedInBody, FeedOutBody, TestRejectedBody
     from ballbar.protocol.messages.results import Dropout, MachineAxis
 
@@ -202,6 +212,8 @@ class TestAnalyzer:
         self._chosen_always = False
         self._reading: SignatureReading | None = None
         self._early: Recognition | None = None
+        self._controller: tuple[str | None, str | None] | None = None  # (program, its plan) now; None: no controller
+        self._ctl_use: results.ControllerUse | None = None  # what the controller said of the test in progress
         self._offset = 0.0
         self.detector = TestDetector(self.plan)
         self.axis = TimeAxis()
@@ -280,6 +292,19 @@ class TestAnalyzer:
         if name is not None:
             self.library.get(name)
         self._chosen, self._chosen_always = name, every_test
+
+    def set_controller(self, program: str | None, plan: str | None) -> None:
+        """What the CNC controller runs now: its main ``program`` (None: none, or not known) and the plan of the
+        library whose program that is (None: none).  A library of several takes the controller's plan for a test
+        whose feed-in comes while it runs (an explicit choice aside), and says what its signature and timing say
+        of it (:func:`~.plans.controller_checked`).  Never called: no controller, nothing changes."""
+        if plan is not None:
+            self.library.get(plan)
+        self._controller = (program, plan)
+
+    def forget_controller(self) -> None:
+        """The controller is not known now (lost): the tests are recognised as without one."""
+        self._controller = None
 
     @property
     def chosen(self) -> str | None:
@@ -466,6 +491,9 @@ class TestAnalyzer:
         self._pre = self._recent.before(fi.t_begin_s)
         self._reading = read_signature(*self._pre, fi.t_begin_s, fi.level_before_mm, self.library.first.plan.feed_in_mm)
         self._early = at_feed_in(self.library, self._reading, self._chosen)
+        self._ctl_use = None
+        if self._controller is not None and self._chosen is None:
+            self._early, self._ctl_use = by_controller(self.library, self._early, self._reading, *self._controller)
         if not self._chosen_always:
             self._chosen = None
         if self._early is None or self._early.name is None:
@@ -589,6 +617,7 @@ class TestAnalyzer:
             return [{"kind": "event", "event": "test_skipped", "test_index": self.test_index, "t_s": fo.t_s,
                      "message": f"not analysed (test {self.only} was asked for)"}]
         rec: Recognition | None = None
+        pre: list[AnalysisOutput] = []  # a disagreement of the controller's plan, before the result
         if self.multi:
             rec = at_feed_out(self.library, self._early, self._reading, fo.t_s - fi.t_s)
             if rec.name is None:
@@ -598,12 +627,21 @@ class TestAnalyzer:
                          "candidates": list(rec.candidates),
                          "signature": rec.signature, "message": rec.message}]
             log.debug("test %d recognised as %s by %s", self.test_index, rec.name, rec.method)
+            if rec.method == "controller":
+                rec, disagreement = controller_checked(rec)
+                if disagreement is not None:
+                    log.warning("test %d: %s", self.test_index, disagreement)
+                    assert rec.controller is not None and rec.name is not None
+                    pre = [self._disagrees(fo.t_s, rec.name, rec.controller, list(rec.candidates), disagreement)]
+            elif self._ctl_use is not None:
+                rec = replace(rec, controller=self._ctl_use)
+            assert rec.name is not None
             if self._early is None or rec.name != self._early.name:
                 self._use_plan(rec.name)
             steps = self._steps_as(rec.name, fi, fo)
             if steps is None or steps[1] is None:
-                return [self._reject(fo.t_s, None, f"the steps of the test, recognised as {rec.name}, are not found "
-                                     f"again with that plan's feed and dwell")]
+                return [*pre, self._reject(fo.t_s, None, f"the steps of the test, recognised as {rec.name}, are not "
+                                           f"found again with that plan's feed and dwell")]
             fi, fo = steps[0], steps[1]
         tb, Lb = self.detector.samples()
         if self.multi and not self.library.same_steps(self.plan_name):
@@ -612,12 +650,18 @@ class TestAnalyzer:
         L_test = Lb[m] + self._offset if self._offset else Lb[m]
         args = (self.plan, self.machine, self.options, tb[m], L_test, fi, fo, self.curves)
         if self.executor is None:
-            return self._settle(self.test_index, fo, lambda: analyze_test(*args), rec)
+            return [*pre, *self._settle(self.test_index, fo, lambda: analyze_test(*args), rec)]
         fut = self.executor.submit(analyze_test, *args)
         self._pending = (self.test_index, fo, fut, rec)
         if self.on_submit is not None:
             self.on_submit(fut)
-        return []
+        return pre
+
+    def _disagrees(self, t_s: float, plan: str, use: results.ControllerUse, candidates: list[str],
+                   message: str) -> AnalysisOutput:
+        return {"kind": "event", "event": "controller_disagrees", "test_index": self.test_index, "t_s": t_s,
+                "plan": plan, "program": use["program"] or "", "signature_plan": use["signature_plan"],
+                "candidates": candidates, "message": message}
 
     def _settle(self, index: int, fo: StepEvent, fit: Callable[[], dict[str, Any]], rec: Recognition | None = None,
                 ) -> list[AnalysisOutput]:
@@ -646,6 +690,8 @@ class TestAnalyzer:
         # assembled field by field (analysis/fitresult.py): its shape is TestBody's, which the schema tests check
         body = cast("TestBody", result)
         self._name_plan(body, rec)
+        if rec is not None and rec.controller is not None:
+            body["controller"] = rec.controller
         if self.multi:
             self.hints = self.plan_hints.get(self.plan_name, TimingHints())
         hints = TimingHints.learnt(body["timing"], self.hints)

@@ -354,7 +354,7 @@ OVERRIDE = (0.8, 1.2)
 OVERRIDE_TOL = 0.03  # beyond them: the measured span's own spread, the overhead's
 MAX_OVERHEAD_S = 0.3  # the per-move overhead (acceleration, in-position waits) a plan's timing allows
 
-Method = Literal["only", "signature", "timing", "chosen"]
+Method = Literal["only", "signature", "timing", "chosen", "controller"]
 
 
 @dataclass(frozen=True)
@@ -369,6 +369,7 @@ class Recognition:
     candidates: tuple[str, ...] = ()
     reason: str = ""
     message: str = ""
+    controller: results.ControllerUse | None = None  # what the CNC controller said (None: no controller)
 
     def to_dict(self) -> results.Recognition:
         """As a result states it (a recognised test's: ``method`` is set)."""
@@ -430,7 +431,7 @@ def at_feed_out(library: PlanLibrary, early: Recognition | None, reading: Signat
                 span_s: float) -> Recognition:
     """The plan of a test whose feed-in to feed-out centroid span is ``span_s`` (see the module docstring)."""
     fits = timing_fits(library, span_s)
-    if early is not None and early.method in ("only", "chosen"):
+    if early is not None and early.method in ("only", "chosen", "controller"):
         assert early.name is not None
         ratio = feed_from_span(library.get(early.name).plan, span_s, 0.0) / library.get(early.name).plan.feed_mm_s
         return replace(early, feed_ratio=ratio if math.isfinite(ratio) else None, candidates=tuple(fits))
@@ -458,6 +459,48 @@ def at_feed_out(library: PlanLibrary, early: Recognition | None, reading: Signat
     return Recognition(None, None, None, None, tuple(fits), "ambiguous", (
         f"{len(fits)} plans' timing fits ({', '.join(fits)}: {span_s:.1f} s from feed-in to feed-out) and {why} "
         "tells them apart; not analysed as any of them (their programs from ballbar gcode carry signatures)"))
+
+
+def by_controller(library: PlanLibrary, early: Recognition | None, reading: SignatureReading | None,
+                  program: str | None, plan: str | None) -> tuple[Recognition | None, results.ControllerUse]:
+    """What the CNC controller says at the feed-in: the main ``program`` it runs, and the ``plan`` whose program
+    pattern that matches (None: none).  A plan it names is the test's, whatever the signature says (checked at
+    the feed-out, :func:`controller_checked`); else the recognition stays ``early``.  With the controller's
+    account of the test (the result's ``controller`` block)."""
+    sig = library.by_signature(reading.code) if reading is not None and reading.code is not None else None
+    sig_plan = sig.name if sig is not None else None
+    if plan is None:
+        what = (f"the controller ran {program}, which no plan's program names" if program
+                else "the controller ran no program at the feed-in")
+        use: results.ControllerUse = {"program": program, "plan": None, "used": False, "signature_plan": sig_plan,
+                                      "timing_fits": None, "agrees": True, "message": what}
+        return early, use
+    library.get(plan)
+    use = {"program": program, "plan": plan, "used": True, "signature_plan": sig_plan, "timing_fits": None,
+           "agrees": sig_plan in (None, plan), "message": f"{plan}: the controller ran its program {program}"}
+    return Recognition(plan, "controller", reading.code if reading is not None else None,
+                       message=f"{plan}: the controller ran its program {program} at the feed-in", controller=use), use
+
+
+def controller_checked(rec: Recognition) -> tuple[Recognition, str | None]:
+    """A recognition by the controller checked against the signature and the timing at the feed-out: the
+    recognition with its controller block completed, and the disagreement in words (None: they agree)."""
+    use = rec.controller
+    if use is None or not use["used"] or rec.name is None:
+        return rec, None
+    fits = rec.name in rec.candidates
+    problems = []
+    if use["signature_plan"] not in (None, rec.name):
+        problems.append(f"its signature names {use['signature_plan']}")
+    if not fits:
+        others = f" ({', '.join(rec.candidates)} fit)" if rec.candidates else ""
+        problems.append(f"{rec.name}'s timing does not fit the test at a feed override of "
+                        f"{100 * OVERRIDE[0]:g}..{100 * OVERRIDE[1]:g} %{others}")
+    agrees = not problems
+    text = (f"{rec.name}: the controller ran its program {use['program']}" + ("; the signature and the timing agree"
+            if agrees else f", but {' and '.join(problems)}; analysed as {rec.name}, the controller's"))
+    done: results.ControllerUse = {**use, "timing_fits": fits, "agrees": agrees, "message": text}
+    return replace(rec, controller=done, message=text), None if agrees else text
 
 
 # --------------------------------------------------------------------------- samples before the feed-in

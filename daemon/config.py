@@ -172,9 +172,12 @@ class PlanEntry:
     plan: TestPlan
     signature: int | None = None
     limits: LimitsSection | None = None
+    program: str | None = None  # the controller's main program name (a glob) while this plan runs ([controller])
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {**self.plan.to_dict(), "signature": self.signature}
+        if self.program is not None:
+            out["program"] = self.program
         if self.limits is not None:
             out["limits"] = asdict(self.limits)
         return out
@@ -495,12 +498,18 @@ def build_plans(base: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]]
         if any(k == "machine" or k.startswith("machine.") for k in data):  # a TOML table, or --set plans.N.machine.K
             raise ConfigError(f"{where}.machine: the machine's settings are per axis, given once in [machine] "
                               f"({', '.join(MachineAxes.axis_keys())}); each plan takes its plane's two")
-        known = {f.name for f in fields(TestPlan)} | {"signature", "limits"}
+        known = {f.name for f in fields(TestPlan)} | {"signature", "limits", "program"}
         unknown = sorted(set(data) - known)
         if unknown:
             raise ConfigError(f"unknown key {where}.{unknown[0]} (known: {', '.join(sorted(known))})")
         signature = data.pop("signature", None)
         own = data.pop("limits", None)
+        program = data.pop("program", None)
+        if program is not None:
+            program = _check_type(f"{where}.program", program, str)
+            if not program.strip():
+                raise ConfigError(f"{where}.program must name the controller's program (a name or a pattern such "
+                                  'as "O9101" or "BALLBAR_*"), not empty')
         plan = _build(where, TestPlan, {**base, **data})
         if signature is not None:
             signature = _check_type(f"{where}.signature", signature, int)
@@ -511,7 +520,7 @@ def build_plans(base: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]]
             if not isinstance(own, Mapping):
                 raise ConfigError(f"[{where}.limits] must be a table")
             entry_limits = _build(f"{where}.limits", LimitsSection, {**limits, **own})
-        out[name] = PlanEntry(plan, signature, entry_limits)
+        out[name] = PlanEntry(plan, signature, entry_limits, program)
     if out:
         try:
             PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature) for n, e in out.items()))

@@ -35,6 +35,7 @@ import collections
 import concurrent.futures as cf
 import contextlib
 import datetime as dt
+import fnmatch
 import functools
 import logging
 import math
@@ -79,6 +80,7 @@ from .systemd import Notifier
 
 if TYPE_CHECKING:
     from ballbar.protocol.messages import AnalysisOutput, CircleResult, ConfigMessage, Settings, Status, TestResult
+    from ballbar.protocol.messages.controller import ControllerMessage
     from ballbar.protocol.messages.envelope import LastSample
     from ballbar.protocol.messages.events import PlanChoiceRefusedBody, PlanChosenBody, SourceEvent, TestIncomplete
     from ballbar.protocol.messages.publish import Published
@@ -132,6 +134,8 @@ class AnalysisListener(Listener):
         self.emit = emit
         self.executor = executor
         self.wake: Callable[[], object] | None = None
+        self._programs = {n: e.program for n, e in cfg.plans.items() if e.program}  # plans.<name>.program
+        self._controller: tuple[str | None, str | None] | None = None  # the controller's (program, plan) now
         self.analyzer = self._new_analyzer()
         self._test_end: tuple[float, float, float] | None = None  # last_t, last_t_host, perf time at feed-out
         self._period = 0.0  # batch_period_now()
@@ -151,8 +155,30 @@ class AnalysisListener(Listener):
 
     def _new_analyzer(self, hints: TimingHints | None = None,
                       plan_hints: dict[str, TimingHints] | None = None) -> TestAnalyzer:
-        return TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, hints, executor=self.executor,
-                            on_submit=self._submitted, library=self.cfg.library, plan_hints=plan_hints)
+        an = TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, hints, executor=self.executor,
+                          on_submit=self._submitted, library=self.cfg.library, plan_hints=plan_hints)
+        if self._controller is not None:
+            an.set_controller(*self._controller)
+        return an
+
+    def _on_controller(self, msg: ControllerMessage) -> None:
+        """The CNC controller's news: the main program it runs now, and the plan whose program that is (the
+        first in the library's order whose ``program`` pattern matches it).  Lost: not known."""
+        if msg["state"] == "lost":
+            self._controller = None
+            self.analyzer.forget_controller()
+            return
+        programs = [v["value"] for v in msg["values"] if v["name"] == "program"]
+        if not programs:
+            return
+        program = programs[-1] if isinstance(programs[-1], str) and programs[-1] else None
+        plan = next((n for n, pattern in self._programs.items()
+                     if program is not None and fnmatch.fnmatchcase(program, pattern)), None)
+        if self._controller != (program, plan):
+            log.info("the controller runs %s%s", program or "no program",
+                     f": plan {plan}" if plan else (" (no plan's program)" if program else ""))
+        self._controller = (program, plan)
+        self.analyzer.set_controller(program, plan)
 
     def _submitted(self, fut: cf.Future[dict[str, Any]]) -> None:
         fut.add_done_callback(lambda _f: self.wake() if self.wake is not None else None)
@@ -180,6 +206,9 @@ class AnalysisListener(Listener):
     def on_message(self, msg: Message) -> None:
         if msg["kind"] == "analysis_done":
             self.settle()
+        elif msg["kind"] == "controller":
+            with self._lock:
+                self._on_controller(msg)
         elif msg["kind"] == "plan_choice":
             with self._lock:
                 answer = self._choose(msg["plan"])
@@ -492,7 +521,10 @@ class Daemon:
         self.analysis_queue.put_message(choice)
 
     def broadcast(self, msg: Message) -> None:
-        """Hand a message to every output (never blocks: each queue has its policy)."""
+        """Hand a message to every output (never blocks: each queue has its policy); the controller's to the
+        analysis too (the program it runs: the plan of the next test)."""
+        if msg["kind"] == "controller":
+            self.analysis_queue.put_message(msg)
         if msg["kind"] == "test":
             for lst in self.annotators:
                 msg = lst.annotate(msg)

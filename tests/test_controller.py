@@ -281,3 +281,46 @@ def _unix(text: str) -> float:
     import datetime as dt
 
     return dt.datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
+
+
+# ----------------------------------------------------------------------------- fusion: the plan by program
+
+
+def test_the_controllers_program_names_the_plan(tmp_path: Path) -> None:
+    """A library of xy and zx, each naming its program; the controller runs O9101 (xy's) throughout while the
+    simulated bar runs xy, then zx, in turn: the xy tests are xy by the controller with the signature and timing
+    agreeing; a zx test is taken as xy, the controller's, and the disagreement is an event before its outcome."""
+    port = free_port()
+    cnc = CncProcess(port, "--program", "O9101", "--idle-s", "0")
+    toml = tmp_path / "ballbar.toml"
+    toml.write_text(
+        f'[controller]\nendpoint = "{cnc.endpoint}"\nreconnect_max_s = 1.0\n'
+        '[plans.xy]\nplane = "XY"\nprogram = "O9101"\n'
+        '[plans.zx]\nplane = "ZX"\nstart_deg = -115.0\novershoot_deg = 5.0\ndata_arc_deg = 220.0\nprogram = "O91*2"\n')
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--config", str(toml), "--source",
+             "sim:?rate=200&speedup=20&repeat=4&gap_s=2", "--machine-id", "cnc", "--state-dir", str(tmp_path / "state"),
+             "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"', "--set", "daemon.analysis_worker=false",
+             "--set", "plan.sample_hz=200"],
+            capture_output=True, text=True, timeout=300)
+    finally:
+        cnc.kill()
+    assert out.returncode == 0, out.stderr[-3000:]
+    lg = read_logs(list_recordings(tmp_path / "state" / "recordings"))
+    tests = [r for r in lg.results if r.get("kind") == "test"]
+    ours = [r for r in tests if "controller" in r]
+    assert ours, [(r["plan"]["name"], r["recognition"]) for r in tests]
+    agreed = [r for r in ours if r["plan"]["name"] == "xy" and r["controller"]["agrees"]]
+    assert agreed, [r["controller"] for r in ours]
+    for r in agreed:
+        assert r["recognition"]["method"] == "controller"
+        assert r["controller"] == {**r["controller"], "program": "O9101", "plan": "xy", "used": True,
+                                   "signature_plan": "xy", "timing_fits": True}
+    disagreements = [e for e in lg.events if e.get("event") == "controller_disagrees"]
+    assert disagreements, out.stderr[-3000:]
+    for e in disagreements:
+        validate(e, "mcap-event")  # as the log stores an event: without kind
+        assert e["plan"] == "xy" and e["program"] == "O9101" and e["signature_plan"] == "zx"
+        assert "zx" in e["message"] and "xy" in e["message"]
+    assert "controller_disagrees" not in {e.get("event") for e in lg.events if e.get("plan") == "zx"}

@@ -151,6 +151,8 @@ class PlanEntry(Plan):
                                          null="none, a library of one")]
     limits: NotRequired[Annotated[dict[str, object], doc("its own [limits] (over the global one; absent: the global "
                                                          "one)")]]
+    program: NotRequired[Annotated[str, doc("the controller's main program while it runs, a name or a glob pattern "
+                                            "([controller]; absent: none)")]]
 
 
 class SetEntry(TypedDict):

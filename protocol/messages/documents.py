@@ -33,7 +33,7 @@ PIPELINE_EVENTS: dict[str, Any] = {
     "feed_in": ev.FeedIn, "feed_out": ev.FeedOut, "test_rejected": ev.TestRejected,
     "test_incomplete": ev.TestIncomplete, "analysis_reset": ev.AnalysisReset,
     "test_unrecognised": ev.TestUnrecognised, "plan_chosen": ev.PlanChosen,
-    "plan_choice_refused": ev.PlanChoiceRefused,
+    "plan_choice_refused": ev.PlanChoiceRefused, "controller_disagrees": ev.ControllerDisagrees,
 }
 EVENTS = {**SOURCE_EVENTS, **PIPELINE_EVENTS}
 

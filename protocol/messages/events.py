@@ -242,6 +242,20 @@ class PlanChoiceRefusedBody(TypedDict):
     message: Annotated[str, doc("why")]
 
 
+class ControllerDisagreesBody(TypedDict):
+    """The analysis' ``controller_disagrees`` event, as the daemon publishes it in :class:`ControllerDisagrees`."""
+
+    kind: EventKind
+    event: Name[Literal["controller_disagrees"]]
+    test_index: TestIndex
+    t_s: NotRequired[TS]
+    plan: Annotated[str, doc("the plan the controller's program names: the test's")]
+    program: Annotated[str, doc("the main program the controller ran at the feed-in")]
+    signature_plan: Annotated[str | None, doc("the plan the program's signature named", null="none read")]
+    candidates: Annotated[list[str], doc("the plans whose timing fits the test")]
+    message: Annotated[str, doc("what disagrees, in words")]
+
+
 class TestSkippedBody(TypedDict):
     """Offline only (``ballbar analyze --test N``): a test not analysed because another was asked for."""
 
@@ -286,10 +300,15 @@ class PlanChoiceRefused(PipelineStamp, PlanChoiceRefusedBody, MaybeLastSample):
     """a choice of the next plan named no plan of the library, or was not understood"""
 
 
+class ControllerDisagrees(PipelineStamp, ControllerDisagreesBody, MaybeLastSample):
+    """the controller's program named the test's plan, and its signature or its timing say otherwise (the
+    controller's plan is taken; the result's controller block says so too)"""
+
+
 PipelineEvent = (FeedIn | FeedOut | TestRejected | TestIncomplete | AnalysisReset | TestUnrecognised | PlanChosen
-                 | PlanChoiceRefused)
+                 | PlanChoiceRefused | ControllerDisagrees)
 EventBody = (FeedInBody | FeedOutBody | TestRejectedBody | TestIncompleteBody | AnalysisResetBody | TestSkippedBody
-             | TestUnrecognisedBody | PlanChosenBody | PlanChoiceRefusedBody)
+             | TestUnrecognisedBody | PlanChosenBody | PlanChoiceRefusedBody | ControllerDisagreesBody)
 Event = SourceEvent | PipelineEvent
 
 

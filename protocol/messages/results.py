@@ -141,13 +141,29 @@ class ResultPlan(Plan):
 class Recognition(TypedDict):
     """how the test's plan was known (analysis/plans.py)"""
 
-    method: Annotated[Literal["only", "signature", "timing", "chosen"], doc(
+    method: Annotated[Literal["only", "signature", "timing", "chosen", "controller"], doc(
         "only: a library of one; signature: the code before its feed-in (checked against its timing); timing: the "
-        "only plan whose timing fits; chosen: named by an operator or service")]
+        "only plan whose timing fits; chosen: named by an operator or service; controller: the plan whose program "
+        "the controller ran at the feed-in ([controller], plans.<name>.program)")]
     signature: Annotated[int | None, doc("the signature's code read before the feed-in", null="none read")]
     feed_ratio: Annotated[float | None, doc("the feed-in to feed-out span's feed over the plan's (a feed override), "
                                             "at no per-move overhead", null="not computed")]
     candidates: Annotated[list[str], doc("the plans whose timing fits the test at a feed override of 80..120 %")]
+    message: Annotated[str, doc("in words")]
+
+
+class ControllerUse(TypedDict):
+    """what the CNC controller said of the test ([controller]): the program it ran at the feed-in, the plan that
+    program names, and whether the signature and the timing agree"""
+
+    program: Annotated[str | None, doc("the main program the controller ran at the feed-in",
+                                       null="none known (not connected, or no program running)")]
+    plan: Annotated[str | None, doc("the plan whose program pattern it matches", null="none")]
+    used: Annotated[bool, doc("the controller's plan is the test's (recognition.method controller)")]
+    signature_plan: Annotated[str | None, doc("the plan the program's signature named", null="none read")]
+    timing_fits: Annotated[bool | None, doc("the plan's timing fits the test at a feed override of 80..120 %",
+                                            null="not checked")]
+    agrees: Annotated[bool, doc("the signature (where read) and the timing agree with the controller's plan")]
     message: Annotated[str, doc("in words")]
 
 
@@ -509,6 +525,7 @@ class TestBody(TypedDict):
     test_index: TestIndex
     plan: ResultPlan
     recognition: NotRequired[Recognition]
+    controller: NotRequired[ControllerUse]
     machine: Machine
     parameters: Parameters
     ranking: Ranking
