@@ -102,6 +102,18 @@ def test_without_a_section_nothing_changes() -> None:
     assert with_it.controller is not None and with_it.to_dict()["controller"]["endpoint"].startswith("opc.tcp://")
 
 
+def test_a_plans_program() -> None:
+    sets = ['plans.xy.plane="XY"', 'plans.zx.plane="ZX"', 'plans.zx.data_arc_deg=220.0', 'plans.zx.overshoot_deg=5.0',
+            'plans.zx.start_deg=-115.0']
+    cfg = load(sets=[*sets, 'plans.zx.program="O91*"'], env={})
+    assert cfg.plans["zx"].program == "O91*" and cfg.to_dict()["plans"]["zx"]["program"] == "O91*"
+    assert "program" not in cfg.to_dict()["plans"]["xy"]
+    with pytest.raises(ConfigError, match=r"plans\.zx\.program must name"):
+        load(sets=[*sets, 'plans.zx.program=" "'], env={})
+    with pytest.raises(ConfigError, match=r"plans\.zx\.program must be a string"):
+        load(sets=[*sets, "plans.zx.program=9102"], env={})
+
+
 def test_no_controller_no_asyncua(tmp_path: Path) -> None:
     """A daemon run without [controller] never imports asyncua; with it, it does (so the check can fail)."""
     code = (
