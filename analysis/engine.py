@@ -293,14 +293,18 @@ class TestAnalyzer:
             self.library.get(name)
         self._chosen, self._chosen_always = name, every_test
 
-    def set_controller(self, program: str | None, plan: str | None) -> None:
-        """What the CNC controller runs now: its main ``program`` (None: none, or not known) and the plan of the
-        library whose program that is (None: none).  A library of several takes the controller's plan for a test
-        whose feed-in comes while it runs (an explicit choice aside), and says what its signature and timing say
-        of it (:func:`~.plans.controller_checked`).  Never called: no controller, nothing changes."""
-        if plan is not None:
-            self.library.get(plan)
-        self._controller = (program, plan)
+    def set_controller(self, program: str | None) -> None:
+        """What the CNC controller runs now: its main ``program`` (None or empty: none).  A library of several
+        takes the plan whose program that is (:meth:`~.plans.PlanLibrary.by_program`) for a test whose feed-in
+        comes while it runs (an explicit choice aside), and says what its signature and timing say of it
+        (:func:`~.plans.controller_checked`).  Never called: no controller, nothing changes."""
+        p = self.library.by_program(program)
+        self._controller = (program or None, p.name if p is not None else None)
+
+    @property
+    def controller(self) -> tuple[str | None, str | None] | None:
+        """The controller's (program, its plan) now; None: no controller known."""
+        return self._controller
 
     def forget_controller(self) -> None:
         """The controller is not known now (lost): the tests are recognised as without one."""
@@ -752,6 +756,7 @@ def analyze_recording(
     only: int | None = None,
     library: PlanLibrary | None = None,
     chosen: str | None = None,
+    controller: Sequence[tuple[int, bool, str | None]] = (),
 ) -> list[AnalysisOutput]:
     """Everything :class:`TestAnalyzer` reports on a whole recording, in order.
 
@@ -762,7 +767,9 @@ def analyze_recording(
     discontinuity the times may not show (a device reset) just before sample
     ``index`` (:meth:`TestAnalyzer.mark_break`).  ``circles``: False for no
     provisional circle results (the tests' results are the same).  ``only``:
-    fit that test alone (see :class:`TestAnalyzer`; with ``circles=False``).
+    fit that test alone (see :class:`TestAnalyzer`; with ``circles=False``).  ``controller``: ``(index, known,
+    program)``, what the CNC controller said from sample ``index`` on (:meth:`TestAnalyzer.set_controller`;
+    ``known`` False: lost), as the daemon took it live.
     """
     t = np.asarray(t, dtype=float)
     L = np.asarray(L, dtype=float)
@@ -775,10 +782,18 @@ def analyze_recording(
     plan = an.plan
     out: list[AnalysisOutput] = []
     i = 0
-    for j, reason in sorted(breaks, key=lambda b: b[0]):
-        j = min(max(int(j), i), t.size)
+    # the breaks and the controller's news, in sample order (a break first where both fall before one sample)
+    marks: list[tuple[int, int, Any]] = [(int(k), 0, why) for k, why in breaks]
+    marks += [(int(k), 1, (known, program)) for k, known, program in controller]
+    for at, kind, arg in sorted(marks, key=lambda m: (m[0], m[1])):
+        j = min(max(at, i), t.size)
         out.extend(an.feed(t[i:j], L[i:j], borrow=True))
-        an.mark_break(reason)
+        if kind == 0:
+            an.mark_break(arg)
+        elif arg[0]:
+            an.set_controller(arg[1])
+        else:
+            an.forget_controller()
         i = j
     out.extend(an.feed(t[i:], L[i:], borrow=True))
     out.extend(an.finish())

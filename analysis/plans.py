@@ -48,6 +48,7 @@ must all have run).
 
 from __future__ import annotations
 
+import fnmatch
 import math
 import re
 import zlib
@@ -247,6 +248,7 @@ class NamedPlan:
     name: str
     plan: TestPlan
     signature: int | None = None
+    program: str | None = None  # the CNC controller's main program while it runs: a name or a glob ([controller])
 
     @property
     def axes(self) -> tuple[str, str]:
@@ -293,6 +295,13 @@ class PlanLibrary:
                 codes[p.signature] = p.name
         if len(self.plans) > 1 and any(p.signature is None for p in self.plans):
             raise PlanError("every plan of a library of several has a signature")
+
+    def by_program(self, program: str | None) -> NamedPlan | None:
+        """The first plan, in order, whose ``program`` pattern (``fnmatch``, case-sensitive) matches the
+        controller's main program (None: none, or no program)."""
+        if not program:
+            return None
+        return next((p for p in self.plans if p.program and fnmatch.fnmatchcase(program, p.program)), None)
 
     @classmethod
     def single(cls, plan: TestPlan, name: str = "default") -> PlanLibrary:
@@ -480,6 +489,19 @@ def by_controller(library: PlanLibrary, early: Recognition | None, reading: Sign
            "agrees": sig_plan in (None, plan), "message": f"{plan}: the controller ran its program {program}"}
     return Recognition(plan, "controller", reading.code if reading is not None else None,
                        message=f"{plan}: the controller ran its program {program} at the feed-in", controller=use), use
+
+
+def controller_program(msg: Mapping[str, Any]) -> tuple[bool | None, str | None]:
+    """What a ``controller`` message (``ballbar.Controller``) says of the main program: ``(True, program)`` (None:
+    none runs), ``(False, None)``: the controller is lost, not known; ``(None, None)``: nothing about it.  The
+    daemon's live rule and the offline one (a recording's ``/ballbar/controller`` records)."""
+    if msg.get("state") == "lost":
+        return False, None
+    values = [v.get("value") for v in msg.get("values") or () if isinstance(v, Mapping) and v.get("name") == "program"]
+    if not values:
+        return None, None
+    last = values[-1]
+    return True, last if isinstance(last, str) and last else None
 
 
 def controller_checked(rec: Recognition) -> tuple[Recognition, str | None]:

@@ -260,7 +260,7 @@ class Config:
 
         if not self.plans:
             return PlanLibrary.single(self.plan)
-        return PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature) for n, e in self.plans.items()))
+        return PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature, e.program) for n, e in self.plans.items()))
 
     @property
     def limits_enabled(self) -> bool:
@@ -481,7 +481,7 @@ def library_of(sections: Mapping[str, Any]) -> PlanLibrary | None:
     if not isinstance(tables, Mapping) or not tables:
         return None
     entries = build_plans(sections.get("plan") or {}, tables, sections.get("limits") or {})
-    return PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature) for n, e in entries.items()))
+    return PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature, e.program) for n, e in entries.items()))
 
 
 def build_plans(base: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]], limits: Mapping[str, Any],
@@ -523,7 +523,7 @@ def build_plans(base: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]]
         out[name] = PlanEntry(plan, signature, entry_limits, program)
     if out:
         try:
-            PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature) for n, e in out.items()))
+            PlanLibrary(tuple(NamedPlan(n, e.plan, e.signature, e.program) for n, e in out.items()))
         except PlanError as err:
             raise ConfigError(f"[plans] {err}") from None
     return out

@@ -18,7 +18,8 @@ that neither a slow server nor the stack's coroutines ever touch the reader, the
   ``controller`` message (:class:`~ballbar.protocol.messages.controller.ControllerMessage`) for all the values that
   changed, through ``emit`` (the daemon's broadcast: the MCAP logger records it on ``/ballbar/controller``).
 * **Time.** Each value carries the server's source timestamp; ``t_host`` is that time on the daemon's monotonic
-  clock: ``t_source + clock_offset_s`` as wall time, then wall to monotonic as at its arrival.
+  clock: ``t_source + clock_offset_s`` as wall time, then wall to monotonic, once per publish (all its values
+  with one offset, so that their order in time holds).
   ``clock_offset_s`` (wall minus server) is the smallest arrival minus source timestamp seen over the last
   minute: it holds the server's clock offset plus the shortest delay through the stack, never the publishing
   interval's wait.  A value without a source timestamp gets its arrival time.
@@ -162,6 +163,7 @@ class ControllerClient:
         self.last_update: float | None = None  # host monotonic
         self._offset = _Offset()
         self._pending: list[ControllerValue] = []
+        self._unmapped: list[int] = []  # those of _pending whose t_host is still the server's time
         self._flush_soon = False
         self._warned_missing: list[str] | None = None
         self._thread: threading.Thread | None = None
@@ -358,17 +360,18 @@ class ControllerClient:
         return found, missing
 
     def _on_value(self, name: str, data_value: Any) -> None:
+        """A value as it arrives: its time on the daemon's clock is given at the flush, with the offset that
+        the whole publish taught (one offset for all its values: their order in time stays)."""
         now, wall = time.monotonic(), time.time()
         ts = data_value.SourceTimestamp
         t_source: str | None = None
-        t_host = now
+        t_host: float = now
         if isinstance(ts, dt.datetime):
             ts_unix = _unix(ts)
             self._offset.add(wall - ts_unix, now)
-            offset = self._offset.value
             t_source = _utc(ts)
-            if offset is not None:
-                t_host = ts_unix + offset + (now - wall)
+            t_host = ts_unix  # (server time until the flush maps it)
+            self._unmapped.append(len(self._pending))
         status = data_value.StatusCode
         good = status is None or getattr(status, "is_good", lambda: True)()
         value = _jsonable(data_value.Value.Value) if (good and data_value.Value is not None) else None
@@ -383,6 +386,11 @@ class ControllerClient:
         self._flush_soon = False
         if self._pending:
             values, self._pending = self._pending, []
+            unmapped, self._unmapped = self._unmapped, []
+            offset = self._offset.value
+            shift = (offset if offset is not None else 0.0) + (time.monotonic() - time.time())  # server -> monotonic
+            for i in unmapped:
+                values[i]["t_host"] = float(values[i]["t_host"] or 0.0) + shift
             self._send("data", values)
 
     def _send(self, state: str, values: list[ControllerValue], **extra: Any) -> None:

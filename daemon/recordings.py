@@ -253,7 +253,7 @@ def analyze(
     rec, left_out = screen(rec)
     try:
         out = analyze_recording(rec.t, rec.L, plan, machine, options, curves=curves, breaks=rec.breaks,
-                                circles=False, only=only, library=library, chosen=chosen)
+                                circles=False, only=only, library=library, chosen=chosen, controller=rec.controller)
     except DataError as err:
         if rec.name and not str(err).startswith(rec.name):
             err.args = (f"{rec.name}: {err}",)

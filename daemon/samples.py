@@ -327,7 +327,8 @@ class Recording:
     ``axis``: which clock ``t`` is (``"device"``, ``"host"``, or ``"t_s"`` for
     a CSV); ``name``: the file or directory, for messages; ``timing``: a
     polled source's ``timing`` events, ``(t_host, uncertainty, jitter)``
-    (:mod:`ballbar.analysis.polled`), stated on each result.
+    (:mod:`ballbar.analysis.polled`), stated on each result; ``controller``: the CNC controller's main
+    program from sample ``index`` on, ``(index, known, program)`` (``[controller]``'s records).
     """
 
     t: np.ndarray
@@ -336,6 +337,7 @@ class Recording:
     axis: str = "t_s"
     name: str = ""
     timing: list[tuple[float, float, float]] = field(default_factory=list)
+    controller: list[tuple[int, bool, str | None]] = field(default_factory=list)  # (index, known, program)
 
 
 __all__ = ["SAMPLE_DTYPE", "EventKind", "Recording", "SampleBatch", "SourceEvent", "SourceStats", "break_reason",

@@ -35,7 +35,6 @@ import collections
 import concurrent.futures as cf
 import contextlib
 import datetime as dt
-import fnmatch
 import functools
 import logging
 import math
@@ -134,8 +133,8 @@ class AnalysisListener(Listener):
         self.emit = emit
         self.executor = executor
         self.wake: Callable[[], object] | None = None
-        self._programs = {n: e.program for n, e in cfg.plans.items() if e.program}  # plans.<name>.program
-        self._controller: tuple[str | None, str | None] | None = None  # the controller's (program, plan) now
+        self._program: str | None = None  # the controller's main program now (None: none)
+        self._controller_known = False  # a controller's state has come (and was not lost since)
         self.analyzer = self._new_analyzer()
         self._test_end: tuple[float, float, float] | None = None  # last_t, last_t_host, perf time at feed-out
         self._period = 0.0  # batch_period_now()
@@ -157,28 +156,28 @@ class AnalysisListener(Listener):
                       plan_hints: dict[str, TimingHints] | None = None) -> TestAnalyzer:
         an = TestAnalyzer(self.cfg.plan, self.cfg.machine, self.cfg.analysis, hints, executor=self.executor,
                           on_submit=self._submitted, library=self.cfg.library, plan_hints=plan_hints)
-        if self._controller is not None:
-            an.set_controller(*self._controller)
+        if self._controller_known:
+            an.set_controller(self._program)
         return an
 
     def _on_controller(self, msg: ControllerMessage) -> None:
-        """The CNC controller's news: the main program it runs now, and the plan whose program that is (the
-        first in the library's order whose ``program`` pattern matches it).  Lost: not known."""
-        if msg["state"] == "lost":
-            self._controller = None
+        """The CNC controller's news: the main program it runs now (the analyzer finds its plan).  Lost: not
+        known (:func:`~ballbar.analysis.plans.controller_program` is the same rule, offline)."""
+        from ballbar.analysis.plans import controller_program
+
+        known, program = controller_program(msg)
+        if known is None:
+            return
+        if not known:
+            self._controller_known = False
             self.analyzer.forget_controller()
             return
-        programs = [v["value"] for v in msg["values"] if v["name"] == "program"]
-        if not programs:
-            return
-        program = programs[-1] if isinstance(programs[-1], str) and programs[-1] else None
-        plan = next((n for n, pattern in self._programs.items()
-                     if program is not None and fnmatch.fnmatchcase(program, pattern)), None)
-        if self._controller != (program, plan):
+        if not self._controller_known or program != self._program:
+            p = self.cfg.library.by_program(program)
             log.info("the controller runs %s%s", program or "no program",
-                     f": plan {plan}" if plan else (" (no plan's program)" if program else ""))
-        self._controller = (program, plan)
-        self.analyzer.set_controller(program, plan)
+                     f": plan {p.name}" if p else (" (no plan's program)" if program else ""))
+        self._program, self._controller_known = program, True
+        self.analyzer.set_controller(program)
 
     def _submitted(self, fut: cf.Future[dict[str, Any]]) -> None:
         fut.add_done_callback(lambda _f: self.wake() if self.wake is not None else None)

@@ -22,6 +22,7 @@ from ballbar.daemon.config import ConfigError, ControllerSection, load
 from ballbar.daemon.controller import ControllerClient, node_map
 from ballbar.daemon.mcap import list_recordings, read_controller, read_logs
 from ballbar.tools.simcnc import SimCnc, Story
+from ballbar.tools.simdevice import DeviceProcess
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 
@@ -301,28 +302,50 @@ def _unix(text: str) -> float:
 def test_the_controllers_program_names_the_plan(tmp_path: Path) -> None:
     """A library of xy and zx, each naming its program; the controller runs O9101 (xy's) throughout while the
     simulated bar runs xy, then zx, in turn: the xy tests are xy by the controller with the signature and timing
-    agreeing; a zx test is taken as xy, the controller's, and the disagreement is an event before its outcome."""
+    agreeing; a zx test is taken as xy, the controller's, and the disagreement is an event before its outcome.
+    Offline, ``ballbar analyze`` of each test's files gives the same recognition."""
     port = free_port()
     cnc = CncProcess(port, "--program", "O9101", "--idle-s", "0")
     toml = tmp_path / "ballbar.toml"
     toml.write_text(
         f'[controller]\nendpoint = "{cnc.endpoint}"\nreconnect_max_s = 1.0\n'
-        '[plans.xy]\nplane = "XY"\nprogram = "O9101"\n'
-        '[plans.zx]\nplane = "ZX"\nstart_deg = -115.0\novershoot_deg = 5.0\ndata_arc_deg = 220.0\nprogram = "O91*2"\n')
+        '[plans.xy]\nplane = "XY"\nsample_hz = 200.0\nprogram = "O9101"\n'
+        '[plans.zx]\nplane = "ZX"\nsample_hz = 200.0\nstart_deg = -115.0\novershoot_deg = 5.0\ndata_arc_deg = 220.0\n'
+        'program = "O91*2"\n')
+    library = json.dumps(load(str(toml), env={}).to_dict()["plans"])
+    proc = log = None
     try:
-        out = subprocess.run(
-            [sys.executable, "-m", "ballbar.daemon.cli", "run", "--config", str(toml), "--source",
-             "sim:?rate=200&speedup=20&repeat=4&gap_s=2", "--machine-id", "cnc", "--state-dir", str(tmp_path / "state"),
-             "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"', "--set", "daemon.analysis_worker=false",
-             "--set", "plan.sample_hz=200"],
-            capture_output=True, text=True, timeout=300)
+        # the bar in a process of its own (a pty: a busy daemon makes it wait, never lose samples)
+        with DeviceProcess("--rate", "200", "--speedup", "20", "--repeat", "4", "--gap-s", "2", "--library", library,
+                           "--wait") as dev:
+            log = open(tmp_path / "daemon.log", "w")  # noqa: SIM115 - closed below
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "ballbar.daemon.cli", "run", "--config", str(toml), "--source", dev.url,
+                 "--machine-id", "cnc", "--state-dir", str(tmp_path / "state"), "--set", "zenoh.enabled=false",
+                 "--set", 'rerun.mode="off"'], stdout=log, stderr=subprocess.STDOUT, text=True,
+                env=dict(os.environ, PYTHONUNBUFFERED="1"))
+            _wait(lambda: "the controller runs O9101" in (tmp_path / "daemon.log").read_text(), 60,
+                  "the controller's program")
+            dev.send("start")
+            dev.wait_event("done", timeout=120)
+            # the fourth test is zx's: its disagreement comes at its feed-out, its rejection just after
+            _wait(lambda: (tmp_path / "daemon.log").read_text().count("its signature names zx") >= 2, 60,
+                  "the fourth test")
+            time.sleep(2.0)
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(15) == 0
     finally:
         cnc.kill()
-    assert out.returncode == 0, out.stderr[-3000:]
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if log is not None:
+            log.close()
+    text = (tmp_path / "daemon.log").read_text()
     lg = read_logs(list_recordings(tmp_path / "state" / "recordings"))
     tests = [r for r in lg.results if r.get("kind") == "test"]
     ours = [r for r in tests if "controller" in r]
-    assert ours, [(r["plan"]["name"], r["recognition"]) for r in tests]
+    assert ours, text[-3000:]
     agreed = [r for r in ours if r["plan"]["name"] == "xy" and r["controller"]["agrees"]]
     assert agreed, [r["controller"] for r in ours]
     for r in agreed:
@@ -330,9 +353,17 @@ def test_the_controllers_program_names_the_plan(tmp_path: Path) -> None:
         assert r["controller"] == {**r["controller"], "program": "O9101", "plan": "xy", "used": True,
                                    "signature_plan": "xy", "timing_fits": True}
     disagreements = [e for e in lg.events if e.get("event") == "controller_disagrees"]
-    assert disagreements, out.stderr[-3000:]
+    assert disagreements, text[-3000:]
     for e in disagreements:
         validate(e, "mcap-event")  # as the log stores an event: without kind
         assert e["plan"] == "xy" and e["program"] == "O9101" and e["signature_plan"] == "zx"
         assert "zx" in e["message"] and "xy" in e["message"]
     assert "controller_disagrees" not in {e.get("event") for e in lg.events if e.get("plan") == "zx"}
+    # offline, each test's own files (rotated per test) say what the controller ran: the same recognition
+    for r in agreed:
+        off = subprocess.run([sys.executable, "-m", "ballbar.daemon.cli", "analyze", str(tmp_path / "state" /
+                              "recordings"), "--test-id", r["test_id"], "--json"], capture_output=True, text=True,
+                             timeout=120)
+        assert off.returncode == 0, off.stderr[-2000:]
+        res = json.loads(off.stdout)
+        assert res["recognition"] == r["recognition"] and res["controller"] == r["controller"]

@@ -555,8 +555,12 @@ def read_logs(
 def read_controller(paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]]:
     """The CNC controller's messages (``/ballbar/controller``, ``[controller]``) of recordings, in file order; a
     file cut by a crash gives what it holds up to the cut, a damaged record is passed over."""
-    out: list[dict[str, Any]] = []
-    for path in paths:
+    return [msg for _f, msg in _controller_records(paths)]
+
+
+def _controller_records(paths: Iterable[str | os.PathLike[str]]) -> Iterator[tuple[int, dict[str, Any]]]:
+    """:func:`read_controller`'s records, each with the index of its file in ``paths``."""
+    for f, path in enumerate(paths):
         channels: dict[int, str] = {}
         try:
             with open(path, "rb") as fh:
@@ -569,10 +573,9 @@ def read_controller(paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, A
                         except (ValueError, RecursionError):
                             continue
                         if isinstance(obj, dict):
-                            out.append(obj)
+                            yield f, obj
         except (OSError, McapError, EndOfFile, struct.error, zstandard.ZstdError) as err:
             log.warning("%s: controller records read up to a problem: %s", os.fspath(path), err)
-    return out
 
 
 def read_mcap(path: str | os.PathLike[str]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -650,7 +653,28 @@ def recording(lg: McapLog, name: str) -> Recording:
     from ballbar.analysis.polled import from_events
 
     return Recording(np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(L, dtype=np.float64),
-                     sorted(breaks), axis, name, from_events(lg.events))
+                     sorted(breaks), axis, name, from_events(lg.events), _controller_marks(lg, index, t_host))
+
+
+def _controller_marks(lg: McapLog, index: NDArray[np.intp], t_host: NDArray[np.float64],
+                      ) -> list[tuple[int, bool, str | None]]:
+    """What the CNC controller said of its main program (``/ballbar/controller``), each from the first sample the
+    daemon read after the message came (as the live analysis took it: in order with the batches); a file's
+    repeated state from its first sample (its preroll's too)."""
+    from ballbar.analysis.plans import controller_program
+
+    out: list[tuple[int, bool, str | None]] = []
+    for f, msg in _controller_records(lg.paths):
+        known, program = controller_program(msg)
+        at = msg.get("t_host")
+        if known is None or not isinstance(at, int | float):
+            continue
+        if msg.get("repeated") and f < len(lg.file_starts):
+            k = int(np.searchsorted(index, lg.file_starts[f]))
+        else:
+            k = int(np.searchsorted(t_host, float(at), side="left"))
+        out.append((k, known, program))
+    return sorted(out, key=lambda m: m[0])
 
 
 # ----------------------------------------------------------------------------- after a crash

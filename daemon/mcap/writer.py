@@ -218,6 +218,9 @@ class McapLogger(Listener):
         self._dirty_since: float | None = None
         self._config: ListenerMessage | None = None
         self._timing: dict[str, Any] | None = None  # a polled source's last timing event: repeated at each file's head
+        # The controller's last value of each node ([controller]), repeated at each file's head: a test's file then
+        # says which program ran (the server sends only changes)
+        self._controller: tuple[dict[str, Any], dict[str, Any]] | None = None  # (last message, values by name)
         self._seen_events: dict[tuple[str, float, str], None] = {}  # recent events, oldest first
         self._in_test = False
         self._stopped = False
@@ -336,7 +339,19 @@ class McapLogger(Listener):
                     self._in_test = False
             if kind == "config":  # after the write: a file opened for it must not repeat it
                 self._config = msg
+            elif kind == "controller":
+                self._remember_controller(msg)
             self._tick(now)
+
+    def _remember_controller(self, msg: Mapping[str, Any]) -> None:
+        if msg.get("state") == "lost":
+            self._controller = None
+            return
+        values = {} if msg.get("state") == "connected" or self._controller is None else self._controller[1]
+        for v in msg.get("values") or ():
+            values[v["name"]] = v
+        head = {k: v for k, v in msg.items() if k not in ("values", "missing", "detail", "repeated")}
+        self._controller = (head, values)
 
     def on_idle(self) -> None:
         with self._lock:
@@ -645,6 +660,10 @@ class McapLogger(Listener):
             self._write(TOPIC_CONFIG, self._config, self._wall_ns(now))
         if self._timing is not None:  # a test's file alone says how its polled samples were stamped
             self._write(TOPIC_EVENTS, {**self._timing, "repeated": True}, self._wall_ns(now))
+        if self._controller is not None and self._controller[1]:
+            last, values = self._controller
+            self._write(TOPIC_CONTROLLER, {**last, "state": "data", "values": list(values.values()), "repeated": True},
+                        self._wall_ns(now))
         rescued: list[SampleBatch] = []
         if self._failing:
             rescued = self._rescue()

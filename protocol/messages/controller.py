@@ -46,4 +46,6 @@ class ControllerMessage(TypedDict):
         "the daemon's wall clock minus the server's, estimated as the smallest arrival minus source timestamp "
         "seen (it includes the shortest transport and publishing delay)", "s", null="not known yet")]
     missing: NotRequired[Annotated[list[str], doc("on connected: the map's names the server lacks")]]
+    repeated: NotRequired[Annotated[bool, doc("at the head of an MCAP file: the last value of each node before it "
+                                              "(state data), so that a file alone says what the controller ran")]]
     detail: NotRequired[Annotated[str, doc("on lost: why, in words")]]
