@@ -270,3 +270,15 @@ def _runs(batches: Sequence[SampleBatch]) -> Iterator[tuple[str, SampleBatch]]:
                 parts.append((b.source, key, sub))
     for source, _key, b in parts:
         yield source, b
+
+
+def controller_state(state: tuple[dict[str, Any], dict[str, Any]] | None, msg: Mapping[str, Any],
+                     ) -> tuple[dict[str, Any], dict[str, Any]] | None:
+    """The controller's last record (without its values) and its last value of each node, after ``msg`` (a
+    ``controller`` record): what the logger repeats at a new file's head.  None: lost, nothing to repeat."""
+    if msg.get("state") == "lost":
+        return None
+    values = {} if msg.get("state") == "connected" or state is None else state[1]
+    for v in msg.get("values") or ():
+        values[v["name"]] = v
+    return {k: v for k, v in msg.items() if k not in ("values", "missing", "detail", "repeated")}, values

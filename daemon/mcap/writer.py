@@ -53,6 +53,7 @@ from .format import (
     _group_by_period,
     _runs,
     _take,
+    controller_state,
     encode_samples,
     hold_file,
     list_recordings,
@@ -340,18 +341,8 @@ class McapLogger(Listener):
             if kind == "config":  # after the write: a file opened for it must not repeat it
                 self._config = msg
             elif kind == "controller":
-                self._remember_controller(msg)
+                self._controller = controller_state(self._controller, msg)
             self._tick(now)
-
-    def _remember_controller(self, msg: Mapping[str, Any]) -> None:
-        if msg.get("state") == "lost":
-            self._controller = None
-            return
-        values = {} if msg.get("state") == "connected" or self._controller is None else self._controller[1]
-        for v in msg.get("values") or ():
-            values[v["name"]] = v
-        head = {k: v for k, v in msg.items() if k not in ("values", "missing", "detail", "repeated")}
-        self._controller = (head, values)
 
     def on_idle(self) -> None:
         with self._lock:
