@@ -72,6 +72,7 @@ DEFAULT_NODES: dict[str, str] = {
 AXIS_NODES: dict[str, str] = {"act_pos": f"{_AXIS}/ActPos", "cmd_pos": f"{_AXIS}/CmdPos"}
 _NODE_ID_PREFIXES = ("ns=", "nsu=", "i=", "s=", "g=", "b=")
 OFFSET_WINDOW_S = 60.0  # the clock offset is the smallest delay seen over about this long
+JUMP_PUBLISHES = 3  # publishes in a row late by more than the jump threshold: the server's clock went back
 WARN_EVERY_S = 60.0  # a server still absent is said again this often
 EVENT_QUEUE = 10_000  # data changes waiting for the client's task (the oldest dropped beyond)
 SESSION_TIMEOUT_MS = 60_000  # a session the server may drop a minute after a loss (asyncua asks for an hour)
@@ -120,12 +121,43 @@ def _utc(t: dt.datetime) -> str:
 
 class _Offset:
     """The daemon's wall clock minus the server's: the smallest arrival minus source timestamp over the last
-    :data:`OFFSET_WINDOW_S` (two half windows, so that an old minimum ages out)."""
+    :data:`OFFSET_WINDOW_S` (two half windows, so that an old minimum ages out).
 
-    def __init__(self) -> None:
+    A server clock that jumps: ahead (every delay drops by the jump: the first such value starts the estimate
+    afresh), or back (every delay rises: :data:`JUMP_PUBLISHES` publishes in a row whose smallest delay is more
+    than ``jump_s`` above the estimate start it afresh; fewer are a slow network, not a jump).  Each returns the
+    change of the offset (s)."""
+
+    def __init__(self, jump_s: float = 2.0) -> None:
         self._blocks: deque[tuple[float, float]] = deque()  # (block start, smallest delay in it)
+        self.jump_s = jump_s
+        self._high = 0  # publishes in a row above the estimate by more than jump_s
 
-    def add(self, delay_s: float, now: float) -> None:
+    def add(self, delay_s: float, now: float) -> float | None:
+        """One value's delay (arrival minus source time); the offset's change where it shows a jump ahead."""
+        old = self.value
+        if old is not None and delay_s < old - self.jump_s:
+            self._blocks.clear()
+            self._blocks.append((now, delay_s))
+            return delay_s - old
+        self._add(delay_s, now)
+        return None
+
+    def publish(self, smallest_s: float, now: float) -> float | None:
+        """The smallest delay of one publish; the offset's change where the last publishes show a jump back."""
+        old = self.value
+        if old is None or smallest_s <= old + self.jump_s:
+            self._high = 0
+            return None
+        self._high += 1
+        if self._high < JUMP_PUBLISHES:
+            return None
+        self._high = 0
+        self._blocks.clear()
+        self._blocks.append((now, smallest_s))
+        return smallest_s - old
+
+    def _add(self, delay_s: float, now: float) -> None:
         half = OFFSET_WINDOW_S / 2
         if not self._blocks or now - self._blocks[-1][0] >= half:
             self._blocks.append((now, delay_s))
@@ -161,7 +193,9 @@ class ControllerClient:
         self.missing: list[str] = []
         self.last_error: str | None = None
         self.last_update: float | None = None  # host monotonic
-        self._offset = _Offset()
+        self._offset = _Offset(jump_s=max(2.0, 4 * section.publish_ms / 1000))
+        self.clock_jumps = 0
+        self._batch_min = math.inf  # the smallest delay of the publish being read
         self._pending: list[ControllerValue] = []
         self._unmapped: list[int] = []  # those of _pending whose t_host is still the server's time
         self._flush_soon = False
@@ -205,6 +239,7 @@ class ControllerClient:
             "updates": self.updates,
             "missing": list(self.missing),
             "clock_offset_s": self._offset.value,
+            "clock_jumps": self.clock_jumps,
             "last_error": self.last_error,
         }
 
@@ -368,7 +403,9 @@ class ControllerClient:
         t_host: float = now
         if isinstance(ts, dt.datetime):
             ts_unix = _unix(ts)
-            self._offset.add(wall - ts_unix, now)
+            delay = wall - ts_unix
+            self._batch_min = min(self._batch_min, delay)
+            self._jumped(self._offset.add(delay, now))
             t_source = _utc(ts)
             t_host = ts_unix  # (server time until the flush maps it)
             self._unmapped.append(len(self._pending))
@@ -387,11 +424,20 @@ class ControllerClient:
         if self._pending:
             values, self._pending = self._pending, []
             unmapped, self._unmapped = self._unmapped, []
+            if math.isfinite(self._batch_min):
+                self._jumped(self._offset.publish(self._batch_min, time.monotonic()))
+            self._batch_min = math.inf
             offset = self._offset.value
             shift = (offset if offset is not None else 0.0) + (time.monotonic() - time.time())  # server -> monotonic
             for i in unmapped:
                 values[i]["t_host"] = float(values[i]["t_host"] or 0.0) + shift
             self._send("data", values)
+
+    def _jumped(self, change: float | None) -> None:
+        if change is not None:
+            self.clock_jumps += 1
+            log.warning("controller: %s: the server's clock jumped %+.3f s (its timestamps against the daemon's); "
+                        "the clock offset starts afresh", self.endpoint, -change)
 
     def _send(self, state: str, values: list[ControllerValue], **extra: Any) -> None:
         msg: ControllerMessage = {

@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -195,6 +196,37 @@ def test_client_reads_the_map_and_the_override_change(cnc: SimCnc, caplog: pytes
         for v in m["values"]:
             assert v["t_host"] <= m["t_host"] + 0.05 and m["t_host"] - v["t_host"] < 1.0, (v, m["t_host"])
     assert [v["t_host"] for v in xs] == sorted(v["t_host"] for v in xs)
+
+
+def test_a_server_clock_that_jumps(cnc: SimCnc, caplog: pytest.LogCaptureFixture) -> None:
+    """The server's clock jumps 5 s ahead, then back: each jump is counted and said, the offset starts afresh,
+    and the values stay on the daemon's clock (near their arrival), not 5 s off."""
+    msgs: list[dict[str, Any]] = []
+    client = ControllerClient(ControllerSection(endpoint=cnc.endpoint), "m", msgs.append)
+    client.start()
+    try:
+        _wait(lambda: client.stats()["clock_offset_s"] is not None, 15, "an offset")
+        assert abs(client.stats()["clock_offset_s"] or 0.0) < 0.5
+        cnc.set_clock(5.0)
+        _wait(lambda: client.stats()["clock_jumps"] == 1, 10, "the jump ahead")
+        assert -5.5 < (client.stats()["clock_offset_s"] or 0.0) < -4.5
+        n = len(msgs)
+        time.sleep(1.0)
+        after_ahead = msgs[n:]
+        cnc.set_clock(0.0)
+        _wait(lambda: client.stats()["clock_jumps"] == 2, 10, "the jump back")
+        assert abs(client.stats()["clock_offset_s"] or 0.0) < 0.5
+        n = len(msgs)
+        time.sleep(1.0)
+        after_back = msgs[n:]
+    finally:
+        client.stop()
+    jumps = [r.getMessage() for r in caplog.records if "clock jumped" in r.getMessage()]
+    said = [float(re.search(r"jumped ([-+][0-9.]+) s", j)[1]) for j in jumps]  # type: ignore[index]
+    assert len(said) == 2 and abs(said[0] - 5.0) < 0.3 and abs(said[1] + 5.0) < 0.3, jumps
+    for batch in (after_ahead, after_back):
+        values = [(m["t_host"], v["t_host"]) for m in batch for v in m["values"]]
+        assert values and all(-0.05 < a - b < 1.0 for a, b in values), values[:5]
 
 
 # ----------------------------------------------------------------------------- the daemon, end to end

@@ -25,7 +25,8 @@ each with its source timestamp.
     python -m ballbar.tools.simcnc --port 4840 --program O9101 --override-at 20=80
 
 stdout: the endpoint on the first line (``opc.tcp://127.0.0.1:PORT/ballbar/simcnc``), then one JSON object per
-command answered.  Commands on stdin: ``override PERCENT``, ``program NAME`` (the next runs' name).  SIGTERM or
+command answered.  Commands on stdin: ``override PERCENT``, ``program NAME`` (the next runs' name), ``clock
+SECONDS`` (the server's clock that far ahead of the host's from now: a clock that jumps).  SIGTERM or
 EOF on stdin (with ``--exit-on-eof``) stops it.
 """
 
@@ -202,6 +203,7 @@ class SimCnc:
         self.axes = tuple(axes)
         self.endpoint = f"opc.tcp://{host}:{port}/ballbar/simcnc"
         self.updates = 0
+        self.clock_offset_s = 0.0  # the server's clock ahead of the host's (s): set_clock() makes it jump
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -219,6 +221,12 @@ class SimCnc:
     def set_override(self, percent: float) -> None:
         with self._lock:
             self.machine.override = float(percent)
+
+    def set_clock(self, offset_s: float) -> None:
+        """The server's clock (its source timestamps) ``offset_s`` ahead of the host's from now: a clock that
+        jumps."""
+        with self._lock:
+            self.clock_offset_s = float(offset_s)
 
     def set_program(self, name: str) -> None:
         with self._lock:
@@ -305,7 +313,7 @@ class SimCnc:
                 self.machine.step(now - t_prev)
                 snap = self.machine.snapshot()
             t_prev = now
-            stamp = dt.datetime.now(dt.UTC)
+            stamp = dt.datetime.now(dt.UTC) + dt.timedelta(seconds=self.clock_offset_s)
             for key, (node, vt) in nodes.items():
                 if key.startswith(("act.", "cmd.")):
                     kind, axis = key.split(".")
@@ -399,6 +407,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     cnc.set_override(float(arg))
                 elif word == "program":
                     cnc.set_program(arg.strip())
+                elif word == "clock":
+                    cnc.set_clock(float(arg))
                 else:
                     print(json.dumps({"error": f"unknown command {word!r}"}), flush=True)
                     continue

@@ -231,6 +231,8 @@ class ControllerStats(TypedDict):
     missing: Annotated[list[str], doc("the map's names the server lacks (logged once at each connection)")]
     clock_offset_s: Annotated[float | None, doc("the daemon's wall clock minus the server's (smallest arrival minus "
                                                 "source timestamp)", "s", null="not known yet")]
+    clock_jumps: Annotated[int, doc("times the server's clock jumped (by more than 2 s or four publishing "
+                                    "intervals): the offset then starts afresh, and a warning says by how much")]
     last_error: Annotated[str | None, doc("why the last attempt failed or the connection was lost", null="none")]
 
 
