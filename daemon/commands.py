@@ -152,6 +152,9 @@ def build_parser(commands: Sequence[Command] | None = None) -> argparse.Argument
     run.add_argument("--simulate", action="store_true",
                      help="run against the built-in simulated ball-bar on a pty (state in ./ballbar-state)")
     run.add_argument("--speedup", type=float, default=5.0, help="with --simulate: device time per wall time")
+    run.add_argument("--simulate-cnc", action="store_true",
+                     help="with --simulate: the simulated CNC (OPC UA, ballbar-simcnc) beside it, read as [controller] "
+                          "(needs ballbar[controller])")
     run.add_argument("--machine-id", help="daemon.machine_id")
     run.add_argument("--state-dir", help="daemon.state_dir")
     run.add_argument("--source", help="source.url")

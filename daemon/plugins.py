@@ -8,8 +8,9 @@ theirs: the ``gcode`` and ``report`` subcommands of the ``ballbar`` command, the
 when it is needed (never at the start of ``ballbar run``):
 
 * ``ballbar.commands``: a :class:`~ballbar.daemon.commands.Command` per subcommand (``gcode``, ``report``);
-* ``ballbar.simulated``: ``tests`` (the simulated tests' samples for ``sim:``, :data:`SimulatedTests`) and
-  ``device`` (the simulated ball-bar on a pty for ``--simulate``, :data:`SimulatedDevice`).
+* ``ballbar.simulated``: ``tests`` (the simulated tests' samples for ``sim:``, :data:`SimulatedTests`),
+  ``device`` (the simulated ball-bar on a pty for ``--simulate``, :data:`SimulatedDevice`) and ``cnc`` (the
+  simulated CNC's OPC UA server for ``--simulate-cnc``, :data:`SimulatedCnc`).
 
 Another distribution can add subcommands the same way.
 """
@@ -28,6 +29,8 @@ SIMULATED = "ballbar.simulated"
 SimulatedTests = Callable[..., Iterator[tuple[Any, Any]]]
 #: ``device(cfg, speedup)``: a context manager giving the simulated ball-bar's source.
 SimulatedDevice = Callable[..., Any]
+#: ``cnc(cfg)``: a context manager giving the simulated CNC's OPC UA endpoint (``--simulate-cnc``).
+SimulatedCnc = Callable[..., Any]
 
 
 class PluginError(LookupError):

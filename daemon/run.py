@@ -310,6 +310,13 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         sys.stdout.write("\n")
         return 0
     url = "sim:" if args.simulate else cfg.source.url  # the simulated device's pty comes later
+    if getattr(args, "simulate_cnc", False):
+        if not args.simulate:
+            raise ConfigError("--simulate-cnc goes with --simulate")
+        from .config import ControllerSection
+
+        # its endpoint comes when it runs: a placeholder that passes the checks until then
+        cfg.controller = cfg.controller or ControllerSection(endpoint="opc.tcp://127.0.0.1:4840")
     preflight(cfg, url, _source_options(cfg, url))
     if stop.is_set():
         return 0
@@ -322,6 +329,9 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
             simulated_device: plugins.SimulatedDevice = plugins.load(plugins.SIMULATED, "device")
             source = stack.enter_context(simulated_device(cfg, args.speedup))
             cfg.source.url = source.url  # the configuration published says what is read: the device's pty
+            if getattr(args, "simulate_cnc", False) and cfg.controller is not None:
+                simulated_cnc: plugins.SimulatedCnc = plugins.load(plugins.SIMULATED, "cnc")
+                cfg.controller.endpoint = stack.enter_context(simulated_cnc(cfg))
         else:
             try:
                 source = open_source(url, **_source_options(cfg, url))

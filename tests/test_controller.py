@@ -328,6 +328,24 @@ def _unix(text: str) -> float:
     return dt.datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
 
 
+def test_simulate_with_the_simulated_cnc(tmp_path: Path) -> None:
+    """``ballbar run --simulate --simulate-cnc``: the simulated CNC beside the simulated bar, read and recorded;
+    ``--simulate-cnc`` alone is one line and exit 2."""
+    base = [sys.executable, "-m", "ballbar.daemon.cli", "run", "--state-dir", str(tmp_path / "state"),
+            "--set", "zenoh.enabled=false", "--set", 'rerun.mode="off"']
+    alone = subprocess.run([*base, "--simulate-cnc"], capture_output=True, text=True, timeout=60)
+    assert alone.returncode == 2 and alone.stderr.strip().splitlines() == [
+        line for line in alone.stderr.strip().splitlines() if "--simulate-cnc goes with --simulate" in line]
+    out = subprocess.run([*base, "--simulate", "--simulate-cnc", "--duration-s", "8"], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "simulated CNC on opc.tcp://127.0.0.1:" in out.stderr and "controller: connected to" in out.stderr
+    paths = list_recordings(tmp_path / "state" / "recordings")
+    msgs = read_controller(paths)
+    assert msgs[0]["state"] == "connected" and sum(len(m["values"]) for m in msgs) > 50
+    assert read_logs(paths).status[-1]["controller"]["connected"] is True
+
+
 # ----------------------------------------------------------------------------- fusion: the plan by program
 
 

@@ -43,7 +43,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -328,6 +328,43 @@ class SimCnc:
                 self.updates += 1
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), max(0.0, period - (time.monotonic() - now)))
+
+
+@contextlib.contextmanager
+def simulated_cnc(cfg: Any) -> Iterator[str]:
+    """``ballbar run --simulate --simulate-cnc``: the simulated CNC as a child process on a free port of 127.0.0.1,
+    playing the configured plan (its radius, feed, plane; the program the first plan with a plain ``program``
+    names, else O9101) in real time; its endpoint.  (Its schedule is its own, not the simulated bar's tests.)"""
+    import socket
+    import subprocess
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    p = cfg.plan
+    program = next((e.program for e in cfg.plans.values() if e.program and not set(e.program) & set("*?[")),
+                   "O9101")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ballbar.tools.simcnc", "--port", str(port), "--exit-on-eof", "--program", program,
+         "--plane", p.plane, "--radius", f"{p.radius_mm:g}", "--feed", f"{p.feed_mm_min:g}"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        endpoint = proc.stdout.readline().strip()
+        if not endpoint.startswith("opc.tcp://"):
+            raise RuntimeError(f"the simulated CNC did not start (exit {proc.poll()})")
+        log.info("simulated CNC on %s, running %s", endpoint, program)
+        yield endpoint
+    finally:
+        if proc.stdin is not None:
+            proc.stdin.close()  # --exit-on-eof: it stops
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
 
 
 def _node_id(name: str, ns: int) -> Any:
