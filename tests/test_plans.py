@@ -246,3 +246,44 @@ def test_live_chunks_give_the_whole_recordings_results_and_circles_name_their_pl
     assert r150["plan"]["radius_mm"] == 150.0
     assert abs(r150["parameters"]["radius_um"]["value"] - truth["radius_um"]) < 0.2  # read at its own length
     assert math.isclose(r150["timing"]["feed_ratio"], 1.0, abs_tol=0.01)
+
+
+# --------------------------------------------------------------------------- the controller's program ([controller])
+
+
+PROGRAMS = PlanLibrary(tuple(NamedPlan(p.name, p.plan, p.signature, f"O_{p.name.upper()}") for p in LIB.plans))
+
+
+@pytest.mark.parametrize("name", ["zx", "yz"])
+def test_the_controllers_program_tells_unsigned_zx_and_yz_apart(name: str) -> None:
+    """Unsigned ZX and YZ programs run the same timing: ambiguous from the bar alone, each recognised by the
+    program the controller ran (offline as live: a mark from the first sample on)."""
+    t, L = record(name, 100.0, signed=False)
+    (alone,) = outcome(t, L, PROGRAMS)
+    assert alone["event"] == "test_unrecognised" and alone["reason"] == "ambiguous"
+    (res,) = outcome(t, L, PROGRAMS, controller=[(0, True, f"O_{name.upper()}")])
+    assert res["kind"] == "test" and res["plan"]["name"] == name and res["recognition"]["method"] == "controller"
+    assert res["controller"] == {**res["controller"], "program": f"O_{name.upper()}", "plan": name, "used": True,
+                                 "signature_plan": None, "timing_fits": True, "agrees": True}
+    assert abs(res["parameters"]["backlash_x_um"]["value"] - MACHINE.truth(res["plan"]["plane"])["backlash_x_um"]) < 0.2
+
+
+def test_a_signed_test_under_another_plans_program_is_a_disagreement() -> None:
+    """A signed zx test while the controller runs yz's program: analysed as yz (the controller's), and a
+    controller_disagrees event naming the signature's zx comes before the result; a program no plan names, or
+    the controller lost, leaves the recognition to the signature."""
+    t, L = record("zx", 100.0)
+    out = [r for r in analyze_recording(t, L, PROGRAMS.detection_plan(), library=PROGRAMS, circles=False,
+                                        controller=[(0, True, "O_YZ")])
+           if r["kind"] == "test" or r.get("event") in ("controller_disagrees", "test_unrecognised")]
+    assert [r.get("event", r["kind"]) for r in out] == ["controller_disagrees", "test"]
+    ev, res = out
+    assert ev["plan"] == "yz" and ev["signature_plan"] == "zx" and "signature names zx" in ev["message"]
+    assert res["plan"]["name"] == "yz" and res["controller"]["agrees"] is False
+    assert res["controller"]["timing_fits"] is True  # zx and yz: the same timing
+    for marks in ([(0, True, "O_OTHER")], [(0, True, "O_YZ"), (0, False, None)]):
+        (res,) = outcome(t, L, PROGRAMS, controller=marks)
+        assert res["plan"]["name"] == "zx" and res["recognition"]["method"] == "signature"
+        assert ("controller" in res) == (marks[-1][1] is True)  # a program no plan names: said; lost: nothing
+        if "controller" in res:
+            assert res["controller"]["used"] is False and res["controller"]["program"] == "O_OTHER"
