@@ -522,8 +522,9 @@ class Daemon:
     def broadcast(self, msg: Message) -> None:
         """Hand a message to every output (never blocks: each queue has its policy); the controller's to the
         analysis too (the program it runs: the plan of the next test)."""
-        if msg["kind"] == "controller":
-            self.analysis_queue.put_message(msg)
+        if msg["kind"] == "controller" and (msg["state"] != "data" or any(v["name"] == "program"
+                                                                       for v in msg["values"])):
+            self.analysis_queue.put_message(msg)  # (positions alone: the analysis has no use for them yet)
         if msg["kind"] == "test":
             for lst in self.annotators:
                 msg = lst.annotate(msg)
