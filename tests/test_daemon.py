@@ -433,8 +433,6 @@ def test_a_finite_sources_end_lets_the_analysis_take_all_it_was_given() -> None:
         q.close(1.0)
 
 
-# Wall-clock bound (the speed-up within 1 %): 1.0101 under a load of 4, so it runs alone.
-@pytest.mark.serial
 def test_simulate_states_what_it_reads_and_its_figures_in_device_terms(tmp_path: Path) -> None:
     """``ballbar run --simulate`` as a new user runs it (sped up): it reads and names the pty of its
     simulated device, the status states the speed-up and its rate, clock and drift in device terms (a
@@ -453,7 +451,7 @@ def test_simulate_states_what_it_reads_and_its_figures_in_device_terms(tmp_path:
     try:
         sub = subprocess.run(
             [sys.executable, "-m", "ballbar.tools.subscribe", "--connect", endpoint, "--topic", "status",
-             "--count", "5", "--timeout", "60", "--format", "json"],
+             "--count", "12", "--timeout", "60", "--format", "json"],
             capture_output=True, text=True, timeout=90,
         )
         assert sub.returncode == 0, (sub.stderr, log.read_text()[-2000:])
@@ -467,9 +465,10 @@ def test_simulate_states_what_it_reads_and_its_figures_in_device_terms(tmp_path:
     assert late["speedup"] == 5 and "zenoh" not in late and "zenoh" in late["outputs"], late
     assert 800 < late["sample_rate_hz"] < 1200, late["sample_rate_hz"]  # 1 kHz of device time, not 5 kHz
     src = late["source"]
-    # (the speed-up's artefact was a ratio of 1/5, drift -800000 ppm; a few seconds' clock fit is good to ~0.3 %)
-    assert src["clock_ratio"] is None or abs(src["clock_ratio"] - 1) < 0.01, src
-    assert src["drift_ppm"] is None or abs(src["drift_ppm"]) < 10000, src
+    # (the speed-up's artefact was a ratio of 1/5, drift -800000 ppm.  The rate is stated once the clock's map rests
+    # on 5 s of reads: from 2 s of a loaded host's it was off by 2 %; from 5 s, within 1 % under a load of 4.)
+    assert status[0]["source"]["clock_ratio"] is None, status[0]["source"]
+    assert abs(src["clock_ratio"] - 1) < 0.01 and abs(src["drift_ppm"]) < 10000, src
     text = log.read_text()
     pty = re.search(r"simulated ball-bar on (\S+) ", text)
     url = re.search(r"ready: reading (\S+)", text)

@@ -146,8 +146,9 @@ def test_binary_whole_test_arrives_complete_in_order() -> None:
     assert np.array_equal(got.t_device, np.rint(t * 1e6) / 1e6)
     assert np.all(got.status == int(Status.SIMULATED))
     assert np.all(np.diff(got.t_host) >= 0)
-    # The device clock runs five times faster than the host's.
-    assert st.clock_ratio == pytest.approx(0.2, rel=0.02)
+    # The device clock runs five times faster than the host's: so do the stamps.  (The status states the ratio
+    # once the map rests on 5 s of reads: this run is shorter.)
+    assert np.polyfit(got.t_device, got.t_host, 1)[0] == pytest.approx(0.2, rel=0.02)
 
 
 def test_ascii_timestamped_two_tests_at_10khz_wall_rate() -> None:

@@ -25,6 +25,7 @@ from .base import (
     FALLBACK_WAIT_S,
     POLL_WINDOWS,
     RATE_SPAN_S,
+    RATIO_MIN_SPAN_S,
     READ_BURST_MAX,
     READ_MAX,
     READ_MORE_AT,
@@ -490,9 +491,11 @@ class SerialSource(Source):
                         detail=f"sample counter leapt {count} beyond its clock (no sample lost)")
         self._duplicates += st.duplicates
         self._report_decode()
-        if self._stamper.clock.ready:
-            self._stats.clock_ratio = self._stamper.clock.ratio
-            self._stats.clock_offset_s = self._stamper.clock.offset
+        clock = self._stamper.clock
+        if clock.ready:
+            # (the map stamps from the first read; its rate is stated once it rests on enough of them)
+            self._stats.clock_ratio = clock.ratio if clock.span_s >= RATIO_MIN_SPAN_S else math.nan
+            self._stats.clock_offset_s = clock.offset
         keep = st.keep
         status = r.status[keep]
         return self._batch(st.t_host, st.t_device, self.cal_mm + r.value_mm[keep], st.seq, status)
