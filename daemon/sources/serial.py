@@ -532,7 +532,10 @@ class SerialSource(Source):
         if self._tick0 is None:
             self._tick0 = now - self._k * period
             self._poll_batch_start = now
-        if self._out is not None and now - self._out[1] > self.poll_timeout_s:
+        # A host that wakes late (a loaded PC) may find the answer waiting in the port: that is no timeout, and its
+        # window (how late it was read) enters the stamps' stated uncertainty.
+        waiting = self._out is not None and now - self._out[1] > self.poll_timeout_s and self._answer_waiting()
+        if self._out is not None and now - self._out[1] > self.poll_timeout_s and not waiting:
             self._lose(self._out[0], 1, "poll_timeout")
             self._out = None
             if self._decoder.pending:  # an answer cut short (a line pulled mid-answer): never parsed
@@ -557,7 +560,7 @@ class SerialSource(Source):
         if deadline is not None:
             until = min(until, deadline)
         # Returns at the first byte of the answer; what came is read at once.
-        data = self._read_now(waited=True) if self._wait(until) else b""
+        data = self._read_now(waited=True) if waiting or self._wait(until) else b""
         if data is None:
             return self._flush_poll()
         t_read = time.monotonic()
@@ -576,6 +579,13 @@ class SerialSource(Source):
         if t_read - self._poll_batch_start >= self.read_s or (deadline is not None and t_read >= deadline):
             return self._flush_poll()
         return None
+
+    def _answer_waiting(self) -> bool:
+        port = self._port
+        try:
+            return port is not None and port.in_waiting > 0
+        except (serial.SerialException, OSError):
+            return False  # (the read that follows finds the port gone)
 
     def _send_request(self) -> bool:
         port = self._port
