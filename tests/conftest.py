@@ -15,6 +15,8 @@ from collections.abc import Iterator
 
 import pytest
 
+import ballbar  # noqa: F401  (before numpy loads in this process: its one BLAS thread, as the daemon's)
+
 
 def _fds() -> dict[int, str]:
     from multiprocessing import resource_tracker
