@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -603,3 +604,45 @@ def test_a_simulated_device_that_fails_to_start_is_a_source_error() -> None:
             for _ in range(100):
                 src.read(0.2)
         src.close()
+
+
+def test_help_lists_every_machine_key_with_its_default_and_unit(capsys: pytest.CaptureFixture[str]) -> None:
+    """``ballbar-simdevice --help`` names each key ``--set`` takes, with its default and, for those with one, its
+    unit, from the model's own fields (a key added to the model is listed without a copy to keep), and the 3D
+    machine's axis keys."""
+    from dataclasses import fields
+
+    from ballbar.tools.machine3d import AXIS_KEYS
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    model = MachineModel()
+    for f in fields(MachineModel):
+        value = getattr(model, f.name)
+        if isinstance(value, float):
+            assert f"{f.name} = {value:g}" in text, f.name
+        else:
+            assert f"{f.name} = " in text, f.name
+    for shown in ("backlash_x_um = 0 um", "kv_y_per_s = 30 1/s", "accel_mm_s2 = 2000 mm/s^2",
+                  "squareness_urad = 0 urad", "spike_tau_x_s = 0.03 s", "scale_x_ppm = 0 ppm"):
+        assert shown in text
+    for key in AXIS_KEYS:
+        assert key.format("{x,y,z}") in text, key
+
+
+@pytest.mark.parametrize("sets, drifts, needle", [
+    (("backlash_q_um=3",), (), "--sim-set: unknown machine key 'backlash_q_um'"),
+    (("kv_x_per_s=-3",), (), "--sim-set: machine key 'kv_x_per_s' must be > 0"),
+    ((), ("backlash_x_um=fast",), "--sim-drift needs KEY=NUMBER"),
+    ((), ("wear_um=1",), "--sim-drift: unknown machine key 'wear_um'"),
+])
+def test_a_bad_simulated_machine_key_is_named_before_the_device_starts(
+        sets: tuple[str, ...], drifts: tuple[str, ...], needle: str) -> None:
+    from ballbar.daemon.errors import ConfigError
+    from ballbar.tools.simulate import simulated_device
+
+    with pytest.raises(ConfigError, match=re.escape(needle)), simulated_device(cfgmod.load(env={}), 5.0, "passing",
+                                                                                 sets, drifts):
+        pass
