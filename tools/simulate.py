@@ -57,7 +57,7 @@ class NamedMachine:
 #: Failing: X backlash 12 um and gains of 25 and 35 1/s (X lags Y by 11 ms), the two faults a ball-bar is most
 #: often sent for.  Wearing: the demo machine whose X backlash grows 0.5 um and Y gain 0.5 1/s a test (its servo
 #: mismatch about 0.4 ms a test): a warning from about the 6th test, a forecast once the trend is significant
-#: (``limits.min_tests``), a fail at about the 9th.
+#: (``limits.min_tests``, the 6th), a fail at the 10th (its servo mismatch at about the 14th).
 MACHINES: dict[str, NamedMachine] = {
     "passing": NamedMachine(),
     "failing": NamedMachine(changes=("backlash_x_um=12", "kv_x_per_s=25", "kv_y_per_s=35")),
