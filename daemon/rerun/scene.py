@@ -124,6 +124,24 @@ class Curve:
     stale: bool = False
 
 
+PAST_GREY = (70, 74, 84)  # a test of the history's verdict bar: its colour half way to this grey
+PAST_WORDS = "from the history"
+
+
+def past_headline(r: TestRecord) -> str:
+    """``FAIL · test 9 at 23:10:05 UTC · from the history``: short enough for the bar at 1280 px."""
+    from .findings import clock_text
+
+    head = " · ".join(r.headline.split(" · ")[:2])  # the verdict's word and the test (with its plan)
+    return f"{head} at {clock_text(r.wall)[:8]} UTC · {PAST_WORDS}"
+
+
+def past_findings(r: TestRecord) -> str:
+    """The findings of a test of the history, their heading saying so."""
+    head, sep, rest = r.findings.partition("\n")
+    return f"{head} · {PAST_WORDS}{sep}{rest}"
+
+
 @dataclass
 class TestRecord:
     """A finished test as the last-complete-test view draws it (and a late viewer is sent it): display points,
@@ -320,8 +338,9 @@ class Scene:
         self._refreshed_mono = time.monotonic()
         if self._server is not None:
             self._clients_ended = self._server.clients_ended
-        steps: list[Callable[[], None]] = [functools.partial(self._send_record, r) for r in self._history]
-        steps += [functools.partial(self._send_record, r, f"plans/{p}") for p, r in self._plan_records.items()]
+        steps: list[Callable[[], None]] = [functools.partial(self._send_record, r, past=True) for r in self._history]
+        steps += [functools.partial(self._send_record, r, f"plans/{p}", past=True)
+                  for p, r in self._plan_records.items()]
         if len(self._trends) and not self._plans:
             steps.append(functools.partial(self._send_trends, self._trends.rows()))
         for p, ring in self._plan_trends.items():
@@ -342,8 +361,14 @@ class Scene:
         while self._history_steps and self._sent_bytes - start < budget:
             self._history_steps.popleft()()
 
-    def _send_record(self, r: TestRecord, view: str = "polar") -> None:
-        """A finished test in the last-complete-test view (or ``view``: its plan's), at its own time."""
+    def _send_record(self, r: TestRecord, view: str = "polar", past: bool = False) -> None:
+        """A finished test in the last-complete-test view (or ``view``: its plan's), at its own time.
+
+        ``past``: sent with the history.  A viewer that connects gets the server's buffer oldest first, a bounded
+        amount per frame, and shows each test as it arrives for 10 s and more; so the verdict bar and the
+        findings' heading of a test from the history say so (its time, ``from the history``, the bar's colour
+        dimmed), and :meth:`_send_present` states the last test's verdict again at the present, undimmed.
+        """
         rec = self._rec
         assert rec is not None
         rec.set_time("test", sequence=r.index)
@@ -356,10 +381,19 @@ class Scene:
             self._log_axis_labels(view, r.axes, static=False)  # at the test's time (a refresh re-sends older ones)
         for name, (pts, colour, width, order) in r.curves.items():
             self._log_strip(f"{view}/{name}", pts, colour, width, order)
-        self._log_verdict(r.status, r.headline, view)
+        if past:
+            self._log_past_verdict(r, view)
+        else:
+            self._log_verdict(r.status, r.headline, view)
         if view == "polar":
-            self._log_findings(r.findings)
+            self._log_findings(past_findings(r) if past else r.findings)
         self._set_times()
+
+    def _log_past_verdict(self, r: TestRecord, view: str) -> None:
+        """A test of the history's verdict: its word and test, when, ``from the history``, on a dimmed bar."""
+        colour = STATUS_RGB.get(r.status, STATUS_RGB["none"])
+        dimmed = tuple((c + g) // 2 for c, g in zip(colour, PAST_GREY, strict=True))
+        self._log_bar(f"{view}/verdict", (dimmed[0], dimmed[1], dimmed[2]), past_headline(r))
 
     def _log_findings(self, md: str) -> None:
         """The findings document: with a library of plans, the set's verdict first."""
@@ -391,6 +425,11 @@ class Scene:
             self._log_set()
         if self._last is not None and not any(r is self._last for r in self._history):
             self._send_record(self._last)
+        elif self._last is not None:  # sent with the history, as past: its verdict stated as the present's
+            self._log_verdict(self._last.status, self._last.headline)
+            self._log_findings(self._last.findings)
+        for p, r in self._plan_records.items():
+            self._log_verdict(r.status, r.headline, f"plans/{p}")
         if emit:
             self._emit()
 
