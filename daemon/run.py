@@ -30,9 +30,10 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 SIM_STATE_DIR = "ballbar-state"
-#: ``--simulate``'s limits where none are configured, so that its machines get a verdict: lost motion and a gain
-#: mismatch an engineer would send for repair, squareness as ``systemd/ballbar.toml.example`` has it.  The
-#: passing machine's are well within them, the failing one's well over.
+#: ``--simulate``'s limits, a layer under the configuration (any ``[limits]`` key configured wins, so
+#: ``limits.enabled = false`` turns them off), so that its machines get a verdict: lost motion and a gain mismatch
+#: an engineer would send for repair, squareness as ``systemd/ballbar.toml.example`` has it.  The passing
+#: machine's are well within them, the failing one's well over.
 SIM_LIMITS: dict[str, Any] = {
     "enabled": True,
     "parameters": {"backlash_x_um": 8.0, "backlash_y_um": 8.0, "servo_mismatch_ms": 8.0, "squareness_urad": 50.0},
@@ -263,7 +264,7 @@ def _overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
     return ov
 
 
-def simulate_sentence(args: argparse.Namespace, cfg: Config, sim_limits: bool) -> str:
+def simulate_sentence(args: argparse.Namespace, cfg: Config) -> str:
     """The one line ``--simulate`` logs at start: which machine, where its state goes instead of the configured
     ``daemon.state_dir`` and why, and which limits it is held to."""
     state = os.path.abspath(cfg.daemon.state_dir)
@@ -271,7 +272,10 @@ def simulate_sentence(args: argparse.Namespace, cfg: Config, sim_limits: bool) -
              f"state in {state}, not daemon.state_dir, to keep simulated tests out of a real machine's records "
              f"(--state-dir to choose)")
     changed = "".join(f", {item}" for item in (*args.sim_set, *(f"{d} per test" for d in args.sim_drift)))
-    if sim_limits:
+    if not cfg.limits_enabled:
+        held = "limits off (limits.enabled = false configured): no verdicts"
+    elif cfg.limits.enabled and cfg.limits.parameters == SIM_LIMITS["parameters"] and not any(
+            (cfg.limits.G_um, cfg.limits.G_b_um, cfg.limits.H_um)):
         limits = ", ".join(f"{k} {v:g}" for k, v in SIM_LIMITS["parameters"].items())
         held = f"no limits configured, so the simulated machine's: {limits}"
     else:
@@ -321,10 +325,9 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         stop = threading.Event()
     if not args.simulate and (args.sim_set or args.sim_drift):
         raise ConfigError("--sim-set and --sim-drift change the simulated machine: they need --simulate")
-    cfg = load(args.config, args.set, overrides=_overrides(args))
-    sim_limits = bool(args.simulate) and not cfg.limits_enabled
-    if sim_limits:  # no limits configured: the simulated machine's, over whatever [limits] left off
-        cfg = load(args.config, args.set, overrides={**_overrides(args), "limits": SIM_LIMITS})
+    # --simulate's limits under every layer but the shipped defaults: any [limits] key configured wins
+    cfg = load(args.config, args.set, overrides=_overrides(args),
+               base={"limits": SIM_LIMITS} if args.simulate else None)
     logging.getLogger().setLevel(cfg.daemon.log_level.upper())
     if args.print_config:
         from .secrets import redacted
@@ -342,7 +345,7 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         if args.simulate:
             from . import plugins
 
-            log.info("%s", simulate_sentence(args, cfg, sim_limits))
+            log.info("%s", simulate_sentence(args, cfg))
             simulated_device: plugins.SimulatedDevice = plugins.load(plugins.SIMULATED, "device")
             source = stack.enter_context(
                 simulated_device(cfg, args.speedup, args.simulate, tuple(args.sim_set), tuple(args.sim_drift)))

@@ -546,6 +546,26 @@ def test_simulate_a_wearing_machine(tmp_path: Path) -> None:
     assert "simulating a wearing machine, backlash_y_um=5 at x20" in log
 
 
+def test_simulate_limits_are_under_the_configured_ones(tmp_path: Path) -> None:
+    """``--simulate``'s limits apply where the configuration says nothing of limits; any configured key wins
+    (``limits.enabled = false`` turns them off, a file's parameters replace them)."""
+    from ballbar.daemon.run import SIM_LIMITS
+
+    def limits(*args: str) -> dict[str, Any]:
+        r = ballbar("run", "--simulate", "--state-dir", str(tmp_path), "--print-config", *args)
+        assert r.returncode == 0, r.stderr
+        out: dict[str, Any] = json.loads(r.stdout)["limits"]
+        return out
+
+    assert limits()["enabled"] and limits()["parameters"] == SIM_LIMITS["parameters"]
+    assert not limits("--set", "limits.enabled=false")["enabled"]
+    f = tmp_path / "site.toml"
+    f.write_text("[limits]\nenabled = true\nparameters = { backlash_x_um = 5.0 }\n")
+    assert limits("--config", str(f))["parameters"] == {"backlash_x_um": 5.0}
+    r = ballbar("run", "--print-config", "--state-dir", str(tmp_path))
+    assert r.returncode == 0 and not json.loads(r.stdout)["limits"]["enabled"]  # without --simulate: the defaults
+
+
 def test_sim_set_needs_simulate(tmp_path: Path) -> None:
     r = ballbar("run", "--sim-set", "backlash_x_um=5", "--state-dir", str(tmp_path), *QUIET)
     assert r.returncode == 2 and "--sim-set and --sim-drift change the simulated machine" in r.stderr, r.stderr
