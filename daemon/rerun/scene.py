@@ -9,7 +9,8 @@ the test's number within this daemon run)::
       polar/{ccw,cw}/measured     the measured radial deviation, set-up removed, magnified
       polar/{ccw,cw}/model        the fitted model
       polar/verdict               a bar in the verdict's colour (fail red, warning amber, pass green, no
-                                  limits grey), labelled with the verdict in words
+                                  limits grey), labelled with the verdict in words; a test sent with the
+                                  history says so, on a dimmed bar (:meth:`Scene._send_record`)
       polar/reference/...         nominal circle, axes, the scale rings (+-1..3 divisions) and their labels
     live/...                    the test in progress, from its feed-in: the same entities, the measured
                                   curves grown live in pieces (each completed piece once in
