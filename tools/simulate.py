@@ -41,8 +41,6 @@ SIM_MACHINE_3D = (
 )
 
 
-
-
 @dataclass(frozen=True)
 class NamedMachine:
     """A machine of ``ballbar run --simulate MACHINE``: its keys over the demo machine's (``KEY=VALUE``, the same
