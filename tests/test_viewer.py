@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import logging
 import math
 import os
 import re
@@ -1173,11 +1174,12 @@ def test_a_clean_stop_on_ctrl_c_logs_no_error(tmp_path: Path) -> None:
 
 
 def test_a_late_viewer_is_told_which_verdicts_are_from_the_history(
-        script: Script, receivers: list[Receiver], tmp_path: Path) -> None:
+        script: Script, receivers: list[Receiver], tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A viewer that connects replays the server's buffer oldest first, for 10 s and more after a long run: each
     test of the history's verdict bar says it is one (its time, ``from the history``, its colour dimmed), and so
     does its findings' heading; at the present, where the viewer ends up, the last test's verdict stands as it
-    is."""
+    is.  The log names the viewer to run: the one installed beside the daemon."""
+    caplog.set_level(logging.INFO, logger="ballbar.daemon.rerun")
     port = free_port()
     v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=port, server_memory_limit="64MiB",
                                   history_refresh_s=0.3), plan=PLAN)
@@ -1194,6 +1196,7 @@ def test_a_late_viewer_is_told_which_verdicts_are_from_the_history(
         rx.finish(timeout=10.0)
     finally:
         v.stop()
+    assert f"(viewers: {Path(sys.executable).parent / 'rerun'} rerun+http://127.0.0.1:{port}/proxy)" in caplog.text
     rows = read_rows(rx.rrd)
     bars = sorted((r for r in rows if r.entity == "/polar/verdict/text" and r.time is not None), key=lambda r: r.key)
     past = [r for r in bars if "from the history" in r.values["Points2D:labels"][0]]

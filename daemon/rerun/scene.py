@@ -125,6 +125,16 @@ class Curve:
     stale: bool = False
 
 
+def viewer_command() -> str:
+    """The viewer to run on this PC: the ``rerun`` beside this interpreter (the venv's, which rerun-sdk installed:
+    the daemon's version), else ``rerun`` on the PATH."""
+    import os
+    import sys
+
+    exe = os.path.join(os.path.dirname(sys.executable), "rerun")
+    return exe if os.access(exe, os.X_OK) else "rerun"
+
+
 PAST_GREY = (70, 74, 84)  # a test of the history's verdict bar: its colour half way to this grey
 PAST_WORDS = "from the history"
 
@@ -244,7 +254,8 @@ class Scene:
                 self._stalled_since = None
                 rec.set_sinks(rr.GrpcSink(srv.url))
                 self._on_new_sink(
-                    "serving on %s:%d (viewers: rerun %s)", self.options.bind, self.options.port, self.address
+                    "serving on %s:%d (viewers: %s %s)", self.options.bind, self.options.port, viewer_command(),
+                    self.address,
                 )
             return
         pr = self._prober
