@@ -1216,3 +1216,17 @@ def test_a_late_viewer_is_told_which_verdicts_are_from_the_history(
     heads = [text_of(r).split("\n")[0] for r in docs]
     assert any(h.startswith("## NO LIMITS SET · test 1 · ") and h.endswith(" · from the history") for h in heads)
     assert heads[-1].startswith("## NO LIMITS SET · test 2 · ") and "history" not in heads[-1], heads[-3:]
+
+
+def test_a_past_verdicts_words_say_when() -> None:
+    """The bar of a test from the history: its word and number, when (the date too when it is of another day),
+    and that it is from the history; the detail is left for the findings (the bar's width at 1280 px)."""
+    import datetime
+
+    from ballbar.daemon.rerun.scene import TestRecord, past_headline
+
+    wall = datetime.datetime(2026, 12, 6, 23, 10, 5, tzinfo=datetime.UTC).timestamp()
+    r = TestRecord(9, wall, 5.0, {}, "## FAIL · test 9", "fail",
+                   "FAIL · xy test 9 · Backlash X 12.0 ± 0.1 µm, limit 8.0 µm")
+    assert past_headline(r, now=wall + 60) == "FAIL · xy test 9 at 23:10:05 UTC · from the history"
+    assert past_headline(r, now=wall + 3600) == "FAIL · xy test 9 of 2026-12-06 23:10 UTC · from the history"

@@ -139,12 +139,16 @@ PAST_GREY = (70, 74, 84)  # a test of the history's verdict bar: its colour half
 PAST_WORDS = "from the history"
 
 
-def past_headline(r: TestRecord) -> str:
-    """``FAIL · test 9 at 23:10:05 UTC · from the history``: short enough for the bar at 1280 px."""
-    from .findings import clock_text
+def past_headline(r: TestRecord, now: float | None = None) -> str:
+    """``FAIL · test 9 at 23:10:05 UTC · from the history`` (a test of another day than ``now``'s: ``of 2026-12-06
+    23:10 UTC``): short enough for the bar at 1280 px."""
+    import datetime
 
     head = " · ".join(r.headline.split(" · ")[:2])  # the verdict's word and the test (with its plan)
-    return f"{head} at {clock_text(r.wall)[:8]} UTC · {PAST_WORDS}"
+    when = datetime.datetime.fromtimestamp(r.wall, datetime.UTC)
+    today = datetime.datetime.fromtimestamp(time.time() if now is None else now, datetime.UTC).date()
+    at = f"at {when:%H:%M:%S} UTC" if when.date() == today else f"of {when:%Y-%m-%d %H:%M} UTC"
+    return f"{head} {at} · {PAST_WORDS}"
 
 
 def past_findings(r: TestRecord) -> str:
