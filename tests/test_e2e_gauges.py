@@ -62,9 +62,9 @@ def test_polled_gauge_end_to_end(profile: str, tmp_path: Path, capsys: pytest.Ca
     test = tests[0]
     p = test["parameters"]
     # Right within the uncertainty it states (3 standard errors), and that uncertainty worth stating.  Host stamps
-    # on a loaded host (a CPU load of 4) scatter the readings' angles: the stated errors widen (backlash 0.03 to
-    # 0.08 um), and the values stay within them.
-    for key, truth, useful in (("backlash_x_um", 4.0, 0.1), ("squareness_urad", 15.0, 1.0), ("centre_x_um", 8.0, 0.1)):
+    # on a loaded host scatter the readings' angles: the stated errors widen (backlash 0.03 to 0.08 um under a CPU
+    # load of 4, to 0.18 um under 7 to 10), and the values stay within them.
+    for key, truth, useful in (("backlash_x_um", 4.0, 0.3), ("squareness_urad", 15.0, 2.0), ("centre_x_um", 8.0, 0.3)):
         value, stderr = p[key]["value"], p[key]["stderr"]
         assert 0 < stderr < useful and abs(value - truth) <= 3 * stderr, (key, value, stderr)
     assert abs(p["servo_mismatch_ms"]["value"] - 1000 * (1 / 30 - 1 / 33)) < 0.05

@@ -60,7 +60,8 @@ def test_polled_sylvac_error_words_cut_late_and_silent() -> None:
     assert late_seen >= 1
     # The silence: a stall, every tick of it a counted loss, and the source read on.
     assert "stall" in col.kinds() and st.stalls == 1
-    assert lost("poll_timeout") >= 3 + 2 * 15.625 * 0.5
+    # (each tick of the 2 s a request unanswered, or one a loaded host woke too late to send)
+    assert lost("poll_timeout") + lost("poll_late") >= 3 + 2 * 15.625 - 2
     assert got.seq[-1] - got.seq[0] + 1 == st.samples + st.lost
     assert st.samples <= stats["requests"]
     # The status's windows: median and p99 of the request/answer windows, the rate achieved.
