@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, Any
 
 from ballbar.analysis.errors import BallbarError, PlanError
 
+from .plugins import SIM_MACHINES
+
 if TYPE_CHECKING:
     from ballbar.analysis.plan import AnalysisOptions, MachineAxes, MachineConfig, TestPlan
     from ballbar.analysis.plans import PlanLibrary
@@ -149,8 +151,17 @@ def build_parser(commands: Sequence[Command] | None = None) -> argparse.Argument
     run.add_argument("--config", help="TOML configuration file (default: $BALLBAR_CONFIG, /etc/ballbar/ballbar.toml)")
     run.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                      help="override one configuration key (value in TOML syntax); repeatable")
-    run.add_argument("--simulate", action="store_true",
-                     help="run against the built-in simulated ball-bar on a pty (state in ./ballbar-state)")
+    run.add_argument("--simulate", nargs="?", const="passing", choices=SIM_MACHINES, metavar="MACHINE",
+                     help="run against the built-in simulated ball-bar on a pty: a machine that is passing (the "
+                     "default), failing (backlash and servo mismatch over their limits) or wearing (its X backlash "
+                     "and servo mismatch grow test by test); state in ./ballbar-state, not daemon.state_dir "
+                     "(--state-dir to choose); with no limits configured, the simulated machine's (logged)")
+    run.add_argument("--sim-set", action="append", default=[], metavar="KEY=VALUE",
+                     help="with --simulate: one key of the simulated machine over the named machine's, e.g. "
+                     "backlash_y_um=9 (ballbar-simdevice --help lists them); repeatable")
+    run.add_argument("--sim-drift", action="append", default=[], metavar="KEY=STEP",
+                     help="with --simulate: a machine key that changes by STEP from one test to the next (wear); "
+                     "repeatable")
     run.add_argument("--speedup", type=float, default=5.0, help="with --simulate: device time per wall time")
     run.add_argument("--simulate-cnc", action="store_true",
                      help="with --simulate: the simulated CNC (OPC UA, ballbar-simcnc) beside it, read as [controller] "

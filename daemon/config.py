@@ -2,7 +2,8 @@
 
 Layers, later ones winning:
 
-1. the shipped defaults (``daemon/default.toml``, every key commented);
+1. the shipped defaults (``daemon/default.toml``, every key commented), and over them what the command
+   brings where the configuration says nothing (``ballbar run --simulate``: its limits);
 2. the configuration file: ``--config FILE``, else ``$BALLBAR_CONFIG``, else
    ``/etc/ballbar/ballbar.toml`` when it exists;
 3. the environment: ``BALLBAR__SECTION__KEY=value`` (double underscores; the
@@ -440,11 +441,15 @@ def load(
     sets: Sequence[str] = (),
     env: Mapping[str, str] | None = None,
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    base: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> Config:
-    """The configuration from the four layers (see the module docstring)."""
+    """The configuration from the four layers (see the module docstring); ``base`` goes over the shipped
+    defaults, under everything else."""
     env = os.environ if env is None else env
     merged: dict[str, dict[str, Any]] = {}
     _merge(merged, read_toml(DEFAULT_FILE), str(DEFAULT_FILE))
+    if base:
+        _merge(merged, base, "the command's defaults")
     path = config_file or env.get("BALLBAR_CONFIG") or (str(SYSTEM_FILE) if SYSTEM_FILE.exists() else None)
     if path:
         _merge(merged, read_toml(path), path)

@@ -27,10 +27,15 @@ SIMULATED = "ballbar.simulated"
 #: ``tests(plan, machine, library, run_plans, rate_hz, seed, repeat, gap_s)``: per simulated test its sample
 #: times (s) and lengths (mm), tests one after the other on one clock; ``repeat`` None is forever.
 SimulatedTests = Callable[..., Iterator[tuple[Any, Any]]]
-#: ``device(cfg, speedup)``: a context manager giving the simulated ball-bar's source.
+#: ``device(cfg, speedup, machine, sets, drifts)``: a context manager giving the simulated ball-bar's source, the
+#: named machine of :data:`SIM_MACHINES` with ``sets`` (``KEY=VALUE``) over its keys and ``drifts`` (``KEY=STEP``,
+#: a change per test) added to its wear; a bad key or value is a :class:`~ballbar.daemon.errors.ConfigError`.
 SimulatedDevice = Callable[..., Any]
 #: ``cnc(cfg)``: a context manager giving the simulated CNC's OPC UA endpoint (``--simulate-cnc``).
 SimulatedCnc = Callable[..., Any]
+#: The machines ``ballbar run --simulate MACHINE`` offers: within the simulated limits, over them, and one whose
+#: errors grow test by test.
+SIM_MACHINES = ("passing", "failing", "wearing")
 
 
 class PluginError(LookupError):

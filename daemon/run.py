@@ -30,6 +30,14 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 SIM_STATE_DIR = "ballbar-state"
+#: ``--simulate``'s limits, a layer under the configuration (any ``[limits]`` key configured wins, so
+#: ``limits.enabled = false`` turns them off), so that its machines get a verdict: lost motion and a gain mismatch
+#: an engineer would send for repair, squareness as ``systemd/ballbar.toml.example`` has it.  The passing
+#: machine's are well within them, the failing one's well over.
+SIM_LIMITS: dict[str, Any] = {
+    "enabled": True,
+    "parameters": {"backlash_x_um": 8.0, "backlash_y_um": 8.0, "servo_mismatch_ms": 8.0, "squareness_urad": 50.0},
+}
 
 
 class StoppedInStartUp(Exception):
@@ -261,6 +269,25 @@ def _overrides(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
     return ov
 
 
+def simulate_sentence(args: argparse.Namespace, cfg: Config) -> str:
+    """The one line ``--simulate`` logs at start: which machine, where its state goes instead of the configured
+    ``daemon.state_dir`` and why, and which limits it is held to."""
+    state = os.path.abspath(cfg.daemon.state_dir)
+    where = (f"state in {state} (--state-dir)" if args.state_dir is not None else
+             f"state in {state}, not daemon.state_dir, to keep simulated tests out of a real machine's records "
+             f"(--state-dir to choose)")
+    changed = "".join(f", {item}" for item in (*args.sim_set, *(f"{d} per test" for d in args.sim_drift)))
+    if not cfg.limits_enabled:
+        held = "limits off (limits.enabled = false configured): no verdicts"
+    elif cfg.limits.enabled and cfg.limits.parameters == SIM_LIMITS["parameters"] and not any(
+            (cfg.limits.G_um, cfg.limits.G_b_um, cfg.limits.H_um)):
+        limits = ", ".join(f"{k} {v:g}" for k, v in SIM_LIMITS["parameters"].items())
+        held = f"no limits configured, so the simulated machine's: {limits}"
+    else:
+        held = "held to the configured limits"
+    return f"simulating a {args.simulate} machine{changed} at x{args.speedup:g}; {where}; {held}"
+
+
 def _recover(cfg: Config) -> list[TestIncomplete]:
     """Files a killed daemon left without a footer, rewritten once; a ``test_incomplete`` event for each
     test the crash cut, to publish at start (stamped again as it goes out)."""
@@ -301,7 +328,11 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
     """``ballbar run``; ``stop`` is the event the caller's SIGTERM and SIGINT handlers set."""
     if stop is None:
         stop = threading.Event()
-    cfg = load(args.config, args.set, overrides=_overrides(args))
+    if not args.simulate and (args.sim_set or args.sim_drift):
+        raise ConfigError("--sim-set and --sim-drift change the simulated machine: they need --simulate")
+    # --simulate's limits under every layer but the shipped defaults: any [limits] key configured wins
+    cfg = load(args.config, args.set, overrides=_overrides(args),
+               base={"limits": SIM_LIMITS} if args.simulate else None)
     logging.getLogger().setLevel(cfg.daemon.log_level.upper())
     if args.print_config:
         from .secrets import redacted
@@ -326,8 +357,10 @@ def cmd_run(args: argparse.Namespace, stop: threading.Event | None = None) -> in
         if args.simulate:
             from . import plugins
 
+            log.info("%s", simulate_sentence(args, cfg))
             simulated_device: plugins.SimulatedDevice = plugins.load(plugins.SIMULATED, "device")
-            source = stack.enter_context(simulated_device(cfg, args.speedup))
+            source = stack.enter_context(
+                simulated_device(cfg, args.speedup, args.simulate, tuple(args.sim_set), tuple(args.sim_drift)))
             cfg.source.url = source.url  # the configuration published says what is read: the device's pty
             if getattr(args, "simulate_cnc", False) and cfg.controller is not None:
                 simulated_cnc: plugins.SimulatedCnc = plugins.load(plugins.SIMULATED, "cnc")

@@ -5,13 +5,15 @@
 time of the newest sample and the host time at which the read returned.  That
 host time is the sampling instant plus a latency that is never negative and is
 sometimes small (USB polling, scheduler), so the map is the *lower envelope* of
-the points: the ratio is fitted through the lowest-latency point of each
-``bin_s`` of host time over the last ``window`` bins, and the offset puts the line
-under every point.  ``ratio - 1`` is the drift (a crystal's tens of ppm; 0.1
-for a simulator that runs ten times faster than real time).  The ratio is
-refitted once per bin (when a bin closes: about once a second), not per point;
-between refits a point only lowers the offset if it lies under the line (one
-subtraction), so stamping a read costs an affine map.
+the points: the ratio is that of the line under the lowest-latency point of each
+``bin_s`` of host time over the last ``window`` bins that lies closest to them (an
+edge of their lower convex hull, so a bin whose every read was late, as on a
+loaded host, does not tilt it), and the offset puts the line under every point.
+``ratio - 1`` is the drift (a crystal's tens of ppm; 0.1 for a simulator that
+runs ten times faster than real time).  The ratio is refitted once per bin (when
+a bin closes: about once a second), not per point; between refits a point only
+lowers the offset if it lies under the line (one subtraction), so stamping a read
+costs an affine map.
 
 :class:`Stamper` turns a decoder's raw counters and clocks into unwrapped
 sample numbers and device times, finds gaps (lost samples), device restarts
@@ -21,6 +23,7 @@ the host time.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -54,6 +57,15 @@ class ClockMap:
     def ready(self) -> bool:
         return not math.isnan(self.offset)
 
+    @property
+    def span_s(self) -> float:
+        """Host seconds the fitted points span (0 before the first): a ratio from a second or two of a loaded
+        host's reads is off by their latencies' difference over that span, a percent or more."""
+        if self._cur is None:
+            return 0.0
+        first = self._bins[0][1] if self._bins else self._cur[2]
+        return self._cur[2] - first
+
     def update(self, t_device: float, t_host: float) -> None:
         """Add a point: the newest sample's device time and the host time it was read."""
         if not (math.isfinite(t_device) and math.isfinite(t_host)):
@@ -84,7 +96,7 @@ class ClockMap:
         th = np.array([p[1] for p in pts])
         ratio = self.ratio
         if len(pts) >= 3 and td[-1] - td[0] > 0:
-            ratio = float(np.polyfit(td, th, 1)[0])
+            ratio = _envelope_slope(td, th)
         elif t_device - self._first[0] > 0.05:
             ratio = (t_host - self._first[1]) / (t_device - self._first[0])
         if math.isfinite(ratio) and ratio > 0:
@@ -93,6 +105,33 @@ class ClockMap:
 
     def map(self, t_device: NDArray[np.float64]) -> NDArray[np.float64]:
         return self.offset + self.ratio * t_device
+
+
+def _envelope_slope(td: NDArray[np.float64], th: NDArray[np.float64]) -> float:
+    """The slope of the line under every point that lies closest to them in sum: the edge of their lower
+    convex hull over their mean device time.  (A least-squares line through the bins' lowest points would
+    be pulled by every bin whose best read was late, as on a loaded host; this one rests on the
+    earliest reads only: for latencies that are never negative, the likeliest line.)"""
+    order = np.argsort(td, kind="stable")
+    hull: list[tuple[float, float]] = []
+    for x, y in zip(td[order].tolist(), th[order].tolist(), strict=True):
+        if hull and x == hull[-1][0]:
+            if y >= hull[-1][1]:
+                continue
+            hull.pop()
+        while len(hull) >= 2:
+            (x0, y0), (x1, y1) = hull[-2], hull[-1]
+            if (x1 - x0) * (y - y0) - (y1 - y0) * (x - x0) > 0:  # a left turn: hull[-1] stays
+                break
+            hull.pop()
+        hull.append((x, y))
+    if len(hull) < 2:
+        return math.nan
+    mid = float(np.mean(td))
+    for (x0, y0), (x1, y1) in itertools.pairwise(hull):
+        if x1 >= mid:
+            return (y1 - y0) / (x1 - x0)
+    return math.nan  # (not reached: the last hull point is the largest device time)
 
 
 @dataclass

@@ -15,6 +15,12 @@ from collections.abc import Iterator
 
 import pytest
 
+# One BLAS thread, as the ``ballbar`` command sets for the daemon and its worker (daemon/cli.py), before numpy loads
+# in this process: the tests' fits then run as the daemon's do, without OpenBLAS's other threads spinning beside the
+# other workers (on two cores they took twice the CPU and up to ten times the wall time of one thread).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 
 def _fds() -> dict[int, str]:
     from multiprocessing import resource_tracker

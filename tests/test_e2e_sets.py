@@ -74,7 +74,8 @@ def test_a_set_runs_is_recognised_and_recovers_each_axis(tmp_path: Path, capsys:
         proc = subprocess.Popen(
             [sys.executable, "-m", "ballbar.daemon.cli", "run", "--simulate", "--config", str(cfg), "--speedup", "20",
              "--state-dir", str(state), "--tests", "3", "--set", f'zenoh.listen=["tcp/127.0.0.1:{port}"]',
-             "--set", 'rerun.mode="off"', "--set", "daemon.status_interval_s=0.5"],
+             "--set", 'rerun.mode="off"', "--set", "daemon.status_interval_s=0.5",
+             "--set", "limits.enabled=false"],  # the set without limits (not --simulate's): "no limits" below
             stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, NOTIFY_SOCKET=sock_path, PYTHONUNBUFFERED="1"),
         )
     sub = None

@@ -4,13 +4,19 @@ gauge can show is counted, stated in the events and stats, and the source reads 
 from __future__ import annotations
 
 import math
+import os
+import pty
+import select
+import time
+import tty
 
 import numpy as np
 import pytest
 from test_simdevice import PLAN_ARGS, finish, start
 
 from ballbar.daemon.errors import SourceConfigError
-from ballbar.daemon.sources import check_source
+from ballbar.daemon.samples import SampleBatch
+from ballbar.daemon.sources import check_source, open_source
 from ballbar.protocol import Status
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
@@ -54,7 +60,8 @@ def test_polled_sylvac_error_words_cut_late_and_silent() -> None:
     assert late_seen >= 1
     # The silence: a stall, every tick of it a counted loss, and the source read on.
     assert "stall" in col.kinds() and st.stalls == 1
-    assert lost("poll_timeout") >= 3 + 2 * 15.625 * 0.5
+    # (each tick of the 2 s a request unanswered, or one a loaded host woke too late to send)
+    assert lost("poll_timeout") + lost("poll_late") >= 3 + 2 * 15.625 - 2
     assert got.seq[-1] - got.seq[0] + 1 == st.samples + st.lost
     assert st.samples <= stats["requests"]
     # The status's windows: median and p99 of the request/answer windows, the rate achieved.
@@ -110,3 +117,38 @@ def test_a_rate_the_line_cannot_carry_is_refused_before_the_port_opens(url: str,
 def test_a_faster_line_carries_a_faster_rate() -> None:
     check_source("serial:/dev/ttyNOPE?protocol=mitutoyo&rate=100&baud=115200&cal_mm=1")
     check_source("serial:/dev/ttyNOPE?protocol=sylvac&mode=stream&rate=40&cal_mm=1")  # no request on the line
+
+
+def test_an_answer_waiting_when_a_late_host_wakes_is_taken_not_timed_out() -> None:
+    """A loaded host wakes after the answer timeout: the gauge answered in time and its answer waits in the
+    port.  It is a sample (its long window counted in the stamps' uncertainty), not a lost one, and no
+    stale bytes are dropped.  (Before: a poll_timeout and the answer discarded as stale.)"""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    src = open_source(f"serial:{os.ttyname(slave)}?protocol=mitutoyo&rate=15.625&cal_mm=0")
+    got: list[SampleBatch] = []
+    try:
+        request = b""
+        end = time.monotonic() + 5.0
+        while b"1" not in request and time.monotonic() < end:  # the mitutoyo request: "1"
+            if (batch := src.read(0.02)) is not None:
+                got.append(batch)
+            if select.select([master], [], [], 0)[0]:
+                request += os.read(master, 64)
+        assert b"1" in request, request
+        os.write(master, b"01A+0000.123\r")  # the gauge answers at once...
+        time.sleep(3 * src.poll_timeout_s)  # ... and the host wakes late
+        end = time.monotonic() + 2.0
+        while sum(len(b) for b in got) < 1 and time.monotonic() < end:
+            if (batch := src.read(0.05)) is not None:
+                got.append(batch)
+        st = src.stats()
+    finally:
+        src.close()
+        os.close(master)
+        os.close(slave)
+    samples = SampleBatch.concat(got)
+    assert len(samples) >= 1 and samples.length_mm[0] == pytest.approx(0.123)
+    assert st.lost_by_cause.get("poll_timeout", 0) == 0 and st.decode.get("stale_bytes", 0) == 0, st
+    timing = src.poll_timing()
+    assert timing is not None and timing["window_max_ms"] >= 3e3 * src.poll_timeout_s

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import logging
 import math
 import os
 import re
@@ -1170,3 +1171,62 @@ def test_a_clean_stop_on_ctrl_c_logs_no_error(tmp_path: Path) -> None:
             proc.wait(5)
     assert "stopped" in out, err[-2000:]
     assert "ERROR" not in err, err[-2000:]
+
+
+def test_a_late_viewer_is_told_which_verdicts_are_from_the_history(
+        script: Script, receivers: list[Receiver], tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A viewer that connects replays the server's buffer oldest first, for 10 s and more after a long run: each
+    test of the history's verdict bar says it is one (its time, ``from the history``, its colour dimmed), and so
+    does its findings' heading; at the present, where the viewer ends up, the last test's verdict stands as it
+    is.  The log names the viewer to run: the one installed beside the daemon."""
+    caplog.set_level(logging.INFO, logger="ballbar.daemon.rerun")
+    port = free_port()
+    v = RerunViewer(ViewerOptions(mode="serve", bind="127.0.0.1", port=port, server_memory_limit="64MiB",
+                                  history_refresh_s=0.3), plan=PLAN)
+    try:
+        wait_connected(v)
+        feed(v, script.items)  # nobody watches: the tests go to the server live
+        time.sleep(0.4)
+        v.on_idle()  # the history is sent again (history_refresh_s)
+        while v.stats()["history_pending"]:
+            v.on_idle()
+        assert v.stats()["refreshes"] >= 2
+        rx = Receiver(tmp_path, "late", free_port(), connect=v.address)
+        receivers.append(rx)
+        rx.finish(timeout=10.0)
+    finally:
+        v.stop()
+    assert f"(viewers: {Path(sys.executable).parent / 'rerun'} rerun+http://127.0.0.1:{port}/proxy)" in caplog.text
+    rows = read_rows(rx.rrd)
+    bars = sorted((r for r in rows if r.entity == "/polar/verdict/text" and r.time is not None), key=lambda r: r.key)
+    past = [r for r in bars if "from the history" in r.values["Points2D:labels"][0]]
+    assert {r.test for r in past} == {1, 2}, [r.values for r in bars]
+    for r in past:
+        label = r.values["Points2D:labels"][0]
+        assert re.fullmatch(rf"NO LIMITS SET · test {r.test} at \d\d:\d\d:\d\d UTC · from the history", label), label
+    now = bars[-1]  # latest-at at the newest time: what a viewer that has caught up shows
+    assert now.values["Points2D:labels"][0].startswith("NO LIMITS SET · test 2 · G(b) "), now.values
+    assert all(r.time is not None and now.time is not None and r.time < now.time for r in past)
+    colours = {tuple(r.values["LineStrips2D:colors"]) if isinstance(r.values["LineStrips2D:colors"], list) else
+               r.values["LineStrips2D:colors"] for r in rows if r.entity == "/polar/verdict"
+               and r.values.get("LineStrips2D:colors") is not None}
+    assert len(colours) == 2, colours  # the no-limits grey, and it dimmed
+    docs = sorted((r for r in rows if r.entity == "/findings" and r.time is not None and text_of(r)),
+                  key=lambda r: r.key)
+    heads = [text_of(r).split("\n")[0] for r in docs]
+    assert any(h.startswith("## NO LIMITS SET · test 1 · ") and h.endswith(" · from the history") for h in heads)
+    assert heads[-1].startswith("## NO LIMITS SET · test 2 · ") and "history" not in heads[-1], heads[-3:]
+
+
+def test_a_past_verdicts_words_say_when() -> None:
+    """The bar of a test from the history: its word and number, when (the date too when it is of another day),
+    and that it is from the history; the detail is left for the findings (the bar's width at 1280 px)."""
+    import datetime
+
+    from ballbar.daemon.rerun.scene import TestRecord, past_headline
+
+    wall = datetime.datetime(2026, 12, 6, 23, 10, 5, tzinfo=datetime.UTC).timestamp()
+    r = TestRecord(9, wall, 5.0, {}, "## FAIL · test 9", "fail",
+                   "FAIL · xy test 9 · Backlash X 12.0 ± 0.1 µm, limit 8.0 µm")
+    assert past_headline(r, now=wall + 60) == "FAIL · xy test 9 at 23:10:05 UTC · from the history"
+    assert past_headline(r, now=wall + 3600) == "FAIL · xy test 9 of 2026-12-06 23:10 UTC · from the history"

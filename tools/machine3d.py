@@ -55,6 +55,15 @@ _PLANE_KEYS = {k.format(c) for k in AXIS_KEYS for c in "xy"} | set(PLANE_ONLY)
 _DEFAULT = MachineModel()
 
 
+def machine_keys() -> dict[str, float]:
+    """The flat keys :meth:`Machine3D.from_settings` takes, each with its default: every axis key for ``x``, ``y``
+    and ``z``, the three squareness errors, and the plane-free keys of the plane's machine model."""
+    out = {key.format(c): _axis_default(key) for key in AXIS_KEYS for c in "xyz"}
+    out.update({k: 0.0 for k in SQUARENESS_KEYS.values()})
+    out.update({f.name: getattr(_DEFAULT, f.name) for f in fields(MachineModel) if f.name not in _PLANE_KEYS})
+    return out
+
+
 def _axis_default(key: str) -> float:
     return float(getattr(_DEFAULT, key.format("x")))
 

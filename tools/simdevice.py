@@ -238,9 +238,12 @@ class DeviceProcess:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from ballbar.tools.simulator_cli import machine_keys_help
+
     p = argparse.ArgumentParser(
         prog="python -m ballbar.tools.simdevice",
         description="A simulated ball-bar interface on a pty; fault injection on stdin (see the module docstring).",
+        epilog=machine_keys_help(), formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     from ballbar.protocol.gauges import PROFILES
 

@@ -1,5 +1,5 @@
-"""The simulated ball-bar of ``ballbar run --simulate``: the device process on a pty (:mod:`.simdevice`) running
-the demo machine, and the daemon's source that opens it once it is up.  The daemon finds
+"""The simulated ball-bar of ``ballbar run --simulate [MACHINE]``: the device process on a pty (:mod:`.simdevice`)
+running a named machine (:data:`MACHINES`), and the daemon's source that opens it once it is up.  The daemon finds
 :func:`simulated_device` as the ``device`` plug-in of ``ballbar.daemon.plugins.SIMULATED``.
 """
 
@@ -13,9 +13,10 @@ import shutil
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, fields
 
-from ballbar.daemon.config import Config
+from ballbar.daemon.config import Config, ConfigError
 from ballbar.daemon.errors import SourceClosed, SourceError
 from ballbar.daemon.run import simulated_plans
 from ballbar.daemon.samples import SampleBatch, SourceStats
@@ -40,17 +41,70 @@ SIM_MACHINE_3D = (
 )
 
 
-def simdevice_args(cfg: Config, speedup: float) -> list[str]:
-    """``python -m ballbar.tools.simdevice`` arguments: the demo machine running the configured plan, forever;
-    with a library of several plans, the 3D demo machine running its set (:func:`simulated_plans`), each
-    program with its signature."""
+@dataclass(frozen=True)
+class NamedMachine:
+    """A machine of ``ballbar run --simulate MACHINE``: its keys over the demo machine's (``KEY=VALUE``, the same
+    for the plane's and the 3D machine: ``_x`` is X, ``_y`` Y), and what changes by how much per test."""
+
+    changes: tuple[str, ...] = ()
+    drift: tuple[str, ...] = ()
+
+
+#: The machines against the daemon's simulated limits (``ballbar.daemon.run.SIM_LIMITS``: backlash 8 um, servo
+#: mismatch 8 ms, squareness 50 urad).  Passing: the demo machine (a servo mismatch of 3 ms, X backlash 4 um).
+#: Failing: X backlash 12 um and gains of 25 and 35 1/s (X lags Y by 11 ms), the two faults a ball-bar is most
+#: often sent for.  Wearing: the demo machine whose X backlash grows 0.5 um and Y gain 0.5 1/s a test (its servo
+#: mismatch about 0.4 ms a test): a warning from about the 6th test, a forecast once the trend is significant
+#: (``limits.min_tests``, the 6th), a fail at the 10th (its servo mismatch at about the 14th).
+MACHINES: dict[str, NamedMachine] = {
+    "passing": NamedMachine(),
+    "failing": NamedMachine(changes=("backlash_x_um=12", "kv_x_per_s=25", "kv_y_per_s=35")),
+    "wearing": NamedMachine(drift=("backlash_x_um=0.5", "kv_y_per_s=0.5")),
+}
+
+
+def check_machine(three_d: bool, sets: Sequence[str], drifts: Sequence[str]) -> None:
+    """A :class:`ConfigError` naming ``--sim-set`` or ``--sim-drift`` for an unknown machine key or a bad value
+    (before the device starts, whose own message would only be on its stderr)."""
+    from ballbar.analysis.errors import PlanError
+
+    from .machine3d import Machine3D, machine_keys
+    from .simfeed import _floats
+    from .simulator import MachineModel
+    from .simulator_cli import parse_set
+
+    demo = SIM_MACHINE_3D if three_d else SIM_MACHINE
+    try:
+        if three_d:
+            Machine3D.from_settings(_floats((*demo, *sets), "--sim-set"))
+        else:
+            MachineModel(**parse_set((*demo, *sets)))
+    except PlanError as err:
+        raise ConfigError(f"--sim-set: {err}") from None
+    try:
+        steps = _floats(drifts, "--sim-drift")
+    except PlanError as err:
+        raise ConfigError(str(err)) from None
+    known = machine_keys() if three_d else {f.name for f in fields(MachineModel)}
+    for key in steps:
+        if key not in known:
+            raise ConfigError(f"--sim-drift: unknown machine key {key!r} (known: {', '.join(sorted(known))})")
+
+
+def simdevice_args(cfg: Config, speedup: float, machine: str = "passing", sets: Sequence[str] = (),
+                   drifts: Sequence[str] = ()) -> list[str]:
+    """``python -m ballbar.tools.simdevice`` arguments: the named machine (:data:`MACHINES`) with ``sets`` over its
+    keys and ``drifts`` added to its wear, running the configured plan, forever; with a library of several plans,
+    the 3D demo machine so changed running its set (:func:`simulated_plans`), each program with its signature."""
     p = cfg.plan
+    named = MACHINES[machine]
+    wear = [a for item in (*named.drift, *drifts) for a in ("--drift", item)]
     if simulated_plans(cfg):
         args = ["--rate", f"{p.sample_hz:g}", "--speedup", f"{speedup:g}", "--repeat", "0", "--gap-s", "5",
                 "--library", json.dumps(cfg.to_dict()["plans"]), "--run-plans", ",".join(simulated_plans(cfg))]
-        for item in SIM_MACHINE_3D:
+        for item in (*SIM_MACHINE_3D, *named.changes, *sets):
             args += ["--set", item]
-        return args
+        return args + wear
     args = [
         "--rate", f"{p.sample_hz:g}", "--speedup", f"{speedup:g}", "--repeat", "0", "--gap-s", "5",
         "--radius-mm", f"{p.radius_mm:g}", "--feed-mm-min", f"{p.feed_mm_min:g}", "--plane", p.plane,
@@ -58,9 +112,9 @@ def simdevice_args(cfg: Config, speedup: float) -> list[str]:
         "--data-arc-deg", f"{p.data_arc_deg:g}", "--feed-in-mm", f"{p.feed_in_mm:g}",
         "--dwell-s", f"{p.dwell_s:g}", "--directions", p.directions,
     ]
-    for item in SIM_MACHINE:
+    for item in (*SIM_MACHINE, *named.changes, *sets):
         args += ["--set", item]
-    return args
+    return args + wear
 
 
 class SimulatedDeviceSource(Source):
@@ -144,15 +198,21 @@ class SimulatedDeviceSource(Source):
 
 
 @contextlib.contextmanager
-def simulated_device(cfg: Config, speedup: float) -> Iterator[SimulatedDeviceSource]:
-    """The built-in simulated ball-bar on a pty, repeating tests: its source (see :class:`SimulatedDeviceSource`)."""
+def simulated_device(cfg: Config, speedup: float, machine: str = "passing", sets: Sequence[str] = (),
+                     drifts: Sequence[str] = ()) -> Iterator[SimulatedDeviceSource]:
+    """The built-in simulated ball-bar on a pty, repeating tests on the named machine (:func:`simdevice_args`): its
+    source (see :class:`SimulatedDeviceSource`)."""
+    if machine not in MACHINES:
+        raise ConfigError(f"--simulate: no machine {machine!r} (known: {', '.join(MACHINES)})")
+    if sets or drifts:  # (the named machines are sound; the check imports the simulator, 0.5 s before READY)
+        check_machine(bool(simulated_plans(cfg)), sets, drifts)
     tmpdir = tempfile.mkdtemp(prefix="ballbar-simdevice-")
     try:
         link = os.path.join(tmpdir, "ttyBALLBAR0")
         p = cfg.plan
         # The URL the device will print (simdevice_args: binary, the plan's rate, calibrated at the radius).
         url = source_url(link, Settings(protocol="binary", rate=p.sample_hz, cal_mm=p.radius_mm))
-        with DeviceProcess(*simdevice_args(cfg, speedup), "--link", link, wait=False) as dev:
+        with DeviceProcess(*simdevice_args(cfg, speedup, machine, sets, drifts), "--link", link, wait=False) as dev:
             log.info("simulated ball-bar on %s (x%g speed), starting", link, speedup)
             source = SimulatedDeviceSource(dev, url, p.sample_hz)
             try:

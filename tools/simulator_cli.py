@@ -13,7 +13,7 @@ import argparse
 import json
 import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import fields
 from typing import Any
 
@@ -51,6 +51,50 @@ def parse_set(items: Sequence[str]) -> dict[str, Any]:
         except ValueError as err:
             raise PlanError(f"machine key {key!r}: bad value {text!r}") from err
     return out
+
+
+#: A machine key's unit, by the ending of its name (the project's naming rule: the unit is the key's last part).
+UNIT_ENDINGS = (("_um_per_min", "um/min"), ("_mm_s2", "mm/s^2"), ("_mm_s3", "mm/s^3"), ("_mm_s", "mm/s"),
+                ("_per_s", "1/s"), ("_urad", "urad"), ("_ppm", "ppm"), ("_deg", "deg"), ("_um", "um"),
+                ("_mm", "mm"), ("_hz", "Hz"), ("_s", "s"))
+
+
+def key_unit(key: str) -> str:
+    """The unit of machine key ``key`` from its name (``""``: a plain number, a flag or a list)."""
+    return next((unit for ending, unit in UNIT_ENDINGS if key.endswith(ending)), "")
+
+
+def keys_table(defaults: Mapping[str, Any], width: int = 100) -> str:
+    """``key (unit) = default`` for each of ``defaults``, sorted, in columns of at most ``width`` characters."""
+    cells = []
+    for key in sorted(defaults):
+        value = defaults[key]
+        text = ",".join(map(str, value)) if isinstance(value, tuple) else f"{value:g}" if isinstance(
+            value, float) else str(value).lower()
+        unit = key_unit(key)
+        cells.append(f"{key} = {text or '(none)'}" + (f" {unit}" if unit else ""))
+    col = max(len(c) for c in cells) + 2
+    per_line = max(1, width // col)
+    rows = [cells[i:i + per_line] for i in range(0, len(cells), per_line)]
+    return "\n".join("  " + "".join(c.ljust(col) for c in row).rstrip() for row in rows)
+
+
+def machine_keys_help() -> str:
+    """The machine keys ``--set`` (and ``--drift``) take, with their defaults and units, from the models' own
+    fields: the plane's (:class:`MachineModel`) and, with ``--library``, the 3D machine's."""
+    import textwrap
+
+    from .machine3d import AXIS_KEYS, PLANE_ONLY, SQUARENESS_KEYS
+
+    model = MachineModel()
+    plane = {f.name: getattr(model, f.name) for f in fields(MachineModel)}
+    axis = ", ".join(k.format("{x,y,z}") for k in AXIS_KEYS)
+    three_d = textwrap.fill(
+        f"with --library, the 3D machine's: the axis keys {axis} (the machine's X, Y, Z; defaults and units as "
+        f"above), {', '.join(SQUARENESS_KEYS.values())} (urad, 0), and the keys above that belong to no plane "
+        f"(not {', '.join(PLANE_ONLY)})", 100)
+    return ("machine keys of --set and --drift, each with its default (x, y: the plane's first and second axis):\n"
+            f"{keys_table(plane)}\n\n{three_d}")
 
 
 def write_csv(path: str, t_s: np.ndarray, length_mm: np.ndarray, *, append: bool = False) -> None:
@@ -105,6 +149,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m ballbar.tools.simulator_cli",
         description="Simulate ball-bar tests on a physical machine model and write t_s,length_mm CSV.",
+        epilog=machine_keys_help().split("\n\n")[0].replace("--set and --drift", "--set"),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--out", required=True, help="CSV file to write (t_s,length_mm)")
     p.add_argument("--truth", help="JSON file for the expected results, events and model")

@@ -9,7 +9,8 @@ the test's number within this daemon run)::
       polar/{ccw,cw}/measured     the measured radial deviation, set-up removed, magnified
       polar/{ccw,cw}/model        the fitted model
       polar/verdict               a bar in the verdict's colour (fail red, warning amber, pass green, no
-                                  limits grey), labelled with the verdict in words
+                                  limits grey), labelled with the verdict in words; a test sent with the
+                                  history says so, on a dimmed bar (:meth:`Scene._send_record`)
       polar/reference/...         nominal circle, axes, the scale rings (+-1..3 divisions) and their labels
     live/...                    the test in progress, from its feed-in: the same entities, the measured
                                   curves grown live in pieces (each completed piece once in
@@ -124,6 +125,38 @@ class Curve:
     stale: bool = False
 
 
+def viewer_command() -> str:
+    """The viewer to run on this PC: the ``rerun`` beside this interpreter (the venv's, which rerun-sdk installed:
+    the daemon's version), else ``rerun`` on the PATH."""
+    import os
+    import sys
+
+    exe = os.path.join(os.path.dirname(sys.executable), "rerun")
+    return exe if os.access(exe, os.X_OK) else "rerun"
+
+
+PAST_GREY = (70, 74, 84)  # a test of the history's verdict bar: its colour half way to this grey
+PAST_WORDS = "from the history"
+
+
+def past_headline(r: TestRecord, now: float | None = None) -> str:
+    """``FAIL · test 9 at 23:10:05 UTC · from the history`` (a test of another day than ``now``'s: ``of 2026-12-06
+    23:10 UTC``): short enough for the bar at 1280 px."""
+    import datetime
+
+    head = " · ".join(r.headline.split(" · ")[:2])  # the verdict's word and the test (with its plan)
+    when = datetime.datetime.fromtimestamp(r.wall, datetime.UTC)
+    today = datetime.datetime.fromtimestamp(time.time() if now is None else now, datetime.UTC).date()
+    at = f"at {when:%H:%M:%S} UTC" if when.date() == today else f"of {when:%Y-%m-%d %H:%M} UTC"
+    return f"{head} {at} · {PAST_WORDS}"
+
+
+def past_findings(r: TestRecord) -> str:
+    """The findings of a test of the history, their heading saying so."""
+    head, sep, rest = r.findings.partition("\n")
+    return f"{head} · {PAST_WORDS}{sep}{rest}"
+
+
 @dataclass
 class TestRecord:
     """A finished test as the last-complete-test view draws it (and a late viewer is sent it): display points,
@@ -225,7 +258,8 @@ class Scene:
                 self._stalled_since = None
                 rec.set_sinks(rr.GrpcSink(srv.url))
                 self._on_new_sink(
-                    "serving on %s:%d (viewers: rerun %s)", self.options.bind, self.options.port, self.address
+                    "serving on %s:%d (viewers: %s %s)", self.options.bind, self.options.port, viewer_command(),
+                    self.address,
                 )
             return
         pr = self._prober
@@ -320,8 +354,9 @@ class Scene:
         self._refreshed_mono = time.monotonic()
         if self._server is not None:
             self._clients_ended = self._server.clients_ended
-        steps: list[Callable[[], None]] = [functools.partial(self._send_record, r) for r in self._history]
-        steps += [functools.partial(self._send_record, r, f"plans/{p}") for p, r in self._plan_records.items()]
+        steps: list[Callable[[], None]] = [functools.partial(self._send_record, r, past=True) for r in self._history]
+        steps += [functools.partial(self._send_record, r, f"plans/{p}", past=True)
+                  for p, r in self._plan_records.items()]
         if len(self._trends) and not self._plans:
             steps.append(functools.partial(self._send_trends, self._trends.rows()))
         for p, ring in self._plan_trends.items():
@@ -342,8 +377,14 @@ class Scene:
         while self._history_steps and self._sent_bytes - start < budget:
             self._history_steps.popleft()()
 
-    def _send_record(self, r: TestRecord, view: str = "polar") -> None:
-        """A finished test in the last-complete-test view (or ``view``: its plan's), at its own time."""
+    def _send_record(self, r: TestRecord, view: str = "polar", past: bool = False) -> None:
+        """A finished test in the last-complete-test view (or ``view``: its plan's), at its own time.
+
+        ``past``: sent with the history.  A viewer that connects gets the server's buffer oldest first, a bounded
+        amount per frame, and shows each test as it arrives for 10 s and more; so the verdict bar and the
+        findings' heading of a test from the history say so (its time, ``from the history``, the bar's colour
+        dimmed), and :meth:`_send_present` states the last test's verdict again at the present, undimmed.
+        """
         rec = self._rec
         assert rec is not None
         rec.set_time("test", sequence=r.index)
@@ -356,10 +397,19 @@ class Scene:
             self._log_axis_labels(view, r.axes, static=False)  # at the test's time (a refresh re-sends older ones)
         for name, (pts, colour, width, order) in r.curves.items():
             self._log_strip(f"{view}/{name}", pts, colour, width, order)
-        self._log_verdict(r.status, r.headline, view)
+        if past:
+            self._log_past_verdict(r, view)
+        else:
+            self._log_verdict(r.status, r.headline, view)
         if view == "polar":
-            self._log_findings(r.findings)
+            self._log_findings(past_findings(r) if past else r.findings)
         self._set_times()
+
+    def _log_past_verdict(self, r: TestRecord, view: str) -> None:
+        """A test of the history's verdict: its word and test, when, ``from the history``, on a dimmed bar."""
+        colour = STATUS_RGB.get(r.status, STATUS_RGB["none"])
+        dimmed = tuple((c + g) // 2 for c, g in zip(colour, PAST_GREY, strict=True))
+        self._log_bar(f"{view}/verdict", (dimmed[0], dimmed[1], dimmed[2]), past_headline(r))
 
     def _log_findings(self, md: str) -> None:
         """The findings document: with a library of plans, the set's verdict first."""
@@ -391,6 +441,11 @@ class Scene:
             self._log_set()
         if self._last is not None and not any(r is self._last for r in self._history):
             self._send_record(self._last)
+        elif self._last is not None:  # sent with the history, as past: its verdict stated as the present's
+            self._log_verdict(self._last.status, self._last.headline)
+            self._log_findings(self._last.findings)
+        for p, r in self._plan_records.items():
+            self._log_verdict(r.status, r.headline, f"plans/{p}")
         if emit:
             self._emit()
 

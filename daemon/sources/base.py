@@ -29,6 +29,7 @@ TTY_READ_BYTES = 3000  # a relaxed read of a serial port takes at most about thi
 WAIT_WARNING_S = 60.0  # how often a port that is not there (yet) is reported again
 POLL_WINDOWS = 4096  # request/answer windows kept for the status's median and p99
 RATE_SPAN_S = 10.0  # the achieved poll rate: answers over about this long
+RATIO_MIN_SPAN_S = 5.0  # a device clock's rate is stated once its map rests on reads over this long
 TIMING_FIRST = 64  # answers before the first timing event
 TIMING_GROWTH = 1.25  # a timing event again when the stamps' uncertainty grows by this factor
 READ_MAX = 1 << 16

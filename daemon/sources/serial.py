@@ -25,6 +25,7 @@ from .base import (
     FALLBACK_WAIT_S,
     POLL_WINDOWS,
     RATE_SPAN_S,
+    RATIO_MIN_SPAN_S,
     READ_BURST_MAX,
     READ_MAX,
     READ_MORE_AT,
@@ -490,9 +491,11 @@ class SerialSource(Source):
                         detail=f"sample counter leapt {count} beyond its clock (no sample lost)")
         self._duplicates += st.duplicates
         self._report_decode()
-        if self._stamper.clock.ready:
-            self._stats.clock_ratio = self._stamper.clock.ratio
-            self._stats.clock_offset_s = self._stamper.clock.offset
+        clock = self._stamper.clock
+        if clock.ready:
+            # (the map stamps from the first read; its rate is stated once it rests on enough of them)
+            self._stats.clock_ratio = clock.ratio if clock.span_s >= RATIO_MIN_SPAN_S else math.nan
+            self._stats.clock_offset_s = clock.offset
         keep = st.keep
         status = r.status[keep]
         return self._batch(st.t_host, st.t_device, self.cal_mm + r.value_mm[keep], st.seq, status)
@@ -529,7 +532,10 @@ class SerialSource(Source):
         if self._tick0 is None:
             self._tick0 = now - self._k * period
             self._poll_batch_start = now
-        if self._out is not None and now - self._out[1] > self.poll_timeout_s:
+        # A host that wakes late (a loaded PC) may find the answer waiting in the port: that is no timeout, and its
+        # window (how late it was read) enters the stamps' stated uncertainty.
+        waiting = self._out is not None and now - self._out[1] > self.poll_timeout_s and self._answer_waiting()
+        if self._out is not None and now - self._out[1] > self.poll_timeout_s and not waiting:
             self._lose(self._out[0], 1, "poll_timeout")
             self._out = None
             if self._decoder.pending:  # an answer cut short (a line pulled mid-answer): never parsed
@@ -554,7 +560,7 @@ class SerialSource(Source):
         if deadline is not None:
             until = min(until, deadline)
         # Returns at the first byte of the answer; what came is read at once.
-        data = self._read_now(waited=True) if self._wait(until) else b""
+        data = self._read_now(waited=True) if waiting or self._wait(until) else b""
         if data is None:
             return self._flush_poll()
         t_read = time.monotonic()
@@ -573,6 +579,13 @@ class SerialSource(Source):
         if t_read - self._poll_batch_start >= self.read_s or (deadline is not None and t_read >= deadline):
             return self._flush_poll()
         return None
+
+    def _answer_waiting(self) -> bool:
+        port = self._port
+        try:
+            return port is not None and port.in_waiting > 0
+        except (serial.SerialException, OSError):
+            return False  # (the read that follows finds the port gone)
 
     def _send_request(self) -> bool:
         port = self._port

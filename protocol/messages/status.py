@@ -185,7 +185,8 @@ class SourceStats(TypedDict):
     decode: NotRequired[Annotated[Counts, doc("decoder drops by reason")]]
     lost_by_cause: NotRequired[Annotated[Counts, doc("lost samples by cause (gap, outage, stall, ...)")]]
     clock_ratio: Annotated[float | None, doc("host seconds per device second, in device terms (divided by "
-                                             "status.speedup, so 1 for a healthy clock)", null="no device clock yet")]
+                                             "status.speedup, so 1 for a healthy clock)",
+                                             null="no device clock yet, or under 5 s of it")]
     clock_offset_s: NotRequired[Annotated[float | None, doc("t_host = clock_offset_s + clock_ratio * t_device / "
                                                             "speedup", "s")]]
     drift_ppm: Annotated[float | None, doc("the device clock's drift against the host's, in device terms", "ppm",
