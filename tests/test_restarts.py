@@ -100,7 +100,10 @@ def test_a_device_restarted_meanwhile_is_a_reset_and_counts_nothing(tmp_path: Pa
     state = tmp_path / "state"
     with DeviceProcess("--protocol", "binary", "--rate", "1000", "--speedup", "5", "--repeat", "0",
                        "--link", str(tmp_path / "ballbar-tty")) as dev:
-        _run(dev.url, state, tmp_path / "first.log", 3.0, signal.SIGTERM)
+        # The first run long enough that the second starts before the restarted counter passes its old value
+        # (a counter that grew past it reads as a continuation: 3 s was too short once the second start took
+        # 3 s longer than the first, on a loaded host).
+        _run(dev.url, state, tmp_path / "first.log", 8.0, signal.SIGTERM)
         dev.send("reset")
         _run(dev.url, state, tmp_path / "second.log", 2.0, signal.SIGTERM)
     runs, events, _status = _recorded(state)
