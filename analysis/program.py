@@ -135,23 +135,30 @@ class Schedule:
         return u_ds + direction * np.degrees(self.feed_mm_s * tau / plan.radius_mm)
 
 
-def move_duration(length_mm: float, feed_mm_s: float, overhead_s: float) -> float:
-    """Rest-to-rest duration of a move: ``s / V + c`` when it reaches the feed (``s >= V c``), else the
-    triangle ``2 sqrt(s c / V)`` of a trapezoid with ``A = V / c`` (the two agree at ``s = V c``)."""
-    if overhead_s <= 0.0 or length_mm >= feed_mm_s * overhead_s:
+def move_duration(length_mm: float, feed_mm_s: float, overhead_s: float, smooth_s: float = 0.0) -> float:
+    """Rest-to-rest duration of a move: a trapezoid of acceleration time ``a = overhead - smooth`` (``A = V / a``)
+    averaged over ``smooth_s`` (a jerk limit's, or a filter's after interpolation).  The trapezoid lasts
+    ``s / V + a`` when it reaches the feed (``s >= V a``), else its triangle ``2 sqrt(s a / V)`` (the two agree at
+    ``s = V a``); the average adds ``smooth_s`` whatever the move's length."""
+    smooth = min(max(smooth_s, 0.0), max(overhead_s, 0.0))
+    a = overhead_s - smooth
+    if a <= 0.0 or length_mm >= feed_mm_s * a:
         return length_mm / feed_mm_s + overhead_s
-    return 2.0 * math.sqrt(length_mm * overhead_s / feed_mm_s)
+    return 2.0 * math.sqrt(length_mm * a / feed_mm_s) + smooth
 
 
-def feed_in_half(f: float, V: float, c: float, accel_s: float | None) -> float:
+def feed_in_half(f: float, V: float, c: float, accel_s: float | None, smooth_share: float = 0.0) -> float:
     """From the feed-in's centroid (its middle) to the end of its share of the per-move overhead ``c``.
 
-    ``accel_s``: the part of ``c`` that is acceleration (the rest, e.g. an
-    in-position wait, does not shape the move); None: all of it.  Only a move
-    shorter than ``V accel_s`` is the trapezoid's triangle.
+    ``accel_s``: the part of ``c`` that shapes the move (the rest, e.g. an
+    in-position wait, does not); None: all of it.  ``smooth_share``: the part
+    of that shape which averages the trapezoid (a jerk limit's ``A/J``)
+    rather than accelerating it (``V/A``): only the acceleration's part makes a
+    move shorter than ``V (V/A)`` the trapezoid's triangle (analysis/README.md,
+    "The feed-in's own duration").
     """
     a = accel_part(c, accel_s)
-    return move_duration(f, V, a) / 2 + (c - a) / 2
+    return move_duration(f, V, a, smooth_share * a) / 2 + (c - a) / 2
 
 
 def accel_part(c: float, accel_s: float | None) -> float:
@@ -183,17 +190,20 @@ def accel_from_spread(f: float, V: float, var_s2: float) -> float:
     return 6.0 * V * var_s2 / f
 
 
-def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0, accel_s: float | None = None) -> Schedule:
+def schedule(
+    plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0, accel_s: float | None = None, smooth_share: float = 0.0
+) -> Schedule:
     """Predicted timing of ``plan`` at path feed ``feed_mm_s`` and per-move overhead ``overhead_s``.
 
-    ``accel_s``: the acceleration part of the overhead, where known (:func:`feed_in_half`).
+    ``accel_s``: the acceleration part of the overhead, where known; ``smooth_share``: the share of it that
+    averages rather than accelerates (:func:`feed_in_half`).
     """
     V, c = feed_mm_s, overhead_s
     R, f, D = plan.radius_mm, plan.feed_in_mm, plan.dwell_s
     o, a = math.radians(plan.overshoot_deg), math.radians(plan.data_arc_deg)
     arc_len = R * (a + 2 * o)
     # The feed-in's centroid sits at its middle, whether or not it reaches the feed.
-    half_feed_in = feed_in_half(f, V, c, accel_s)
+    half_feed_in = feed_in_half(f, V, c, accel_s, smooth_share)
     t = half_feed_in  # end of feed-in, relative to its centroid
     ds: dict[int, float] = {}
     de: dict[int, float] = {}
@@ -209,12 +219,16 @@ def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0, accel_s:
     return Schedule(V, c, ds, de, arc_start, feed_out_centroid)
 
 
-def centroid_span_s(plan: TestPlan, feed_mm_s: float, overhead_s: float, accel_s: float | None = None) -> float:
+def centroid_span_s(
+    plan: TestPlan, feed_mm_s: float, overhead_s: float, accel_s: float | None = None, smooth_share: float = 0.0
+) -> float:
     """Time from the feed-in's centroid to the feed-out's."""
-    return schedule(plan, feed_mm_s, overhead_s, accel_s).feed_out_centroid_s
+    return schedule(plan, feed_mm_s, overhead_s, accel_s, smooth_share).feed_out_centroid_s
 
 
-def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0, accel_s: float | None = None) -> float:
+def feed_from_span(
+    plan: TestPlan, span_s: float, overhead_s: float = 0.0, accel_s: float | None = None, smooth_share: float = 0.0
+) -> float:
     """Invert :func:`centroid_span_s` for the feed (mm/s).
 
     Where the feed-in reaches the feed the span is linear in ``1/V``; where it
@@ -226,15 +240,18 @@ def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0, accel
     n_dirs = len(plan.direction_list)
     n_dwells = n_dirs + 1
     f, c = plan.feed_in_mm, overhead_s
-    acc = accel_part(c, accel_s)
+    shape = accel_part(c, accel_s)
+    smooth = min(max(smooth_share, 0.0), 1.0) * max(shape, 0.0)
+    acc = shape - smooth  # the trapezoid's acceleration time: only it makes a short move a triangle
     arcs = n_dirs * plan.radius_mm * math.radians(plan.arc_deg)
     # Reaching the feed: span = dwells + n_dirs c + c (two half feed moves) + (f + arcs) / V.
     moving = span_s - n_dwells * plan.dwell_s - (n_dirs + 1) * c
     V = (f + arcs) / moving if moving > 0 else float("nan")
     if acc <= 0.0 or not math.isfinite(V) or f >= V * acc:
         return V
-    # A triangle feed-in: span = dwells + n_dirs c + (c - acc) + arcs x^2 + 2 sqrt(f acc) x with x = 1/sqrt(V).
-    m = span_s - n_dwells * plan.dwell_s - n_dirs * c - (c - acc)
+    # A triangle feed-in, averaged over ``smooth``:
+    # span = dwells + n_dirs c + (c - shape) + smooth + arcs x^2 + 2 sqrt(f acc) x with x = 1/sqrt(V).
+    m = span_s - n_dwells * plan.dwell_s - n_dirs * c - (c - shape) - smooth
     b = 2.0 * math.sqrt(f * acc)
     if m <= 0:
         return float("nan")

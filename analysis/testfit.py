@@ -121,7 +121,8 @@ class TestFit(Assembly):
                 self.spike_sse = (found.best.sse, bare.best.sse, obj.samples)
                 if bare.best.sse < found.best.sse:
                     nb = bare.best.theta
-                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff)
+                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff,
+                                               smooth=nb.smooth)
                     restarted, again = True, True
             if not again:
                 break

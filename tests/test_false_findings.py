@@ -9,6 +9,7 @@ import pytest
 
 from ballbar.analysis import TestPlan
 from ballbar.analysis.engine import analyze_recording
+from ballbar.analysis.program import centroid_span_s, feed_from_span, move_duration
 from ballbar.tools.bench import physim as ps
 
 R, F = 100.0, 2000.0  # at 15.625 Hz a sample spans 2.1 mm, 1.2 deg
@@ -37,3 +38,37 @@ def test_servo_mismatch_at_a_low_rate_is_no_lateral_play(seed: int) -> None:
         assert not p["significant"], (name, p["value"], p["stderr"], p["p_value"])
         assert abs(p["value"]) < 3 * p["stderr"], (name, p["value"], p["stderr"])
     assert result["fit"]["evaluations"] <= 40
+
+
+@pytest.mark.parametrize("share", [0.0, 0.3, 0.6, 1.0])
+def test_the_span_inverts_for_any_smoothing_share_of_a_short_feed_in(share: float) -> None:
+    # F 2000 with 83 ms of overhead: the 1.5 mm feed-in (V c = 2.8 mm) may be short; the feed from the span
+    # must be the one that made it, whatever share of the overhead averages rather than accelerates
+    plan = TestPlan(sample_hz=1000.0, radius_mm=R, feed_mm_min=F)
+    V, c = F / 60.0, 0.0833
+    span = centroid_span_s(plan, V, c, None, share)
+    assert feed_from_span(plan, span, c, None, share) == pytest.approx(V, rel=1e-9)
+    # a trapezoid averaged over all of its overhead lasts s/V + c, reached or not
+    if share == 1.0:
+        assert move_duration(plan.feed_in_mm, V, c, c) == pytest.approx(plan.feed_in_mm / V + c)
+    if share == 0.0:
+        assert move_duration(plan.feed_in_mm, V, c, 0.0) == pytest.approx(2 * (plan.feed_in_mm * c / V) ** 0.5)
+
+
+def test_a_short_jerk_limited_feed_in_is_no_lateral_play() -> None:
+    # a dead band on each axis and 19 ms of servo mismatch at 1 kHz, F 1287 on R 92: the dead band's steps pin
+    # each arc's timing, so the wait cannot take up a feed-in timed as a triangle that the jerk limit's average
+    # (93 ms of the 104 ms overhead) makes 3.5 ms longer; the servo pattern, turned between the arcs, read as
+    # -0.12 um of lateral play on each axis at ten of its standard errors
+    machine = ps.Machine(x=ps.Axis(kv=42.6, play_um=14.9), y=ps.Axis(kv=23.3, play_um=8.2), accel_mm_s2=1855.0)
+    path = ps.Path(radius_mm=91.9, feed_mm_min=1287.0)
+    t, L = ps.simulate(machine, path, ps.Gauge(sample_hz=1000.0, noise_um=0.16, phase=0.2), seed=5)
+    plan = TestPlan(sample_hz=1000.0, radius_mm=path.radius_mm, feed_mm_min=path.feed_mm_min)
+    tests = [r for r in analyze_recording(t, L, plan) if r.get("kind") == "test"]
+    params = tests[0]["parameters"]
+    assert params["backlash_x_um"]["value"] == pytest.approx(14.9, abs=0.1)
+    for name in ("lateral_play_x_um", "lateral_play_y_um"):
+        p = params[name]
+        assert not p["significant"], (name, p["value"], p["stderr"], p["p_value"])
+        assert abs(p["value"]) < 3 * p["stderr"], (name, p["value"], p["stderr"])
+    assert tests[0]["fit"]["evaluations"] <= 40
