@@ -42,7 +42,7 @@ from .validity import reading_step, sensor_noise
 
 LAG_PRIOR_S = 0.05  # prior on the arc-start lag: where the data cannot see it, it stays near the feed-in's shape's
 WAIT_PRIOR_S = 0.1  # ... and on the feed-in's extra wait
-SMOOTH_PRIOR = (0.5, 0.35)  # ... and on the smoothing share of a short feed-in's overhead (within 0..1): unknown
+SMOOTH_PRIOR = (0.5, 0.35)  # ... and on where a short feed-in's duration lies between its limits (0..1)
 SMOOTH_STEP = 0.05
 WAIT_MAX_S = 0.3
 LAG_BELOW_S = 0.1  # a negative per-move overhead is unphysical: only this far below 0
@@ -305,8 +305,9 @@ class Pieces:
 
     def _short_feed_in(self) -> bool:
         """Whether the feed-in may be too short to reach the feed at the starting lag: then how long it lasts
-        depends on how much of the overhead averages rather than accelerates (:func:`.program.feed_in_half`),
-        which the fit searches (a jerk limit's ``A/J``, or a filter's after interpolation, is common)."""
+        depends on the control (a plain trapezoid's triangle, or as long as if it reached the feed where the
+        trapezoid is averaged, a jerk limit's ``A/J`` or a filter's after interpolation: both are common), which
+        the fit searches (:func:`.program.short_move_duration`)."""
         c = max(self.c0, self.state.theta.c)
         shape = accel_part(c, self.accel)
         V = feed_from_span(self.plan, self.span, c, self.accel)

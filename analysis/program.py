@@ -135,30 +135,39 @@ class Schedule:
         return u_ds + direction * np.degrees(self.feed_mm_s * tau / plan.radius_mm)
 
 
-def move_duration(length_mm: float, feed_mm_s: float, overhead_s: float, smooth_s: float = 0.0) -> float:
-    """Rest-to-rest duration of a move: a trapezoid of acceleration time ``a = overhead - smooth`` (``A = V / a``)
-    averaged over ``smooth_s`` (a jerk limit's, or a filter's after interpolation).  The trapezoid lasts
-    ``s / V + a`` when it reaches the feed (``s >= V a``), else its triangle ``2 sqrt(s a / V)`` (the two agree at
-    ``s = V a``); the average adds ``smooth_s`` whatever the move's length."""
-    smooth = min(max(smooth_s, 0.0), max(overhead_s, 0.0))
-    a = overhead_s - smooth
-    if a <= 0.0 or length_mm >= feed_mm_s * a:
+def move_duration(length_mm: float, feed_mm_s: float, overhead_s: float) -> float:
+    """Rest-to-rest duration of a move: ``s / V + c`` when it reaches the feed (``s >= V c``), else the
+    triangle ``2 sqrt(s c / V)`` of a trapezoid with ``A = V / c`` (the two agree at ``s = V c``)."""
+    if overhead_s <= 0.0 or length_mm >= feed_mm_s * overhead_s:
         return length_mm / feed_mm_s + overhead_s
-    return 2.0 * math.sqrt(length_mm * a / feed_mm_s) + smooth
+    return 2.0 * math.sqrt(length_mm * overhead_s / feed_mm_s)
+
+
+def short_move_duration(length_mm: float, feed_mm_s: float, overhead_s: float, smooth_share: float = 0.0) -> float:
+    """Rest-to-rest duration of a move whose shape takes ``overhead_s``, where it may be too short to reach the
+    feed: between the trapezoid's triangle ``2 sqrt(s c / V)`` (all of ``c`` accelerates: ``smooth_share`` 0)
+    and ``s / V + c`` (the trapezoid averaged over ``c``, a jerk limit's S-curve or a filter after
+    interpolation, lasts that whether it reaches the feed or not: 1), at ``smooth_share`` of the way; the two
+    differ by ``(sqrt(s / V) - sqrt(c))^2``.  A move that reaches the feed lasts ``s / V + c`` either way."""
+    if overhead_s <= 0.0 or length_mm >= feed_mm_s * overhead_s:
+        return length_mm / feed_mm_s + overhead_s
+    q = min(max(smooth_share, 0.0), 1.0)
+    tri = 2.0 * math.sqrt(length_mm * overhead_s / feed_mm_s)
+    return tri + q * (length_mm / feed_mm_s + overhead_s - tri)
 
 
 def feed_in_half(f: float, V: float, c: float, accel_s: float | None, smooth_share: float = 0.0) -> float:
     """From the feed-in's centroid (its middle) to the end of its share of the per-move overhead ``c``.
 
     ``accel_s``: the part of ``c`` that shapes the move (the rest, e.g. an
-    in-position wait, does not); None: all of it.  ``smooth_share``: the part
-    of that shape which averages the trapezoid (a jerk limit's ``A/J``)
-    rather than accelerating it (``V/A``): only the acceleration's part makes a
-    move shorter than ``V (V/A)`` the trapezoid's triangle (analysis/README.md,
-    "The feed-in's own duration").
+    in-position wait, does not); None: all of it.  ``smooth_share``: where
+    the feed-in is shorter than ``V accel_s``, how far its duration lies from
+    the trapezoid's triangle toward the average's ``f/V + accel_s``
+    (:func:`short_move_duration`; analysis/README.md, "The feed-in's own
+    duration").
     """
     a = accel_part(c, accel_s)
-    return move_duration(f, V, a, smooth_share * a) / 2 + (c - a) / 2
+    return short_move_duration(f, V, a, smooth_share) / 2 + (c - a) / 2
 
 
 def accel_part(c: float, accel_s: float | None) -> float:
@@ -195,8 +204,8 @@ def schedule(
 ) -> Schedule:
     """Predicted timing of ``plan`` at path feed ``feed_mm_s`` and per-move overhead ``overhead_s``.
 
-    ``accel_s``: the acceleration part of the overhead, where known; ``smooth_share``: the share of it that
-    averages rather than accelerates (:func:`feed_in_half`).
+    ``accel_s``: the part of the overhead that shapes the move, where known; ``smooth_share``: where a short
+    feed-in's duration lies between its triangle and ``f/V + accel_s`` (:func:`feed_in_half`).
     """
     V, c = feed_mm_s, overhead_s
     R, f, D = plan.radius_mm, plan.feed_in_mm, plan.dwell_s
@@ -240,22 +249,22 @@ def feed_from_span(
     n_dirs = len(plan.direction_list)
     n_dwells = n_dirs + 1
     f, c = plan.feed_in_mm, overhead_s
-    shape = accel_part(c, accel_s)
-    smooth = min(max(smooth_share, 0.0), 1.0) * max(shape, 0.0)
-    acc = shape - smooth  # the trapezoid's acceleration time: only it makes a short move a triangle
+    acc = accel_part(c, accel_s)
+    q = min(max(smooth_share, 0.0), 1.0)
     arcs = n_dirs * plan.radius_mm * math.radians(plan.arc_deg)
     # Reaching the feed: span = dwells + n_dirs c + c (two half feed moves) + (f + arcs) / V.
     moving = span_s - n_dwells * plan.dwell_s - (n_dirs + 1) * c
     V = (f + arcs) / moving if moving > 0 else float("nan")
     if acc <= 0.0 or not math.isfinite(V) or f >= V * acc:
         return V
-    # A triangle feed-in, averaged over ``smooth``:
-    # span = dwells + n_dirs c + (c - shape) + smooth + arcs x^2 + 2 sqrt(f acc) x with x = 1/sqrt(V).
-    m = span_s - n_dwells * plan.dwell_s - n_dirs * c - (c - shape) - smooth
-    b = 2.0 * math.sqrt(f * acc)
+    # A short feed-in, (1 - q) of the triangle and q of f/V + acc (:func:`short_move_duration`): with
+    # x = 1/sqrt(V), span = dwells + n_dirs c + (c - acc) + q acc + (arcs + q f) x^2 + (1 - q) 2 sqrt(f acc) x.
+    m = span_s - n_dwells * plan.dwell_s - n_dirs * c - (c - acc) - q * acc
+    a2 = arcs + q * f
+    b = (1.0 - q) * 2.0 * math.sqrt(f * acc)
     if m <= 0:
         return float("nan")
-    x = (-b + math.sqrt(b * b + 4.0 * arcs * m)) / (2.0 * arcs)
+    x = (-b + math.sqrt(b * b + 4.0 * a2 * m)) / (2.0 * a2)
     return 1.0 / (x * x)
 
 

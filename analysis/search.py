@@ -165,9 +165,9 @@ class Theta:
     width ``w_deg``, the loops' mean lag ``tau`` (s; None: no servo dynamics) and the share ``ff`` of a
     command step that the loops' velocity feed-forward passes at once (their lag on the circle is
     ``(1 - ff) tau``: how far the command leads the axes, and so where a step made in the command lands);
-    ``smooth``: the share of the overhead's shaping part that averages the trapezoid (a jerk limit, a filter
-    after interpolation) rather than accelerating it, which sets how long a feed-in too short to reach the feed
-    lasts (:func:`.program.feed_in_half`)."""
+    ``smooth``: where the feed-in is too short to reach the feed, how far its duration lies from the
+    trapezoid's triangle (0) toward the average's ``f/V + c_a`` (1: a jerk limit's S-curve, a filter after
+    interpolation; :func:`.program.short_move_duration`)."""
 
     c: float = 0.0
     wait: float = 0.0
@@ -261,7 +261,7 @@ class Context:
 OffsetFor = Callable[[Theta], Offset | None]
 LostFor = Callable[[Theta], LostMotion]  # the lost-motion models' angles at the nonlinear parameters (the loops' lag)
 TIMING = (0, 1)  # the coordinates of Theta.vector that move the samples' angles: the lag and the wait
-SMOOTH = 5  # ... and the short feed-in's smoothing share, which moves them too (and the feed, as the lag does)
+SMOOTH = 5  # ... and the short feed-in's duration share, which moves them too (and the feed, as the lag does)
 
 
 class Objective:

@@ -9,7 +9,7 @@ import pytest
 
 from ballbar.analysis import TestPlan
 from ballbar.analysis.engine import analyze_recording
-from ballbar.analysis.program import centroid_span_s, feed_from_span, move_duration
+from ballbar.analysis.program import centroid_span_s, feed_from_span, move_duration, short_move_duration
 from ballbar.tools.bench import physim as ps
 
 R, F = 100.0, 2000.0  # at 15.625 Hz a sample spans 2.1 mm, 1.2 deg
@@ -43,16 +43,16 @@ def test_servo_mismatch_at_a_low_rate_is_no_lateral_play(seed: int) -> None:
 @pytest.mark.parametrize("share", [0.0, 0.3, 0.6, 1.0])
 def test_the_span_inverts_for_any_smoothing_share_of_a_short_feed_in(share: float) -> None:
     # F 2000 with 83 ms of overhead: the 1.5 mm feed-in (V c = 2.8 mm) may be short; the feed from the span
-    # must be the one that made it, whatever share of the overhead averages rather than accelerates
+    # must be the one that made it, wherever the feed-in's duration lies between its two limits
     plan = TestPlan(sample_hz=1000.0, radius_mm=R, feed_mm_min=F)
     V, c = F / 60.0, 0.0833
     span = centroid_span_s(plan, V, c, None, share)
     assert feed_from_span(plan, span, c, None, share) == pytest.approx(V, rel=1e-9)
-    # a trapezoid averaged over all of its overhead lasts s/V + c, reached or not
-    if share == 1.0:
-        assert move_duration(plan.feed_in_mm, V, c, c) == pytest.approx(plan.feed_in_mm / V + c)
-    if share == 0.0:
-        assert move_duration(plan.feed_in_mm, V, c, 0.0) == pytest.approx(2 * (plan.feed_in_mm * c / V) ** 0.5)
+    # between the trapezoid's triangle and the average's s/V + c, which differ by (sqrt(s/V) - sqrt(c))^2
+    f = plan.feed_in_mm
+    tri = 2 * (f * c / V) ** 0.5
+    assert short_move_duration(f, V, c, share) == pytest.approx(tri + share * ((f / V) ** 0.5 - c**0.5) ** 2)
+    assert short_move_duration(f, V, c, 0.0) == pytest.approx(move_duration(f, V, c))
 
 
 def test_a_short_jerk_limited_feed_in_is_no_lateral_play() -> None:
