@@ -187,7 +187,10 @@ class Pieces:
         # the lag starts at, and is drawn toward, the acceleration part of the per-move overhead that the feed-in's
         # and feed-out's spread in time show (the overhead is at least that), 0 where they do not show it
         self.c0 = min(max(self.accel, 0.0), options.max_lag_s) if self.accel is not None else 0.0
-        self.state = _State(Theta(self.c0, 0.0, w0, lag.tau, smooth=SMOOTH_PRIOR[0]), {}, LostMotion())
+        # a feed-in that may be short starts midway between its durations' limits; else the triangle's, where
+        # the lag grows enough to make it short without the search (the schedule's model before the share)
+        smooth0 = SMOOTH_PRIOR[0] if options.estimate_lag and self._short_feed_in(self.c0) else 0.0
+        self.state = _State(Theta(self.c0, 0.0, w0, lag.tau, smooth=smooth0), {}, LostMotion())
         # the search's samples: the data arcs whatever lag the search tries
         base = self.ctx.timing(Theta())
         trim = 1.5 * options.max_lag_s
@@ -303,12 +306,12 @@ class Pieces:
             out.append(5)
         return out
 
-    def _short_feed_in(self) -> bool:
+    def _short_feed_in(self, c: float | None = None) -> bool:
         """Whether the feed-in may be too short to reach the feed at the starting lag: then how long it lasts
         depends on the control (a plain trapezoid's triangle, or as long as if it reached the feed where the
         trapezoid is averaged, a jerk limit's ``A/J`` or a filter's after interpolation: both are common), which
         the fit searches (:func:`.program.short_move_duration`)."""
-        c = max(self.c0, self.state.theta.c)
+        c = max(self.c0, self.state.theta.c) if c is None else c
         shape = accel_part(c, self.accel)
         V = feed_from_span(self.plan, self.span, c, self.accel)
         return shape > 0 and math.isfinite(V) and self.plan.feed_in_mm < V * shape

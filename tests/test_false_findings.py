@@ -11,6 +11,8 @@ from ballbar.analysis import TestPlan
 from ballbar.analysis.engine import analyze_recording
 from ballbar.analysis.program import centroid_span_s, feed_from_span, move_duration, short_move_duration
 from ballbar.tools.bench import physim as ps
+from ballbar.tools.bench.false_alarms import analyse, false_findings
+from ballbar.tools.simulator import MachineModel
 
 R, F = 100.0, 2000.0  # at 15.625 Hz a sample spans 2.1 mm, 1.2 deg
 
@@ -72,3 +74,16 @@ def test_a_short_jerk_limited_feed_in_is_no_lateral_play() -> None:
         assert not p["significant"], (name, p["value"], p["stderr"], p["p_value"])
         assert abs(p["value"]) < 3 * p["stderr"], (name, p["value"], p["stderr"])
     assert tests[0]["fit"]["evaluations"] <= 40
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_plain_trapezoids_short_feed_in_is_no_lateral_play(seed: int) -> None:
+    # the project's simulator without a jerk limit: A 500 at F 2000, so the 1.5 mm feed-in (V c = 2.2 mm) is the
+    # trapezoid's true triangle, the other limit of the feed-in's duration; 43/28 1/s and backlash of both signs
+    machine = MachineModel(kv_x_per_s=43.0, kv_y_per_s=28.0, accel_mm_s2=500.0, backlash_x_um=6.0,
+                           backlash_y_um=-3.0, noise_um=0.1)
+    res, truth = analyse(machine, 1000.0, seed=seed, radius_mm=R, feed_mm_min=F)
+    assert not false_findings(res, truth)
+    for name in ("lateral_play_x_um", "lateral_play_y_um"):
+        p = res["parameters"][name]
+        assert abs(p["value"]) < 3 * p["stderr"], (name, p["value"], p["stderr"])
