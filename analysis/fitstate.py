@@ -187,8 +187,8 @@ class Pieces:
         # the lag starts at, and is drawn toward, the acceleration part of the per-move overhead that the feed-in's
         # and feed-out's spread in time show (the overhead is at least that), 0 where they do not show it
         self.c0 = min(max(self.accel, 0.0), options.max_lag_s) if self.accel is not None else 0.0
-        # a feed-in that may be short starts midway between its durations' limits; else the triangle's, where
-        # the lag grows enough to make it short without the search (the schedule's model before the share)
+        # a feed-in short at the starting lag starts midway between its durations' limits; else at the triangle's
+        # (the schedule's model before the share), where the search starts should a later lag make it short
         smooth0 = SMOOTH_PRIOR[0] if options.estimate_lag and self._short_feed_in(self.c0) else 0.0
         self.state = _State(Theta(self.c0, 0.0, w0, lag.tau, smooth=smooth0), {}, LostMotion())
         # the search's samples: the data arcs whatever lag the search tries
