@@ -42,11 +42,13 @@ def make_timing(
     overhead_s: float,
     shift_s: dict[int, float] | None = None,
     accel_s: float | None = None,
+    smooth_share: float = 0.0,
 ) -> Timing:
     """The timing at feed ``V`` and per-move overhead ``c``; ``shift_s``: per direction, how much later its data
     arc runs than equal overheads put it (a wait before that arc longer than the others', e.g. in-position);
-    ``accel_s``: the part of ``c`` that is acceleration (:func:`.program.feed_in_half`), None: all of it."""
-    sched = schedule(plan, feed_mm_s, overhead_s, accel_s)
+    ``accel_s``: the part of ``c`` that shapes the move, None: all of it; ``smooth_share``: the share of that
+    which averages the trapezoid rather than accelerating it (:func:`.program.feed_in_half`)."""
+    sched = schedule(plan, feed_mm_s, overhead_s, accel_s, smooth_share)
     if shift_s:
         sched = replace(
             sched,

@@ -383,7 +383,8 @@ class Assembly(Pieces):
         if timing_cov is not None:
             res["fit"]["uncertainty_method"] += (
                 "; every parameter's also holds the spread of the nonlinear parameters the same samples fixed (the "
-                "arc-start lag, the feed-in's extra wait, the spikes' width, the loops' lag where fitted: their "
+                "arc-start lag, the feed-in's extra wait, the spikes' width, the loops' lag where fitted, the "
+                "share of a short feed-in's duration where searched: their "
                 "covariance from the likelihood's curvature, times each coefficient's change with them), and each "
                 "F-test keeps the share of its Wald statistic left once that is counted"
             )

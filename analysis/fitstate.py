@@ -18,7 +18,7 @@ from .loops import DEFAULT_KV_PER_S, Lag
 from .patterns import FEED_FORWARD, Geometry, select
 from .physics import LostMotion, Offset, axis_reversals, loop_angles, make_offset, mean_lag
 from .plan import AnalysisOptions, MachineConfig, TestPlan
-from .program import accel_from_spread, arc_start_deg, feed_from_span, schedule
+from .program import accel_from_spread, accel_part, arc_start_deg, feed_from_span, schedule
 from .result import (
     unreached_spikes,
 )
@@ -42,6 +42,8 @@ from .validity import reading_step, sensor_noise
 
 LAG_PRIOR_S = 0.05  # prior on the arc-start lag: where the data cannot see it, it stays near the feed-in's shape's
 WAIT_PRIOR_S = 0.1  # ... and on the feed-in's extra wait
+SMOOTH_PRIOR = (0.5, 0.35)  # ... and on where a short feed-in's duration lies between its limits (0..1)
+SMOOTH_STEP = 0.05
 WAIT_MAX_S = 0.3
 LAG_BELOW_S = 0.1  # a negative per-move overhead is unphysical: only this far below 0
 TAU_PRIOR_LN = math.log(2.5)  # the loops' lag where nothing tells it: within a factor 2.5 of the default's
@@ -185,7 +187,10 @@ class Pieces:
         # the lag starts at, and is drawn toward, the acceleration part of the per-move overhead that the feed-in's
         # and feed-out's spread in time show (the overhead is at least that), 0 where they do not show it
         self.c0 = min(max(self.accel, 0.0), options.max_lag_s) if self.accel is not None else 0.0
-        self.state = _State(Theta(self.c0, 0.0, w0, lag.tau), {}, LostMotion())
+        # a feed-in short at the starting lag starts midway between its durations' limits; else at the triangle's
+        # (the schedule's model before the share), where the search starts should a later lag make it short
+        smooth0 = SMOOTH_PRIOR[0] if options.estimate_lag and self._short_feed_in(self.c0) else 0.0
+        self.state = _State(Theta(self.c0, 0.0, w0, lag.tau, smooth=smooth0), {}, LostMotion())
         # the search's samples: the data arcs whatever lag the search tries
         base = self.ctx.timing(Theta())
         trim = 1.5 * options.max_lag_s
@@ -274,13 +279,15 @@ class Pieces:
         lo_c = -min(self.options.max_lag_s, LAG_BELOW_S)
         bounds = {0: (lo_c, self.options.max_lag_s), 1: (-WAIT_MAX_S, WAIT_MAX_S),
                   2: (math.log(self.widths[0]), math.log(self.widths[1])),
-                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0])), 4: (0.0, FF_MAX)}
+                  3: (-math.log(TAU_BOUNDS_PER_S[1]), -math.log(TAU_BOUNDS_PER_S[0])), 4: (0.0, FF_MAX),
+                  5: (0.0, 1.0)}
         # finite differences on the scale the objective is smooth on: a tenth of a bin's travel, at least a
         # hundredth of a sample period
         fine_s = math.radians(FINE_BIN_DEG) / self.omega0
         h_t = max(0.1 * max(fine_s, self.period_s), 1e-5)
-        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02, 4: 0.02}
-        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S), Prior(4, 0.0, FF_PRIOR)]
+        steps = {0: h_t, 1: h_t, 2: 0.02, 3: 0.02, 4: 0.02, 5: SMOOTH_STEP}
+        priors = [Prior(0, self.c0, LAG_PRIOR_S), Prior(1, 0.0, WAIT_PRIOR_S), Prior(4, 0.0, FF_PRIOR),
+                  Prior(5, SMOOTH_PRIOR[0], SMOOTH_PRIOR[1])]
         if self.tau_fitted:
             priors.append(Prior(3, -math.log(DEFAULT_KV_PER_S), TAU_PRIOR_LN))
         return bounds, steps, [p for p in priors if p.index in active]
@@ -295,7 +302,19 @@ class Pieces:
             out.append(3)
         elif self._command_steps():
             out.append(4)
+        if self.options.estimate_lag and self._short_feed_in():
+            out.append(5)
         return out
+
+    def _short_feed_in(self, c: float | None = None) -> bool:
+        """Whether the feed-in may be too short to reach the feed at the starting lag: then how long it lasts
+        depends on the control (a plain trapezoid's triangle, or as long as if it reached the feed where the
+        trapezoid is averaged, a jerk limit's ``A/J`` or a filter's after interpolation: both are common), which
+        the fit searches (:func:`.program.short_move_duration`)."""
+        c = max(self.c0, self.state.theta.c) if c is None else c
+        shape = accel_part(c, self.accel)
+        V = feed_from_span(self.plan, self.span, c, self.accel)
+        return shape > 0 and math.isfinite(V) and self.plan.feed_in_mm < V * shape
 
     def _command_steps(self) -> bool:
         """Whether the current estimates hold an over-set backlash compensation, a step made in the command:

@@ -143,15 +143,31 @@ def move_duration(length_mm: float, feed_mm_s: float, overhead_s: float) -> floa
     return 2.0 * math.sqrt(length_mm * overhead_s / feed_mm_s)
 
 
-def feed_in_half(f: float, V: float, c: float, accel_s: float | None) -> float:
+def short_move_duration(length_mm: float, feed_mm_s: float, overhead_s: float, smooth_share: float = 0.0) -> float:
+    """Rest-to-rest duration of a move whose shape takes ``overhead_s``, where it may be too short to reach the
+    feed: between the trapezoid's triangle ``2 sqrt(s c / V)`` (all of ``c`` accelerates: ``smooth_share`` 0)
+    and ``s / V + c`` (the trapezoid averaged over ``c``, a jerk limit's S-curve or a filter after
+    interpolation, lasts that whether it reaches the feed or not: 1), at ``smooth_share`` of the way; the two
+    differ by ``(sqrt(s / V) - sqrt(c))^2``.  A move that reaches the feed lasts ``s / V + c`` either way."""
+    if overhead_s <= 0.0 or length_mm >= feed_mm_s * overhead_s:
+        return length_mm / feed_mm_s + overhead_s
+    q = min(max(smooth_share, 0.0), 1.0)
+    tri = 2.0 * math.sqrt(length_mm * overhead_s / feed_mm_s)
+    return tri + q * (length_mm / feed_mm_s + overhead_s - tri)
+
+
+def feed_in_half(f: float, V: float, c: float, accel_s: float | None, smooth_share: float = 0.0) -> float:
     """From the feed-in's centroid (its middle) to the end of its share of the per-move overhead ``c``.
 
-    ``accel_s``: the part of ``c`` that is acceleration (the rest, e.g. an
-    in-position wait, does not shape the move); None: all of it.  Only a move
-    shorter than ``V accel_s`` is the trapezoid's triangle.
+    ``accel_s``: the part of ``c`` that shapes the move (the rest, e.g. an
+    in-position wait, does not); None: all of it.  ``smooth_share``: where
+    the feed-in is shorter than ``V accel_s``, how far its duration lies from
+    the trapezoid's triangle toward the average's ``f/V + accel_s``
+    (:func:`short_move_duration`; analysis/README.md, "The feed-in's own
+    duration").
     """
     a = accel_part(c, accel_s)
-    return move_duration(f, V, a) / 2 + (c - a) / 2
+    return short_move_duration(f, V, a, smooth_share) / 2 + (c - a) / 2
 
 
 def accel_part(c: float, accel_s: float | None) -> float:
@@ -183,17 +199,20 @@ def accel_from_spread(f: float, V: float, var_s2: float) -> float:
     return 6.0 * V * var_s2 / f
 
 
-def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0, accel_s: float | None = None) -> Schedule:
+def schedule(
+    plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0, accel_s: float | None = None, smooth_share: float = 0.0
+) -> Schedule:
     """Predicted timing of ``plan`` at path feed ``feed_mm_s`` and per-move overhead ``overhead_s``.
 
-    ``accel_s``: the acceleration part of the overhead, where known (:func:`feed_in_half`).
+    ``accel_s``: the part of the overhead that shapes the move, where known; ``smooth_share``: where a short
+    feed-in's duration lies between its triangle and ``f/V + accel_s`` (:func:`feed_in_half`).
     """
     V, c = feed_mm_s, overhead_s
     R, f, D = plan.radius_mm, plan.feed_in_mm, plan.dwell_s
     o, a = math.radians(plan.overshoot_deg), math.radians(plan.data_arc_deg)
     arc_len = R * (a + 2 * o)
     # The feed-in's centroid sits at its middle, whether or not it reaches the feed.
-    half_feed_in = feed_in_half(f, V, c, accel_s)
+    half_feed_in = feed_in_half(f, V, c, accel_s, smooth_share)
     t = half_feed_in  # end of feed-in, relative to its centroid
     ds: dict[int, float] = {}
     de: dict[int, float] = {}
@@ -209,12 +228,16 @@ def schedule(plan: TestPlan, feed_mm_s: float, overhead_s: float = 0.0, accel_s:
     return Schedule(V, c, ds, de, arc_start, feed_out_centroid)
 
 
-def centroid_span_s(plan: TestPlan, feed_mm_s: float, overhead_s: float, accel_s: float | None = None) -> float:
+def centroid_span_s(
+    plan: TestPlan, feed_mm_s: float, overhead_s: float, accel_s: float | None = None, smooth_share: float = 0.0
+) -> float:
     """Time from the feed-in's centroid to the feed-out's."""
-    return schedule(plan, feed_mm_s, overhead_s, accel_s).feed_out_centroid_s
+    return schedule(plan, feed_mm_s, overhead_s, accel_s, smooth_share).feed_out_centroid_s
 
 
-def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0, accel_s: float | None = None) -> float:
+def feed_from_span(
+    plan: TestPlan, span_s: float, overhead_s: float = 0.0, accel_s: float | None = None, smooth_share: float = 0.0
+) -> float:
     """Invert :func:`centroid_span_s` for the feed (mm/s).
 
     Where the feed-in reaches the feed the span is linear in ``1/V``; where it
@@ -227,18 +250,21 @@ def feed_from_span(plan: TestPlan, span_s: float, overhead_s: float = 0.0, accel
     n_dwells = n_dirs + 1
     f, c = plan.feed_in_mm, overhead_s
     acc = accel_part(c, accel_s)
+    q = min(max(smooth_share, 0.0), 1.0)
     arcs = n_dirs * plan.radius_mm * math.radians(plan.arc_deg)
     # Reaching the feed: span = dwells + n_dirs c + c (two half feed moves) + (f + arcs) / V.
     moving = span_s - n_dwells * plan.dwell_s - (n_dirs + 1) * c
     V = (f + arcs) / moving if moving > 0 else float("nan")
     if acc <= 0.0 or not math.isfinite(V) or f >= V * acc:
         return V
-    # A triangle feed-in: span = dwells + n_dirs c + (c - acc) + arcs x^2 + 2 sqrt(f acc) x with x = 1/sqrt(V).
-    m = span_s - n_dwells * plan.dwell_s - n_dirs * c - (c - acc)
-    b = 2.0 * math.sqrt(f * acc)
+    # A short feed-in, (1 - q) of the triangle and q of f/V + acc (:func:`short_move_duration`): with
+    # x = 1/sqrt(V), span = dwells + n_dirs c + (c - acc) + q acc + (arcs + q f) x^2 + (1 - q) 2 sqrt(f acc) x.
+    m = span_s - n_dwells * plan.dwell_s - n_dirs * c - (c - acc) - q * acc
+    a2 = arcs + q * f
+    b = (1.0 - q) * 2.0 * math.sqrt(f * acc)
     if m <= 0:
         return float("nan")
-    x = (-b + math.sqrt(b * b + 4.0 * arcs * m)) / (2.0 * arcs)
+    x = (-b + math.sqrt(b * b + 4.0 * a2 * m)) / (2.0 * a2)
     return 1.0 / (x * x)
 
 

@@ -104,8 +104,9 @@ def timing_dict(
         },
         "method": (
             "feed from the feed-in to feed-out centroid span; the arc-start lag (per-move overhead), each data "
-            "arc's shift against it (unequal waits before the arcs, kept only where the data need them: "
-            + ("kept" if wait_free else "not needed here, 0")
+            "arc's shift against it (unequal waits before the arcs, or the feed-in's own duration off the "
+            "schedule's model of it: fitted, its spread counted in every parameter's"
+            + ("" if wait_free else "; not fitted here, 0")
             + "), the spikes' width and, where nothing else tells it, the loops' lag, by separable least squares "
             "of the full model (Gauss-Newton on the residual of the linear fit), every sharp feature integrated "
             "over each sample's interval"

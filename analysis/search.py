@@ -164,21 +164,25 @@ class Theta:
     """The nonlinear parameters: arc-start lag ``c`` (s), the feed-in's extra wait ``wait`` (s), the spikes'
     width ``w_deg``, the loops' mean lag ``tau`` (s; None: no servo dynamics) and the share ``ff`` of a
     command step that the loops' velocity feed-forward passes at once (their lag on the circle is
-    ``(1 - ff) tau``: how far the command leads the axes, and so where a step made in the command lands)."""
+    ``(1 - ff) tau``: how far the command leads the axes, and so where a step made in the command lands);
+    ``smooth``: where the feed-in is too short to reach the feed, how far its duration lies from the
+    trapezoid's triangle (0) toward the average's ``f/V + c_a`` (1: a jerk limit's S-curve, a filter after
+    interpolation; :func:`.program.short_move_duration`)."""
 
     c: float = 0.0
     wait: float = 0.0
     w_deg: float = 0.5
     tau: float | None = None
     ff: float = 0.0
+    smooth: float = 0.0
 
     def vector(self) -> np.ndarray:
-        return np.array([self.c, self.wait, math.log(self.w_deg), math.log(self.tau or 1.0), self.ff])
+        return np.array([self.c, self.wait, math.log(self.w_deg), math.log(self.tau or 1.0), self.ff, self.smooth])
 
     @classmethod
     def of(cls, v: np.ndarray, tau_known: bool) -> Theta:
         return cls(float(v[0]), float(v[1]), float(math.exp(v[2])), float(math.exp(v[3])) if tau_known else None,
-                   float(v[4]))
+                   float(v[4]), float(v[5]) if len(v) > 5 else 0.0)
 
 
 @dataclass
@@ -230,11 +234,11 @@ class Context:
 
     def feed(self, theta: Theta) -> float:
         """The path feed (mm/s): from the feed-in to feed-out span at the arc-start lag."""
-        return feed_from_span(self.plan, self.span_s, theta.c, self.accel_s)
+        return feed_from_span(self.plan, self.span_s, theta.c, self.accel_s, theta.smooth)
 
     def timing(self, theta: Theta) -> Timing:
         V = self.feed(theta)
-        return make_timing(self.plan, self.t_ref, V, theta.c, self.shifts(theta.wait), self.accel_s)
+        return make_timing(self.plan, self.t_ref, V, theta.c, self.shifts(theta.wait), self.accel_s, theta.smooth)
 
     def geometry(
         self, b: Binned, timing: Timing, tau: float | None, lost: LostMotion, smooth_rad: float, du: float = 0.0,
@@ -257,6 +261,7 @@ class Context:
 OffsetFor = Callable[[Theta], Offset | None]
 LostFor = Callable[[Theta], LostMotion]  # the lost-motion models' angles at the nonlinear parameters (the loops' lag)
 TIMING = (0, 1)  # the coordinates of Theta.vector that move the samples' angles: the lag and the wait
+SMOOTH = 5  # ... and the short feed-in's duration share, which moves them too (and the feed, as the lag does)
 
 
 class Objective:
@@ -356,7 +361,7 @@ class Objective:
         slope_u = None
         base = None
         for k in active:
-            if k in TIMING:
+            if k in TIMING or k == SMOOTH:
                 if slope_u is None:
                     du = 1e-3 * self._finest_rad(e.theta)
                     A1, y1 = self.rows(e.theta, du)
@@ -369,7 +374,7 @@ class Objective:
                 moved = self.angles(moved_theta)
                 s = slope_u * np.concatenate([(moved[d] - base[d]) / steps[k] for d in self.bins])
                 j = self.ctx.servo_col
-                if k == 0 and j is not None and use[j]:
+                if k in (0, SMOOTH) and j is not None and use[j]:
                     V0, V1 = self.ctx.timing(e.theta).feed_mm_s, self.ctx.timing(moved_theta).feed_mm_s
                     col = e.A[:, int(np.count_nonzero(use[:j]))]  # the servo column, weighted
                     s = s - col * (e.x[j] / V0) * ((V1 - V0) / steps[k])
@@ -685,7 +690,8 @@ def minimise(
 
 def _slope_designs(active: Sequence[int]) -> int:
     """The designs :meth:`Objective.slopes` makes: one for the timing coordinates together, one each other."""
-    return int(any(k in TIMING for k in active)) + sum(k not in TIMING for k in active)
+    timing = (*TIMING, SMOOTH)
+    return int(any(k in timing for k in active)) + sum(k not in timing for k in active)
 
 
 def _decrement(H: np.ndarray, g: np.ndarray) -> float:

@@ -17,7 +17,7 @@ The stages (each a few Gauss-Newton steps of :func:`.search.minimise`):
 3. with the corrections at that timing, fine bins about the sharp features
    where they now lie, the features integrated over the bins alone, the
    spikes' width with the timing; again where the lost-motion model changed;
-4. the feed-in's wait kept only where the data need it (its Wald test);
+4. the feed-in's wait kept free, its spread counted in every parameter's;
 5. the final fit, its corrections brought to their fixed point.
 """
 
@@ -50,8 +50,6 @@ from .search import (
 
 SMOOTH_S = 0.02  # the first stage integrates the sharp features over this much travel (s of the feed)
 FF_GRID = (0.0, 0.25, 0.5, 0.75, 0.95)  # its search starts from the best of these
-WAIT_Z = 4.0  # the feed-in's extra wait is kept where it is this many standard errors from 0: a nuisance that
-# trades with what moves one arc against the other (lateral play, at low rates), kept only where clearly needed
 STAGE_CAPS = (8, 14, 6, 6)  # designs per search: the coarse stage's, the fine's, the spike-free model's, each
 # point-sample share's (the first Jacobian and a step always)
 POINT_APERTURES = (0.2, 0.03)  # the last stage integrates the sharp features over these shares of a sample's
@@ -123,21 +121,17 @@ class TestFit(Assembly):
                 self.spike_sse = (found.best.sse, bare.best.sse, obj.samples)
                 if bare.best.sse < found.best.sse:
                     nb = bare.best.theta
-                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff)
+                    self.state.theta = replace(found.best.theta, c=nb.c, wait=nb.wait, tau=nb.tau, ff=nb.ff,
+                                               smooth=nb.smooth)
                     restarted, again = True, True
             if not again:
                 break
-        # 4. the feed-in's extra wait only where the data need it (its Wald test at WAIT_Z); where it is not, the other
-        # coordinates move to their best given a wait of 0 (the likelihood's quadratic), and the fit is made there
-        last: Found | None = self.state.found
-        self.wait_free = False
-        if last is not None and 1 in last.active:
-            cov = last.cov(self._noise(last.best, obj.samples))
-            j = last.active.index(1)
-            if abs(self.state.theta.wait) > WAIT_Z * math.sqrt(max(cov[j, j], 0.0)):
-                self.wait_free = True
-            else:
-                self._hold(obj, last, 1, 0.0, drop=True)
+        # 4. the feed-in's extra wait stays free, its spread counted: what the schedule puts between the feed-in's
+        # centroid and each arc (a short move's profile, how much of the overhead shapes the move, an
+        # in-position wait) is known only to milliseconds where the feed-in spans a few samples, and one arc's
+        # shift against the other turns a large servo pattern into lateral play
+        last = self.state.found
+        self.wait_free = last is not None and 1 in last.active
         # the loops' lag, where nothing but the data arcs tell it, moves off the default gain only where the data
         # prefer another by more than TAU_NATS (what they say of it with the rest profiled out)
         last = self.state.found

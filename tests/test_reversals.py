@@ -151,16 +151,19 @@ def test_false_alarms_on_random_machines() -> None:
     assert len(found) <= 0.05 * FALSE_ALARM_MACHINES, found
 
 
-def test_the_feed_ins_extra_wait_is_fitted_only_where_the_data_need_it() -> None:
-    """A wait the data do not need is 0, not a free timing that trades with what else moves both arcs' starts
-    (with 20 ms of servo mismatch, the servo pattern turned by it reads as scale mismatch); where the control
-    waits for in-position after each move (here 0.1 s more after the arcs than after the feed-in) it is
-    fitted."""
+def test_the_feed_ins_extra_wait_is_fitted_and_small_where_the_control_waits_nothing() -> None:
+    """The wait is always fitted, its spread counted (analysis/README.md, "Why the wait is never held at 0"):
+    where the control waits nothing it comes out within a couple of milliseconds of 0 (what the schedule's
+    model of the feed-in leaves), the same for every noise, and trades with nothing it could make a finding of
+    (the test above: servo mismatch only); where the control waits for in-position after each move (here
+    0.1 s more after the arcs than after the feed-in) it is found."""
     gains = dict(kv_x_per_s=43.0, kv_y_per_s=23.0, noise_um=0.05)
     for seed in (0, 1, 2):
         res, _ = analyse(MachineModel(**gains), 1000.0, seed=seed)
         arcs = res["timing"]["data_arcs"]
-        assert arcs["ccw"]["shift_s"] == arcs["cw"]["shift_s"] == 0.0, (seed, arcs)
+        # the first of two arcs runs 2/3 of the wait later, the second 1/3 (analysis/README.md, "Timing model")
+        assert abs(arcs["ccw"]["shift_s"]) < 0.002, (seed, arcs)
+        assert arcs["ccw"]["shift_s"] == pytest.approx(2 * arcs["cw"]["shift_s"]), (seed, arcs)
     res, _ = analyse(MachineModel(**gains, in_position_um=5.0), 1000.0)
     assert res["timing"]["data_arcs"]["ccw"]["shift_s"] < -0.05
 
