@@ -47,6 +47,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from ballbar.analysis import TestPlan
+
 log = logging.getLogger(__name__)
 
 CNC_NAMESPACE = "http://opcfoundation.org/UA/CNC"
@@ -71,32 +73,26 @@ class Story:
     """The program the simulated machine runs on repeat, and the override's schedule."""
 
     program: str = "O9101"
-    plane: str = "XY"
-    radius_mm: float = 100.0
-    feed_mm_min: float = 1000.0
-    start_deg: float = 0.0
-    overshoot_deg: float = 180.0
-    data_arc_deg: float = 360.0
-    feed_in_mm: float = 1.5
-    dwell_s: float = 0.5
+    plan: TestPlan = field(default_factory=TestPlan)  # the test program's geometry and feed (the daemon's plan)
     idle_s: float = 5.0
     kv_per_s: float = 30.0
     override_at: list[tuple[float, float]] = field(default_factory=list)  # (seconds from start, percent)
 
     def blocks(self) -> list[Block]:
-        arc = self.overshoot_deg * 2 + self.data_arc_deg
-        arc_s = math.radians(arc) * self.radius_mm / self.feed_mm_min * 60.0
-        line_s = self.feed_in_mm / self.feed_mm_min * 60.0
+        p = self.plan
+        arc = p.overshoot_deg * 2 + p.data_arc_deg
+        arc_s = math.radians(arc) * p.radius_mm / p.feed_mm_min * 60.0
+        line_s = p.feed_in_mm / p.feed_mm_min * 60.0
         g2, g3 = "G02", "G03"
         return [
             Block("", self.idle_s, "idle"),
-            Block(f"N10 G{G_PLANE[self.plane]} G90 G01 F{self.feed_mm_min:g}", line_s, "line_in"),
-            Block(f"N20 G04 P{self.dwell_s:g}", self.dwell_s, "dwell"),
-            Block(f"N30 {g3} (ccw {arc:g} deg)", arc_s, "arc_ccw", arc, self.start_deg - self.overshoot_deg),
-            Block(f"N40 G04 P{self.dwell_s:g}", self.dwell_s, "dwell"),
-            Block(f"N50 {g2} (cw {arc:g} deg)", arc_s, "arc_cw", arc, self.start_deg + self.data_arc_deg
-                  + self.overshoot_deg),
-            Block(f"N60 G04 P{self.dwell_s:g}", self.dwell_s, "dwell"),
+            Block(f"N10 G{G_PLANE[p.plane]} G90 G01 F{p.feed_mm_min:g}", line_s, "line_in"),
+            Block(f"N20 G04 P{p.dwell_s:g}", p.dwell_s, "dwell"),
+            Block(f"N30 {g3} (ccw {arc:g} deg)", arc_s, "arc_ccw", arc, p.start_deg - p.overshoot_deg),
+            Block(f"N40 G04 P{p.dwell_s:g}", p.dwell_s, "dwell"),
+            Block(f"N50 {g2} (cw {arc:g} deg)", arc_s, "arc_cw", arc, p.start_deg + p.data_arc_deg
+                  + p.overshoot_deg),
+            Block(f"N60 G04 P{p.dwell_s:g}", p.dwell_s, "dwell"),
             Block("N70 G01 (feed-out)", line_s, "line_out"),
             Block("N80 M30", 0.05, "dwell"),
         ]
@@ -140,13 +136,13 @@ class Machine:
         s = self.story
         i, f = self._at(tau)
         b = self.blocks[i]
-        r, angle = s.radius_mm, s.start_deg
+        r, angle = s.plan.radius_mm, s.plan.start_deg
         if b.kind == "idle":
-            r = s.radius_mm - s.feed_in_mm
+            r = s.plan.radius_mm - s.plan.feed_in_mm
         elif b.kind == "line_in":
-            r = s.radius_mm - s.feed_in_mm * (1 - f)
+            r = s.plan.radius_mm - s.plan.feed_in_mm * (1 - f)
         elif b.kind == "line_out":
-            r = s.radius_mm - s.feed_in_mm * f
+            r = s.plan.radius_mm - s.plan.feed_in_mm * f
         elif b.kind == "arc_ccw":
             angle = b.start_deg + b.arc_deg * f
         elif b.kind == "arc_cw":
@@ -157,8 +153,8 @@ class Machine:
                 last = after[-1]
                 angle = last.start_deg + (last.arc_deg if last.kind == "arc_ccw" else -last.arc_deg)
             if i == len(self.blocks) - 1:
-                r = s.radius_mm - s.feed_in_mm
-        a, b2 = PLANE_AXES[s.plane]
+                r = s.plan.radius_mm - s.plan.feed_in_mm
+        a, b2 = PLANE_AXES[s.plan.plane]
         out = {"X": 0.0, "Y": 0.0, "Z": 0.0}
         out[a] = r * math.cos(math.radians(angle))
         out[b2] = r * math.sin(math.radians(angle))
@@ -175,8 +171,8 @@ class Machine:
         return {
             "ActMainProgramName": self.program_name if running else "",
             "ActOverride": float(self.override),
-            "ActFeedrate": self.story.feed_mm_min * self.override / 100.0 if moving else 0.0,
-            "ActGFunctions": [G_PLANE[self.story.plane], 90, 94, 2 if b.kind == "arc_cw" else 3 if
+            "ActFeedrate": self.story.plan.feed_mm_min * self.override / 100.0 if moving else 0.0,
+            "ActGFunctions": [G_PLANE[self.story.plan.plane], 90, 94, 2 if b.kind == "arc_cw" else 3 if
                               b.kind == "arc_ccw" else 1],
             "ActProgramBlock": [texts[i - 1] if i > 1 else "", b.text, texts[i + 1] if i + 1 < len(texts) else ""]
             if running else [],
@@ -423,8 +419,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 1 <= args.port <= 65535 or not args.update_hz > 0 or not args.feed > 0 or not args.radius > 0:
         print("ballbar-simcnc: --port within 1..65535, --update-hz, --feed and --radius > 0", file=sys.stderr)
         return 2
-    story = Story(program=args.program, plane=args.plane, radius_mm=args.radius, feed_mm_min=args.feed,
-                  idle_s=args.idle_s, kv_per_s=args.kv, override_at=list(args.override_at))
+    plan = TestPlan(plane=args.plane, radius_mm=args.radius, feed_mm_min=args.feed)
+    story = Story(program=args.program, plan=plan, idle_s=args.idle_s, kv_per_s=args.kv,
+                  override_at=list(args.override_at))
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     signal.signal(signal.SIGINT, lambda *_: done.set())
